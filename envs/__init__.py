@@ -1,0 +1,1 @@
+"""astrocargo.envs."""
