@@ -1,0 +1,439 @@
+"""The MuJoCo world: an ISS module, one cargo bag and N Astrobees holding it.
+
+The model is assembled with ``mujoco.MjSpec`` from the three MJCF files in ``assets/``: the module
+is the root, the cargo is attached at the module centre, and robot ``i`` is attached with the
+prefix ``astrobee_i/`` at the pose that makes its gripper's ``grasp`` site coincide with the
+cargo's ``grasp_i`` site while its arm is deployed (tilt -pi/2, pan 0).
+
+Grasp mechanism: a rigid grasp, built as the seed paper's tree rooted at the cargo. The cargo is
+the only free body; robot i's kinematic chain is re-rooted at its gripper, which is fixed to the
+cargo's handrail i, so the chain reads cargo -> gripper -> distal -(pan)-> proximal -(tilt)->
+arm bay -> base. Joint angles keep their meaning (the reversed hinge sits at the same point with
+the axis negated), so encoders, servos and the estimator's base-rooted model are unchanged. Slip is
+zero by construction and the simulated physics is exactly the rigid sub-body model the estimator
+uses. Welds were tried first and rejected: a soft weld between a 0.2 kg gripper and a 5 kg cargo
+leaves relative accelerations of 1e-2 rad/s^2 (and far more under arm motion) at the grasp, so the
+rigid model and the simulation disagree by several times the propulsion limits at an instant
+(scratch measurement kept in the commit history). Contacts between the arm links and the cargo
+are excluded (the fingers close around the handrail).
+
+``World.robot_model(i)`` reads robot i's known model (link masses, centres of mass, inertias, joint
+axes, fixed transforms, IMU / thrust / grasp frames) from the compiled model, merging bodies without
+joints into their parent: it is the estimator's single source of truth.
+"""
+
+from __future__ import annotations
+
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass
+
+import mujoco
+import numpy as np
+
+from astrocargo.assets import ASSETS_DIR
+from astrocargo.estimator.inertia import (
+    check_physical,
+    mass_com_inertia_from_params,
+    params_from_mass_com_inertia,
+    transform_params,
+)
+from astrocargo.estimator.rne import LinkDescription, RobotDescription
+
+MAX_ROBOTS = 4  # the cargo has four grasp handrails
+ARM_DEPLOYED_RAD = (-np.pi / 2, 0.0)  # tilt, pan: arm straight aft (facts file section 5)
+THRUST_ACTUATORS = ("force_x", "force_y", "force_z", "torque_x", "torque_y", "torque_z")
+ARM_JOINTS = ("tilt", "pan")
+ARM_LINK_BODIES = ("proximal", "distal", "gripper")
+GRASP_BODY = "gripper"  # the robot body that holds the cargo
+ROBOT_SENSORS = ("imu_accel", "imu_gyro", "base_pos", "base_quat", "tilt_pos", "pan_pos")
+
+
+def _quat_to_mat(quat: np.ndarray) -> np.ndarray:
+    mat = np.empty(9)
+    mujoco.mju_quat2Mat(mat, np.asarray(quat, dtype=float))
+    return mat.reshape(3, 3)
+
+
+def _mat_to_quat(mat: np.ndarray) -> np.ndarray:
+    quat = np.empty(4)
+    mujoco.mju_mat2Quat(quat, np.asarray(mat, dtype=float).reshape(9))
+    return quat
+
+
+def _fmt(v: np.ndarray) -> str:
+    return " ".join(repr(float(x)) for x in v)
+
+
+def _robot_held_xml(robot_model: mujoco.MjModel) -> str:
+    """astrobee.xml re-rooted at the gripper (see the module docstring).
+
+    Every body keeps its own frame and contents (inertial, geoms, sites); only the nesting, the
+    body poses relative to their new parents and the joints change. Poses come from the compiled
+    forward model, so no number is re-typed.
+    """
+    root = ET.parse(ASSETS_DIR / "astrobee.xml").getroot()
+    worldbody = root.find("worldbody")
+    elems: dict[str, ET.Element] = {}
+    parent_of: dict[str, str | None] = {}
+
+    def walk(el: ET.Element, parent: str | None) -> None:
+        elems[el.get("name")] = el
+        parent_of[el.get("name")] = parent
+        for child in el.findall("body"):
+            walk(child, el.get("name"))
+
+    for top in worldbody.findall("body"):
+        walk(top, None)
+    path = [GRASP_BODY]
+    while parent_of[path[-1]] is not None:
+        path.append(parent_of[path[-1]])
+    if len(path) != len(elems):
+        raise ValueError("every robot body must lie on the path from the base to the gripper")
+    joints = {}
+    for name in path:
+        el = elems[name]
+        hinge = [j for j in el.findall("joint") if j.get("type", "hinge") == "hinge"]
+        joints[name] = hinge[0] if hinge else None
+        for child in list(el):
+            if child.tag in ("joint", "freejoint", "body"):
+                el.remove(child)
+        el.attrib.pop("pos", None)
+        el.attrib.pop("quat", None)
+        el.set("childclass", "astrobee")
+    for child, parent in zip(path[:-1], path[1:], strict=True):
+        b = robot_model.body(child).id
+        rot_c = _quat_to_mat(robot_model.body_quat[b])
+        pos_c = robot_model.body_pos[b]
+        pel = elems[parent]
+        pel.set("pos", _fmt(-rot_c.T @ pos_c))
+        pel.set("quat", _fmt(_mat_to_quat(rot_c.T)))
+        joint = joints[child]
+        if joint is not None:
+            jid = robot_model.joint(joint.get("name")).id
+            if np.linalg.norm(robot_model.jnt_pos[jid]) > 1e-12:
+                raise ValueError(f"joint {joint.get('name')} must sit at its body origin")
+            joint.set("pos", _fmt(pos_c))
+            joint.set("axis", _fmt(-rot_c @ robot_model.jnt_axis[jid]))
+            pel.insert(0, joint)
+        elems[child].append(pel)
+    worldbody.clear()
+    worldbody.append(elems[GRASP_BODY])
+    return ET.tostring(root, encoding="unicode")
+
+
+@dataclass(frozen=True)
+class RobotHandles:
+    """Indices of robot i's pieces in the compiled world model."""
+
+    index: int
+    prefix: str
+    base_body: int
+    arm_joints: tuple[int, ...]
+    arm_qpos_adr: tuple[int, ...]
+    arm_dof_adr: tuple[int, ...]
+    thrust_actuators: tuple[int, ...]
+    arm_actuators: tuple[int, ...]
+    thrust_site: int
+    imu_site: int
+    grasp_site: int
+    cargo_grasp_site: int
+    link_bodies: tuple[int, ...]  # bodies of the arm (proximal, distal, gripper)
+    robot_bodies: tuple[int, ...]  # every body of the robot
+    robot_geoms: tuple[int, ...]
+    sensor_adr: dict[str, int]
+
+
+class World:
+    """An ISS module with one cargo held by ``n_robots`` Astrobees.
+
+    Args:
+        n_robots: number of robots, 1 to ``MAX_ROBOTS``.
+        timestep_s: physics step; ``None`` keeps the MJCF's 0.002 s.
+        cargo_pos_m: initial position of the cargo centre in the module frame.
+    """
+
+    def __init__(
+        self,
+        n_robots: int = 2,
+        timestep_s: float | None = None,
+        cargo_pos_m: tuple[float, float, float] = (0.0, 0.0, 0.0),
+    ) -> None:
+        if isinstance(n_robots, bool) or not isinstance(n_robots, int | np.integer):
+            raise ValueError(f"n_robots must be an integer in 1..{MAX_ROBOTS}, got {n_robots!r}")
+        if not 1 <= n_robots <= MAX_ROBOTS:
+            raise ValueError(f"n_robots must be in 1..{MAX_ROBOTS}, got {n_robots}")
+        if timestep_s is not None and not (np.isfinite(timestep_s) and 0 < timestep_s <= 0.01):
+            raise ValueError(f"timestep_s must be in (0, 0.01] s, got {timestep_s}")
+        cargo_pos = np.asarray(cargo_pos_m, dtype=float)
+        if cargo_pos.shape != (3,) or not np.all(np.isfinite(cargo_pos)):
+            raise ValueError(f"cargo_pos_m must be 3 finite numbers, got {cargo_pos_m!r}")
+        self.n_robots = int(n_robots)
+        self.robot_asset_model = mujoco.MjModel.from_xml_path(str(ASSETS_DIR / "astrobee.xml"))
+        self.spec = self._build_spec(cargo_pos)
+        if timestep_s is not None:
+            self.spec.option.timestep = float(timestep_s)
+        self.model = self.spec.compile()
+        self.robots = tuple(self._handles(i) for i in range(self.n_robots))
+        self.cargo_body = self.model.body("cargo/bag").id
+        self.cargo_qpos_adr = int(self.model.jnt_qposadr[self.model.body_jntadr[self.cargo_body]])
+        self.cargo_qvel_adr = int(self.model.jnt_dofadr[self.model.body_jntadr[self.cargo_body]])
+        self.wall_geoms = tuple(
+            g for g in range(self.model.ngeom) if self.model.geom_bodyid[g] == 0
+        )
+        self._set_grasp_keyframe()
+        model = _read_robot_model(self.robot_asset_model)
+        self._robot_models = (model,) * self.n_robots  # identical robots
+
+    # ------------------------------------------------------------------ building
+    def _build_spec(self, cargo_pos: np.ndarray) -> mujoco.MjSpec:
+        spec = mujoco.MjSpec.from_file(str(ASSETS_DIR / "iss_module.xml"))
+        cargo = mujoco.MjSpec.from_file(str(ASSETS_DIR / "cargo.xml"))
+        cargo_grasp = self._site_poses(cargo.copy(), [f"grasp_{i}" for i in range(MAX_ROBOTS)])
+        spec.attach(cargo, prefix="cargo/", frame=spec.worldbody.add_frame(pos=cargo_pos))
+        bag = spec.body("cargo/bag")
+
+        # Gripper pose in the cargo frame: its grasp site on the cargo's grasp_i site.
+        m = self.robot_asset_model
+        s = m.site("grasp").id
+        if m.site_bodyid[s] != m.body(GRASP_BODY).id:
+            raise ValueError(f"the grasp site must be on the {GRASP_BODY} body")
+        rot_gs, pos_gs = _quat_to_mat(m.site_quat[s]), m.site_pos[s]
+        held_xml = _robot_held_xml(m)
+        for i in range(self.n_robots):
+            rot_cs, pos_cs = cargo_grasp[i]
+            rot_cg = rot_cs @ rot_gs.T
+            frame = bag.add_frame(pos=pos_cs - rot_cg @ pos_gs, quat=_mat_to_quat(rot_cg))
+            spec.attach(mujoco.MjSpec.from_string(held_xml), prefix=f"astrobee_{i}/", frame=frame)
+            for link in ARM_LINK_BODIES:
+                spec.add_exclude(bodyname1=f"astrobee_{i}/{link}", bodyname2="cargo/bag")
+        return spec
+
+    @staticmethod
+    def _site_poses(spec: mujoco.MjSpec, names: list[str]) -> list[tuple[np.ndarray, np.ndarray]]:
+        model = spec.compile()
+        data = mujoco.MjData(model)
+        mujoco.mj_kinematics(model, data)
+        out = []
+        for name in names:
+            s = model.site(name).id
+            out.append((data.site_xmat[s].reshape(3, 3).copy(), data.site_xpos[s].copy()))
+        return out
+
+    def _handles(self, i: int) -> RobotHandles:
+        m = self.model
+        p = f"astrobee_{i}/"
+        joints = tuple(m.joint(p + j).id for j in ARM_JOINTS)
+        bodies = tuple(b for b in range(m.nbody) if m.body(b).name.startswith(p))
+        return RobotHandles(
+            index=i,
+            prefix=p,
+            base_body=m.body(p + "base").id,
+            arm_joints=joints,
+            arm_qpos_adr=tuple(int(m.jnt_qposadr[j]) for j in joints),
+            arm_dof_adr=tuple(int(m.jnt_dofadr[j]) for j in joints),
+            thrust_actuators=tuple(m.actuator(p + a).id for a in THRUST_ACTUATORS),
+            arm_actuators=tuple(m.actuator(p + j).id for j in ARM_JOINTS),
+            thrust_site=m.site(p + "thrust").id,
+            imu_site=m.site(p + "imu").id,
+            grasp_site=m.site(p + "grasp").id,
+            cargo_grasp_site=m.site(f"cargo/grasp_{i}").id,
+            link_bodies=tuple(m.body(p + b).id for b in ARM_LINK_BODIES),
+            robot_bodies=bodies,
+            robot_geoms=tuple(g for g in range(m.ngeom) if m.geom_bodyid[g] in bodies),
+            sensor_adr={n: int(m.sensor_adr[m.sensor(p + n).id]) for n in ROBOT_SENSORS},
+        )
+
+    def _set_grasp_keyframe(self) -> None:
+        qpos = self.model.qpos0.copy()
+        ctrl = np.zeros(self.model.nu)
+        for h in self.robots:
+            for adr, act, q in zip(h.arm_qpos_adr, h.arm_actuators, ARM_DEPLOYED_RAD, strict=True):
+                qpos[adr] = q
+                ctrl[act] = q
+        self.qpos_grasp = qpos
+        self.ctrl_grasp = ctrl
+
+    # ------------------------------------------------------------------ state
+    def make_data(self) -> mujoco.MjData:
+        """A fresh ``MjData`` in the grasp configuration, at rest, after ``mj_forward``."""
+        data = mujoco.MjData(self.model)
+        self.reset_data(data)
+        return data
+
+    def reset_data(self, data: mujoco.MjData) -> None:
+        """Put ``data`` in the grasp configuration at rest and run ``mj_forward``."""
+        mujoco.mj_resetData(self.model, data)
+        data.qpos[:] = self.qpos_grasp
+        data.ctrl[:] = self.ctrl_grasp
+        mujoco.mj_forward(self.model, data)
+
+    # ------------------------------------------------------------------ cargo
+    def cargo_params(self) -> np.ndarray:
+        """True cargo parameters pi (10,) in the cargo frame (origin at the bag's centre)."""
+        b = self.cargo_body
+        rot = _quat_to_mat(self.model.body_iquat[b])
+        inertia = rot @ np.diag(self.model.body_inertia[b]) @ rot.T
+        return params_from_mass_com_inertia(
+            self.model.body_mass[b], self.model.body_ipos[b].copy(), inertia
+        )
+
+    def set_cargo(
+        self,
+        mass_kg: float,
+        com_m: np.ndarray | tuple[float, float, float] = (0.0, 0.0, 0.0),
+        inertia_com: np.ndarray | None = None,
+    ) -> None:
+        """Change the cargo's mass, centre of mass (cargo frame, m) and full inertia tensor about
+        the centre of mass (cargo frame axes, kg m^2) in place, without recompiling.
+
+        Raises ``ValueError`` naming the violated condition for non-physical values (m <= 0,
+        inertia not positive definite, triangle inequality broken). Call ``mj_forward`` (or the
+        env's reset) afterwards so derived quantities are refreshed.
+        """
+        mass = float(mass_kg)
+        com = np.asarray(com_m, dtype=float)
+        if com.shape != (3,):
+            raise ValueError(f"com_m must have shape (3,), got {com.shape}")
+        if inertia_com is None:
+            raise ValueError("inertia_com (3x3 tensor about the centre of mass) is required")
+        inertia = np.asarray(inertia_com, dtype=float)
+        if inertia.shape != (3, 3):
+            raise ValueError(f"inertia_com must have shape (3, 3), got {inertia.shape}")
+        if not np.allclose(inertia, inertia.T, atol=1e-12):
+            raise ValueError("inertia_com must be symmetric")
+        if not (np.isfinite(mass) and np.all(np.isfinite(com)) and np.all(np.isfinite(inertia))):
+            raise ValueError("cargo mass, centre of mass and inertia must be finite")
+        # Also rejects what MuJoCo's compiler would (mass, positive definiteness, triangle).
+        check_physical(params_from_mass_com_inertia(mass, com, inertia))
+        moments, axes = np.linalg.eigh(inertia)
+        if np.linalg.det(axes) < 0:
+            axes[:, 0] *= -1
+        b = self.cargo_body
+        self.model.body_mass[b] = mass
+        self.model.body_ipos[b] = com
+        self.model.body_inertia[b] = moments
+        self.model.body_iquat[b] = _mat_to_quat(axes)
+        # Keep mj_setConst-derived quantities consistent (body_subtreemass is used by sensors).
+        mujoco.mj_setConst(self.model, mujoco.MjData(self.model))
+
+    # ------------------------------------------------------------------ known robot model
+    def robot_model(self, i: int) -> RobotDescription:
+        """Robot i's known model, read from the compiled model (see ``estimator.rne``)."""
+        if not 0 <= i < self.n_robots:
+            raise ValueError(f"robot index must be in 0..{self.n_robots - 1}, got {i}")
+        return self._robot_models[i]
+
+
+def _read_robot_model(m: mujoco.MjModel) -> RobotDescription:
+    """Read the known model of a robot from the compiled (base-rooted) astrobee.xml."""
+    base_body = m.body("base").id
+    robot_bodies = tuple(b for b in range(m.nbody) if m.body_rootid[b] == base_body)
+    prefix = ""
+
+    def body_params(b: int) -> np.ndarray:
+        rot = _quat_to_mat(m.body_iquat[b])
+        inertia = rot @ np.diag(m.body_inertia[b]) @ rot.T
+        return params_from_mass_com_inertia(m.body_mass[b], m.body_ipos[b].copy(), inertia)
+
+    def local_pose(b: int) -> tuple[np.ndarray, np.ndarray]:
+        return _quat_to_mat(m.body_quat[b]), m.body_pos[b].copy()
+
+    # A link is the base or a body with one hinge; bodies without joints merge into their
+    # parent link (their pose relative to it accumulated through the tree).
+    link_of: dict[int, int] = {}
+    pose_in_link: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+    params: list[np.ndarray] = []
+    links: list[dict] = []
+    for b in robot_bodies:  # bodies are numbered parent before child
+        njnt = m.body_jntnum[b]
+        if b == base_body or njnt == 1:
+            if b != base_body:
+                j = m.body_jntadr[b]
+                if m.jnt_type[j] != mujoco.mjtJoint.mjJNT_HINGE:
+                    raise ValueError(f"body {m.body(b).name}: only hinge joints supported")
+                if np.linalg.norm(m.jnt_pos[j]) > 1e-12:
+                    raise ValueError(f"joint {m.joint(j).name} must sit at its body origin")
+                parent = m.body_parentid[b]
+                prot, ppos = pose_in_link[parent]
+                rot, pos = local_pose(b)
+                links.append(
+                    dict(
+                        name=m.body(b).name.removeprefix(prefix),
+                        parent=link_of[parent],
+                        joint_axis=m.jnt_axis[j].copy(),
+                        rot_in_parent=prot @ rot,
+                        pos_in_parent=prot @ pos + ppos,
+                    )
+                )
+            else:
+                links.append(
+                    dict(
+                        name="base",
+                        parent=-1,
+                        joint_axis=None,
+                        rot_in_parent=np.eye(3),
+                        pos_in_parent=np.zeros(3),
+                    )
+                )
+            link_of[b] = len(links) - 1
+            pose_in_link[b] = (np.eye(3), np.zeros(3))
+            params.append(body_params(b))
+        elif njnt == 0:
+            parent = m.body_parentid[b]
+            prot, ppos = pose_in_link[parent]
+            rot, pos = local_pose(b)
+            link_of[b] = link_of[parent]
+            pose_in_link[b] = (prot @ rot, prot @ pos + ppos)
+            params[link_of[b]] = params[link_of[b]] + transform_params(
+                body_params(b), *pose_in_link[b]
+            )
+        else:
+            raise ValueError(f"body {m.body(b).name}: at most one joint per arm body")
+
+    link_descs = []
+    for link, pi in zip(links, params, strict=True):
+        mass, com, inertia = mass_com_inertia_from_params(pi)
+        link_descs.append(
+            LinkDescription(
+                name=link["name"],
+                parent=link["parent"],
+                joint_axis=link["joint_axis"],
+                rot_in_parent=link["rot_in_parent"],
+                pos_in_parent=link["pos_in_parent"],
+                mass=float(mass),
+                com=com,
+                inertia_com=inertia,
+            )
+        )
+
+    def site_in_link(s: int) -> tuple[int, np.ndarray, np.ndarray]:
+        b = m.site_bodyid[s]
+        prot, ppos = pose_in_link[b]
+        return (
+            link_of[b],
+            prot @ _quat_to_mat(m.site_quat[s]),
+            prot @ m.site_pos[s] + ppos,
+        )
+
+    imu_link, imu_rot, imu_pos = site_in_link(m.site("imu").id)
+    thrust_link, thrust_rot, thrust_pos = site_in_link(m.site("thrust").id)
+    grasp_link, grasp_rot, grasp_pos = site_in_link(m.site("grasp").id)
+    if imu_link != 0 or thrust_link != 0:
+        raise ValueError("the IMU and thrust sites must be on the base")
+    thrust_actuators = [m.actuator(a).id for a in THRUST_ACTUATORS]
+    arm_joints = [m.joint(j).id for j in ARM_JOINTS]
+    thrust_gear = np.array([m.actuator_gear[a] for a in thrust_actuators])
+    if not np.allclose(thrust_gear, np.eye(6)):
+        raise ValueError("thrust actuators must be the six unit wrench directions")
+    return RobotDescription(
+        links=tuple(link_descs),
+        imu_rot=imu_rot,
+        imu_pos=imu_pos,
+        thrust_rot=thrust_rot,
+        thrust_pos=thrust_pos,
+        grasp_link=grasp_link,
+        grasp_rot=grasp_rot,
+        grasp_pos=grasp_pos,
+        joint_range=np.array([m.jnt_range[j] for j in arm_joints]),
+        thrust_limit=np.array([m.actuator_ctrlrange[a][1] for a in thrust_actuators]),
+    )

@@ -1,0 +1,251 @@
+"""Sub-body Newton-Euler model of one free-flyer with a revolute arm holding the cargo.
+
+Convention (used everywhere in this module): every vector is expressed in the robot's base
+frame B (body-fixed, +x forward, +z deck for Astrobee), while every rate is an *inertial* rate.
+So ``w`` is the inertial angular velocity written in B coordinates, ``a`` the inertial linear
+acceleration of a point written in B coordinates, and so on. Moments are taken about the origin
+of B unless a name says otherwise. A wrench is the 6-vector [force (N); moment (N m)]. Leading
+array dimensions are batch dimensions (time samples); link arrays have the link index before the
+last axis. Units: m, s, rad, kg.
+
+Kinematics (seed paper eq. 1-4). Link k has parent p = parent[k], a fixed pose (R_pk0, p_pk) of
+its frame in the parent frame at q_k = 0, and a revolute joint at its frame origin with unit axis
+e_k in its own frame. With z_k = R_k e_k (axis in B):
+    R_k   = R_p R_pk0 Rot(e_k, q_k)            p_k = p_p + R_p p_pk
+    w_k   = w_p + qd_k z_k                     wd_k = wd_p + qdd_k z_k + w_p x (qd_k z_k)
+    a_k   = a_p + wd_p x r + w_p x (w_p x r),  r = p_k - p_p        (acceleration of origin k)
+    rdd_k = a_k + wd_k x c_k + w_k x (w_k x c_k),  c_k = R_k com_k  (centre of mass, eq. 1)
+The cargo frame G is rigid with the grasp link (eq. 2-4): its origin acceleration follows from
+the grasp link's as a_k does from a_p, and it shares the grasp link's w and wd.
+
+Dynamics (seed eq. 5-6, several robots). The subsystem of robot i (its links and the cargo) is
+acted on by its propulsion wrench and the wrenches the other robots apply to the cargo; joint
+torques and the grasp force are internal and cancel. For any point o (here B's origin):
+    W_thrust + sum_j W_j->cargo
+        = sum_k [m_k rdd_k ; I_k wd_k + w_k x I_k w_k + (p_k + c_k) x m_k rdd_k]
+          + T_BG Y(a_G, w_G, wd_G) pi
+with Y the 6x10 body regressor of the cargo in its frame G (see ``body_regressor``), pi its standard
+parameters in G, and T_BG the wrench transform from G to B. The balance is linear in pi, which
+gives the UKF measurement, batch least squares and the Fisher information alike. The wrench robot
+i applies to the cargo is what its propulsion delivers minus what its own links absorb:
+    W_i->cargo = W_thrust - sum_k (link momentum rates).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .inertia import skew
+
+
+@dataclass(frozen=True)
+class LinkDescription:
+    """One rigid sub-body. ``joint_axis`` is None for the base (link 0)."""
+
+    name: str
+    parent: int
+    joint_axis: np.ndarray | None
+    rot_in_parent: np.ndarray  # (3, 3) frame at q = 0, in the parent frame
+    pos_in_parent: np.ndarray  # (3,) origin (= joint position), in the parent frame
+    mass: float
+    com: np.ndarray  # (3,) in the link frame
+    inertia_com: np.ndarray  # (3, 3) about the centre of mass, link frame axes
+
+
+@dataclass(frozen=True)
+class RobotDescription:
+    """A robot's known model: links (base first, parents before children) and sensor frames.
+
+    Frames of the IMU and the thrust site are given in the base frame, the grasp frame in the
+    frame of link ``grasp_link``. ``joint_range`` (n_joints, 2) rad and ``thrust_limit`` (6,)
+    N / N m are carried along for controllers.
+    """
+
+    links: tuple[LinkDescription, ...]
+    imu_rot: np.ndarray
+    imu_pos: np.ndarray
+    thrust_rot: np.ndarray
+    thrust_pos: np.ndarray
+    grasp_link: int
+    grasp_rot: np.ndarray
+    grasp_pos: np.ndarray
+    joint_range: np.ndarray
+    thrust_limit: np.ndarray
+
+    @property
+    def n_joints(self) -> int:
+        return len(self.links) - 1
+
+    @property
+    def total_mass(self) -> float:
+        return float(sum(link.mass for link in self.links))
+
+
+@dataclass(frozen=True)
+class Kinematics:
+    """Link and grasp-frame kinematics in base coordinates (leading batch dims ``...``)."""
+
+    rot: np.ndarray  # (..., L, 3, 3) link frame in B
+    pos: np.ndarray  # (..., L, 3) link origin in B
+    w: np.ndarray  # (..., L, 3)
+    wd: np.ndarray  # (..., L, 3)
+    acc: np.ndarray  # (..., L, 3) acceleration of the link origin
+    grasp_rot: np.ndarray  # (..., 3, 3) grasp frame G in B
+    grasp_pos: np.ndarray  # (..., 3)
+    grasp_acc: np.ndarray  # (..., 3) acceleration of G's origin
+    grasp_w: np.ndarray  # (..., 3) angular velocity of G (that of the grasp link)
+    grasp_wd: np.ndarray  # (..., 3)
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    # np.cross on small arrays is slow; this is the same product, written out.
+    return np.stack(
+        (
+            a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1],
+            a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
+            a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0],
+        ),
+        axis=-1,
+    )
+
+
+def _axis_rotation(axis: np.ndarray, angle: np.ndarray) -> np.ndarray:
+    """Rodrigues rotation about a fixed unit ``axis`` (3,) by ``angle`` (...,) -> (..., 3, 3)."""
+    k = skew(axis)
+    s = np.sin(angle)[..., None, None]
+    c = np.cos(angle)[..., None, None]
+    return np.eye(3) + s * k + (1.0 - c) * (k @ k)
+
+
+def _rmv(rot: np.ndarray, v: np.ndarray) -> np.ndarray:
+    return np.einsum("...ij,...j->...i", rot, v)
+
+
+def propagate(
+    robot: RobotDescription,
+    w_base: np.ndarray,
+    wd_base: np.ndarray,
+    acc_base: np.ndarray,
+    q: np.ndarray,
+    qd: np.ndarray,
+    qdd: np.ndarray,
+) -> Kinematics:
+    """Propagate base motion and joint motion out to every link and the grasp frame.
+
+    ``w_base``, ``wd_base``: base angular velocity (rad/s) and acceleration (rad/s^2) in B;
+    ``acc_base``: acceleration of B's origin (m/s^2) in B; ``q, qd, qdd``: (..., n_joints).
+    """
+    w_base = np.asarray(w_base, dtype=float)
+    batch = w_base.shape[:-1]
+    q, qd, qdd = (np.asarray(x, dtype=float) for x in (q, qd, qdd))
+    nj = robot.n_joints
+    for name, x in (("q", q), ("qd", qd), ("qdd", qdd)):
+        if x.shape != (*batch, nj):
+            raise ValueError(f"{name} must have shape {(*batch, nj)}, got {x.shape}")
+    for name, x in (("wd_base", wd_base), ("acc_base", acc_base)):
+        if np.shape(x) != (*batch, 3):
+            raise ValueError(f"{name} must have shape {(*batch, 3)}, got {np.shape(x)}")
+    rots = [np.broadcast_to(np.eye(3), (*batch, 3, 3))]
+    poss = [np.zeros((*batch, 3))]
+    ws = [w_base]
+    wds = [np.asarray(wd_base, dtype=float)]
+    accs = [np.asarray(acc_base, dtype=float)]
+    for k, link in enumerate(robot.links[1:], start=1):
+        p = link.parent
+        jk = k - 1
+        rot = rots[p] @ link.rot_in_parent @ _axis_rotation(link.joint_axis, q[..., jk])
+        r = _rmv(rots[p], link.pos_in_parent)
+        z = _rmv(rot, link.joint_axis)
+        w_rel = qd[..., jk, None] * z
+        rots.append(rot)
+        poss.append(poss[p] + r)
+        ws.append(ws[p] + w_rel)
+        wds.append(wds[p] + qdd[..., jk, None] * z + _cross(ws[p], w_rel))
+        accs.append(accs[p] + _cross(wds[p], r) + _cross(ws[p], _cross(ws[p], r)))
+    g = robot.grasp_link
+    r_g = _rmv(rots[g], robot.grasp_pos)
+    grasp_acc = accs[g] + _cross(wds[g], r_g) + _cross(ws[g], _cross(ws[g], r_g))
+    return Kinematics(
+        rot=np.stack(rots, axis=-3),
+        pos=np.stack(poss, axis=-2),
+        w=np.stack(ws, axis=-2),
+        wd=np.stack(wds, axis=-2),
+        acc=np.stack(accs, axis=-2),
+        grasp_rot=rots[g] @ robot.grasp_rot,
+        grasp_pos=poss[g] + r_g,
+        grasp_acc=grasp_acc,
+        grasp_w=ws[g],
+        grasp_wd=wds[g],
+    )
+
+
+def link_momentum_rate(robot: RobotDescription, kin: Kinematics) -> np.ndarray:
+    """Sum over the robot's own links of the rate of change of momentum, as a wrench in B about
+    B's origin (..., 6): what the robot's own bodies absorb of the external wrench."""
+    mass = np.array([link.mass for link in robot.links])
+    com_local = np.stack([link.com for link in robot.links])
+    inertia_local = np.stack([link.inertia_com for link in robot.links])
+    c = np.einsum("...kij,kj->...ki", kin.rot, com_local)
+    inertia = kin.rot @ inertia_local @ np.swapaxes(kin.rot, -1, -2)
+    rdd = kin.acc + _cross(kin.wd, c) + _cross(kin.w, _cross(kin.w, c))
+    f = mass[:, None] * rdd
+    n = _rmv(inertia, kin.wd) + _cross(kin.w, _rmv(inertia, kin.w)) + _cross(kin.pos + c, f)
+    return np.concatenate((f.sum(axis=-2), n.sum(axis=-2)), axis=-1)
+
+
+def body_regressor(acc: np.ndarray, w: np.ndarray, wd: np.ndarray) -> np.ndarray:
+    """Regressor Y (..., 6, 10) of one rigid body in its own frame: [f; n_o] = Y pi.
+
+    ``acc`` is the acceleration of the frame origin o, ``w``/``wd`` the angular velocity and
+    acceleration, all in the body frame; pi = [m, h, I_xx, I_yy, I_zz, I_xy, I_xz, I_yz] with
+    h = m c and I about o. f = m a + wd x h + w x (w x h); n_o = I wd + w x (I w) + h x a.
+    """
+    acc, w, wd = (np.asarray(x, dtype=float) for x in (acc, w, wd))
+    batch = np.broadcast_shapes(acc.shape, w.shape, wd.shape)[:-1]
+    y = np.zeros((*batch, 6, 10))
+    sw = skew(w)
+    y[..., :3, 0] = acc
+    y[..., :3, 1:4] = skew(wd) + sw @ sw
+    y[..., 3:, 1:4] = -skew(acc)
+
+    def lmat(v: np.ndarray) -> np.ndarray:
+        # I v = L(v) [I_xx, I_yy, I_zz, I_xy, I_xz, I_yz]
+        out = np.zeros((*v.shape[:-1], 3, 6))
+        x, yv, z = v[..., 0], v[..., 1], v[..., 2]
+        out[..., 0, 0], out[..., 0, 3], out[..., 0, 4] = x, yv, z
+        out[..., 1, 1], out[..., 1, 3], out[..., 1, 5] = yv, x, z
+        out[..., 2, 2], out[..., 2, 4], out[..., 2, 5] = z, x, yv
+        return out
+
+    y[..., 3:, 4:] = lmat(wd) + sw @ lmat(w)
+    return y
+
+
+def wrench_transform(rot: np.ndarray, pos: np.ndarray) -> np.ndarray:
+    """6x6 map (..., 6, 6) of a wrench [f; n about A's origin] in frame A to frame B, where A's
+    pose in B is (rot, pos): f_B = R f, n_B = R n + pos x (R f)."""
+    rot = np.asarray(rot, dtype=float)
+    t = np.zeros((*rot.shape[:-2], 6, 6))
+    t[..., :3, :3] = rot
+    t[..., 3:, 3:] = rot
+    t[..., 3:, :3] = skew(pos) @ rot
+    return t
+
+
+def cargo_regressor(kin: Kinematics) -> np.ndarray:
+    """A (..., 6, 10): the cargo's momentum rate as a wrench in B about B's origin is A pi, with
+    pi the cargo's standard parameters in the grasp frame G."""
+    rot_t = np.swapaxes(kin.grasp_rot, -1, -2)
+    y = body_regressor(
+        _rmv(rot_t, kin.grasp_acc), _rmv(rot_t, kin.grasp_w), _rmv(rot_t, kin.grasp_wd)
+    )
+    return wrench_transform(kin.grasp_rot, kin.grasp_pos) @ y
+
+
+def thrust_wrench(robot: RobotDescription, command: np.ndarray) -> np.ndarray:
+    """Propulsion wrench (..., 6) in B about B's origin from the thrust-site command
+    [f (N); tau (N m)] in the thrust-site frame."""
+    t = wrench_transform(robot.thrust_rot, robot.thrust_pos)
+    return np.einsum("ij,...j->...i", t, command)
