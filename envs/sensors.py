@@ -6,6 +6,12 @@ after ``mj_forward`` so they describe the current state (pitfalls: after ``mj_st
 step). The MJCF ``noise`` attribute does nothing at run time, so noise is added here from the env's
 ``np.random.Generator``. Nothing of the cargo is sensed.
 
+IMU readings are averages over the control period (``begin_period`` marks its start): the change of
+the IMU point's velocity over the period divided by its length, and the rotation over the period
+as a mean rate. The Epson G362P averages internally (64-tap moving average at 125 samples/s, facts
+file section 4.1), and a point sample would alias the arm servos' intra-period acceleration pattern
+(it repeats at exactly the 62.5 Hz sample rate) into a bias that no low-pass filter removes.
+
 Frames: accelerometer (specific force = acceleration in microgravity, m/s^2) and gyro (rad/s) in
 the IMU frame; localization pose of the base frame in the module (world) frame, quaternion
 (w, x, y, z); joint angles in rad.
@@ -90,6 +96,14 @@ def _perturb_quat(quat: np.ndarray, rotvec: np.ndarray) -> np.ndarray:
     return out
 
 
+def _rotvec_quat(rotvec: np.ndarray) -> np.ndarray:
+    angle = np.linalg.norm(rotvec)
+    quat = np.array([1.0, 0.0, 0.0, 0.0])
+    if angle > 0:
+        mujoco.mju_axisAngle2Quat(quat, rotvec / angle, angle)
+    return quat
+
+
 class SensorSuite:
     """Reads every robot's sensors from ``data`` and adds the profile's noise."""
 
@@ -97,21 +111,54 @@ class SensorSuite:
         self.world = world
         self.profile = profile
         self.rng = rng
+        self._start: list[tuple[np.ndarray, np.ndarray, float]] = []
+
+    def _imu_state(self, data: mujoco.MjData) -> list[tuple[np.ndarray, np.ndarray, float]]:
+        out = []
+        vel = np.zeros(6)
+        for h in self.world.robots:
+            mujoco.mj_objectVelocity(
+                self.world.model, data, mujoco.mjtObj.mjOBJ_SITE, h.imu_site, vel, 0
+            )
+            rot = data.site_xmat[h.imu_site].reshape(3, 3).copy()
+            out.append((vel[3:].copy(), rot, float(data.time)))
+        return out
+
+    def begin_period(self, data: mujoco.MjData) -> None:
+        """Mark the start of a control period (``data`` after ``mj_forward``)."""
+        self._start = self._imu_state(data)
+
+    def _imu_means(self, data: mujoco.MjData) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Mean specific force and angular rate over the period, IMU frame."""
+        out = []
+        for (v0, r0, t0), (v1, r1, t1) in zip(self._start, self._imu_state(data), strict=True):
+            dt = t1 - t0
+            if dt <= 0:
+                raise ValueError("read() needs begin_period() at the start of the period")
+            rel = np.zeros(4)
+            mujoco.mju_mat2Quat(rel, (r0.T @ r1).reshape(9))
+            rotvec = np.zeros(3)
+            mujoco.mju_quat2Vel(rotvec, rel, 1.0)
+            half = np.zeros(9)
+            mujoco.mju_quat2Mat(half, _rotvec_quat(0.5 * rotvec))
+            r_mid = r0 @ half.reshape(3, 3)
+            out.append((r_mid.T @ (v1 - v0) / dt, rotvec / dt))
+        return out
 
     def read(self, data: mujoco.MjData, step: int) -> list[SensorPacket]:
-        """Readings of all robots at control step ``step`` (``data`` after ``mj_forward``)."""
+        """Readings of all robots at the end of control period ``step`` (``data`` after
+        ``mj_forward``, with ``begin_period`` called at the period's start)."""
         p = self.profile
         fix = step % p.localization_every == 0
+        if len(self._start) != len(self.world.robots):
+            raise ValueError("read() needs begin_period() at the start of the period")
         packets = []
-        for h in self.world.robots:
+        means = self._imu_means(data)
+        for h, (accel_mean, gyro_mean) in zip(self.world.robots, means, strict=True):
             adr = h.sensor_adr
             s = data.sensordata
-            accel = s[
-                adr["imu_accel"] : adr["imu_accel"] + 3
-            ] + p.accel_std * self.rng.standard_normal(3)
-            gyro = s[adr["imu_gyro"] : adr["imu_gyro"] + 3] + p.gyro_std * self.rng.standard_normal(
-                3
-            )
+            accel = accel_mean + p.accel_std * self.rng.standard_normal(3)
+            gyro = gyro_mean + p.gyro_std * self.rng.standard_normal(3)
             joints = np.array([s[adr["tilt_pos"]], s[adr["pan_pos"]]])
             joints = joints + p.encoder_std_rad * self.rng.standard_normal(joints.shape)
             pos = quat = None

@@ -277,6 +277,12 @@ class World:
             self.model.body_mass[b], self.model.body_ipos[b].copy(), inertia
         )
 
+    def cargo_params_in_grasp_frame(self, i: int) -> np.ndarray:
+        """True cargo parameters pi (10,) in robot i's grasp frame (what its estimator finds)."""
+        s = self.robots[i].cargo_grasp_site
+        rot = _quat_to_mat(self.model.site_quat[s])
+        return transform_params(self.cargo_params(), rot.T, -rot.T @ self.model.site_pos[s])
+
     def set_cargo(
         self,
         mass_kg: float,

@@ -1,0 +1,375 @@
+"""One robot's real-time estimator of the cargo's inertial parameters.
+
+Each robot runs one ``CargoEstimator``. Per control step it takes only what the robot itself has:
+its IMU, its arm encoders, its localization fixes (at a lower rate) and its own propulsion command,
+plus the messages of the other robots. It
+
+1. filters every signal with the same state-variable filter (``preprocess``), which also gives
+   angular and joint accelerations;
+2. at each update instant (every ``update_every`` control steps) propagates the kinematics out to
+   its grasp, computes the wrench its own links absorb and the wrench it applies to the cargo,
+   and publishes the latter as a ``WrenchMessage`` (in its grasp frame, which is fixed to the
+   cargo, and in world axes), with its grasp pose;
+3. keeps a short history of its own instants and, once it holds every peer's message of the
+   same instant, updates its UKF with the wrench balance of that instant (``rne``):
+       thrust_B = links_B + A_B pi - sum_j T_B<-Gj W_j;
+   a late message waits, an instant still incomplete after ``history_s`` is skipped and counted.
+
+Peers' wrenches arrive in the sender's grasp frame G_j. Since the grasp is rigid, the transform
+G_i <- G_j is constant; each robot estimates it by averaging, over the instants at which both
+robots had a localization fix, the relative pose of the two grasp frames (their attitude errors
+cancel in the wrench itself, which never passes through world axes). The unknown parameters pi are
+the cargo's standard parameters in this robot's grasp frame G_i (see ``inertia``).
+
+Bad input: wrongly shaped readings raise ``ValueError``; a non-finite reading is not fed to the
+filter (the previous sample is held), and update instants within the filter's memory of it are
+skipped and counted.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.stats import chi2
+
+from .inertia import params_from_mass_com_inertia
+from .preprocess import Preprocessor
+from .rne import (
+    RobotDescription,
+    cargo_regressor,
+    link_momentum_rate,
+    propagate,
+    wrench_transform,
+)
+from .ukf import InertialParamUKF
+
+# Prior standard deviations in log-Cholesky coordinates (alpha, d1..3, s12, s23, s13, t1..3):
+# mass within a factor ~e^(2*0.5) = 2.7, principal second moments within a factor ~e^2, centre
+# of mass within 0.15 m.
+DEFAULT_PRIOR_STD_ETA = np.array([0.5, 1.0, 1.0, 1.0, 0.3, 0.3, 0.3, 0.15, 0.15, 0.15])
+
+
+def quat_to_mat(quat: np.ndarray) -> np.ndarray:
+    """Rotation matrix of a unit quaternion (w, x, y, z)."""
+    w, x, y, z = np.asarray(quat, dtype=float) / np.linalg.norm(quat)
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def _exp_so3(rotvec: np.ndarray) -> np.ndarray:
+    angle = np.linalg.norm(rotvec)
+    if angle < 1e-12:
+        return np.eye(3)
+    k = rotvec / angle
+    kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + np.sin(angle) * kx + (1 - np.cos(angle)) * kx @ kx
+
+
+def _project_rotation(m: np.ndarray) -> np.ndarray:
+    u, _, vt = np.linalg.svd(m)
+    d = np.sign(np.linalg.det(u @ vt))
+    return u @ np.diag([1.0, 1.0, d]) @ vt
+
+
+def default_prior(robot: RobotDescription) -> np.ndarray:
+    """A generic prior in the grasp frame: a 3 kg, 0.3 m cube whose centre is 0.2 m beyond the
+    grasp, along -z of the grasp frame (the fingers point along -z, into the cargo)."""
+    del robot
+    side = 0.3
+    mass = 3.0
+    return params_from_mass_com_inertia(
+        mass, np.array([0.0, 0.0, -0.2]), np.eye(3) * mass * side**2 / 6
+    )
+
+
+@dataclass(frozen=True)
+class WrenchMessage:
+    """What robot ``sender`` publishes at control step ``stamp``."""
+
+    sender: int
+    stamp: int
+    wrench_grasp: np.ndarray  # (6,) on the cargo: [f N; moment about the grasp point N m], G axes
+    wrench_world: np.ndarray  # (6,) the same in world axes (with the sender's attitude estimate)
+    grasp_pos_world: np.ndarray  # (3,) m
+    grasp_rot_world: np.ndarray  # (3, 3)
+    fix: bool  # grasp pose from a localization fix at this stamp
+
+
+@dataclass
+class _Instant:
+    thrust: np.ndarray
+    links: np.ndarray
+    regressor: np.ndarray
+    grasp_to_base: np.ndarray  # 6x6 wrench transform G_i -> B_i
+    tainted: bool
+
+
+@dataclass
+class _RelativeGrasp:
+    rot_sum: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)))
+    pos_sum: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    count: int = 0
+
+    def transform(self) -> np.ndarray:
+        rot = _project_rotation(self.rot_sum)
+        return wrench_transform(rot, self.pos_sum / self.count)
+
+
+class CargoEstimator:
+    """Constrained UKF on the cargo's inertial parameters for robot ``index``.
+
+    Args:
+        robot: the robot's known model (``World.robot_model``).
+        index: this robot's id; ``peers``: the ids of the other robots holding the cargo.
+        dt_s: control period; ``update_every``: control steps between update instants.
+        prior_params: prior mean pi (10,) in this robot's grasp frame (``default_prior``).
+        force_std_n, torque_std_nm: standard deviation of the filtered wrench-balance residual.
+        cutoff_hz: the pre-processing filter's cutoff; ``warmup_s``: no update before this time.
+        history_s: how long an instant waits for its peers' messages before it is skipped.
+        gate_prob: chi-square probability of the normalised innovation gate (None: no gating).
+    """
+
+    def __init__(
+        self,
+        robot: RobotDescription,
+        index: int,
+        peers: list[int] | tuple[int, ...],
+        dt_s: float,
+        prior_params: np.ndarray | None = None,
+        *,
+        update_every: int = 10,
+        force_std_n: float = 2e-3,
+        torque_std_nm: float = 7e-4,
+        prior_std_eta: float | np.ndarray = DEFAULT_PRIOR_STD_ETA,
+        process_std_eta: float = 1e-5,
+        cutoff_hz: float = 0.25,
+        warmup_s: float = 4.0,
+        history_s: float = 2.0,
+        gate_prob: float | None = 0.9999,
+    ) -> None:
+        if update_every < 1:
+            raise ValueError(f"update_every must be >= 1, got {update_every}")
+        if not (force_std_n > 0 and torque_std_nm > 0):
+            raise ValueError("force_std_n and torque_std_nm must be positive")
+        if index in peers:
+            raise ValueError(f"robot {index} cannot be its own peer")
+        self.robot = robot
+        self.index = int(index)
+        self.peers = tuple(int(p) for p in peers)
+        self.dt_s = float(dt_s)
+        self.update_every = int(update_every)
+        self.warmup_steps = int(np.ceil(warmup_s / dt_s))
+        self.history_steps = int(np.ceil(history_s / dt_s))
+        self.pre = Preprocessor(robot, dt_s, cutoff_hz)
+        self._taint_steps = int(np.ceil(4 * self.pre.delay_s / dt_s))
+        prior = default_prior(robot) if prior_params is None else np.asarray(prior_params, float)
+        gate = None if gate_prob is None else float(chi2.ppf(gate_prob, 6))
+        self.ukf = InertialParamUKF(prior, prior_std_eta, process_std_eta, gate_nis=gate)
+        # Residuals of successive updates are correlated over the filter's decorrelation time
+        # 1 / (2 ENBW), ENBW = 3 w / 32 for (w / (s + w))^3: treating them as independent would
+        # make the filter overconfident, so the covariance is scaled by the number of updates that
+        # share one independent sample.
+        w = 3.0 / self.pre.delay_s
+        correlated = max(1.0, (16.0 / (3.0 * w)) / (self.update_every * dt_s))
+        self.meas_cov = correlated * np.diag([force_std_n**2] * 3 + [torque_std_nm**2] * 3)
+        self._rot_world_base: np.ndarray | None = None
+        self._pos_world_base: np.ndarray | None = None
+        self._last_input: tuple[np.ndarray, ...] | None = None
+        self._tainted_until = -1
+        self._pending: dict[int, _Instant] = {}
+        self._own_fix: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self._peer_msgs: dict[tuple[int, int], WrenchMessage] = {}
+        self._relative: dict[int, _RelativeGrasp] = {p: _RelativeGrasp() for p in self.peers}
+        self.stamp = -1
+        self.n_bad_readings = 0
+        self.n_skipped_missing = 0
+        self.n_skipped_tainted = 0
+
+    # ------------------------------------------------------------------ inputs
+    def step(
+        self,
+        stamp: int,
+        accel_imu: np.ndarray,
+        gyro_imu: np.ndarray,
+        joint_pos_rad: np.ndarray,
+        thrust_command: np.ndarray,
+        base_pos_world: np.ndarray | None = None,
+        base_quat_world: np.ndarray | None = None,
+    ) -> WrenchMessage | None:
+        """Ingest the readings of control step ``stamp``; return the message to publish, if any."""
+        readings = tuple(
+            np.asarray(x, dtype=float) for x in (accel_imu, gyro_imu, joint_pos_rad, thrust_command)
+        )
+        for name, x, shape in zip(
+            ("accel_imu", "gyro_imu", "joint_pos_rad", "thrust_command"),
+            readings,
+            ((3,), (3,), (self.robot.n_joints,), (6,)),
+            strict=True,
+        ):
+            if x.shape != shape:
+                raise ValueError(f"{name} must have shape {shape}, got {x.shape}")
+        if stamp <= self.stamp:
+            raise ValueError(f"stamps must increase: got {stamp} after {self.stamp}")
+        self.stamp = int(stamp)
+        if all(np.all(np.isfinite(x)) for x in readings):
+            self._last_input = readings
+        else:
+            self.n_bad_readings += 1
+            self._tainted_until = stamp + self._taint_steps
+            if self._last_input is None:
+                return None
+            readings = self._last_input
+        accel, gyro, q, thrust = readings
+        self.pre.step(accel, gyro, q, thrust)
+        fix = self._update_attitude(gyro, base_pos_world, base_quat_world)
+        if stamp % self.update_every or stamp < self.warmup_steps:
+            return None
+        return self._record_instant(stamp, q, fix)
+
+    def _update_attitude(self, gyro_imu, base_pos_world, base_quat_world) -> bool:
+        """Attitude from the last fix, propagated with the gyro between fixes."""
+        if base_quat_world is not None and base_pos_world is not None:
+            quat = np.asarray(base_quat_world, dtype=float)
+            pos = np.asarray(base_pos_world, dtype=float)
+            if quat.shape != (4,) or pos.shape != (3,):
+                raise ValueError("base_pos_world must be (3,) and base_quat_world (4,)")
+            if np.all(np.isfinite(quat)) and np.all(np.isfinite(pos)) and np.linalg.norm(quat) > 0:
+                self._rot_world_base = quat_to_mat(quat)
+                self._pos_world_base = pos.copy()
+                return True
+            self.n_bad_readings += 1
+        if self._rot_world_base is not None:
+            w_base = self.robot.imu_rot @ gyro_imu
+            self._rot_world_base = self._rot_world_base @ _exp_so3(w_base * self.dt_s)
+        return False
+
+    def _record_instant(self, stamp: int, q_raw: np.ndarray, fix: bool) -> WrenchMessage | None:
+        kin = self.pre.kinematics()
+        thrust = self.pre.thrust()
+        links = link_momentum_rate(self.robot, kin)
+        grasp_to_base = wrench_transform(kin.grasp_rot, kin.grasp_pos)
+        wrench_grasp = np.linalg.solve(grasp_to_base, thrust - links)
+        self._pending[stamp] = _Instant(
+            thrust=thrust,
+            links=links,
+            regressor=cargo_regressor(kin),
+            grasp_to_base=grasp_to_base,
+            tainted=stamp <= self._tainted_until,
+        )
+        if self._rot_world_base is None:
+            return None  # no attitude yet: nothing meaningful to publish
+        # The grasp pose for the relative-grasp average uses the current encoders, not the
+        # filtered (delayed) angles, so that it matches the fix in time.
+        rot_bg, pos_bg = self.robot_grasp_pose(q_raw)
+        rot_wg = self._rot_world_base @ rot_bg
+        pos_wg = self._pos_world_base + self._rot_world_base @ pos_bg
+        if fix:
+            self._own_fix[stamp] = (rot_wg, pos_wg)
+            for p in self.peers:
+                msg = self._peer_msgs.get((p, stamp))
+                if msg is not None and msg.fix:
+                    self._accumulate_relative(p, msg)
+        rot_world = np.zeros((6, 6))
+        rot_world[:3, :3] = rot_world[3:, 3:] = rot_wg
+        return WrenchMessage(
+            sender=self.index,
+            stamp=stamp,
+            wrench_grasp=wrench_grasp,
+            wrench_world=rot_world @ wrench_grasp,
+            grasp_pos_world=pos_wg,
+            grasp_rot_world=rot_wg,
+            fix=fix,
+        )
+
+    def robot_grasp_pose(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Grasp frame in the base frame at joint angles ``q`` (forward kinematics only)."""
+        zeros = np.zeros(3)
+        nj = self.robot.n_joints
+        kin = propagate(self.robot, zeros, zeros, zeros, q, np.zeros(nj), np.zeros(nj))
+        return kin.grasp_rot, kin.grasp_pos
+
+    def receive(self, message: WrenchMessage) -> None:
+        """Store a peer's message (messages from robots that are not peers are ignored)."""
+        if message.sender not in self._relative:
+            return
+        self._peer_msgs[(message.sender, message.stamp)] = message
+        own = self._own_fix.get(message.stamp)
+        if message.fix and own is not None:
+            self._accumulate_relative(message.sender, message)
+
+    def _accumulate_relative(self, peer: int, msg: WrenchMessage) -> None:
+        rot_wi, pos_wi = self._own_fix[msg.stamp]
+        acc = self._relative[peer]
+        acc.rot_sum += rot_wi.T @ msg.grasp_rot_world
+        acc.pos_sum += rot_wi.T @ (msg.grasp_pos_world - pos_wi)
+        acc.count += 1
+
+    # ------------------------------------------------------------------ updates
+    def process(self) -> int:
+        """Update with every complete instant; skip the ones too old to wait. Returns the number
+        of updates made."""
+        done = 0
+        for stamp in sorted(self._pending):
+            inst = self._pending[stamp]
+            msgs = [self._peer_msgs.get((p, stamp)) for p in self.peers]
+            ready = all(m is not None for m in msgs) and all(
+                self._relative[p].count > 0 for p in self.peers
+            )
+            if ready:
+                del self._pending[stamp]
+                if inst.tainted:
+                    self.n_skipped_tainted += 1
+                    continue
+                peers_base = np.zeros(6)
+                for p, m in zip(self.peers, msgs, strict=True):
+                    peers_base += inst.grasp_to_base @ (
+                        self._relative[p].transform() @ m.wrench_grasp
+                    )
+                self.ukf.predict()
+                self.ukf.update_linear(
+                    inst.thrust, inst.regressor, inst.links - peers_base, self.meas_cov
+                )
+                done += 1
+            elif stamp < self.stamp - self.history_steps:
+                del self._pending[stamp]
+                self.n_skipped_missing += 1
+        horizon = self.stamp - self.history_steps
+        for key in [k for k in self._peer_msgs if k[1] < horizon]:
+            del self._peer_msgs[key]
+        for key in [k for k in self._own_fix if k < horizon]:
+            del self._own_fix[key]
+        return done
+
+    def set_peers(self, peers: list[int] | tuple[int, ...]) -> None:
+        """Change which robots hold the cargo (a robot released it); pending instants restart."""
+        self.peers = tuple(int(p) for p in peers)
+        self._relative = {p: self._relative.get(p, _RelativeGrasp()) for p in self.peers}
+        self._pending.clear()
+
+    # ------------------------------------------------------------------ outputs
+    def params_mean(self) -> np.ndarray:
+        """Estimated cargo parameters pi (10,) in this robot's grasp frame."""
+        return self.ukf.params_mean()
+
+    def params_cov(self) -> np.ndarray:
+        return self.ukf.params_cov()
+
+    def params_std(self) -> np.ndarray:
+        return self.ukf.params_std()
+
+    @property
+    def counters(self) -> dict[str, int]:
+        return {
+            "updates": self.ukf.n_updates,
+            "skipped_missing": self.n_skipped_missing,
+            "skipped_bad_reading": self.n_skipped_tainted + self.ukf.n_skipped_nonfinite,
+            "gated": self.ukf.n_gated,
+            "bad_readings": self.n_bad_readings,
+            "pending": len(self._pending),
+        }

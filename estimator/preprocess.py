@@ -1,0 +1,127 @@
+"""Measurement pre-processing: one low-pass filter with derivatives for every signal.
+
+The wrench balance needs angular and joint accelerations, which no sensor measures, and raw
+accelerations are too noisy to enter a regressor (errors in variables: with Astrobee's
+accelerations <= 0.0175 m/s^2 and 1e-3 m/s^2 accelerometer noise the signal-to-noise ratio per
+sample is near 10). So every signal that enters the balance, kinematic or wrench, passes through
+the *same* linear filter
+
+    H(s) = w^3 / (s + w)^3        (critically damped, third order, cutoff ``cutoff_hz``)
+
+realised as a state-variable filter whose state is (y, y', y''): the filtered signal and its first
+two derivatives. Because the filter is linear and time invariant, y' and y'' are exactly the
+filtered derivatives of the signal (d/dt H u = H du/dt), and all signals share the same delay
+(3 / w s), so the balance stays consistent: H[thrust] = H[links] + H[A] pi, up to the products of
+slow signals (w x I w, centripetal terms), which the filter passes unchanged to first order when
+the motion lives well below the cutoff (trajectories below 0.2 Hz, cutoff 1 Hz by default).
+Third order makes y'' a filter state, smooth, instead of a raw difference. The filter is
+discretised exactly for a zero-order-hold input at the control period (the thrust command is
+held over the period).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.linalg import expm
+
+from .rne import Kinematics, RobotDescription, propagate, thrust_wrench
+
+
+class StateVariableFilter:
+    """Third-order critically damped low-pass with derivatives, vectorised over channels.
+
+    ``step(u)`` takes one sample (n_channels,) and returns (y, yd, ydd), each (n_channels,).
+    The first sample initialises the filter at rest at that value (no start-up transient on y).
+    """
+
+    def __init__(self, n_channels: int, dt_s: float, cutoff_hz: float) -> None:
+        if not (np.isfinite(dt_s) and dt_s > 0):
+            raise ValueError(f"dt_s must be positive, got {dt_s}")
+        if not (np.isfinite(cutoff_hz) and 0 < cutoff_hz < 0.5 / dt_s):
+            raise ValueError(f"cutoff_hz must be in (0, {0.5 / dt_s}) (Nyquist), got {cutoff_hz}")
+        # The -3 dB point of (w / (s + w))^3 is at w sqrt(2^(1/3) - 1).
+        w = 2 * np.pi * cutoff_hz / np.sqrt(2 ** (1 / 3) - 1)
+        a = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [-(w**3), -3 * w**2, -3 * w]])
+        b = np.array([0.0, 0.0, w**3])
+        # Exact ZOH discretisation: expm of the augmented matrix [[A, B], [0, 0]] dt.
+        aug = np.zeros((4, 4))
+        aug[:3, :3] = a
+        aug[:3, 3] = b
+        e = expm(aug * dt_s)
+        self.ad = e[:3, :3]
+        self.bd = e[:3, 3]
+        self.n_channels = int(n_channels)
+        self.delay_s = 3.0 / w
+        self.state = np.zeros((3, self.n_channels))
+        self.started = False
+
+    def step(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        u = np.asarray(u, dtype=float)
+        if u.shape != (self.n_channels,):
+            raise ValueError(f"filter input must have shape ({self.n_channels},), got {u.shape}")
+        if not self.started:
+            self.state[0] = u
+            self.started = True
+        else:
+            self.state = self.ad @ self.state + np.outer(self.bd, u)
+        return self.state[0], self.state[1], self.state[2]
+
+
+class Preprocessor:
+    """From raw IMU, encoders and the thrust command to the filtered inputs of the model.
+
+    Per control step, ``step`` filters: the gyro and the IMU's specific force rotated into the base
+    frame, the joint angles, and the commanded propulsion wrench (base frame, about B's origin).
+    ``kinematics()`` then gives the link kinematics (IMU lever arm removed: the accelerometer
+    measures the IMU point, a_imu = a_o + wd x r + w x (w x r)) and ``thrust()`` the filtered
+    thrust; all share the filter's delay.
+    """
+
+    def __init__(self, robot: RobotDescription, dt_s: float, cutoff_hz: float = 1.0) -> None:
+        self.robot = robot
+        nj = robot.n_joints
+        self._slices = {
+            "gyro": slice(0, 3),
+            "accel": slice(3, 6),
+            "q": slice(6, 6 + nj),
+            "thrust": slice(6 + nj, 12 + nj),
+        }
+        self.filter = StateVariableFilter(12 + nj, dt_s, cutoff_hz)
+        self._u = np.zeros(12 + nj)
+        self._y = self._yd = self._ydd = np.zeros(12 + nj)
+
+    def step(
+        self,
+        accel_imu: np.ndarray,
+        gyro_imu: np.ndarray,
+        joint_pos_rad: np.ndarray,
+        thrust_command: np.ndarray,
+    ) -> None:
+        s, rot = self._slices, self.robot.imu_rot
+        u = self._u
+        u[s["gyro"]] = rot @ gyro_imu
+        u[s["accel"]] = rot @ accel_imu
+        u[s["q"]] = joint_pos_rad
+        u[s["thrust"]] = thrust_wrench(self.robot, thrust_command)
+        self._y, self._yd, self._ydd = self.filter.step(u)
+
+    def kinematics(self) -> Kinematics:
+        s, r = self._slices, self.robot.imu_pos
+        w, wd = self._y[s["gyro"]], self._yd[s["gyro"]]
+        acc_origin = self._y[s["accel"]] - np.cross(wd, r) - np.cross(w, np.cross(w, r))
+        return propagate(
+            self.robot,
+            w,
+            wd,
+            acc_origin,
+            self._y[s["q"]],
+            self._yd[s["q"]],
+            self._ydd[s["q"]],
+        )
+
+    def thrust(self) -> np.ndarray:
+        return self._y[self._slices["thrust"]].copy()
+
+    @property
+    def delay_s(self) -> float:
+        return self.filter.delay_s
