@@ -288,7 +288,7 @@ class World:
         mass_kg: float,
         com_m: np.ndarray | tuple[float, float, float] = (0.0, 0.0, 0.0),
         inertia_com: np.ndarray | None = None,
-    ) -> None:
+    ) -> None:  # inertia_com is required; None only so the error message can say so
         """Change the cargo's mass, centre of mass (cargo frame, m) and full inertia tensor about
         the centre of mass (cargo frame axes, kg m^2) in place, without recompiling.
 
@@ -296,7 +296,10 @@ class World:
         inertia not positive definite, triangle inequality broken). Call ``mj_forward`` (or the
         env's reset) afterwards so derived quantities are refreshed.
         """
-        mass = float(mass_kg)
+        mass_arr = np.asarray(mass_kg, dtype=float)
+        if mass_arr.shape != ():
+            raise ValueError(f"mass_kg must be a scalar, got shape {mass_arr.shape}")
+        mass = float(mass_arr)
         com = np.asarray(com_m, dtype=float)
         if com.shape != (3,):
             raise ValueError(f"com_m must have shape (3,), got {com.shape}")

@@ -1,0 +1,509 @@
+"""Tests of astrocargo.envs.world: the MJCF assets, the robots' mass properties, conservation laws,
+the rigid grasp, ``World.set_cargo`` and the known robot model (``World.robot_model``) against
+MuJoCo.
+
+Reference numbers come from shared/reference/astrobee-facts.md: section 1 (iss.config mass, CoM
+and inertia of the free-flyer) and section 5 (URDF masses of the perching-arm parts).
+"""
+
+from __future__ import annotations
+
+import mujoco
+import numpy as np
+import pytest
+
+from astrocargo.assets import ASSETS_DIR
+from astrocargo.envs.world import MAX_ROBOTS, World
+from astrocargo.estimator.inertia import (
+    mass_com_inertia_from_params,
+    params_from_mass_com_inertia,
+)
+from astrocargo.estimator.rne import propagate
+
+# Facts file section 1 (iss.config): the free-flyer without payloads, in the body frame.
+BASE_MASS_KG = 9.583788668
+BASE_COM_M = np.array([0.003713818, -0.000326347, -0.002532192])
+BASE_INERTIA_KGM2 = np.diag([0.153427995, 0.14271405, 0.162302759])
+# Facts file section 5 (URDF): bay base, proximal, distal; fingers L-prox, L-dist, R-prox, R-dist.
+ARM_BAY_MASS_KG = 0.3078
+PROXIMAL_MASS_KG = 0.1623
+DISTAL_MASS_KG = 0.1033
+FINGER_MASSES_KG = (0.04, 0.0116, 0.04, 0.02285)
+ROBOT_MASS_KG = BASE_MASS_KG + ARM_BAY_MASS_KG + PROXIMAL_MASS_KG + DISTAL_MASS_KG
+ROBOT_MASS_KG += sum(FINGER_MASSES_KG)
+# Arm bay: URDF fixed joint body -> bay (facts file section 1); a uniform box of the URDF
+# collision-box size (section 5), CoM at the bay origin. The diagonal is the one typed in
+# astrobee.xml (the box formula rounded to 5 significant digits).
+ARM_BAY_POS_M = np.array([-0.01, 0.0, -0.065])
+ARM_BAY_BOX_M = np.array([0.0904, 0.1524, 0.0763])
+ARM_BAY_INERTIA_KGM2 = np.diag([0.00074507, 0.00035894, 0.00080536])
+
+MASS_TOL_KG = 1e-9
+EXACT_TOL = 1e-12  # numbers copied or composed without approximation
+MODULE_HALF_SIZE_M = np.array([3.0, 1.1, 1.1])  # free aisle of iss_module.xml
+N_WARNINGS = int(mujoco.mjtWarning.mjNWARNING)
+
+
+# --------------------------------------------------------------------------- helpers
+def warning_counts(data: mujoco.MjData) -> list[int]:
+    return [int(data.warning[i].number) for i in range(N_WARNINGS)]
+
+
+def assert_healthy(data: mujoco.MjData) -> None:
+    """No MuJoCo warning of any kind and a finite state."""
+    assert warning_counts(data) == [0] * N_WARNINGS
+    for name in ("qpos", "qvel", "qacc"):
+        assert np.all(np.isfinite(getattr(data, name))), name
+
+
+def momentum(model: mujoco.MjModel, data: mujoco.MjData) -> tuple[np.ndarray, np.ndarray]:
+    """Total linear momentum and angular momentum about the system CoM (world frame)."""
+    mujoco.mj_forward(model, data)
+    mujoco.mj_subtreeVel(model, data)
+    return data.subtree_linvel[0] * model.body_subtreemass[0], data.subtree_angmom[0].copy()
+
+
+def system_com_acceleration(model: mujoco.MjModel, data: mujoco.MjData) -> np.ndarray:
+    """Instantaneous acceleration of the system CoM: sum of m_b times each body CoM's
+    acceleration, over the total mass (exact at rest, where no velocity terms enter)."""
+    mujoco.mj_forward(model, data)
+    mujoco.mj_rnePostConstraint(model, data)
+    total = np.zeros(3)
+    acc = np.zeros(6)
+    for b in range(1, model.nbody):
+        mujoco.mj_objectAcceleration(model, data, mujoco.mjtObj.mjOBJ_BODY, b, acc, 0)
+        total += model.body_mass[b] * acc[3:]
+    return total / model.body_subtreemass[0]
+
+
+def rotation_angle_rad(rot: np.ndarray) -> float:
+    """Angle of a rotation matrix, accurate near zero (unlike arccos of the trace)."""
+    vee = 0.5 * np.array([rot[2, 1] - rot[1, 2], rot[0, 2] - rot[2, 0], rot[1, 0] - rot[0, 1]])
+    return float(np.arctan2(np.linalg.norm(vee), 0.5 * (np.trace(rot) - 1.0)))
+
+
+def hold_arms(world: World, data: mujoco.MjData) -> None:
+    """Zero thrust; every arm servo's target at its joint's current angle."""
+    data.ctrl[:] = 0.0
+    for h in world.robots:
+        data.ctrl[list(h.arm_actuators)] = data.qpos[list(h.arm_qpos_adr)]
+
+
+def bounding_radius_m(world: World, data: mujoco.MjData) -> float:
+    """Radius about the system CoM of a sphere holding every colliding geom of cargo and robots."""
+    m = world.model
+    moving = [g for g in range(m.ngeom) if m.geom_bodyid[g] != 0]
+    com = data.subtree_com[0]
+    return max(np.linalg.norm(data.geom_xpos[g] - com) + m.geom_rbound[g] for g in moving)
+
+
+def wall_contacts(world: World, data: mujoco.MjData) -> int:
+    walls = set(world.wall_geoms)
+    return sum(c.geom1 in walls or c.geom2 in walls for c in data.contact[: data.ncon])
+
+
+def random_inertia(rng: np.random.Generator, mass_kg: float) -> np.ndarray:
+    """A realisable, non-diagonal inertia about the CoM (principal moments from positive
+    second moments, which satisfy the triangle inequality)."""
+    second = mass_kg * rng.uniform(0.05, 0.2, size=3) ** 2
+    moments = second.sum() - second
+    q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    return q @ np.diag(moments) @ q.T
+
+
+# --------------------------------------------------------------------------- 1. assets
+@pytest.mark.parametrize("name", ["astrobee.xml", "cargo.xml", "iss_module.xml"])
+def test_asset_is_present(name: str) -> None:
+    assert (ASSETS_DIR / name).is_file()
+
+
+@pytest.mark.parametrize("path", sorted(ASSETS_DIR.glob("*.xml")), ids=lambda p: p.name)
+def test_asset_compiles_and_steps_without_warnings(path) -> None:
+    model = mujoco.MjModel.from_xml_path(str(path))
+    data = mujoco.MjData(model)
+    mujoco.mj_step(model, data, nstep=100)
+    assert_healthy(data)
+
+
+@pytest.mark.parametrize("n_robots", range(1, MAX_ROBOTS + 1))
+def test_world_steps_without_warnings_or_contacts(n_robots: int) -> None:
+    world = World(n_robots)
+    m = world.model
+    steps_per_control = 0.016 / m.opt.timestep  # 62.5 Hz control period
+    assert steps_per_control == pytest.approx(round(steps_per_control), abs=1e-9)
+    data = world.make_data()
+    assert data.ncon == 0  # nothing interpenetrates in the grasp configuration
+    qpos0 = data.qpos.copy()
+    # Zero thrust, servos holding the grasp: the world must stay exactly at rest.
+    for _ in range(20):
+        mujoco.mj_step(m, data, nstep=10)
+        assert data.ncon == 0
+    assert_healthy(data)
+    assert np.abs(data.qvel).max() < EXACT_TOL
+    assert np.abs(data.qpos - qpos0).max() < EXACT_TOL
+    # Every control at zero (the tilt servos then swing the robots): still clean.
+    world.reset_data(data)
+    data.ctrl[:] = 0.0
+    for _ in range(20):
+        mujoco.mj_step(m, data, nstep=10)
+        assert data.ncon == 0
+    assert_healthy(data)
+
+
+# --------------------------------------------------------------------------- 2. arguments
+@pytest.mark.parametrize("n_robots", [0, 5, -1, 2.5, True, "2"])
+def test_world_rejects_bad_robot_count(n_robots) -> None:
+    with pytest.raises(ValueError, match="n_robots"):
+        World(n_robots)
+
+
+def test_robot_model_rejects_bad_index() -> None:
+    world = World(2)
+    for i in (-1, 2):
+        with pytest.raises(ValueError, match="robot index"):
+            world.robot_model(i)
+
+
+# --------------------------------------------------------------------------- 3. mass properties
+@pytest.mark.parametrize("n_robots", [1, MAX_ROBOTS])
+def test_robot_mass_matches_facts(n_robots: int) -> None:
+    world = World(n_robots)
+    m = world.model
+    for i, h in enumerate(world.robots):
+        assert world.robot_model(i).total_mass == pytest.approx(ROBOT_MASS_KG, abs=MASS_TOL_KG)
+        assert m.body_mass[list(h.robot_bodies)].sum() == pytest.approx(
+            ROBOT_MASS_KG, abs=MASS_TOL_KG
+        )
+        links = {link.name: link for link in world.robot_model(i).links}
+        assert links["proximal"].mass == pytest.approx(PROXIMAL_MASS_KG, abs=MASS_TOL_KG)
+        assert links["distal"].mass == pytest.approx(
+            DISTAL_MASS_KG + sum(FINGER_MASSES_KG), abs=MASS_TOL_KG
+        )
+    cargo_mass = world.cargo_params()[0]
+    assert m.body_subtreemass[0] == pytest.approx(
+        n_robots * ROBOT_MASS_KG + cargo_mass, abs=MASS_TOL_KG
+    )
+
+
+@pytest.mark.parametrize("n_robots", [1, MAX_ROBOTS])
+def test_base_body_inertial_unchanged_by_rerooting(n_robots: int) -> None:
+    # In the world the base is a leaf of the tree rooted at the cargo, but its own inertial frame
+    # must be that of astrobee.xml.
+    world = World(n_robots)
+    m = world.model
+    for h in world.robots:
+        b = h.base_body
+        rot = np.empty(9)
+        mujoco.mju_quat2Mat(rot, m.body_iquat[b])
+        rot = rot.reshape(3, 3)
+        inertia = rot @ np.diag(m.body_inertia[b]) @ rot.T
+        assert m.body_mass[b] == pytest.approx(BASE_MASS_KG, abs=MASS_TOL_KG)
+        np.testing.assert_allclose(m.body_ipos[b], BASE_COM_M, rtol=0, atol=EXACT_TOL)
+        np.testing.assert_allclose(inertia, BASE_INERTIA_KGM2, rtol=0, atol=EXACT_TOL)
+
+
+def test_no_rotor_passive_or_medium_terms() -> None:
+    # The estimator's sub-body model has no rotor inertia, joint damping, friction or springs, and
+    # the module is a microgravity vacuum; the momentum tests cannot see a small armature.
+    m = World(MAX_ROBOTS).model
+    for name in ("dof_armature", "dof_damping", "dof_frictionloss", "jnt_stiffness"):
+        np.testing.assert_array_equal(getattr(m, name), 0.0, err_msg=name)
+    np.testing.assert_array_equal(m.opt.gravity, 0.0)
+    np.testing.assert_array_equal(m.opt.wind, 0.0)
+    assert m.opt.density == 0.0 and m.opt.viscosity == 0.0
+
+
+def test_arm_bay_inertia_is_its_collision_box() -> None:
+    a, b, c = ARM_BAY_BOX_M**2
+    box = ARM_BAY_MASS_KG / 12.0 * np.array([b + c, a + c, a + b])
+    np.testing.assert_allclose(np.diag(ARM_BAY_INERTIA_KGM2), box, rtol=1e-4)
+
+
+def test_base_link_is_base_plus_arm_bay() -> None:
+    """robot_model's base link against a hand parallel-axis composition of base and arm bay."""
+    mass = BASE_MASS_KG + ARM_BAY_MASS_KG
+    com = (BASE_MASS_KG * BASE_COM_M + ARM_BAY_MASS_KG * ARM_BAY_POS_M) / mass
+
+    def shifted(m_kg: float, inertia: np.ndarray, com_m: np.ndarray) -> np.ndarray:
+        d = com_m - com
+        return inertia + m_kg * (d @ d * np.eye(3) - np.outer(d, d))
+
+    inertia = shifted(BASE_MASS_KG, BASE_INERTIA_KGM2, BASE_COM_M)
+    inertia += shifted(ARM_BAY_MASS_KG, ARM_BAY_INERTIA_KGM2, ARM_BAY_POS_M)
+    world = World(2)
+    for i in range(world.n_robots):
+        base = world.robot_model(i).links[0]
+        assert base.name == "base"
+        assert base.mass == pytest.approx(mass, abs=EXACT_TOL)
+        np.testing.assert_allclose(base.com, com, rtol=0, atol=EXACT_TOL)
+        np.testing.assert_allclose(base.inertia_com, inertia, rtol=0, atol=EXACT_TOL)
+
+
+# --------------------------------------------------------------------------- 4. momentum
+# The issue's bounds: linear momentum 1e-5, angular momentum 1e-3 (relative, 60 s). The default
+# RK4 at 4 ms conserves both to ~1e-13, which also shows the model injects nothing. Semi-implicit
+# Euler at 2 ms, tried first, offset linear momentum by 1.2e-3 and drifted angular momentum by
+# 3.3e-3 over 60 s (first-order error): the case below documents why it was dropped.
+EULER_LINEAR_TOL = 2.5e-3
+EULER_ANGULAR_TOL = 5e-3
+
+
+@pytest.mark.parametrize(
+    ("integrator", "timestep", "linear_tol", "angular_tol"),
+    [
+        pytest.param(None, None, 1e-5, 1e-3, id="default-rk4"),
+        pytest.param(
+            mujoco.mjtIntegrator.mjINT_EULER,
+            0.002,
+            EULER_LINEAR_TOL,
+            EULER_ANGULAR_TOL,
+            id="euler-2ms-first-order",
+        ),
+    ],
+)
+def test_momentum_conserved_while_tumbling(
+    integrator, timestep, linear_tol: float, angular_tol: float
+):
+    world = World(2, timestep_s=timestep)
+    m = world.model
+    if integrator is not None:
+        m.opt.integrator = integrator
+    data = world.make_data()
+    # System CoM at the module's centre line, 0.6 m aft, drifting forward at 0.02 m/s.
+    target_com = np.array([-0.6, 0.0, 0.0])
+    velocity = np.array([0.02, 0.0, 0.0])
+    duration_s = 60.0
+    qa, va = world.cargo_qpos_adr, world.cargo_qvel_adr
+    data.qpos[qa : qa + 3] += target_com - data.subtree_com[0]
+    axis = np.array([1.0, 2.0, -0.5])
+    data.qvel[va + 3 : va + 6] = 0.3 * axis / np.linalg.norm(axis)
+    hold_arms(world, data)
+    mujoco.mj_forward(m, data)
+    mujoco.mj_subtreeVel(m, data)
+    data.qvel[va : va + 3] += velocity - data.subtree_linvel[0]
+    p0, l0 = momentum(m, data)
+    np.testing.assert_allclose(p0 / m.body_subtreemass[0], velocity, atol=EXACT_TOL)
+    # The spinning system must fit in the aisle for the whole run (no wall may add momentum).
+    reach = bounding_radius_m(world, data)
+    assert np.all(np.abs(target_com) + velocity * duration_s + reach < MODULE_HALF_SIZE_M)
+
+    n_chunk = 50
+    worst_linear = worst_angular = 0.0
+    for _ in range(round(duration_s / m.opt.timestep / n_chunk)):
+        mujoco.mj_step(m, data, nstep=n_chunk)
+        assert data.ncon == 0
+        p, angmom = momentum(m, data)
+        worst_linear = max(worst_linear, np.linalg.norm(p - p0) / np.linalg.norm(p0))
+        worst_angular = max(worst_angular, np.linalg.norm(angmom - l0) / np.linalg.norm(l0))
+    assert_healthy(data)
+    assert worst_linear < linear_tol
+    assert worst_angular < angular_tol
+
+
+# --------------------------------------------------------------------------- 5. thrust
+THRUST_FORCE_N = np.array([0.3, -0.2, 0.25])  # body frame, inside the limits
+
+
+def test_thrust_force_accelerates_system_com() -> None:
+    world = World(1)
+    m = world.model
+    h = world.robots[0]
+    data = world.make_data()
+    total_mass = ROBOT_MASS_KG + world.cargo_params()[0]
+    data.ctrl[list(h.thrust_actuators[:3])] = THRUST_FORCE_N
+    rot = data.xmat[h.base_body].reshape(3, 3)
+    # At the first instant, exactly Newton's second law.
+    np.testing.assert_allclose(
+        system_com_acceleration(m, data), rot @ THRUST_FORCE_N / total_mass, rtol=0, atol=1e-12
+    )
+
+    # Over 1 s the base turns (F does not pass through the system CoM): sum the force in the world
+    # frame step by step (xmat after mj_step is the pose at which that step's force acted).
+    mujoco.mj_subtreeVel(m, data)
+    v0 = data.subtree_linvel[0].copy()
+    n_steps = round(1.0 / m.opt.timestep)
+    force_world = np.zeros(3)
+    for _ in range(n_steps):
+        mujoco.mj_step(m, data)
+        force_world += data.xmat[h.base_body].reshape(3, 3) @ THRUST_FORCE_N
+    mujoco.mj_forward(m, data)
+    mujoco.mj_subtreeVel(m, data)
+    acc_measured = (data.subtree_linvel[0] - v0) / (n_steps * m.opt.timestep)
+    acc_expected = force_world / n_steps / total_mass
+    assert data.ncon == 0
+    assert np.linalg.norm(acc_measured - acc_expected) < 0.01 * np.linalg.norm(acc_expected)
+
+
+# --------------------------------------------------------------------------- 6. grasp slip
+SLIP_TOL_M = 1e-3
+SLIP_ROT_TOL_RAD = np.deg2rad(0.5)
+
+
+@pytest.mark.parametrize("n_robots", [1, MAX_ROBOTS])
+def test_grasp_does_not_slip_under_full_actuation(n_robots: int) -> None:
+    """30 s with every thrust channel at its limit and the arm servos swept through their range.
+
+    The sign of each thrust channel is chosen so that the system stays near the module centre:
+    forces push the system CoM back to the centre, torques oppose the base's rotation.
+    """
+    world = World(n_robots)
+    m = world.model
+    data = world.make_data()
+    qa = world.cargo_qpos_adr
+    data.qpos[qa : qa + 3] -= data.subtree_com[0]
+    mujoco.mj_forward(m, data)
+    low, high = m.actuator_ctrlrange.T
+    control_period_steps = round(0.016 / m.opt.timestep)
+    n_periods = round(30.0 / (control_period_steps * m.opt.timestep))
+    arm_adr = [adr for h in world.robots for adr in h.arm_qpos_adr]
+    q_min = data.qpos[arm_adr].copy()
+    q_max = q_min.copy()
+    worst_dist = worst_angle = 0.0
+    for k in range(n_periods):
+        t = k * control_period_steps * m.opt.timestep
+        mujoco.mj_subtreeVel(m, data)
+        f_world = -0.5 * data.subtree_com[0] - 2.0 * data.subtree_linvel[0]
+        for h in world.robots:
+            thrust = list(h.thrust_actuators)
+            rot = data.xmat[h.base_body].reshape(3, 3)
+            w_world = data.cvel[h.base_body, :3]
+            sign = np.concatenate((np.sign(rot.T @ f_world), -np.sign(rot.T @ w_world)))
+            data.ctrl[thrust] = np.where(sign >= 0, high[thrust], low[thrust])
+            for j, act in enumerate(h.arm_actuators):
+                mid, half = 0.5 * (high[act] + low[act]), 0.5 * (high[act] - low[act])
+                data.ctrl[act] = mid + half * np.sin(2 * np.pi * t / (10.0 + 3 * j + h.index))
+        mujoco.mj_step(m, data, nstep=control_period_steps)
+        assert wall_contacts(world, data) == 0
+        mujoco.mj_forward(m, data)  # poses, CoM and contacts of the state reached
+        assert wall_contacts(world, data) == 0
+        q_min = np.minimum(q_min, data.qpos[arm_adr])
+        q_max = np.maximum(q_max, data.qpos[arm_adr])
+        for h in world.robots:
+            dist = np.linalg.norm(data.site_xpos[h.grasp_site] - data.site_xpos[h.cargo_grasp_site])
+            rel = data.site_xmat[h.grasp_site].reshape(3, 3).T
+            rel = rel @ data.site_xmat[h.cargo_grasp_site].reshape(3, 3)
+            worst_dist = max(worst_dist, dist)
+            worst_angle = max(worst_angle, rotation_angle_rad(rel))
+    assert_healthy(data)
+    # The arms really went through their range (the base meets the cargo near tilt +0.7 rad).
+    assert np.all(q_max - q_min > 2.5)
+    assert worst_dist < SLIP_TOL_M
+    assert worst_angle < SLIP_ROT_TOL_RAD
+
+
+# --------------------------------------------------------------------------- 7. set_cargo
+def test_set_cargo_round_trip_and_dynamics() -> None:
+    world = World(1)
+    m = world.model
+    h = world.robots[0]
+    rng = np.random.default_rng(7)
+    mass = 7.3
+    com = np.array([0.01, -0.02, 0.03])
+    inertia = random_inertia(rng, mass)
+    assert np.abs(inertia - np.diag(np.diag(inertia))).max() > 1e-3  # really non-diagonal
+
+    def response(data: mujoco.MjData) -> tuple[np.ndarray, np.ndarray]:
+        # Linear acceleration of the system CoM under a body force; cargo acceleration under a
+        # body torque (depends on the cargo's inertia).
+        data.ctrl[list(h.thrust_actuators)] = 0.0
+        data.ctrl[list(h.thrust_actuators[:3])] = THRUST_FORCE_N
+        acc = system_com_acceleration(m, data)
+        data.ctrl[list(h.thrust_actuators)] = 0.0
+        data.ctrl[list(h.thrust_actuators[3:])] = [0.03, -0.02, 0.02]
+        mujoco.mj_forward(m, data)
+        va = world.cargo_qvel_adr
+        return acc, data.qacc[va + 3 : va + 6].copy()
+
+    data = world.make_data()
+    acc_before, alpha_before = response(data)
+    world.set_cargo(mass, com, inertia)
+    np.testing.assert_allclose(
+        world.cargo_params(), params_from_mass_com_inertia(mass, com, inertia), atol=EXACT_TOL
+    )
+    mass_out, com_out, inertia_out = mass_com_inertia_from_params(world.cargo_params())
+    assert mass_out == pytest.approx(mass, abs=EXACT_TOL)
+    np.testing.assert_allclose(com_out, com, rtol=0, atol=EXACT_TOL)
+    np.testing.assert_allclose(inertia_out, inertia, rtol=0, atol=EXACT_TOL)
+    assert m.body_subtreemass[0] == pytest.approx(ROBOT_MASS_KG + mass, abs=MASS_TOL_KG)
+
+    world.reset_data(data)
+    acc_after, alpha_after = response(data)
+    rot = data.xmat[h.base_body].reshape(3, 3)
+    np.testing.assert_allclose(acc_after, rot @ THRUST_FORCE_N / (ROBOT_MASS_KG + mass), atol=1e-12)
+    assert np.linalg.norm(acc_after - acc_before) > 0.1 * np.linalg.norm(acc_before)
+    assert np.linalg.norm(alpha_after - alpha_before) > 0.01 * np.linalg.norm(alpha_before)
+
+
+GOOD_COM = (0.0, 0.0, 0.0)
+GOOD_INERTIA = np.diag([0.06, 0.1, 0.11])
+
+
+@pytest.mark.parametrize(
+    ("mass", "com", "inertia", "message"),
+    [
+        pytest.param(0.0, GOOD_COM, GOOD_INERTIA, "mass", id="zero-mass"),
+        pytest.param(-1.0, GOOD_COM, GOOD_INERTIA, "mass", id="negative-mass"),
+        pytest.param(5.0, GOOD_COM, np.diag([1.0, 1.0, -0.1]), "positive definite", id="neg-I"),
+        pytest.param(5.0, GOOD_COM, np.zeros((3, 3)), "positive definite", id="zero-I"),
+        pytest.param(5.0, GOOD_COM, np.diag([1.0, 1.0, 2.5]), "triangle inequality", id="tri"),
+        pytest.param(
+            5.0,
+            GOOD_COM,
+            GOOD_INERTIA + [[0, 0.01, 0], [0] * 3, [0] * 3],
+            "symmetric",
+            id="asymmetric",
+        ),
+        pytest.param(5.0, (0.0, 0.0), GOOD_INERTIA, "com_m", id="com-shape-2"),
+        pytest.param(5.0, (0.0,) * 4, GOOD_INERTIA, "com_m", id="com-shape-4"),
+        pytest.param(5.0, GOOD_COM, np.eye(2), "inertia_com", id="inertia-shape-2x2"),
+        pytest.param(5.0, GOOD_COM, np.ones(3), "inertia_com", id="inertia-shape-3"),
+        pytest.param(5.0, GOOD_COM, None, "inertia_com", id="inertia-missing"),
+        pytest.param(
+            np.ones(2),
+            GOOD_COM,
+            GOOD_INERTIA,
+            "mass",
+            id="mass-shape-2",
+        ),
+    ],
+)
+def test_set_cargo_rejects_bad_values(mass, com, inertia, message: str) -> None:
+    world = World(1)
+    params = world.cargo_params()
+    with pytest.raises(ValueError, match=message):
+        world.set_cargo(mass, com, inertia)
+    np.testing.assert_array_equal(world.cargo_params(), params)  # nothing half-written
+
+
+# --------------------------------------------------------------------------- 8. kinematics
+@pytest.mark.parametrize("n_robots", [1, MAX_ROBOTS])
+def test_robot_model_kinematics_match_mujoco(n_robots: int) -> None:
+    """Forward kinematics of robot_model(i) = MuJoCo's poses relative to the base body."""
+    world = World(n_robots)
+    m = world.model
+    data = world.make_data()
+    rng = np.random.default_rng(3)
+    zero3 = np.zeros(3)
+    for _ in range(10):
+        for i, h in enumerate(world.robots):
+            robot = world.robot_model(i)
+            q = rng.uniform(robot.joint_range[:, 0], robot.joint_range[:, 1])
+            data.qpos[list(h.arm_qpos_adr)] = q
+        mujoco.mj_kinematics(m, data)
+        for i, h in enumerate(world.robots):
+            robot = world.robot_model(i)
+            q = data.qpos[list(h.arm_qpos_adr)]
+            kin = propagate(robot, zero3, zero3, zero3, q, np.zeros(2), np.zeros(2))
+            rot_b = data.xmat[h.base_body].reshape(3, 3)
+            pos_b = data.xpos[h.base_body]
+            for k, link in enumerate(robot.links):
+                b = m.body(h.prefix + link.name).id
+                rot = rot_b.T @ data.xmat[b].reshape(3, 3)
+                np.testing.assert_allclose(kin.rot[k], rot, rtol=0, atol=EXACT_TOL)
+                pos = rot_b.T @ (data.xpos[b] - pos_b)
+                np.testing.assert_allclose(kin.pos[k], pos, rtol=0, atol=EXACT_TOL)
+            for site in (h.grasp_site, h.cargo_grasp_site):  # the two coincide: rigid grasp
+                rot = rot_b.T @ data.site_xmat[site].reshape(3, 3)
+                pos = rot_b.T @ (data.site_xpos[site] - pos_b)
+                np.testing.assert_allclose(kin.grasp_rot, rot, rtol=0, atol=EXACT_TOL)
+                np.testing.assert_allclose(kin.grasp_pos, pos, rtol=0, atol=EXACT_TOL)
