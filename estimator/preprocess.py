@@ -13,10 +13,11 @@ two derivatives. Because the filter is linear and time invariant, y' and y'' are
 filtered derivatives of the signal (d/dt H u = H du/dt), and all signals share the same delay
 (3 / w s), so the balance stays consistent: H[thrust] = H[links] + H[A] pi, up to the products of
 slow signals (w x I w, centripetal terms), which the filter passes unchanged to first order when
-the motion lives well below the cutoff (trajectories below 0.2 Hz, cutoff 1 Hz by default).
-Third order makes y'' a filter state, smooth, instead of a raw difference. The filter is
-discretised exactly for a zero-order-hold input at the control period (the thrust command is
-held over the period).
+the motion lives well below the cutoff. Third order makes y'' a filter state, smooth, instead of a
+raw difference. The filter is discretised exactly for an input that is linear between samples
+(first-order hold): sensor samples are points of a smooth signal. A zero-order-hold discretisation
+sees a staircase instead, whose jumps, always at the same phase of the sample, alias into a bias
+of y'' (a ramp of 0.02 rad/s gave y'' = -6e-3 rad/s^2 at 2 Hz instead of 0).
 """
 
 from __future__ import annotations
@@ -44,15 +45,19 @@ class StateVariableFilter:
         a = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [-(w**3), -3 * w**2, -3 * w]])
         b = np.array([0.0, 0.0, w**3])
         # Exact ZOH discretisation: expm of the augmented matrix [[A, B], [0, 0]] dt.
-        aug = np.zeros((4, 4))
+        # Exact first-order-hold discretisation: augment with the input and its constant slope.
+        aug = np.zeros((5, 5))
         aug[:3, :3] = a
         aug[:3, 3] = b
+        aug[3, 4] = 1.0
         e = expm(aug * dt_s)
         self.ad = e[:3, :3]
-        self.bd = e[:3, 3]
+        self.b_value = e[:3, 3]  # weight of u_k
+        self.b_slope = e[:3, 4] / dt_s  # weight of (u_k+1 - u_k)
         self.n_channels = int(n_channels)
         self.delay_s = 3.0 / w
         self.state = np.zeros((3, self.n_channels))
+        self.u_prev = np.zeros(self.n_channels)
         self.started = False
 
     def step(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -63,7 +68,12 @@ class StateVariableFilter:
             self.state[0] = u
             self.started = True
         else:
-            self.state = self.ad @ self.state + np.outer(self.bd, u)
+            self.state = (
+                self.ad @ self.state
+                + np.outer(self.b_value, self.u_prev)
+                + np.outer(self.b_slope, u - self.u_prev)
+            )
+        self.u_prev = u.copy()
         return self.state[0], self.state[1], self.state[2]
 
 

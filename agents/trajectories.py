@@ -1,0 +1,178 @@
+"""Reference trajectories of the cargo (position, attitude) and of the arms' pan joints.
+
+All are analytic: position, velocity and acceleration; attitude as a rotation with angular
+velocity and acceleration (world axes); pan angle with its rate. Positions are in the module
+frame (origin at the aisle centre, x along the aisle). Defaults stay within Astrobee's nominal
+limits (facts file section 7.3 / flight modes: 0.2 m/s, 0.0175 m/s^2, 0.1745 rad/s); ``fast=True``
+doubles the speed of the figure-eight (accelerations x4) for the "faster option".
+
+Named trajectories:
+- ``figure8_yaw``: the seed paper's scenario. Figure-eight in the horizontal plane, a yaw ramp
+  (0.05 rad/s after a smooth start) with a sudden turn at 40 s (the yaw rate doubles for 10 s, as
+  the paper's "robot turns suddenly in yaw (40 s)"), and a pan ramp of the arms.
+- ``figure8_tumble``: the same plus roll and pitch oscillations. Rotation about one axis only leaves
+  two principal moments and one product of inertia unobservable; these oscillations excite all
+  three axes. Pitch (about the cargo's y axis, which passes through two of the robots, cheap in
+  torque) is +-15 deg at a 12 s period; roll (about x, expensive with robots at +-y) +-10 deg at a
+  24 s period, so that two robots' propulsion can follow it (torque budget in the README).
+- ``hover``: hold the start pose (controller tests).
+
+Pan ramp and the closed chain: the cargo-rooted tree has no closed kinematic loop (each robot's
+arm connects its own base to the cargo), so every robot can pan at once; a pan moves that robot's
+base around the cargo, which its controller must follow. All robots use the same pan ramp.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+NOMINAL_SPEED_MPS = 0.2
+NOMINAL_ACCEL_MPS2 = 0.0175
+NOMINAL_RATE_RADPS = 0.1745
+
+
+@dataclass(frozen=True)
+class Reference:
+    """Reference at one time: cargo pose and rates (world axes) and pan angle."""
+
+    pos: np.ndarray
+    vel: np.ndarray
+    acc: np.ndarray
+    rot: np.ndarray  # (3, 3) cargo frame in world
+    w: np.ndarray  # angular velocity, world axes
+    wd: np.ndarray  # angular acceleration, world axes
+    pan: float
+    pan_rate: float
+
+
+def _rot(axis: int, angle: float) -> np.ndarray:
+    c, s = np.cos(angle), np.sin(angle)
+    i, j = [(1, 2), (2, 0), (0, 1)][axis]
+    r = np.eye(3)
+    r[i, i] = r[j, j] = c
+    r[i, j], r[j, i] = -s, s
+    return r
+
+
+def _smoothstep(t: float, t0: float, duration: float) -> tuple[float, float, float]:
+    """s(t) rising smoothly 0 -> 1 over [t0, t0 + duration]: value, rate, second derivative."""
+    x = (t - t0) / duration
+    if x <= 0:
+        return 0.0, 0.0, 0.0
+    if x >= 1:
+        return 1.0, 0.0, 0.0
+    s = x * x * x * (10 - 15 * x + 6 * x * x)
+    ds = 30 * x * x * (1 - x) ** 2 / duration
+    dds = 60 * x * (1 - x) * (1 - 2 * x) / duration**2
+    return s, ds, dds
+
+
+class Trajectory:
+    """A named reference. ``Trajectory(name, fast=False)(t)`` -> ``Reference``."""
+
+    NAMES = ("figure8_yaw", "figure8_tumble", "hover")
+
+    def __init__(
+        self,
+        name: str = "figure8_yaw",
+        fast: bool = False,
+        center_m: tuple[float, float, float] = (0.0, 0.0, 0.0),
+        pan_ramp: bool = True,
+    ) -> None:
+        if name not in self.NAMES:
+            raise ValueError(f"unknown trajectory {name!r}; allowed: {list(self.NAMES)}")
+        self.name = name
+        self.fast = bool(fast)
+        self.center = np.asarray(center_m, dtype=float)
+        self.pan_ramp = bool(pan_ramp) and name != "hover"
+        # Figure-eight x = A sin(wt), y = B sin(2wt): peak accelerations A w^2 and 4 B w^2.
+        self.amp = np.array([0.7, 0.15])
+        self.omega = 0.11 * (2.0 if self.fast else 1.0)
+        self.ramp_s = 15.0  # smooth start of every motion
+
+    def __call__(self, t: float) -> Reference:
+        s, ds, dds = _smoothstep(t, 0.0, self.ramp_s)
+        pos, vel, acc = self.center.copy(), np.zeros(3), np.zeros(3)
+        if self.name != "hover":
+            # Time warp: the figure-eight's phase rate rises smoothly from 0 to omega, so the
+            # motion starts at rest without a burst of acceleration.
+            w = self.omega
+            th, thd, thdd = w * self._ramp_integral(t, 0.0, self.ramp_s), w * s, w * ds
+            for axis, (amp, k) in enumerate(((self.amp[0], 1.0), (self.amp[1], 2.0))):
+                pos[axis] += amp * np.sin(k * th)
+                vel[axis] = amp * k * thd * np.cos(k * th)
+                acc[axis] = amp * k * (thdd * np.cos(k * th) - k * thd**2 * np.sin(k * th))
+        yaw, yaw_rate, yaw_acc = self._yaw(t)
+        rot = _rot(2, yaw)
+        w_world = np.array([0.0, 0.0, yaw_rate])
+        wd_world = np.array([0.0, 0.0, yaw_acc])
+        if self.name == "figure8_tumble":
+            # Body-fixed roll (x) then pitch (y) oscillations after the yaw: R = Rz Rx Ry.
+            angles = []
+            for amp_deg, period in ((10.0, 24.0), (15.0, 12.0)):
+                a = np.deg2rad(amp_deg)
+                om = 2 * np.pi / period
+                angles.append(
+                    (
+                        s * a * np.sin(om * t),
+                        ds * a * np.sin(om * t) + s * a * om * np.cos(om * t),
+                        dds * a * np.sin(om * t)
+                        + 2 * ds * a * om * np.cos(om * t)
+                        - s * a * om * om * np.sin(om * t),
+                    )
+                )
+            (roll, roll_d, roll_dd), (pitch, pitch_d, pitch_dd) = angles
+            rx, ry = _rot(0, roll), _rot(1, pitch)
+            rot = rot @ rx @ ry
+            # Angular velocity and acceleration in world axes of R = Rz(yaw) Rx(roll) Ry(pitch).
+            ez = np.array([0.0, 0.0, 1.0])
+            ex = _rot(2, yaw)[:, 0]
+            ey = (_rot(2, yaw) @ rx)[:, 1]
+            w_world = yaw_rate * ez + roll_d * ex + pitch_d * ey
+            # d/dt ex = w_z x ex; d/dt ey = (yaw_rate ez + roll_d ex) x ey.
+            dex = np.cross(yaw_rate * ez, ex)
+            dey = np.cross(yaw_rate * ez + roll_d * ex, ey)
+            wd_world = yaw_acc * ez + roll_dd * ex + roll_d * dex + pitch_dd * ey + pitch_d * dey
+        pan, pan_rate = self._pan(t)
+        return Reference(pos, vel, acc, rot, w_world, wd_world, pan, pan_rate)
+
+    @staticmethod
+    def _ramp_integral(t: float, t0: float, duration: float) -> float:
+        """Integral over [t0, t] of the smoothstep rising over [t0, t0 + duration]."""
+        x = min(max((t - t0) / duration, 0.0), 1.0)
+        return duration * (x**4 * (2.5 - 3 * x + x * x)) + max(t - t0 - duration, 0.0)
+
+    def _yaw(self, t: float) -> tuple[float, float, float]:
+        if self.name == "hover":
+            return 0.0, 0.0, 0.0
+        rate = 0.05
+        # Base ramp: yaw rate rises smoothly to `rate` over the first ramp_s seconds.
+        s, ds, dds = _smoothstep(t, 0.0, self.ramp_s)
+        yaw = rate * self._ramp_integral(t, 0.0, self.ramp_s)
+        yaw_rate, yaw_acc = rate * s, rate * ds
+        # Sudden turn at 40 s: the rate doubles for 10 s (smooth 5 s edges).
+        for t0, sign in ((40.0, 1.0), (50.0, -1.0)):
+            s2, ds2, _ = _smoothstep(t, t0, 5.0)
+            yaw += sign * rate * self._ramp_integral(t, t0, 5.0)
+            yaw_rate += sign * rate * s2
+            yaw_acc += sign * rate * ds2
+        del dds
+        return yaw, yaw_rate, yaw_acc
+
+    def _pan(self, t: float) -> tuple[float, float]:
+        """Pan ramp: a triangle wave of +-0.4 rad at 0.02 rad/s, smoothed at the start."""
+        if not self.pan_ramp:
+            return 0.0, 0.0
+        rate, amp = 0.02, 0.4
+        period = 4 * amp / rate
+        phase = t % period
+        if phase < amp / rate:
+            pan, d = rate * phase, rate
+        elif phase < 3 * amp / rate:
+            pan, d = amp - rate * (phase - amp / rate), -rate
+        else:
+            pan, d = -amp + rate * (phase - 3 * amp / rate), rate
+        s, ds, _ = _smoothstep(t, 0.0, self.ramp_s)
+        return s * pan, ds * pan + s * d

@@ -1,0 +1,201 @@
+"""Performance benchmarks of astrocargo, one section per component.
+
+Sections:
+- estimator: one predict + update of `InertialParamUKF` against filterpy's stock
+  `UnscentedKalmanFilter` given the very same per-point measurement function, on a seeded
+  sequence of cargo-inertia measurements (n = 10 states, m = 6 wrench components).
+- env, training: not implemented yet.
+
+Usage:
+    python scripts/benchmark_performance.py [--only {estimator,env,training}] [--json FILE]
+
+With --json the figures are merged into FILE under the section's key (other keys are kept).
+
+OpenBLAS is limited to one thread (unless OPENBLAS_NUM_THREADS is already set): on matrices of
+size 10 its threads only add hand-offs, and on a shared 2-core machine they made the estimator's
+timings swing by 3x from run to run. The stock filter runs under the same setting.
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # before numpy loads OpenBLAS
+
+import argparse  # noqa: E402
+import gc  # noqa: E402
+import json  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+from collections.abc import Callable  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+SEED = 20240601
+
+
+class NotImplementedSection(Exception):
+    """Raised by a section that has not been written yet."""
+
+
+# --------------------------------------------------------------------------- estimator
+
+# Estimator problem: a 4 kg box cargo held off-centre, Astrobee-scale motion, nominal wrench noise.
+CARGO_MASS_KG = 4.0
+CARGO_COM_M = np.array([0.03, -0.02, 0.18])
+CARGO_INERTIA_COM_KGM2 = np.diag([0.030, 0.045, 0.050])
+PRIOR_MASS_KG = 3.0
+PRIOR_COM_M = np.array([0.0, 0.0, 0.15])
+PRIOR_INERTIA_COM_KGM2 = np.diag([0.04, 0.04, 0.04])
+# Prior std in log-Cholesky coordinates: alpha and d are logs, s and t lengths in m.
+PRIOR_STD_ETA = np.array([0.3, 0.3, 0.3, 0.3, 0.05, 0.05, 0.05, 0.05, 0.05, 0.05])
+PROCESS_STD_ETA = 1e-4
+ACC_STD_MPS2 = 0.0175
+W_STD_RADPS = 0.1
+WD_STD_RADPS2 = 0.05
+FORCE_NOISE_STD_N = 0.005
+TORQUE_NOISE_STD_NM = 5e-4
+KNOWN_WRENCH_STD = 0.05  # magnitude of b: the known sub-bodies' momentum rates, N and N m
+
+
+def estimator_inputs(n_steps: int, seed: int = SEED) -> tuple[np.ndarray, list[tuple]]:
+    """Seeded (z, A, b, R) sequence: z = A pi_true + b + v, A the cargo's body regressor."""
+    from astrocargo.estimator.inertia import params_from_mass_com_inertia
+    from astrocargo.estimator.rne import body_regressor
+
+    rng = np.random.default_rng(seed)
+    pi_true = params_from_mass_com_inertia(CARGO_MASS_KG, CARGO_COM_M, CARGO_INERTIA_COM_KGM2)
+    R = np.diag([FORCE_NOISE_STD_N**2] * 3 + [TORQUE_NOISE_STD_NM**2] * 3)
+    A_all = body_regressor(
+        rng.normal(scale=ACC_STD_MPS2, size=(n_steps, 3)),
+        rng.normal(scale=W_STD_RADPS, size=(n_steps, 3)),
+        rng.normal(scale=WD_STD_RADPS2, size=(n_steps, 3)),
+    )
+    b_all = rng.normal(scale=KNOWN_WRENCH_STD, size=(n_steps, 6))
+    noise = rng.multivariate_normal(np.zeros(6), R, size=n_steps)
+    z_all = A_all @ pi_true + b_all + noise
+    return pi_true, [(z_all[k], A_all[k], b_all[k], R) for k in range(n_steps)]
+
+
+def bench_estimator(n_steps: int = 2000, n_warmup: int = 50) -> dict[str, float]:
+    """Median microseconds per predict + update, ours and filterpy's stock UKF, interleaved."""
+    from filterpy.kalman import MerweScaledSigmaPoints, UnscentedKalmanFilter
+
+    from astrocargo.estimator.inertia import params_from_mass_com_inertia
+    from astrocargo.estimator.ukf import InertialParamUKF, linear_params_hx
+
+    pi_true, inputs = estimator_inputs(n_warmup + n_steps)
+    prior = params_from_mass_com_inertia(PRIOR_MASS_KG, PRIOR_COM_M, PRIOR_INERTIA_COM_KGM2)
+    ours = InertialParamUKF(prior, PRIOR_STD_ETA, PROCESS_STD_ETA)
+    points = MerweScaledSigmaPoints(
+        ours.dim_x, alpha=ours.points.alpha, beta=ours.points.beta, kappa=ours.points.kappa
+    )
+    stock = UnscentedKalmanFilter(
+        dim_x=ours.dim_x, dim_z=ours.dim_z, dt=1.0, hx=None, fx=lambda x, dt: x, points=points
+    )
+    stock.x, stock.P, stock.Q = ours.x.copy(), ours.P.copy(), ours.Q.copy()
+
+    def run_ours(z, A, b, R):
+        ours.predict()
+        ours.update_linear(z, A, b, R)
+
+    def run_stock(z, A, b, R):
+        # The very map update_linear uses, one sigma point at a time.
+        hx_batch = linear_params_hx(A, b)
+        stock.predict()
+        stock.update(z, R=R, hx=lambda eta: hx_batch(eta[None])[0])
+
+    ours_ns, stock_ns = [], []
+    gc_was_enabled = gc.isenabled()
+    gc.disable()
+    try:
+        for k, step_inputs in enumerate(inputs):
+            # Alternate the order so that cache and frequency effects hit both alike.
+            first, second = (run_ours, run_stock) if k % 2 == 0 else (run_stock, run_ours)
+            t0 = time.perf_counter_ns()
+            first(*step_inputs)
+            t1 = time.perf_counter_ns()
+            second(*step_inputs)
+            t2 = time.perf_counter_ns()
+            if k >= n_warmup:
+                ours_t, stock_t = (t1 - t0, t2 - t1) if first is run_ours else (t2 - t1, t1 - t0)
+                ours_ns.append(ours_t)
+                stock_ns.append(stock_t)
+    finally:
+        if gc_was_enabled:
+            gc.enable()
+
+    ours_us = float(np.median(ours_ns)) / 1e3
+    filterpy_us = float(np.median(stock_ns)) / 1e3
+    max_state_diff = float(np.abs(ours.x - stock.x).max())
+    mass_rel_error = abs(ours.params_mean()[0] - pi_true[0]) / pi_true[0]
+    print(
+        f"estimator: {n_steps} predict+update steps (n={ours.dim_x}, m={ours.dim_z}), "
+        f"seed {SEED}, OPENBLAS_NUM_THREADS={os.environ['OPENBLAS_NUM_THREADS']}; "
+        f"{ours.n_updates} of {len(inputs)} updates accepted"
+    )
+    print(f"  InertialParamUKF       median {ours_us:9.1f} us")
+    print(f"  filterpy stock UKF     median {filterpy_us:9.1f} us")
+    print(f"  speedup                {filterpy_us / ours_us:9.1f} x")
+    print(
+        f"  check: max |x_ours - x_filterpy| = {max_state_diff:.1e}, "
+        f"final mass error {100 * mass_rel_error:.2f} %"
+    )
+    return {"ours_us": ours_us, "filterpy_us": filterpy_us, "speedup": filterpy_us / ours_us}
+
+
+# --------------------------------------------------------------------------- env, training
+
+
+def bench_env() -> dict[str, float]:
+    """Environment step throughput (to be written with the environment)."""
+    raise NotImplementedSection("env")
+
+
+def bench_training() -> dict[str, float]:
+    """Training throughput (to be written with the training script)."""
+    raise NotImplementedSection("training")
+
+
+SECTIONS: dict[str, Callable[[], dict[str, float]]] = {
+    "estimator": bench_estimator,
+    "env": bench_env,
+    "training": bench_training,
+}
+
+
+# --------------------------------------------------------------------------- CLI
+
+
+def merge_json(path: Path, results: dict[str, dict[str, float]]) -> None:
+    """Write results into the JSON file at path, keeping keys already there."""
+    data = json.loads(path.read_text()) if path.exists() else {}
+    data.update(results)
+    path.write_text(json.dumps(data, indent=2) + "\n")
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument(
+        "--only", choices=sorted(SECTIONS), help="run one section (default: all implemented)"
+    )
+    parser.add_argument("--json", type=Path, metavar="FILE", help="merge results into FILE")
+    args = parser.parse_args(argv)
+
+    results: dict[str, dict[str, float]] = {}
+    for name in [args.only] if args.only else list(SECTIONS):
+        try:
+            results[name] = SECTIONS[name]()
+        except NotImplementedSection:
+            print(f"{name}: benchmark not implemented yet")
+            if args.only:
+                return 2
+    if args.json is not None and results:
+        merge_json(args.json, results)
+        print(f"wrote {', '.join(results)} to {args.json}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,454 @@
+"""Tests of estimator.ukf: agreement with filterpy's stock UKF and with a linear Kalman filter,
+robustness (non-finite inputs, shapes, gating, positive definiteness) and the inertial filter."""
+
+import math
+
+import numpy as np
+import pytest
+from filterpy.kalman import MerweScaledSigmaPoints, UnscentedKalmanFilter, unscented_transform
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.spatial.transform import Rotation
+from scipy.stats import chi2, multivariate_normal
+
+from astrocargo.estimator.inertia import (
+    log_cholesky_to_params,
+    params_from_mass_com_inertia,
+    params_to_log_cholesky,
+)
+from astrocargo.estimator.ukf import BatchedUKF, InertialParamUKF, UpdateResult
+
+TOL = 1e-9
+DIM_X = 10
+DIM_Z = 6
+
+# A cargo box of 3 kg, centre of mass off the origin, rotated principal axes.
+TRUE_MASS_KG = 3.0
+TRUE_COM_M = np.array([0.05, -0.02, 0.10])
+TRUE_AXES = Rotation.from_rotvec(0.7 * np.array([1.0, 2.0, 0.5]) / np.sqrt(5.25)).as_matrix()
+
+
+def pseudo_inertia(pi: np.ndarray) -> np.ndarray:
+    """(..., 4, 4) pseudo-inertia J = [[0.5 tr(I) 1 - I, h], [h^T, m]] of (..., 10) parameters."""
+    pi = np.asarray(pi)
+    m, h = pi[..., 0], pi[..., 1:4]
+    ixx, iyy, izz, ixy, ixz, iyz = np.moveaxis(pi[..., 4:], -1, 0)
+    inertia = np.stack(
+        [
+            np.stack([ixx, ixy, ixz], -1),
+            np.stack([ixy, iyy, iyz], -1),
+            np.stack([ixz, iyz, izz], -1),
+        ],
+        -2,
+    )
+    trace = ixx + iyy + izz
+    J = np.zeros(pi.shape[:-1] + (4, 4))
+    J[..., :3, :3] = 0.5 * trace[..., None, None] * np.eye(3) - inertia
+    J[..., :3, 3] = h
+    J[..., 3, :3] = h
+    J[..., 3, 3] = m
+    return J
+
+
+def is_physically_consistent(pi: np.ndarray) -> np.ndarray:
+    """True where the body is realisable: pseudo-inertia positive definite."""
+    return np.linalg.eigvalsh(pseudo_inertia(pi)).min(axis=-1) > 0.0
+
+
+TRUE_PARAMS = params_from_mass_com_inertia(
+    TRUE_MASS_KG,
+    TRUE_COM_M,
+    TRUE_AXES @ np.diag([0.02, 0.03, 0.04]) @ TRUE_AXES.T,
+)
+WRONG_PRIOR = params_from_mass_com_inertia(1.5, np.zeros(3), np.diag([0.01, 0.01, 0.01]))
+
+
+def random_measurement(rng: np.random.Generator, m: int = DIM_Z):
+    A = rng.normal(size=(m, DIM_X))
+    b = rng.normal(scale=0.1, size=m)
+    return A, b
+
+
+def inertial_hx_batch(A: np.ndarray, b: np.ndarray):
+    # Written out here rather than taken from ukf.linear_params_hx, so the comparison with the
+    # stock filter does not rest on the module under test.
+    return lambda sigmas: log_cholesky_to_params(sigmas) @ A.T + b
+
+
+# --- checks of the test helpers themselves ---------------------------------------------------
+
+
+def test_consistency_check_rejects_triangle_violation():
+    # I_c = diag(1, 1, 2.5) is positive definite but breaks 1 + 1 >= 2.5 (equations.md).
+    bad = params_from_mass_com_inertia(2.0, np.zeros(3), np.diag([1.0, 1.0, 2.5]))
+    assert not is_physically_consistent(bad)
+    assert is_physically_consistent(TRUE_PARAMS)
+    assert is_physically_consistent(WRONG_PRIOR)
+
+
+# --- agreement with filterpy and with a linear Kalman filter ----------------------------------
+
+
+def make_stock_ukf(x0, P0, Q, alpha, beta, kappa, dim_z=DIM_Z):
+    points = MerweScaledSigmaPoints(len(x0), alpha=alpha, beta=beta, kappa=kappa)
+    stock = UnscentedKalmanFilter(
+        dim_x=len(x0), dim_z=dim_z, dt=1.0, hx=None, fx=lambda x, dt: x, points=points
+    )
+    stock.x = x0.copy()
+    stock.P = P0.copy()
+    stock.Q = Q.copy()
+    return stock
+
+
+def assert_state_close(x, P, x_ref, P_ref):
+    np.testing.assert_allclose(x, x_ref, rtol=TOL, atol=TOL * (1.0 + np.abs(x_ref).max()))
+    np.testing.assert_allclose(P, P_ref, rtol=TOL, atol=TOL * np.abs(P_ref).max())
+
+
+@pytest.mark.parametrize("via_update_linear", [False, True])
+@pytest.mark.parametrize("alpha, kappa", [(0.5, 0.0), (1.0, 0.0), (0.8, 3.0 - DIM_X)])
+def test_matches_filterpy_stock_ukf_on_inertial_map(alpha, kappa, via_update_linear):
+    rng = np.random.default_rng(1)
+    beta = 2.0
+    x0 = params_to_log_cholesky(WRONG_PRIOR)
+    P0 = np.diag(np.full(DIM_X, 0.3**2))
+    Q = np.diag(np.full(DIM_X, 1e-3**2))
+    if via_update_linear:
+        ours = InertialParamUKF(WRONG_PRIOR, 0.3, 1e-3, alpha=alpha, beta=beta, kappa=kappa)
+        np.testing.assert_array_equal(ours.x, x0)
+        np.testing.assert_allclose(ours.P, P0, rtol=1e-15)
+        np.testing.assert_allclose(ours.Q, Q, rtol=1e-15)
+    else:
+        ours = BatchedUKF(DIM_X, DIM_Z, x0, P0, Q, alpha=alpha, beta=beta, kappa=kappa)
+    stock = make_stock_ukf(x0, P0, Q, alpha, beta, kappa)
+    n_accepted = 0
+    for _ in range(50):
+        A, b = random_measurement(rng)
+        R = np.diag(rng.uniform(0.01, 0.05, DIM_Z))
+        z = A @ TRUE_PARAMS + b + rng.normal(size=DIM_Z) * np.sqrt(np.diag(R))
+        hx_batch = inertial_hx_batch(A, b)
+
+        ours.predict()
+        stock.predict()
+        assert_state_close(ours.x, ours.P, stock.x, stock.P)
+
+        if via_update_linear:
+            result = ours.update_linear(z, A, b, R)
+        else:
+            result = ours.update(z, hx_batch, R)
+        stock.update(z, R=R, hx=lambda x, hb=hx_batch: hb(x[None])[0])
+        n_accepted += result.accepted
+        assert_state_close(ours.x, ours.P, stock.x, stock.P)
+        for ours_value, stock_value in [(ours.K, stock.K), (ours.y, stock.y), (ours.S, stock.S)]:
+            np.testing.assert_allclose(
+                ours_value, stock_value, rtol=TOL, atol=TOL * np.abs(stock_value).max()
+            )
+        assert result.nis == pytest.approx(stock.y @ stock.SI @ stock.y, rel=TOL)
+        assert ours.log_likelihood == pytest.approx(stock.log_likelihood, rel=TOL)
+    assert n_accepted == 50 == ours.n_updates
+    # The run must have moved the filter, or agreement would prove little.
+    assert np.abs(ours.x - x0).max() > 0.1
+    assert np.trace(ours.P) < 0.5 * np.trace(P0)
+
+
+def test_two_updates_after_one_predict_match_filterpy_with_redrawn_points():
+    # filterpy reuses the sigma points drawn in predict unless compute_process_sigmas redraws
+    # them; BatchedUKF always draws them from the current (x, P).
+    rng = np.random.default_rng(6)
+    x0 = params_to_log_cholesky(WRONG_PRIOR)
+    P0 = np.diag(np.full(DIM_X, 0.2**2))
+    Q = np.diag(np.full(DIM_X, 1e-3**2))
+    ours = BatchedUKF(DIM_X, DIM_Z, x0, P0, Q)
+    stock = make_stock_ukf(x0, P0, Q, 0.5, 2.0, 0.0)
+    ours.predict()
+    stock.predict()
+    for k in range(2):
+        A, b = random_measurement(rng)
+        R = 0.02 * np.eye(DIM_Z)
+        z = A @ TRUE_PARAMS + b
+        hx_batch = inertial_hx_batch(A, b)
+        if k > 0:
+            stock.compute_process_sigmas(dt=1.0)
+        assert ours.update(z, hx_batch, R).accepted
+        stock.update(z, R=R, hx=lambda x, hb=hx_batch: hb(x[None])[0])
+        assert_state_close(ours.x, ours.P, stock.x, stock.P)
+
+
+def test_measurement_moments_equal_filterpy_unscented_transform():
+    rng = np.random.default_rng(7)
+    ukf = InertialParamUKF(WRONG_PRIOR, prior_std_eta=0.3, process_std_eta=1e-3)
+    A, b = random_measurement(rng)
+    R = np.diag(rng.uniform(0.01, 0.05, DIM_Z))
+    z = A @ TRUE_PARAMS + b
+    ukf.predict()
+    sigmas = ukf.sigma_points()
+    assert ukf.update_linear(z, A, b, R).accepted
+    np.testing.assert_array_equal(ukf.sigmas, sigmas)
+    np.testing.assert_allclose(ukf.sigmas_h, log_cholesky_to_params(sigmas) @ A.T + b, rtol=1e-14)
+    z_pred, S = unscented_transform(ukf.sigmas_h, ukf.Wm, ukf.Wc, R)
+    np.testing.assert_allclose(ukf.S, S, rtol=1e-12)
+    np.testing.assert_allclose(ukf.y, z - z_pred, rtol=1e-12, atol=1e-12 * np.abs(z).max())
+    assert ukf.log_likelihood == pytest.approx(
+        multivariate_normal(mean=np.zeros(DIM_Z), cov=S).logpdf(z - z_pred), rel=1e-12
+    )
+
+
+def test_predict_adds_process_noise():
+    ukf, _, _ = linear_filter()
+    P_before = ukf.P.copy()
+    ukf.predict()
+    np.testing.assert_array_equal(ukf.P, P_before + 1e-4 * np.eye(DIM_X))
+    Q = np.diag(np.arange(1.0, DIM_X + 1.0))
+    ukf.predict(Q)
+    np.testing.assert_allclose(ukf.P, P_before + 1e-4 * np.eye(DIM_X) + Q, rtol=1e-15)
+    np.testing.assert_array_equal(ukf.x, np.zeros(DIM_X))
+
+
+def linear_kalman_step(x, P, z, H, R, Q):
+    P = P + Q
+    S = H @ P @ H.T + R
+    K = np.linalg.solve(S, H @ P).T
+    x = x + K @ (z - H @ x)
+    P = (np.eye(len(x)) - K @ H) @ P @ (np.eye(len(x)) - K @ H).T + K @ R @ K.T
+    return x, P
+
+
+def test_matches_linear_kalman_filter_on_linear_problem():
+    rng = np.random.default_rng(2)
+    x_true = rng.normal(size=DIM_X)
+    x0 = np.zeros(DIM_X)
+    G = rng.normal(size=(DIM_X, DIM_X))
+    P0 = G @ G.T + 0.5 * np.eye(DIM_X)
+    Q = np.diag(rng.uniform(1e-4, 1e-3, DIM_X))
+    ours = BatchedUKF(DIM_X, DIM_Z, x0, P0, Q)
+    x_ref, P_ref = x0.copy(), P0.copy()
+    for _ in range(50):
+        H = rng.normal(size=(DIM_Z, DIM_X))
+        G = rng.normal(size=(DIM_Z, DIM_Z))
+        R = 0.1 * G @ G.T + 0.01 * np.eye(DIM_Z)
+        z = H @ x_true + rng.multivariate_normal(np.zeros(DIM_Z), R)
+        ours.predict()
+        result = ours.update(z, lambda sigmas, H=H: sigmas @ H.T, R)
+        assert result.accepted and result.reason == "ok"
+        x_ref, P_ref = linear_kalman_step(x_ref, P_ref, z, H, R, Q)
+        assert_state_close(ours.x, ours.P, x_ref, P_ref)
+    assert np.linalg.norm(ours.x - x_true) < 0.5
+
+
+@settings(max_examples=50, deadline=None)
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    alpha=st.floats(0.2, 1.0),
+    kappa=st.sampled_from([0.0, 3.0 - DIM_X, 1.0]),
+)
+def test_sigma_points_match_filterpy(seed, alpha, kappa):
+    rng = np.random.default_rng(seed)
+    G = rng.normal(size=(DIM_X, DIM_X))
+    P = G @ G.T + 1e-3 * np.eye(DIM_X)
+    x = rng.normal(scale=10.0, size=DIM_X)
+    ukf = BatchedUKF(DIM_X, DIM_Z, x, P, np.eye(DIM_X), alpha=alpha, kappa=kappa)
+    points = MerweScaledSigmaPoints(DIM_X, alpha=alpha, beta=2.0, kappa=kappa)
+    ref = points.sigma_points(x, 0.5 * (P + P.T))
+    np.testing.assert_allclose(ukf.sigma_points(), ref, rtol=1e-10, atol=1e-10 * np.abs(ref).max())
+    np.testing.assert_array_equal(ukf.Wm, points.Wm)
+    np.testing.assert_array_equal(ukf.Wc, points.Wc)
+
+
+# --- robustness ------------------------------------------------------------------------------
+
+
+def linear_filter(gate_nis=None, seed=3):
+    rng = np.random.default_rng(seed)
+    H = rng.normal(size=(DIM_Z, DIM_X))
+    ukf = BatchedUKF(
+        DIM_X,
+        DIM_Z,
+        np.zeros(DIM_X),
+        np.eye(DIM_X),
+        1e-4 * np.eye(DIM_X),
+        gate_nis=gate_nis,
+    )
+    return ukf, (lambda sigmas: sigmas @ H.T), 0.01 * np.eye(DIM_Z)
+
+
+def assert_spd(P):
+    np.testing.assert_array_equal(P, P.T)
+    np.linalg.cholesky(P)
+
+
+@pytest.mark.parametrize("bad_input", ["z", "R", "hx"])
+@pytest.mark.parametrize("bad_value", [np.nan, np.inf])
+def test_non_finite_input_skips_update(bad_input, bad_value):
+    ukf, hx_batch, R = linear_filter()
+    ukf.predict()
+    ukf.update(np.ones(DIM_Z), hx_batch, R)
+    ukf.predict()
+    x_before, P_before = ukf.x.copy(), ukf.P.copy()
+    z = np.ones(DIM_Z)
+    if bad_input == "z":
+        z[2] = bad_value
+    elif bad_input == "R":
+        R = R.copy()
+        R[1, 1] = bad_value
+    else:
+        good_hx = hx_batch
+
+        def hx_batch(sigmas):
+            out = good_hx(sigmas)
+            out[7, 3] = bad_value
+            return out
+
+    result = ukf.update(z, hx_batch, R)
+    assert result == UpdateResult(False, "non-finite", result.nis)
+    assert ukf.n_skipped_nonfinite == 1
+    assert ukf.n_updates == 1
+    np.testing.assert_array_equal(ukf.x, x_before)
+    np.testing.assert_array_equal(ukf.P, P_before)
+    assert_spd(ukf.P)
+
+
+def test_wrong_shapes_raise_value_error():
+    ukf, hx_batch, R = linear_filter()
+    with pytest.raises(ValueError, match=r"z must have shape \(6,\)"):
+        ukf.update(np.ones(DIM_Z + 1), hx_batch, R)
+    with pytest.raises(ValueError, match=r"z must have shape \(6,\)"):
+        ukf.update(np.ones((DIM_Z, 1)), hx_batch, R)
+    with pytest.raises(ValueError, match=r"R must have shape \(6, 6\)"):
+        ukf.update(np.ones(DIM_Z), hx_batch, np.eye(DIM_Z - 1))
+    with pytest.raises(ValueError, match=r"hx_batch must return shape \(21, 6\)"):
+        ukf.update(np.ones(DIM_Z), lambda s: hx_batch(s)[:, :5], R)
+    with pytest.raises(ValueError, match=r"hx_batch must return shape \(21, 6\)"):
+        ukf.update(np.ones(DIM_Z), lambda s: hx_batch(s)[0], R)
+    with pytest.raises(ValueError, match=r"Q must have shape \(10, 10\)"):
+        ukf.predict(np.eye(DIM_X - 1))
+    with pytest.raises(ValueError, match=r"x0 must have shape \(10,\)"):
+        BatchedUKF(DIM_X, DIM_Z, np.zeros(DIM_X - 1), np.eye(DIM_X), np.eye(DIM_X))
+    with pytest.raises(ValueError, match="positive definite"):
+        BatchedUKF(DIM_X, DIM_Z, np.zeros(DIM_X), -np.eye(DIM_X), np.eye(DIM_X))
+    assert ukf.n_updates == 0
+
+
+def test_gross_outlier_is_gated():
+    gate = chi2.ppf(0.999, DIM_Z)
+    ukf, hx_batch, R = linear_filter(gate_nis=gate)
+    ukf.predict()
+    result = ukf.update(np.zeros(DIM_Z), hx_batch, R)
+    assert result.accepted and result.nis < gate
+    ukf.predict()
+    x_before, P_before = ukf.x.copy(), ukf.P.copy()
+    result = ukf.update(np.full(DIM_Z, 1e3), hx_batch, R)
+    assert not result.accepted and result.reason == "gated" and result.nis > gate
+    assert ukf.n_gated == 1 and ukf.n_updates == 1
+    np.testing.assert_array_equal(ukf.x, x_before)
+    np.testing.assert_array_equal(ukf.P, P_before)
+    # The same outlier passes when gating is off.
+    ungated, hx_batch, R = linear_filter(gate_nis=None)
+    ungated.predict()
+    assert ungated.update(np.full(DIM_Z, 1e3), hx_batch, R).accepted
+
+
+def _bumped_linear_hx(slope: float, bump: float):
+    """1-D measurement that is linear except at the centre sigma point (index 0)."""
+
+    def hx_batch(sigmas):
+        out = slope * sigmas[:, :1]
+        out[0] += bump
+        return out
+
+    return hx_batch
+
+
+def test_non_positive_definite_posterior_is_rejected():
+    # n = 1, P = 1, x = 0, beta = -10: Wm = (-3, 2, 2), Wc = (-12.25, 2, 2), sigma points
+    # (0, 0.5, -0.5). With z = slope x plus a bump at the centre point, S = slope^2 - 160 bump^2 + R
+    # and P_xz = slope, so for slope^2 > 160 bump^2 the posterior P - P_xz^2 / S is negative.
+    ukf = BatchedUKF(1, 1, np.zeros(1), np.eye(1), np.zeros((1, 1)), beta=-10.0)
+    result = ukf.update(np.array([0.3]), _bumped_linear_hx(20.0, 1.0), 1e-6 * np.eye(1))
+    assert not result.accepted and result.reason == "not-positive-definite"
+    assert ukf.S[0, 0] == pytest.approx(400.0 - 160.0 + 1e-6)  # S itself passed its check
+    assert math.isfinite(result.nis)
+    assert ukf.n_rejected_not_pd == 1 and ukf.n_updates == 0
+    np.testing.assert_array_equal(ukf.P, np.eye(1))
+    np.testing.assert_array_equal(ukf.x, np.zeros(1))
+    # For slope^2 < 160 bump^2 the innovation covariance S is negative: rejected as well.
+    result = ukf.update(np.array([0.3]), _bumped_linear_hx(10.0, 1.0), 1e-6 * np.eye(1))
+    assert not result.accepted and result.reason == "not-positive-definite"
+    assert math.isnan(result.nis)
+    assert ukf.n_rejected_not_pd == 2
+    np.testing.assert_array_equal(ukf.P, np.eye(1))
+    # The same filter accepts a plain linear measurement.
+    assert ukf.update(np.array([0.3]), _bumped_linear_hx(20.0, 0.0), np.eye(1)).accepted
+    assert ukf.n_updates == 1
+
+
+def test_posterior_is_symmetric_and_log_likelihood_finite():
+    ukf, hx_batch, R = linear_filter()
+    rng = np.random.default_rng(4)
+    for _ in range(20):
+        ukf.predict()
+        assert ukf.update(rng.normal(size=DIM_Z), hx_batch, R).accepted
+        assert_spd(ukf.P)
+    assert math.isfinite(ukf.log_likelihood)
+
+
+# --- inertial parameter filter ---------------------------------------------------------------
+
+
+def test_inertial_filter_converges_with_consistent_sigma_points():
+    rng = np.random.default_rng(5)
+    # Prior std in eta: alpha and d are logs (0.5 is a factor e^0.5), s and t are lengths in m.
+    prior_std_eta = np.array([0.5, 0.5, 0.5, 0.5, 0.05, 0.05, 0.05, 0.1, 0.1, 0.1])
+    ukf = InertialParamUKF(WRONG_PRIOR, prior_std_eta=prior_std_eta, process_std_eta=1e-6)
+    np.testing.assert_allclose(ukf.params_mean(), WRONG_PRIOR, rtol=1e-12, atol=1e-14)
+    # Noiseless z, but R stays well above zero: with R much tighter than the prior a single
+    # unscented update of this nonlinear map overshoots and the filter can diverge.
+    R = 1e-2 * np.eye(DIM_Z)
+    n_sigma_checked = 0
+    for _ in range(300):
+        A, b = random_measurement(rng)
+        z = A @ TRUE_PARAMS + b
+        ukf.predict()
+        assert ukf.update_linear(z, A, b, R).accepted
+        pis = log_cholesky_to_params(ukf.sigmas)
+        assert is_physically_consistent(pis).all()
+        n_sigma_checked += len(pis)
+    assert n_sigma_checked == 300 * 21
+    assert ukf.n_updates == 300
+    estimate = ukf.params_mean()
+    assert is_physically_consistent(estimate)
+    assert abs(estimate[0] - TRUE_MASS_KG) / TRUE_MASS_KG < 1e-3
+    np.testing.assert_allclose(estimate, TRUE_PARAMS, rtol=0, atol=1e-2)
+    # Consistent: the eta error is plausible under the filter's own covariance.
+    eta_error = ukf.x - params_to_log_cholesky(TRUE_PARAMS)
+    assert eta_error @ np.linalg.solve(ukf.P, eta_error) < chi2.ppf(0.999, DIM_X)
+    assert is_physically_consistent(log_cholesky_to_params(ukf.sigma_points())).all()
+    std = ukf.params_std()
+    assert std.shape == (10,) and np.all(std < 1e-2)
+    cov = ukf.params_cov()
+    np.testing.assert_array_equal(cov, cov.T)
+
+
+def test_inertial_filter_reports_physical_units():
+    ukf = InertialParamUKF(TRUE_PARAMS, prior_std_eta=0.05, process_std_eta=0.0)
+    np.testing.assert_allclose(ukf.params_mean(), log_cholesky_to_params(ukf.x))
+    cov = ukf.params_cov()
+    assert cov.shape == (10, 10)
+    assert np.linalg.eigvalsh(cov).min() > -1e-12 * np.abs(cov).max()
+    # Mass = exp(2 alpha): with std 0.05 in alpha the mass std is close to 0.1 m.
+    assert ukf.params_std()[0] == pytest.approx(0.1 * TRUE_MASS_KG, rel=0.05)
+
+
+def test_inertial_filter_input_checks():
+    with pytest.raises(ValueError):
+        InertialParamUKF(
+            params_from_mass_com_inertia(2.0, np.zeros(3), np.diag([1.0, 1.0, 2.5])),
+            prior_std_eta=0.1,
+            process_std_eta=0.0,
+        )
+    with pytest.raises(ValueError, match="prior_std_eta"):
+        InertialParamUKF(TRUE_PARAMS, prior_std_eta=0.0, process_std_eta=0.0)
+    ukf = InertialParamUKF(TRUE_PARAMS, prior_std_eta=0.1, process_std_eta=0.0)
+    with pytest.raises(ValueError, match=r"A must have shape \(6, 10\)"):
+        ukf.update_linear(np.zeros(DIM_Z), np.zeros((DIM_Z, 9)), np.zeros(DIM_Z), np.eye(DIM_Z))
+    with pytest.raises(ValueError, match=r"b must have shape \(6,\)"):
+        ukf.update_linear(np.zeros(DIM_Z), np.zeros((DIM_Z, 10)), np.zeros(5), np.eye(DIM_Z))
