@@ -174,6 +174,12 @@ class World:
             self.spec.option.timestep = float(timestep_s)
         self.model = self.spec.compile()
         self.robots = tuple(self._handles(i) for i in range(self.n_robots))
+        # Commands are clipped to the propulsion limits (ctrlrange) by whoever issues them; the
+        # actuation noise added afterwards (sensors.SensorSuite.actuate) is error of the delivered
+        # wrench, not part of the command, so MuJoCo must not clip it: one-sided clipping of the
+        # noise at saturation biases the delivered wrench (measured: +1.5 % cargo mass).
+        for h in self.robots:
+            self.model.actuator_ctrllimited[list(h.thrust_actuators)] = 0
         self.cargo_body = self.model.body("cargo/bag").id
         self.cargo_qpos_adr = int(self.model.jnt_qposadr[self.model.body_jntadr[self.cargo_body]])
         self.cargo_qvel_adr = int(self.model.jnt_dofadr[self.model.body_jntadr[self.cargo_body]])

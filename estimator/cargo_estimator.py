@@ -111,6 +111,7 @@ class WrenchMessage:
     grasp_pos_world: np.ndarray  # (3,) m
     grasp_rot_world: np.ndarray  # (3, 3)
     fix: bool  # grasp pose from a localization fix at this stamp
+    wrench_cov_grasp: np.ndarray  # (6, 6) per-step covariance of the sender's actuation noise
 
 
 @dataclass
@@ -118,6 +119,7 @@ class _Instant:
     thrust: np.ndarray  # all in the grasp frame, moments about the grasp point
     links: np.ndarray
     regressor: np.ndarray
+    act_cov: np.ndarray  # per-step covariance of the own actuation noise, grasp frame
     tainted: bool
 
 
@@ -140,7 +142,13 @@ class CargoEstimator:
         index: this robot's id; ``peers``: the ids of the other robots holding the cargo.
         dt_s: control period; ``update_every``: control steps between update instants.
         prior_params: prior mean pi (10,) in this robot's grasp frame (``default_prior``).
-        force_std_n, torque_std_nm: standard deviation of the filtered wrench-balance residual.
+        force_std_n, torque_std_nm: standard deviation of the filtered wrench-balance residual
+            that sensor noise leaves (a floor; actuation noise is modelled separately).
+        actuation_noise: (force_abs_n, force_rel, torque_abs_nm, torque_rel): the robot's known
+            propulsion accuracy, white per control step: std = abs + rel * |command| per axis.
+            Its covariance, carried into the grasp frame (force noise at the base becomes moment
+            noise about the grasp), is what the robot's own and the peers' (sent with their
+            messages) contributions to the measurement covariance are built from.
         cutoff_hz: the slow filter of the wrench balance; ``kinematics_cutoff_hz``: the fast
             pre-filter of the raw signals; ``regressor_every``: control steps between balance
             evaluations (``update_every`` must be a multiple); ``warmup_s``: no update before.
@@ -157,8 +165,9 @@ class CargoEstimator:
         prior_params: np.ndarray | None = None,
         *,
         update_every: int = 10,
-        force_std_n: float = 2e-3,
-        torque_std_nm: float = 7e-4,
+        force_std_n: float = 5e-4,
+        torque_std_nm: float = 2e-4,
+        actuation_noise: tuple[float, float, float, float] = (5e-3, 0.02, 5e-4, 0.02),
         prior_std_eta: float | np.ndarray = DEFAULT_PRIOR_STD_ETA,
         process_std_eta: float = 1e-5,
         cutoff_hz: float = 0.25,
@@ -201,6 +210,15 @@ class CargoEstimator:
         w = 3.0 / self.balance_filter.delay_s
         correlated = max(1.0, (16.0 / (3.0 * w)) / (self.update_every * dt_s))
         self.meas_cov = correlated * np.diag([force_std_n**2] * 3 + [torque_std_nm**2] * 3)
+        # White per-step noise of variance s^2 through the slow filter and sampled every
+        # update_every steps contributes s^2 / update_every per update (filtered variance
+        # s^2 2 ENBW dt times the same decorrelation factor as above).
+        self.actuation_noise = np.asarray(actuation_noise, dtype=float)
+        if self.actuation_noise.shape != (4,) or np.any(self.actuation_noise < 0):
+            raise ValueError("actuation_noise must be 4 non-negative numbers")
+        self._act_cov_sum = np.zeros((6, 6))
+        self._act_cov_n = 0
+        self._act_cov_window = np.zeros((6, 6))
         self._rot_world_base: np.ndarray | None = None
         self._pos_world_base: np.ndarray | None = None
         self._last_input: tuple[np.ndarray, ...] | None = None
@@ -252,14 +270,21 @@ class CargoEstimator:
         self.pre.step(accel, gyro, q, thrust)
         fix = self._update_attitude(gyro, base_pos_world, base_quat_world)
         if stamp % self.regressor_every == 0:
-            self._filter_balance()
+            self._filter_balance(thrust)
         if stamp % self.update_every or stamp < self.warmup_steps:
             return None
         return self._record_instant(stamp, q, fix)
 
-    def _filter_balance(self) -> None:
+    def _filter_balance(self, thrust_command: np.ndarray) -> None:
         kin = self.pre.kinematics()
         base_to_grasp = np.linalg.inv(wrench_transform(kin.grasp_rot, kin.grasp_pos))
+        fa, fr, ta, tr = self.actuation_noise
+        std = np.concatenate(
+            (fa + fr * np.abs(thrust_command[:3]), ta + tr * np.abs(thrust_command[3:]))
+        )
+        to_grasp = base_to_grasp @ wrench_transform(self.robot.thrust_rot, self.robot.thrust_pos)
+        self._act_cov_sum += (to_grasp * std**2) @ to_grasp.T
+        self._act_cov_n += 1
         rot_gb = kin.grasp_rot.T
         regressor = body_regressor(
             rot_gb @ kin.grasp_acc, rot_gb @ kin.grasp_w, rot_gb @ kin.grasp_wd
@@ -294,10 +319,15 @@ class CargoEstimator:
     def _record_instant(self, stamp: int, q_raw: np.ndarray, fix: bool) -> WrenchMessage | None:
         b = self._balance
         wrench_grasp = b[0:6] - b[6:12]
+        # Per-step actuation covariance averaged over this update's window (grasp frame).
+        act_cov = self._act_cov_sum / max(self._act_cov_n, 1)
+        self._act_cov_sum = np.zeros((6, 6))
+        self._act_cov_n = 0
         self._pending[stamp] = _Instant(
             thrust=b[0:6].copy(),
             links=b[6:12].copy(),
             regressor=b[12:72].reshape(6, 10).copy(),
+            act_cov=act_cov,
             tainted=stamp <= self._tainted_until,
         )
         if self._rot_world_base is None:
@@ -323,6 +353,7 @@ class CargoEstimator:
             grasp_pos_world=pos_wg,
             grasp_rot_world=rot_wg,
             fix=fix,
+            wrench_cov_grasp=act_cov,
         )
 
     def robot_grasp_pose(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -365,11 +396,17 @@ class CargoEstimator:
                     self.n_skipped_tainted += 1
                     continue
                 peers = np.zeros(6)
+                cov = inst.act_cov.copy()
                 for p, m in zip(self.peers, msgs, strict=True):
-                    peers += self._relative[p].transform() @ m.wrench_grasp
+                    t = self._relative[p].transform()
+                    peers += t @ m.wrench_grasp
+                    cov += t @ m.wrench_cov_grasp @ t.T
                 self.ukf.predict()
                 self.ukf.update_linear(
-                    inst.thrust, inst.regressor, inst.links - peers, self.meas_cov
+                    inst.thrust,
+                    inst.regressor,
+                    inst.links - peers,
+                    self.meas_cov + cov / self.update_every,
                 )
                 done += 1
             elif stamp < self.stamp - self.history_steps:
