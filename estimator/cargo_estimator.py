@@ -154,6 +154,7 @@ class CargoEstimator:
             evaluations (``update_every`` must be a multiple); ``warmup_s``: no update before.
         history_s: how long an instant waits for its peers' messages before it is skipped.
         gate_prob: chi-square probability of the normalised innovation gate (None: no gating).
+        record: keep every accepted update's (z, A, b, R) in ``log`` for the batch baselines.
     """
 
     def __init__(
@@ -176,6 +177,7 @@ class CargoEstimator:
         warmup_s: float = 4.0,
         history_s: float = 2.0,
         gate_prob: float | None = 0.9999,
+        record: bool = False,
     ) -> None:
         if regressor_every < 1 or update_every < 1 or update_every % regressor_every:
             raise ValueError(
@@ -228,6 +230,8 @@ class CargoEstimator:
         self._peer_msgs: dict[tuple[int, int], WrenchMessage] = {}
         self._relative: dict[int, _RelativeGrasp] = {p: _RelativeGrasp() for p in self.peers}
         self.stamp = -1
+        self.record = bool(record)
+        self.log: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
         self.n_bad_readings = 0
         self.n_skipped_missing = 0
         self.n_skipped_tainted = 0
@@ -401,14 +405,15 @@ class CargoEstimator:
                     t = self._relative[p].transform()
                     peers += t @ m.wrench_grasp
                     cov += t @ m.wrench_cov_grasp @ t.T
+                meas_cov = self.meas_cov + cov / self.update_every
                 self.ukf.predict()
-                self.ukf.update_linear(
-                    inst.thrust,
-                    inst.regressor,
-                    inst.links - peers,
-                    self.meas_cov + cov / self.update_every,
+                result = self.ukf.update_linear(
+                    inst.thrust, inst.regressor, inst.links - peers, meas_cov
                 )
-                done += 1
+                if result.accepted:
+                    done += 1
+                    if self.record:
+                        self.log.append((inst.thrust, inst.regressor, inst.links - peers, meas_cov))
             elif stamp < self.stamp - self.history_steps:
                 del self._pending[stamp]
                 self.n_skipped_missing += 1
