@@ -49,9 +49,8 @@ from .inertia import params_from_mass_com_inertia
 from .preprocess import Preprocessor, StateVariableFilter
 from .rne import (
     RobotDescription,
-    body_regressor,
-    link_momentum_rate,
-    propagate,
+    balance_in_grasp_frame,
+    grasp_from_base,
     wrench_transform,
 )
 from .ukf import InertialParamUKF
@@ -220,7 +219,7 @@ class CargoEstimator:
             raise ValueError("actuation_noise must be 4 non-negative numbers")
         self._act_cov_sum = np.zeros((6, 6))
         self._act_cov_n = 0
-        self._act_cov_window = np.zeros((6, 6))
+        self._thrust_to_base = wrench_transform(robot.thrust_rot, robot.thrust_pos)
         self._rot_world_base: np.ndarray | None = None
         self._pos_world_base: np.ndarray | None = None
         self._last_input: tuple[np.ndarray, ...] | None = None
@@ -280,27 +279,19 @@ class CargoEstimator:
         return self._record_instant(stamp, q, fix)
 
     def _filter_balance(self, thrust_command: np.ndarray) -> None:
-        kin = self.pre.kinematics()
-        base_to_grasp = np.linalg.inv(wrench_transform(kin.grasp_rot, kin.grasp_pos))
+        thrust_g, links_g, regressor, rot_bg, pos_bg = balance_in_grasp_frame(
+            self.robot, *self.pre.base_and_joint_motion(), self.pre.thrust()
+        )
+        # Per-step covariance of the actuation noise, carried into the grasp frame.
+        to_grasp = grasp_from_base(rot_bg, pos_bg) @ self._thrust_to_base
         fa, fr, ta, tr = self.actuation_noise
         std = np.concatenate(
             (fa + fr * np.abs(thrust_command[:3]), ta + tr * np.abs(thrust_command[3:]))
         )
-        to_grasp = base_to_grasp @ wrench_transform(self.robot.thrust_rot, self.robot.thrust_pos)
         self._act_cov_sum += (to_grasp * std**2) @ to_grasp.T
         self._act_cov_n += 1
-        rot_gb = kin.grasp_rot.T
-        regressor = body_regressor(
-            rot_gb @ kin.grasp_acc, rot_gb @ kin.grasp_w, rot_gb @ kin.grasp_wd
-        )
         self._balance, _, _ = self.balance_filter.step(
-            np.concatenate(
-                (
-                    base_to_grasp @ self.pre.thrust(),
-                    base_to_grasp @ link_momentum_rate(self.robot, kin),
-                    regressor.ravel(),
-                )
-            )
+            np.concatenate((thrust_g, links_g, regressor.ravel()))
         )
 
     def _update_attitude(self, gyro_imu, base_pos_world, base_quat_world) -> bool:
@@ -363,9 +354,11 @@ class CargoEstimator:
     def robot_grasp_pose(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Grasp frame in the base frame at joint angles ``q`` (forward kinematics only)."""
         zeros = np.zeros(3)
-        nj = self.robot.n_joints
-        kin = propagate(self.robot, zeros, zeros, zeros, q, np.zeros(nj), np.zeros(nj))
-        return kin.grasp_rot, kin.grasp_pos
+        nj = np.zeros(self.robot.n_joints)
+        *_, rot, pos = balance_in_grasp_frame(
+            self.robot, zeros, zeros, zeros, q, nj, nj, np.zeros(6)
+        )
+        return rot, pos
 
     def receive(self, message: WrenchMessage) -> None:
         """Store a peer's message (messages from robots that are not peers are ignored)."""

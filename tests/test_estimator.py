@@ -264,3 +264,34 @@ def test_missing_peer_message_is_skipped_and_counted():
         est.process()
     assert est.counters["updates"] == 0
     assert est.counters["skipped_missing"] > 0
+
+
+def test_fast_balance_equals_the_batched_model():
+    """The single-sample fast path is the same model as propagate / link_momentum_rate /
+    body_regressor (which tests/test_rne_mujoco.py holds against MuJoCo)."""
+    from astrocargo.estimator import rne
+
+    robot = World(1).robot_model(0)
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        w, wd, acc = rng.normal(size=(3, 3))
+        q, qd, qdd = rng.normal(size=(3, 2))
+        thrust = rng.normal(size=6)
+        kin = rne.propagate(robot, w, wd, acc, q, qd, qdd)
+        to_g = rne.grasp_from_base(kin.grasp_rot, kin.grasp_pos)
+        rot_t = kin.grasp_rot.T
+        expected = (
+            to_g @ rne.thrust_wrench(robot, thrust),
+            to_g @ rne.link_momentum_rate(robot, kin),
+            rne.body_regressor(rot_t @ kin.grasp_acc, rot_t @ kin.grasp_w, rot_t @ kin.grasp_wd),
+            kin.grasp_rot,
+            kin.grasp_pos,
+        )
+        got = rne.balance_in_grasp_frame(
+            robot, w, wd, acc, q, qd, qdd, rne.thrust_wrench(robot, thrust)
+        )
+        for e, g in zip(expected, got, strict=True):
+            np.testing.assert_allclose(g, e, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(
+            to_g @ rne.wrench_transform(kin.grasp_rot, kin.grasp_pos), np.eye(6), atol=1e-12
+        )
