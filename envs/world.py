@@ -40,6 +40,7 @@ from astrocargo.estimator.inertia import (
 from astrocargo.estimator.rne import LinkDescription, RobotDescription
 
 MAX_ROBOTS = 4  # the cargo has four grasp handrails
+MAX_TIMESTEP_S = 0.016  # RK4 is checked up to one step per 62.5 Hz control period
 ARM_DEPLOYED_RAD = (-np.pi / 2, 0.0)  # tilt, pan: arm straight aft (facts file section 5)
 THRUST_ACTUATORS = ("force_x", "force_y", "force_z", "torque_x", "torque_y", "torque_z")
 ARM_JOINTS = ("tilt", "pan")
@@ -162,8 +163,10 @@ class World:
             raise ValueError(f"n_robots must be an integer in 1..{MAX_ROBOTS}, got {n_robots!r}")
         if not 1 <= n_robots <= MAX_ROBOTS:
             raise ValueError(f"n_robots must be in 1..{MAX_ROBOTS}, got {n_robots}")
-        if timestep_s is not None and not (np.isfinite(timestep_s) and 0 < timestep_s <= 0.01):
-            raise ValueError(f"timestep_s must be in (0, 0.01] s, got {timestep_s}")
+        if timestep_s is not None and not (
+            np.isfinite(timestep_s) and 0 < timestep_s <= MAX_TIMESTEP_S
+        ):
+            raise ValueError(f"timestep_s must be in (0, {MAX_TIMESTEP_S}] s, got {timestep_s}")
         cargo_pos = np.asarray(cargo_pos_m, dtype=float)
         if cargo_pos.shape != (3,) or not np.all(np.isfinite(cargo_pos)):
             raise ValueError(f"cargo_pos_m must be 3 finite numbers, got {cargo_pos_m!r}")

@@ -4,7 +4,10 @@ Sections:
 - estimator: one predict + update of `InertialParamUKF` against filterpy's stock
   `UnscentedKalmanFilter` given the very same per-point measurement function, on a seeded
   sequence of cargo-inertia measurements (n = 10 states, m = 6 wrench components).
-- env, training: not implemented yet.
+- env: one `AstrobeeCargoEnv.step` (N = 1, 2, 4 robots; estimators on and off) against bare
+  MuJoCo `mj_step(nstep=frame_skip)` of the same model; real-time factor = control period / mean
+  step time.
+- training: not implemented yet.
 
 Usage:
     python scripts/benchmark_performance.py [--only {estimator,env,training}] [--json FILE]
@@ -148,9 +151,105 @@ def bench_estimator(n_steps: int = 2000, n_warmup: int = 50) -> dict[str, float]
 # --------------------------------------------------------------------------- env, training
 
 
-def bench_env() -> dict[str, float]:
-    """Environment step throughput (to be written with the environment)."""
-    raise NotImplementedSection("env")
+ENV_ROBOTS = (1, 2, 4, 8)
+ENV_WARMUP_STEPS = 300  # past the estimators' 4 s warm-up, so UKF updates are in the timing
+ENV_STEPS = 500
+
+
+def _env_step_times_ns(n_robots: int, estimators: bool) -> tuple[np.ndarray, object]:
+    """Wall time of each of ENV_STEPS env steps (after ENV_WARMUP_STEPS), and the env."""
+    from astrocargo.envs.cargo_transport import AstrobeeCargoEnv
+
+    env = AstrobeeCargoEnv(
+        n_robots=n_robots,
+        noise="nominal",
+        estimators=estimators,
+        observe_estimates=estimators,
+        max_cycles=10 * (ENV_WARMUP_STEPS + ENV_STEPS),
+    )
+    rng = np.random.default_rng(SEED)
+    # Smooth, small actions (no wall contact within the run): thrust and arm both move.
+    freq = rng.uniform(0.05, 0.3, (n_robots, 8))
+    phase = rng.uniform(0.0, 2 * np.pi, (n_robots, 8))
+    env.reset(seed=SEED)
+    times = []
+    gc_was_enabled = gc.isenabled()
+    gc.disable()
+    try:
+        for k in range(ENV_WARMUP_STEPS + ENV_STEPS):
+            a = 0.2 * np.sin(2 * np.pi * freq * k * env.sim.dt_s + phase)
+            actions = dict(zip(env.possible_agents, a, strict=True))
+            t0 = time.perf_counter_ns()
+            env.step(actions)
+            t1 = time.perf_counter_ns()
+            if k >= ENV_WARMUP_STEPS:
+                times.append(t1 - t0)
+            if not env.agents:
+                raise RuntimeError(f"benchmark episode ended early at step {k}")
+    finally:
+        if gc_was_enabled:
+            gc.enable()
+    return np.array(times), env
+
+
+def _physics_step_times_ns(env) -> np.ndarray:
+    """Bare mj_step(nstep=frame_skip) of the env's own model from its current state."""
+    import mujoco
+
+    model, data = env.sim.model, env.sim.data
+    times = []
+    for k in range(ENV_WARMUP_STEPS + ENV_STEPS):
+        t0 = time.perf_counter_ns()
+        mujoco.mj_step(model, data, nstep=env.sim.frame_skip)
+        t1 = time.perf_counter_ns()
+        if k >= ENV_WARMUP_STEPS:
+            times.append(t1 - t0)
+    return np.array(times)
+
+
+def bench_env() -> dict[str, dict[str, float]]:
+    """Microseconds per env step (median and mean) and real-time factors, per robot count."""
+    from astrocargo.envs.world import MAX_ROBOTS
+
+    results: dict[str, dict[str, float]] = {}
+    print(
+        f"env: {ENV_STEPS} steps after {ENV_WARMUP_STEPS} warm-up steps, nominal noise, seed "
+        f"{SEED}, OPENBLAS_NUM_THREADS={os.environ['OPENBLAS_NUM_THREADS']}; rtf = control "
+        f"period / mean step time"
+    )
+    print(
+        f"  {'N':>2} {'step us':>9} {'mean us':>9} {'rtf':>7} {'no-est us':>10} {'mean us':>9} "
+        f"{'rtf':>7} {'mj_step us':>11} {'rtf':>8}"
+    )
+    for n in ENV_ROBOTS:
+        if n > MAX_ROBOTS:
+            print(
+                f"  {n:>2} n/a: World supports at most {MAX_ROBOTS} robots (the cargo bag has "
+                f"{MAX_ROBOTS} handrails)"
+            )
+            continue
+        on, env = _env_step_times_ns(n, estimators=True)
+        off, _ = _env_step_times_ns(n, estimators=False)
+        physics = _physics_step_times_ns(env)
+        dt_us = env.sim.dt_s * 1e6
+        row = {
+            "step_us": float(np.median(on)) / 1e3,
+            "step_mean_us": float(np.mean(on)) / 1e3,
+            "rtf": dt_us / (float(np.mean(on)) / 1e3),
+            "step_no_estimator_us": float(np.median(off)) / 1e3,
+            "step_no_estimator_mean_us": float(np.mean(off)) / 1e3,
+            "rtf_no_estimator": dt_us / (float(np.mean(off)) / 1e3),
+            "physics_only_us": float(np.median(physics)) / 1e3,
+            "rtf_physics_only": dt_us / (float(np.mean(physics)) / 1e3),
+        }
+        results[str(n)] = row
+        print(
+            f"  {n:>2} {row['step_us']:9.0f} {row['step_mean_us']:9.0f} {row['rtf']:7.1f} "
+            f"{row['step_no_estimator_us']:10.0f} {row['step_no_estimator_mean_us']:9.0f} "
+            f"{row['rtf_no_estimator']:7.1f} {row['physics_only_us']:11.1f} "
+            f"{row['rtf_physics_only']:8.0f}"
+        )
+    return results
 
 
 def bench_training() -> dict[str, float]:

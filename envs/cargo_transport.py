@@ -1,0 +1,1147 @@
+"""Astrobee cargo transport: N free-flyers carry one cargo of unknown inertia together.
+
+## Description
+
+`n_robots` Astrobees (1 to 4) hold one cargo transfer bag by its handrails inside an ISS module
+(microgravity) and carry it along a reference trajectory of the cargo (`agents.trajectories`:
+a figure-eight with a yaw ramp, optionally with roll and pitch oscillations, or a hover). Every
+robot runs its own constrained UKF (`estimator.cargo_estimator.CargoEstimator`) that estimates the
+cargo's ten inertial parameters from its own IMU, arm encoders, localization fixes and propulsion
+command, and from the grasp wrenches the other robots send over a communication channel with
+latency, loss and noise (`envs.comms.CommChannel`). Each robot's estimate (mean and standard
+deviation) is part of its observation, so controllers can use it.
+
+One control step (62.5 Hz, Astrobee's GNC rate; facts file section 3.1), in this order:
+actions are validated, clipped and scaled; MuJoCo advances `frame_skip` physics steps; every
+robot's sensors are read with the seeded noise model (`envs.sensors`); each estimator ingests
+its own packet and its own command and publishes its wrench; the channel delivers what is due;
+the estimators update; observations, rewards, terminations, truncations and infos are assembled.
+Ground truth (true cargo parameters, estimate errors) goes to `infos` and `state()` only.
+
+The physics and estimation live in the plain class `CargoTransport` (no PettingZoo);
+`AstrobeeCargoEnv` is the thin `pettingzoo.ParallelEnv` on top (agents `astrobee_0` ...).
+
+## Action Space
+
+`Box(-1, 1, (8,), float32)` per agent. Values outside [-1, 1] are clipped (counted in
+`infos["clipped_actions"]`). Thrust is a body-frame wrench at the robot's `thrust` site; the
+actuation noise of the noise profile is added after clipping (`SensorSuite.actuate`).
+
+| Index | Action (after scaling)                   | Min | Max | Unit | MJCF actuator         |
+|-------|------------------------------------------|-----|-----|------|-----------------------|
+| 0     | force along base x, a * 0.41             | -1  | 1   | N    | `astrobee_i/force_x`  |
+| 1     | force along base y, a * 0.23             | -1  | 1   | N    | `astrobee_i/force_y`  |
+| 2     | force along base z, a * 0.38             | -1  | 1   | N    | `astrobee_i/force_z`  |
+| 3     | torque about base x, a * 0.045           | -1  | 1   | N m  | `astrobee_i/torque_x` |
+| 4     | torque about base y, a * 0.022           | -1  | 1   | N m  | `astrobee_i/torque_y` |
+| 5     | torque about base z, a * 0.033           | -1  | 1   | N m  | `astrobee_i/torque_z` |
+| 6     | tilt target: -pi/2 + a * 0.5             | -1  | 1   | rad  | `astrobee_i/tilt`     |
+| 7     | pan target: 0 + a * 0.5                  | -1  | 1   | rad  | `astrobee_i/pan`      |
+
+The thrust limits are the actuators' `ctrlrange` (`World.robot_model(i).thrust_limit`). The arm
+targets are offsets from the deployed pose (tilt -pi/2, pan 0); the target sent to the servo moves
+towards the requested one at most 0.12 rad/s (URDF joint velocity limit, facts file section 5)
+and stays within the joint ranges.
+
+## Observation Space
+
+`Box(float64)` per agent, local to the robot and built only from its own noisy sensors, its own
+commands, its known model, the reference and the messages it received; never from the truth.
+"Base frame" below is the robot's own estimate of its base attitude. With P = n_robots - 1 peer
+slots (peers in increasing index, skipping the robot itself) and E = 20 if `observe_estimates`
+else 0, the size is 33 + 8 P + E (n_robots=2: 41 without, 61 with estimates).
+
+| Index          | Observation                                                  | Unit       |
+|----------------|--------------------------------------------------------------|------------|
+| 0-2            | base position minus its reference position, base frame      | m          |
+| 3-5            | base velocity minus its reference velocity, base frame      | m/s        |
+| 6-8            | base attitude error: rotation vector of R_ref^T R_base       | rad        |
+| 9-11           | base angular velocity, base frame (gyro, period mean)       | rad/s      |
+| 12-13          | arm joint angles tilt, pan (encoders)                       | rad        |
+| 14-15          | arm joint targets tilt, pan (what the servos are sent)      | rad        |
+| 16-18          | cargo reference position minus base position, base frame    | m          |
+| 19-21          | cargo reference velocity, base frame                        | m/s        |
+| 22-24          | cargo reference acceleration, base frame                    | m/s^2      |
+| 25-27          | cargo reference angular velocity, base frame                | rad/s      |
+| 28-30          | cargo reference angular acceleration, base frame            | rad/s^2    |
+| 31-32          | reference pan angle and pan rate (the arm pan ramp)         | rad, rad/s |
+| 33+8p+(0-5)    | peer p's last wrench on the cargo, this robot's base axes   | N, N m     |
+| 33+8p+6        | age of that message (0 before the first)                    | s          |
+| 33+8p+7        | valid: 1 once a message of peer p has arrived, else 0       | -          |
+| 33+8P+(0-9)    | estimate mean pi, this robot's grasp frame (if observed)    | see below  |
+| 43+8P+(0-9)    | standard deviations of those ten parameters (if observed)   | see below  |
+
+A peer's wrench is [force; moment about the peer's grasp point] (zeros before its first message).
+pi = [m, m c_x, m c_y, m c_z, I_xx, I_yy, I_zz, I_xy, I_xz, I_yz] (kg, kg m, kg m^2; inertia about
+the grasp point, `estimator.inertia` conventions).
+
+`observation_layout(n_robots, observe_estimates)` returns these slices by name.
+
+Base state: each robot dead-reckons with its own gyro and accelerometer between localization
+fixes and blends the fixes in with a Kalman gain (`BaseNavigator`). Base reference: the pose the
+base would have if the cargo were exactly on its reference, with the grasp rigid at the robot's
+current (measured) arm angles: R_ref = R_cargo,ref R_cargo<-handrail R_base<-grasp(q)^T and the
+matching position; its velocity is the cargo reference's rigid-body velocity at that point (the
+arm's own motion is left out). The handrail each robot holds is known geometry (the cargo's
+handrail sites); only the cargo's inertial parameters are unknown. A peer's wrench is the message's
+world-axes wrench (sender's attitude estimate) rotated into this robot's base axes with its own.
+
+## Rewards
+
+Per agent: `reward = shared_reward * team + (1 - shared_reward) * individual`, term by term:
+
+- `track` = w_track * (-|p_cargo - p_ref| - 0.5 * angle(R_ref^T R_cargo)) (true cargo frame pose,
+  m and rad; the same for team and individual);
+- `effort` = w_effort * (-sum(a^2)) of the clipped action (team: mean over robots);
+- `info` = w_info * (decrease of sum(log std) of the robot's ten-parameter estimate this step)
+  (team: mean over robots; 0 when the estimators are off);
+- `contact` = w_contact * (-number of contacts with the module's walls and handrails): team, all
+  contacts of any robot or the cargo; individual, those of this robot plus those of the cargo.
+
+Every term enters `infos[agent]["reward_<term>"]` already mixed and weighted; they sum to the
+reward.
+
+## Starting State
+
+At each `reset` the cargo's inertial parameters are drawn (or set) from the arguments; the
+robots hold the cargo with their arms deployed, everything at rest, the cargo frame at the module
+centre, aligned with the module. The first observation comes from one sensor reading at rest
+(a localization fix, encoders, IMU at rest plus noise), which the estimators also ingest.
+
+## Episode End
+
+Termination (every agent): any contact of a robot or the cargo with the module
+(`infos["termination_reason"] == "wall_contact"`), or a non-finite or unstable physics state
+(`"non_finite"`). Truncation (every agent): after `max_cycles` control steps. `agents` is empty
+once the episode has ended; stepping again raises `RuntimeError` until `reset`.
+
+## Infos
+
+Per agent: `reward_<term>` (above), `termination_reason` (None, "wall_contact", "non_finite"),
+`time_s`, `clipped_actions` (entries of this agent's action outside [-1, 1] this step),
+`wall_contacts`, `true_params` (the cargo's pi in this robot's grasp frame), with estimators on:
+`estimate`, `estimate_std`, `mass_rel_err`, `com_err_m`, `principal_rel_err` (3, sorted
+principal moments), `estimator` (the estimator's counters); and `comm` (channel statistics).
+
+## State
+
+`state()` is the full true state, float64: time; qpos; qvel; for every body but the world (cargo,
+then each robot's bodies) its frame's position, quaternion (w, x, y, z), linear and angular
+velocity (world axes); the true cargo pi in the cargo frame (10); the reference (position,
+velocity, acceleration, quaternion, angular velocity, angular acceleration, pan, pan rate: 21);
+the arm targets (2 per robot).
+
+## Arguments
+
+| Argument            | Default       | Meaning                                                  |
+|---------------------|---------------|----------------------------------------------------------|
+| `n_robots`          | 2             | robots holding the cargo, 1 to 4 (four handrails)        |
+| `trajectory`        | "figure8_yaw" | cargo reference: one of `Trajectory.NAMES`               |
+| `fast`              | False         | twice the figure-eight speed                             |
+| `noise`             | "nominal"     | sensor and actuation noise: one of `NOISE_PROFILES`      |
+| `cargo_mass_kg`     | 5.0           | mass, or (low, high): uniform draw at each reset         |
+| `cargo_com_m`       | None          | CoM in the cargo frame (3), or None: uniform in +-0.03 m |
+| `cargo_inertia`     | None          | (I_xx, I_yy, I_zz, I_xy, I_xz, I_yz) about the CoM, or   |
+|                     |               | None: uniform 0.42 x 0.30 x 0.25 m box of that mass      |
+| `comm_latency`      | 0.0           | message latency, s (rounded to control periods)          |
+| `comm_drop`         | 0.0           | probability that one message to one receiver is lost     |
+| `comm_noise`        | (0.0, 0.0)    | std of the noise on sent wrenches (force N, moment N m)  |
+| `control_hz`        | 62.5          | control rate, Hz                                         |
+| `frame_skip`        | None          | physics steps per control step (None: MJCF's 16 ms step) |
+| `max_cycles`        | None          | control steps per episode (None: 90 s, 5625 at 62.5 Hz)  |
+| `w_track`           | 1.0           | weight of the tracking term                              |
+| `w_effort`          | 0.01          | weight of the effort term                                |
+| `w_info`            | 0.0           | weight of the information-gain term                      |
+| `w_contact`         | 1.0           | weight of the wall-contact term                          |
+| `shared_reward`     | 1.0           | weight of the team reward against the individual one     |
+| `observe_estimates` | True          | append the estimate mean and std to the observation     |
+| `estimators`        | True          | run the estimators (False: physics only, benchmarks)     |
+| `estimator_kwargs`  | None          | keyword arguments of `CargoEstimator`; `actuation_noise` |
+|                     |               | defaults to the noise profile's                          |
+| `render_mode`       | None          | None, "rgb_array" or "human"                             |
+| `render_width`      | 640           | rgb_array width, pixels (at most 1280)                   |
+| `render_height`     | 480           | rgb_array height, pixels (at most 720)                   |
+| `render_camera`     | "track"       | "track" (free camera on the cargo) or an MJCF camera     |
+
+## Version History
+
+- v0: first version.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import mujoco
+import numpy as np
+from gymnasium import spaces
+from pettingzoo import ParallelEnv
+
+from astrocargo.agents.trajectories import Reference, Trajectory
+from astrocargo.envs.comms import CommChannel
+from astrocargo.envs.sensors import NOISE_PROFILES, NoiseProfile, SensorPacket, SensorSuite
+from astrocargo.envs.sensors import noise_profile as get_noise_profile
+from astrocargo.envs.world import ARM_DEPLOYED_RAD, MAX_ROBOTS, MAX_TIMESTEP_S, World
+from astrocargo.estimator.cargo_estimator import CargoEstimator
+from astrocargo.estimator.inertia import (
+    check_physical,
+    com_error_m,
+    mass_rel_error,
+    params_from_mass_com_inertia,
+    principal_rel_errors,
+    vec_to_inertia,
+)
+from astrocargo.estimator.rne import RobotDescription
+
+ACTION_DIM = 8
+ARM_OFFSET_RAD = 0.5  # reach of the arm actions around the deployed pose
+ARM_SPEED_RADPS = 0.12  # URDF joint velocity limit (facts file section 5)
+CONTROL_HZ = 62.5  # Astrobee GNC and PMC rate (facts file section 3.1)
+EPISODE_S = 90.0  # default episode length: the seed paper's runs last 90 s
+CARGO_BOX_M = (0.42, 0.30, 0.25)  # the bag's outer size (assets/cargo.xml)
+CARGO_COM_SPREAD_M = 0.03  # sampled centre of mass: uniform in +-this per axis
+ROTATION_WEIGHT_M_PER_RAD = 0.5  # tracking term: metres of position error per radian
+RENDER_CAMERA_TRACK = "track"
+# Tracking camera: behind and above one robot's shoulder, framing the cargo and its robots
+# (same framing as scripts/render_scene.py's close-up).
+TRACK_DISTANCE_M, TRACK_AZIMUTH_DEG, TRACK_ELEVATION_DEG = 2.3, 120.0, -30.0
+VISIBLE_GEOM_GROUPS = (0, 1, 2, 3)  # visual and collision geoms; sites (4) off
+# Floors of the navigation filter's noise model, so the ideal profile stays well posed.
+NAV_STD_FLOOR = 1e-9
+LOG_STD_FLOOR = 1e-12
+REWARD_TERMS = ("track", "effort", "info", "contact")
+TERMINATION_REASONS = ("wall_contact", "non_finite")
+
+
+# --------------------------------------------------------------------------- small helpers
+
+
+def _quat_to_mat(quat: np.ndarray) -> np.ndarray:
+    mat = np.empty(9)
+    mujoco.mju_quat2Mat(mat, np.asarray(quat, dtype=float))
+    return mat.reshape(3, 3)
+
+
+def _mat_to_quat(rot: np.ndarray) -> np.ndarray:
+    quat = np.empty(4)
+    mujoco.mju_mat2Quat(quat, np.ascontiguousarray(rot, dtype=float).reshape(9))
+    return quat
+
+
+def _rotvec(rot: np.ndarray) -> np.ndarray:
+    """Rotation vector (axis * angle, angle in [0, pi]) of a rotation matrix."""
+    vec = np.empty(3)
+    mujoco.mju_quat2Vel(vec, _mat_to_quat(rot), 1.0)
+    return vec
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a x b for two 3-vectors (np.cross costs ~15 us on small arrays)."""
+    return np.array(
+        [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+    )
+
+
+def _exp(rotvec: np.ndarray) -> np.ndarray:
+    """Rotation matrix of a rotation vector."""
+    angle = float(np.linalg.norm(rotvec))
+    if angle < 1e-15:
+        return np.eye(3)
+    quat = np.empty(4)
+    mujoco.mju_axisAngle2Quat(quat, rotvec / angle, angle)
+    return _quat_to_mat(quat)
+
+
+def grasp_pose_in_base(robot: RobotDescription, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Robot's grasp frame in its base frame at joint angles ``q`` (rotation, position).
+
+    The forward-kinematics part of ``estimator.rne.propagate`` alone (checked against it in the
+    tests): ``propagate`` also carries rates and accelerations and costs ~10x more, and the env
+    needs this pose for every robot at every step.
+    """
+    rots, poss = [np.eye(3)], [np.zeros(3)]
+    for k, link in enumerate(robot.links[1:]):
+        rot_p = rots[link.parent]
+        rots.append(rot_p @ link.rot_in_parent @ _exp(link.joint_axis * q[k]))
+        poss.append(poss[link.parent] + rot_p @ link.pos_in_parent)
+    rot_g, pos_g = rots[robot.grasp_link], poss[robot.grasp_link]
+    return rot_g @ robot.grasp_rot, pos_g + rot_g @ robot.grasp_pos
+
+
+def observation_layout(n_robots: int, observe_estimates: bool = True) -> dict[str, slice]:
+    """Index slices of each observation block (see the module docstring's table)."""
+    sizes = [
+        ("base_pos_err", 3),
+        ("base_vel_err", 3),
+        ("base_att_err", 3),
+        ("base_ang_vel", 3),
+        ("joint_pos", 2),
+        ("joint_target", 2),
+        ("ref_pos_rel", 3),
+        ("ref_vel", 3),
+        ("ref_acc", 3),
+        ("ref_ang_vel", 3),
+        ("ref_ang_acc", 3),
+        ("ref_pan", 2),
+    ]
+    for p in range(n_robots - 1):
+        sizes += [(f"peer{p}_wrench", 6), (f"peer{p}_age", 1), (f"peer{p}_valid", 1)]
+    if observe_estimates:
+        sizes += [("estimate_mean", 10), ("estimate_std", 10)]
+    out, start = {}, 0
+    for name, size in sizes:
+        out[name] = slice(start, start + size)
+        start += size
+    out["all"] = slice(0, start)
+    return out
+
+
+# --------------------------------------------------------------------------- navigation
+
+
+class BaseNavigator:
+    """One robot's estimate of its own base pose and velocity, from its own sensors only.
+
+    Between localization fixes it dead-reckons: attitude with the gyro's period-mean rate,
+    velocity and position of the IMU point with the accelerometer's period-mean specific force
+    (exact for ideal readings: that mean is the change of the IMU point's velocity over the
+    period). At a fix it blends in the fixed attitude and position with Kalman gains built from
+    the noise profile the robot knows (isotropic, so one 2x2 covariance serves all three axes).
+    """
+
+    def __init__(self, robot: RobotDescription, dt_s: float, profile: NoiseProfile) -> None:
+        self.imu_rot = robot.imu_rot
+        self.imu_pos = robot.imu_pos
+        self.dt_s = float(dt_s)
+        acc_var = max(profile.accel_std, NAV_STD_FLOOR) ** 2
+        self.pos_var = max(profile.position_std_m, NAV_STD_FLOOR) ** 2
+        self.att_var = max(profile.attitude_std_rad, NAV_STD_FLOOR) ** 2
+        self.gyro_step_var = (max(profile.gyro_std, NAV_STD_FLOOR) * dt_s) ** 2
+        dt = self.dt_s
+        self._f = np.array([[1.0, dt], [0.0, 1.0]])
+        self._q = acc_var * np.array([[dt**4 / 4, dt**3 / 2], [dt**3 / 2, dt**2]])
+
+    def reset(self, packet: SensorPacket) -> None:
+        """Start at rest at the packet's localization fix."""
+        if packet.base_pos_world is None or packet.base_quat_world is None:
+            raise ValueError("the navigator starts from a packet with a localization fix")
+        self.rot = _quat_to_mat(packet.base_quat_world)
+        self.w_base = self.imu_rot @ packet.gyro_imu
+        self.p_imu = packet.base_pos_world + self.rot @ self.imu_pos
+        self.v_imu = np.zeros(3)
+        self.cov = np.diag([self.pos_var, NAV_STD_FLOOR**2])
+        self.att_cov = self.att_var
+
+    def update(self, packet: SensorPacket) -> None:
+        """Propagate over one control period with the packet's IMU means; blend in its fix."""
+        dt = self.dt_s
+        w = self.imu_rot @ packet.gyro_imu
+        rot_mid_imu = self.rot @ _exp(0.5 * dt * w) @ self.imu_rot
+        self.rot = self.rot @ _exp(dt * w)
+        v_new = self.v_imu + dt * (rot_mid_imu @ packet.accel_imu)
+        self.p_imu = self.p_imu + 0.5 * dt * (self.v_imu + v_new)
+        self.v_imu = v_new
+        self.w_base = w
+        self.cov = self._f @ self.cov @ self._f.T + self._q
+        self.att_cov += self.gyro_step_var
+        if packet.base_pos_world is None or packet.base_quat_world is None:
+            return
+        fix_rot = _quat_to_mat(packet.base_quat_world)
+        gain_att = self.att_cov / (self.att_cov + self.att_var)
+        self.rot = self.rot @ _exp(gain_att * _rotvec(self.rot.T @ fix_rot))
+        self.att_cov *= 1.0 - gain_att
+        innovation = packet.base_pos_world + self.rot @ self.imu_pos - self.p_imu
+        gain = self.cov[:, 0] / (self.cov[0, 0] + self.pos_var)
+        self.p_imu = self.p_imu + gain[0] * innovation
+        self.v_imu = self.v_imu + gain[1] * innovation
+        self.cov = self.cov - np.outer(gain, self.cov[0])
+
+    @property
+    def base_pos(self) -> np.ndarray:
+        return self.p_imu - self.rot @ self.imu_pos
+
+    @property
+    def base_vel(self) -> np.ndarray:
+        return self.v_imu - self.rot @ _cross(self.w_base, self.imu_pos)
+
+
+# --------------------------------------------------------------------------- physics + estimation
+
+
+@dataclass(frozen=True)
+class StepResult:
+    """What one control step returns, per robot (index order)."""
+
+    observations: np.ndarray  # (n_robots, obs_dim) float64
+    rewards: np.ndarray  # (n_robots,)
+    terminated: bool
+    termination_reason: str | None
+    infos: list[dict[str, Any]]
+
+
+def _check_finite_number(name: str, value: Any, allowed: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, int | float | np.integer | np.floating):
+        raise ValueError(f"{name} must be {allowed}, got {value!r}")
+    if not np.isfinite(value):
+        raise ValueError(f"{name} must be {allowed}, got {value!r}")
+    return float(value)
+
+
+class CargoTransport:
+    """The world, sensors, channel, estimators and the robots' own navigation, with no
+    multi-agent API: ``reset(rng)`` then ``step(actions)`` with an (n_robots, 8) array.
+
+    The arguments are those of ``AstrobeeCargoEnv`` (see the module docstring) that concern the
+    physics, estimation and rewards; they are validated here.
+    """
+
+    def __init__(
+        self,
+        n_robots: int = 2,
+        trajectory: str = "figure8_yaw",
+        fast: bool = False,
+        noise: str = "nominal",
+        cargo_mass_kg: float | tuple[float, float] = 5.0,
+        cargo_com_m: tuple[float, float, float] | None = None,
+        cargo_inertia: tuple[float, float, float, float, float, float] | None = None,
+        comm_latency: float = 0.0,
+        comm_drop: float = 0.0,
+        comm_noise: tuple[float, float] = (0.0, 0.0),
+        control_hz: float = CONTROL_HZ,
+        frame_skip: int | None = None,
+        w_track: float = 1.0,
+        w_effort: float = 0.01,
+        w_info: float = 0.0,
+        w_contact: float = 1.0,
+        shared_reward: float = 1.0,
+        observe_estimates: bool = True,
+        estimators: bool = True,
+        estimator_kwargs: dict[str, Any] | None = None,
+    ) -> None:
+        if isinstance(n_robots, bool) or not isinstance(n_robots, int | np.integer):
+            raise ValueError(f"n_robots must be an integer in 1..{MAX_ROBOTS}, got {n_robots!r}")
+        if not 1 <= n_robots <= MAX_ROBOTS:
+            raise ValueError(f"n_robots must be in 1..{MAX_ROBOTS}, got {n_robots}")
+        if trajectory not in Trajectory.NAMES:
+            raise ValueError(
+                f"unknown trajectory {trajectory!r}; allowed: {list(Trajectory.NAMES)}"
+            )
+        for name, flag in (
+            ("fast", fast),
+            ("observe_estimates", observe_estimates),
+            ("estimators", estimators),
+        ):
+            if not isinstance(flag, bool | np.bool_):
+                raise ValueError(f"{name} must be True or False, got {flag!r}")
+        if noise not in NOISE_PROFILES:
+            raise ValueError(f"unknown noise profile {noise!r}; allowed: {sorted(NOISE_PROFILES)}")
+        if observe_estimates and not estimators:
+            raise ValueError("observe_estimates=True needs estimators=True")
+        self.n_robots = int(n_robots)
+        self.trajectory_name = trajectory
+        self.fast = bool(fast)
+        self.noise = noise
+        self.profile = get_noise_profile(noise)
+        self.observe_estimates = bool(observe_estimates)
+        self.use_estimators = bool(estimators)
+        self._set_cargo_args(cargo_mass_kg, cargo_com_m, cargo_inertia)
+
+        control_hz = _check_finite_number("control_hz", control_hz, "a positive number of Hz")
+        if control_hz <= 0:
+            raise ValueError(f"control_hz must be a positive number of Hz, got {control_hz}")
+        self.control_hz = control_hz
+        self.dt_s = 1.0 / control_hz
+        self.world = World(self.n_robots)
+        mjcf_timestep = float(self.world.model.opt.timestep)
+        if frame_skip is None:
+            frame_skip = max(1, math.ceil(self.dt_s / mjcf_timestep - 1e-9))
+        if isinstance(frame_skip, bool) or not isinstance(frame_skip, int | np.integer):
+            raise ValueError(f"frame_skip must be None or a positive integer, got {frame_skip!r}")
+        if frame_skip < 1 or self.dt_s / frame_skip > MAX_TIMESTEP_S:
+            raise ValueError(
+                f"frame_skip must be a positive integer with control period / frame_skip <= "
+                f"{MAX_TIMESTEP_S} s, got {frame_skip} at {control_hz} Hz"
+            )
+        self.frame_skip = int(frame_skip)
+        # The control period is exact: the physics step is the period over frame_skip.
+        self.world.model.opt.timestep = self.dt_s / self.frame_skip
+        self.model = self.world.model
+        self.data = mujoco.MjData(self.model)
+
+        self.comm_args = (comm_latency, comm_drop, comm_noise)
+        CommChannel(self.n_robots, *self.comm_args, self.dt_s, np.random.default_rng(0))
+
+        self.weights = {}
+        for term, weight in zip(REWARD_TERMS, (w_track, w_effort, w_info, w_contact), strict=True):
+            self.weights[term] = _check_finite_number(f"w_{term}", weight, "a finite number")
+        self.shared_reward = _check_finite_number(
+            "shared_reward", shared_reward, "a number in [0, 1]"
+        )
+        if not 0.0 <= self.shared_reward <= 1.0:
+            raise ValueError(f"shared_reward must be a number in [0, 1], got {shared_reward}")
+
+        if estimator_kwargs is not None and not isinstance(estimator_kwargs, dict):
+            raise ValueError(f"estimator_kwargs must be a dict or None, got {estimator_kwargs!r}")
+        p = self.profile
+        self.estimator_kwargs = {
+            "actuation_noise": (p.force_std_n, p.force_rel, p.torque_std_nm, p.torque_rel),
+            **(estimator_kwargs or {}),
+        }
+        self.trajectory = Trajectory(trajectory, fast=self.fast)
+        self.robots = [self.world.robot_model(i) for i in range(self.n_robots)]
+        self.thrust_limits = np.array([r.thrust_limit for r in self.robots])
+        self.joint_ranges = np.array([r.joint_range for r in self.robots])
+        # Robot i's handrail (its grasp site on the cargo) in the cargo frame: known geometry.
+        self.handrail_pose = [
+            (
+                _quat_to_mat(self.model.site_quat[h.cargo_grasp_site]),
+                self.model.site_pos[h.cargo_grasp_site].copy(),
+            )
+            for h in self.world.robots
+        ]
+        self._thrust_ctrl = np.array([h.thrust_actuators for h in self.world.robots])
+        self._arm_ctrl = np.array([h.arm_actuators for h in self.world.robots])
+        # Which robot (index), the cargo (n_robots) or the module (-1) each geom belongs to.
+        self._geom_owner = np.full(self.model.ngeom, -1)
+        for h in self.world.robots:
+            self._geom_owner[list(h.robot_geoms)] = h.index
+        self._geom_owner[self.model.geom_bodyid == self.world.cargo_body] = self.n_robots
+        self._wall_geom = np.zeros(self.model.ngeom, dtype=bool)
+        self._wall_geom[list(self.world.wall_geoms)] = True
+        self.obs_layout = observation_layout(self.n_robots, self.observe_estimates)
+        self.obs_dim = self.obs_layout["all"].stop
+        self.state_dim = 1 + self.model.nq + self.model.nv + 13 * (self.model.nbody - 1)
+        self.state_dim += 10 + 21 + 2 * self.n_robots
+        if self.use_estimators:  # fail early on bad estimator settings
+            self._make_estimators()
+        self.step_count = 0
+        self._ready = False
+        self._ref_cache: tuple[float, Reference] | None = None
+
+    # ------------------------------------------------------------------ arguments
+    def _set_cargo_args(self, mass_kg: Any, com_m: Any, inertia: Any) -> None:
+        if isinstance(mass_kg, tuple | list | np.ndarray):
+            bounds = np.asarray(mass_kg, dtype=float)
+            if bounds.shape != (2,) or not np.all(np.isfinite(bounds)):
+                raise ValueError(f"cargo_mass_kg must be a number or (low, high), got {mass_kg!r}")
+        else:
+            m = _check_finite_number("cargo_mass_kg", mass_kg, "a positive number or (low, high)")
+            bounds = np.array([m, m])
+        if not 0 < bounds[0] <= bounds[1]:
+            raise ValueError(
+                f"cargo_mass_kg must be positive, as a range 0 < low <= high, got {mass_kg!r}"
+            )
+        self.cargo_mass_range = bounds
+        if com_m is None:
+            self.cargo_com = None
+        else:
+            com = np.asarray(com_m, dtype=float)
+            if com.shape != (3,) or not np.all(np.isfinite(com)):
+                raise ValueError(f"cargo_com_m must be None or 3 finite numbers, got {com_m!r}")
+            self.cargo_com = com
+        if inertia is None:
+            self.cargo_inertia = None
+        else:
+            vec = np.asarray(inertia, dtype=float)
+            if vec.shape != (6,) or not np.all(np.isfinite(vec)):
+                raise ValueError(
+                    "cargo_inertia must be None or 6 finite numbers (I_xx, I_yy, I_zz, I_xy, "
+                    f"I_xz, I_yz) about the centre of mass, got {inertia!r}"
+                )
+            tensor = vec_to_inertia(vec)
+            try:  # realisable about the centre of mass, whatever the mass
+                check_physical(params_from_mass_com_inertia(1.0, np.zeros(3), tensor))
+            except ValueError as err:
+                raise ValueError(f"cargo_inertia is not a physical inertia tensor: {err}") from err
+            self.cargo_inertia = tensor
+
+    def _sample_cargo(self, rng: np.random.Generator) -> tuple[float, np.ndarray, np.ndarray]:
+        low, high = self.cargo_mass_range
+        mass = float(rng.uniform(low, high)) if high > low else float(low)
+        if self.cargo_com is None:
+            com = rng.uniform(-CARGO_COM_SPREAD_M, CARGO_COM_SPREAD_M, 3)
+        else:
+            com = self.cargo_com.copy()
+        if self.cargo_inertia is None:
+            a, b, c = (x * x for x in CARGO_BOX_M)
+            inertia = mass / 12.0 * np.diag([b + c, a + c, a + b])
+        else:
+            inertia = self.cargo_inertia.copy()
+        return mass, com, inertia
+
+    def _make_estimators(self) -> list[CargoEstimator]:
+        out = []
+        for i in range(self.n_robots):
+            peers = [j for j in range(self.n_robots) if j != i]
+            try:
+                est = CargoEstimator(self.robots[i], i, peers, self.dt_s, **self.estimator_kwargs)
+            except TypeError as err:
+                raise ValueError(f"bad estimator_kwargs {self.estimator_kwargs!r}: {err}") from err
+            out.append(est)
+        return out
+
+    # ------------------------------------------------------------------ episode
+    def reset(self, rng: np.random.Generator) -> tuple[np.ndarray, list[dict[str, Any]]]:
+        """Start an episode; sensor, channel and cargo generators are spawned from ``rng``.
+        Returns the observations (n_robots, obs_dim) and infos."""
+        sensor_rng, comm_rng, cargo_rng = rng.spawn(3)
+        self.cargo = self._sample_cargo(cargo_rng)
+        self.world.set_cargo(*self.cargo)
+        self.world.reset_data(self.data)
+        self.true_params = self.world.cargo_params()
+        self.true_params_grasp = [
+            self.world.cargo_params_in_grasp_frame(i) for i in range(self.n_robots)
+        ]
+        self.sensors = SensorSuite(self.world, self.profile, sensor_rng)
+        self.channel = CommChannel(self.n_robots, *self.comm_args, self.dt_s, comm_rng)
+        self.estimators = self._make_estimators() if self.use_estimators else []
+        self.navigators = [BaseNavigator(r, self.dt_s, self.profile) for r in self.robots]
+        self.arm_targets = np.tile(np.asarray(ARM_DEPLOYED_RAD), (self.n_robots, 1))
+        self.peer_msgs: list[dict[int, Any]] = [{} for _ in range(self.n_robots)]
+        self.step_count = 0
+        self._ready = True
+
+        packets = self._read_at_rest()
+        self._update_estimators(packets, np.zeros((self.n_robots, 6)), 0)
+        for nav, packet in zip(self.navigators, packets, strict=True):
+            nav.reset(packet)
+        self.packets = packets
+        self._refresh_estimates()
+        self._log_std_sum = self._estimate_log_std_sums()
+        obs = self._get_obs()
+        zero_terms = {t: np.zeros(self.n_robots) for t in REWARD_TERMS}
+        none = np.zeros(self.n_robots, dtype=int)
+        infos = self._get_infos(zero_terms, none, none, None)
+        return obs, infos
+
+    def _read_at_rest(self) -> list[SensorPacket]:
+        """The first reading: the robots rest for one period before the episode starts, so the
+        IMU reads its noise only, and a localization fix and the encoders come with it."""
+        t0 = float(self.data.time)
+        self.sensors.begin_period(self.data)
+        self.data.time = t0 + self.dt_s
+        try:
+            packets = self.sensors.read(self.data, 0)
+        finally:
+            self.data.time = t0
+        return packets
+
+    def step(self, actions: np.ndarray) -> StepResult:
+        """Advance one control period with ``actions`` (n_robots, 8) in [-1, 1] (clipped)."""
+        if not self._ready:
+            raise RuntimeError("call reset() before step(), and again after the episode ended")
+        actions = np.asarray(actions, dtype=float)
+        if actions.shape != (self.n_robots, ACTION_DIM):
+            raise ValueError(
+                f"actions must have shape {(self.n_robots, ACTION_DIM)}, got {actions.shape}"
+            )
+        bad = ~np.all(np.isfinite(actions), axis=1)
+        if np.any(bad):
+            raise ValueError(f"actions of robot {int(np.argmax(bad))} are not all finite")
+        clipped = np.clip(actions, -1.0, 1.0)
+        n_clipped = np.sum(clipped != actions, axis=1)
+        self.step_count += 1
+        k = self.step_count
+
+        commands = self._apply_actions(clipped)
+        mujoco.mj_step(self.model, self.data, nstep=self.frame_skip)
+        mujoco.mj_forward(self.model, self.data)
+        finite = self._physics_finite()
+        packets = self._read_sensors(k)
+        self._update_estimators(packets, commands, k)
+        for nav, packet in zip(self.navigators, packets, strict=True):
+            nav.update(packet)
+        self.packets = packets
+
+        robot_contacts, cargo_contacts = self._wall_contacts()
+        obs = self._get_obs()
+        if not np.all(np.isfinite(obs)):
+            finite = False
+            obs = np.nan_to_num(obs, nan=0.0, posinf=0.0, neginf=0.0)
+        reason = None
+        if not finite:
+            reason = "non_finite"
+        elif robot_contacts.sum() + cargo_contacts > 0:
+            reason = "wall_contact"
+        terms = self._get_rewards(clipped, robot_contacts, cargo_contacts, finite)
+        rewards = sum(terms.values())
+        infos = self._get_infos(terms, n_clipped, robot_contacts + cargo_contacts, reason)
+        if reason is not None:
+            self._ready = False
+        return StepResult(obs, rewards, reason is not None, reason, infos)
+
+    # ------------------------------------------------------------------ one step, in order
+    def _apply_actions(self, clipped: np.ndarray) -> np.ndarray:
+        """Scale to commands, write d.ctrl (thrust with actuation noise), start the period.
+        Returns the thrust commands (n_robots, 6) each robot knows it sent."""
+        commands = clipped[:, :6] * self.thrust_limits
+        wanted = np.asarray(ARM_DEPLOYED_RAD) + ARM_OFFSET_RAD * clipped[:, 6:]
+        max_move = ARM_SPEED_RADPS * self.dt_s
+        self.arm_targets = np.clip(
+            self.arm_targets + np.clip(wanted - self.arm_targets, -max_move, max_move),
+            self.joint_ranges[..., 0],
+            self.joint_ranges[..., 1],
+        )
+        self.data.ctrl[self._thrust_ctrl] = self.sensors.actuate(commands)
+        self.data.ctrl[self._arm_ctrl] = self.arm_targets
+        self.sensors.begin_period(self.data)
+        return commands
+
+    def _physics_finite(self) -> bool:
+        d = self.data
+        unstable = d.warning[mujoco.mjtWarning.mjWARN_BADQACC].number > 0
+        return bool(np.all(np.isfinite(d.qpos)) and np.all(np.isfinite(d.qvel)) and not unstable)
+
+    def _read_sensors(self, k: int) -> list[SensorPacket]:
+        return self.sensors.read(self.data, k)
+
+    def _update_estimators(self, packets: list[SensorPacket], commands: np.ndarray, k: int) -> None:
+        """Each estimator ingests its own packet and command; messages go through the channel;
+        what is due is delivered; each estimator updates with its complete instants."""
+        if not self.estimators:
+            return
+        for est, packet, command in zip(self.estimators, packets, commands, strict=True):
+            msg = est.step(
+                k,
+                packet.accel_imu,
+                packet.gyro_imu,
+                packet.joint_pos_rad,
+                command,
+                packet.base_pos_world,
+                packet.base_quat_world,
+            )
+            if msg is not None:
+                self.channel.send(msg, k)
+        for receiver, msgs in self.channel.deliver(k).items():
+            for msg in msgs:
+                self.estimators[receiver].receive(msg)
+                latest = self.peer_msgs[receiver].get(msg.sender)
+                if latest is None or msg.stamp > latest.stamp:
+                    self.peer_msgs[receiver][msg.sender] = msg
+        updated = [est.process() > 0 for est in self.estimators]
+        if any(updated):
+            self._refresh_estimates()
+
+    def _refresh_estimates(self) -> None:
+        if not self.estimators:
+            self.est_mean, self.est_std, self.est_errors = [], [], []
+            return
+        self.est_mean = [est.params_mean() for est in self.estimators]
+        self.est_std = [est.params_std() for est in self.estimators]
+        self.est_errors = [
+            {
+                "mass_rel_err": float(mass_rel_error(mean, truth)),
+                "com_err_m": float(com_error_m(mean, truth)),
+                "principal_rel_err": principal_rel_errors(mean, truth),
+            }
+            for mean, truth in zip(self.est_mean, self.true_params_grasp, strict=True)
+        ]
+
+    def _estimate_log_std_sums(self) -> np.ndarray:
+        if not self.estimators:
+            return np.zeros(self.n_robots)
+        return np.array([np.sum(np.log(np.maximum(s, LOG_STD_FLOOR))) for s in self.est_std])
+
+    def _wall_contacts(self) -> tuple[np.ndarray, int]:
+        """Contacts with the module per robot, and those of the cargo."""
+        ncon = self.data.ncon
+        per_robot = np.zeros(self.n_robots, dtype=int)
+        if ncon == 0:
+            return per_robot, 0
+        geoms = self.data.contact.geom[:ncon]
+        wall = self._wall_geom[geoms]
+        owner = self._geom_owner[geoms]
+        # The module is static: a wall contact is one with exactly one wall geom.
+        hit = wall[:, 0] ^ wall[:, 1]
+        other = np.where(wall[:, 0], owner[:, 1], owner[:, 0])[hit]
+        per_robot += np.bincount(other[other < self.n_robots], minlength=self.n_robots)
+        return per_robot, int(np.sum(other == self.n_robots))
+
+    # ------------------------------------------------------------------ observations
+    def reference(self) -> Reference:
+        """The cargo reference at the current time (evaluated once per time)."""
+        t = float(self.data.time)
+        if self._ref_cache is None or self._ref_cache[0] != t:
+            self._ref_cache = (t, self.trajectory(t))
+        return self._ref_cache[1]
+
+    def _base_reference(
+        self, i: int, ref: Reference, joint_pos: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Robot i's base pose and velocity if the cargo were on its reference, grasp rigid at
+        the arm angles ``joint_pos``: rotation, position, velocity (world)."""
+        grasp_rot, grasp_pos = grasp_pose_in_base(self.robots[i], joint_pos)
+        rot_ch, pos_ch = self.handrail_pose[i]
+        rot = ref.rot @ rot_ch @ grasp_rot.T
+        pos = ref.pos + ref.rot @ pos_ch - rot @ grasp_pos
+        vel = ref.vel + _cross(ref.w, pos - ref.pos)
+        return rot, pos, vel
+
+    def _get_obs(self) -> np.ndarray:
+        ref = self.reference()
+        lay = self.obs_layout
+        obs = np.zeros((self.n_robots, self.obs_dim))
+        for i, (nav, packet) in enumerate(zip(self.navigators, self.packets, strict=True)):
+            o = obs[i]
+            rot_t = nav.rot.T
+            rot_ref, pos_ref, vel_ref = self._base_reference(i, ref, packet.joint_pos_rad)
+            base_pos = nav.base_pos
+            o[lay["base_pos_err"]] = rot_t @ (base_pos - pos_ref)
+            o[lay["base_vel_err"]] = rot_t @ (nav.base_vel - vel_ref)
+            o[lay["base_att_err"]] = _rotvec(rot_ref.T @ nav.rot)
+            o[lay["base_ang_vel"]] = nav.w_base
+            o[lay["joint_pos"]] = packet.joint_pos_rad
+            o[lay["joint_target"]] = self.arm_targets[i]
+            o[lay["ref_pos_rel"]] = rot_t @ (ref.pos - base_pos)
+            o[lay["ref_vel"]] = rot_t @ ref.vel
+            o[lay["ref_acc"]] = rot_t @ ref.acc
+            o[lay["ref_ang_vel"]] = rot_t @ ref.w
+            o[lay["ref_ang_acc"]] = rot_t @ ref.wd
+            o[lay["ref_pan"]] = (ref.pan, ref.pan_rate)
+            peers = [j for j in range(self.n_robots) if j != i]
+            for p, j in enumerate(peers):
+                msg = self.peer_msgs[i].get(j)
+                if msg is None:
+                    continue
+                o[lay[f"peer{p}_wrench"]] = np.concatenate(
+                    (rot_t @ msg.wrench_world[:3], rot_t @ msg.wrench_world[3:])
+                )
+                o[lay[f"peer{p}_age"]] = (self.step_count - msg.stamp) * self.dt_s
+                o[lay[f"peer{p}_valid"]] = 1.0
+            if self.observe_estimates:
+                o[lay["estimate_mean"]] = self.est_mean[i]
+                o[lay["estimate_std"]] = self.est_std[i]
+        return obs
+
+    # ------------------------------------------------------------------ rewards, infos
+    def tracking_error(self) -> tuple[float, float]:
+        """True cargo frame position error (m) and rotation angle error (rad)."""
+        b = self.world.cargo_body
+        ref = self.reference()
+        rot = self.data.xmat[b].reshape(3, 3)
+        pos_err = float(np.linalg.norm(self.data.xpos[b] - ref.pos))
+        return pos_err, float(np.linalg.norm(_rotvec(ref.rot.T @ rot)))
+
+    def _get_rewards(
+        self, clipped: np.ndarray, robot_contacts: np.ndarray, cargo_contacts: int, finite: bool
+    ) -> dict[str, np.ndarray]:
+        """Every reward term per robot, weighted and mixed (team vs individual)."""
+        n = self.n_robots
+        if finite:
+            pos_err, angle_err = self.tracking_error()
+            track = -(pos_err + ROTATION_WEIGHT_M_PER_RAD * angle_err)
+        else:
+            track = 0.0
+        effort = -np.sum(clipped**2, axis=1)
+        log_std = self._estimate_log_std_sums()
+        info = self._log_std_sum - log_std
+        self._log_std_sum = log_std
+        if not np.all(np.isfinite(info)):
+            info = np.zeros(n)
+        individual = {
+            "track": np.full(n, track),
+            "effort": effort,
+            "info": info,
+            "contact": -(robot_contacts + cargo_contacts).astype(float),
+        }
+        team = {
+            "track": track,
+            "effort": float(np.mean(effort)),
+            "info": float(np.mean(info)),
+            "contact": -float(robot_contacts.sum() + cargo_contacts),
+        }
+        s = self.shared_reward
+        return {
+            t: self.weights[t] * (s * team[t] + (1.0 - s) * individual[t]) for t in REWARD_TERMS
+        }
+
+    def _get_infos(
+        self,
+        terms: dict[str, np.ndarray],
+        n_clipped: np.ndarray,
+        wall_contacts: np.ndarray,
+        reason: str | None,
+    ) -> list[dict[str, Any]]:
+        infos = []
+        comm = dict(self.channel.stats)
+        for i in range(self.n_robots):
+            info: dict[str, Any] = {f"reward_{t}": float(terms[t][i]) for t in REWARD_TERMS}
+            info.update(
+                termination_reason=reason,
+                time_s=float(self.data.time),
+                clipped_actions=int(n_clipped[i]),
+                wall_contacts=int(wall_contacts[i]),
+                true_params=self.true_params_grasp[i].copy(),
+                comm=comm,
+            )
+            if self.estimators:
+                info.update(
+                    estimate=self.est_mean[i].copy(),
+                    estimate_std=self.est_std[i].copy(),
+                    estimator=self.estimators[i].counters,
+                    **self.est_errors[i],
+                )
+            infos.append(info)
+        return infos
+
+    def state(self) -> np.ndarray:
+        """The full true state (see the module docstring, section State)."""
+        m, d = self.model, self.data
+        parts = [np.array([d.time]), d.qpos, d.qvel]
+        vel = np.zeros(6)
+        for b in range(1, m.nbody):
+            mujoco.mj_objectVelocity(m, d, mujoco.mjtObj.mjOBJ_XBODY, b, vel, 0)
+            parts += [d.xpos[b], d.xquat[b], vel[3:], vel[:3]]
+        ref = self.reference()
+        parts += [
+            self.true_params,
+            ref.pos,
+            ref.vel,
+            ref.acc,
+            _mat_to_quat(ref.rot),
+            ref.w,
+            ref.wd,
+            np.array([ref.pan, ref.pan_rate]),
+            self.arm_targets.ravel(),
+        ]
+        return np.concatenate(parts).astype(np.float64)
+
+
+# --------------------------------------------------------------------------- PettingZoo
+
+
+class AstrobeeCargoEnv(ParallelEnv):
+    """PettingZoo ParallelEnv of ``CargoTransport``; see the module docstring."""
+
+    metadata = {
+        "name": "astrobee_cargo_v0",
+        "render_modes": ["rgb_array", "human"],
+        "render_fps": round(CONTROL_HZ),  # round(1 / control period): 62 at 62.5 Hz
+        "is_parallelizable": True,
+    }
+
+    def __init__(
+        self,
+        n_robots: int = 2,
+        trajectory: str = "figure8_yaw",
+        fast: bool = False,
+        noise: str = "nominal",
+        cargo_mass_kg: float | tuple[float, float] = 5.0,
+        cargo_com_m: tuple[float, float, float] | None = None,
+        cargo_inertia: tuple[float, float, float, float, float, float] | None = None,
+        comm_latency: float = 0.0,
+        comm_drop: float = 0.0,
+        comm_noise: tuple[float, float] = (0.0, 0.0),
+        control_hz: float = CONTROL_HZ,
+        frame_skip: int | None = None,
+        max_cycles: int | None = None,
+        w_track: float = 1.0,
+        w_effort: float = 0.01,
+        w_info: float = 0.0,
+        w_contact: float = 1.0,
+        shared_reward: float = 1.0,
+        observe_estimates: bool = True,
+        estimators: bool = True,
+        estimator_kwargs: dict[str, Any] | None = None,
+        render_mode: str | None = None,
+        render_width: int = 640,
+        render_height: int = 480,
+        render_camera: str = RENDER_CAMERA_TRACK,
+    ) -> None:
+        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
+            raise ValueError(
+                f"unknown render_mode {render_mode!r}; allowed: None, "
+                f"{self.metadata['render_modes']}"
+            )
+        self.sim = CargoTransport(
+            n_robots=n_robots,
+            trajectory=trajectory,
+            fast=fast,
+            noise=noise,
+            cargo_mass_kg=cargo_mass_kg,
+            cargo_com_m=cargo_com_m,
+            cargo_inertia=cargo_inertia,
+            comm_latency=comm_latency,
+            comm_drop=comm_drop,
+            comm_noise=comm_noise,
+            control_hz=control_hz,
+            frame_skip=frame_skip,
+            w_track=w_track,
+            w_effort=w_effort,
+            w_info=w_info,
+            w_contact=w_contact,
+            shared_reward=shared_reward,
+            observe_estimates=observe_estimates,
+            estimators=estimators,
+            estimator_kwargs=estimator_kwargs,
+        )
+        if max_cycles is None:
+            max_cycles = round(EPISODE_S * self.sim.control_hz)
+        if isinstance(max_cycles, bool) or not isinstance(max_cycles, int | np.integer):
+            raise ValueError(f"max_cycles must be None or a positive integer, got {max_cycles!r}")
+        if max_cycles < 1:
+            raise ValueError(f"max_cycles must be None or a positive integer, got {max_cycles}")
+        self.max_cycles = int(max_cycles)
+        for name, size, limit in (
+            ("render_width", render_width, 1280),
+            ("render_height", render_height, 720),
+        ):
+            if isinstance(size, bool) or not isinstance(size, int | np.integer):
+                raise ValueError(f"{name} must be an integer in 1..{limit}, got {size!r}")
+            if not 1 <= size <= limit:  # the MJCF's offscreen buffer
+                raise ValueError(f"{name} must be an integer in 1..{limit}, got {size}")
+        cameras = [self.sim.model.camera(c).name for c in range(self.sim.model.ncam)]
+        if render_camera != RENDER_CAMERA_TRACK and render_camera not in cameras:
+            raise ValueError(
+                f"unknown render_camera {render_camera!r}; allowed: "
+                f"{[RENDER_CAMERA_TRACK, *cameras]}"
+            )
+        self.render_mode = render_mode
+        self.render_size = (int(render_height), int(render_width))
+        self.render_camera = render_camera
+        self.metadata = {**self.metadata, "render_fps": round(1.0 / self.sim.dt_s)}
+        self.possible_agents = [f"astrobee_{i}" for i in range(self.sim.n_robots)]
+        self.agents: list[str] = []
+        self._index = {agent: i for i, agent in enumerate(self.possible_agents)}
+        self.state_space = spaces.Box(-np.inf, np.inf, (self.sim.state_dim,), np.float64)
+        low = np.full(self.sim.obs_dim, -np.inf)
+        high = np.full(self.sim.obs_dim, np.inf)
+        for name, sl in self.sim.obs_layout.items():
+            if name.endswith("_valid"):
+                low[sl], high[sl] = 0.0, 1.0
+        self.observation_spaces = {
+            a: spaces.Box(low, high, dtype=np.float64) for a in self.possible_agents
+        }
+        self.action_spaces = {
+            a: spaces.Box(-1.0, 1.0, (ACTION_DIM,), np.float32) for a in self.possible_agents
+        }
+        self._root_rng: np.random.Generator | None = None
+        self._renderer: mujoco.Renderer | None = None
+        self._viewer: Any = None
+        self._episode_over = True
+
+    # PettingZoo requires the same object at every call: the spaces are built once. Agents have
+    # identical spaces but each its own object, so seeding one agent's space seeds no other.
+    def observation_space(self, agent: str) -> spaces.Box:
+        self._check_agent(agent)
+        return self.observation_spaces[agent]
+
+    def action_space(self, agent: str) -> spaces.Box:
+        self._check_agent(agent)
+        return self.action_spaces[agent]
+
+    def _check_agent(self, agent: str) -> None:
+        if agent not in self._index:
+            raise ValueError(f"unknown agent {agent!r}; agents: {self.possible_agents}")
+
+    def reset(
+        self, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[dict[str, np.ndarray], dict[str, dict[str, Any]]]:
+        """Start an episode. ``seed`` seeds one generator from which the sensor, channel and
+        cargo generators are spawned; without it the previous generator continues."""
+        del options
+        if seed is not None or self._root_rng is None:
+            self._root_rng = np.random.default_rng(seed)
+        obs, infos = self.sim.reset(self._root_rng)
+        self.agents = self.possible_agents[:]
+        self._episode_over = False
+        if self.render_mode == "human":
+            self.render()
+        return self._by_agent(obs), self._by_agent(infos)
+
+    def step(
+        self, actions: dict[str, np.ndarray]
+    ) -> tuple[
+        dict[str, np.ndarray],
+        dict[str, float],
+        dict[str, bool],
+        dict[str, bool],
+        dict[str, dict[str, Any]],
+    ]:
+        if self._episode_over:
+            raise RuntimeError(
+                "the episode has ended (or reset() was never called): call reset() before step()"
+            )
+        result = self.sim.step(self._action_array(actions))
+        truncated = self.sim.step_count >= self.max_cycles
+        rewards = {a: float(result.rewards[i]) for i, a in enumerate(self.possible_agents)}
+        terminations = dict.fromkeys(self.possible_agents, result.terminated)
+        truncations = dict.fromkeys(self.possible_agents, truncated)
+        obs = self._by_agent(result.observations)
+        infos = self._by_agent(result.infos)
+        if result.terminated or truncated:
+            self.agents = []
+            self._episode_over = True
+        if self.render_mode == "human":
+            self.render()
+        return obs, rewards, terminations, truncations, infos
+
+    def _action_array(self, actions: dict[str, np.ndarray]) -> np.ndarray:
+        if not isinstance(actions, dict):
+            raise ValueError(f"actions must be a dict agent -> array, got {type(actions).__name__}")
+        for agent in actions:
+            if agent not in self._index:
+                raise ValueError(f"action for unknown agent {agent!r}; agents: {self.agents}")
+        out = np.empty((self.sim.n_robots, ACTION_DIM))
+        for agent, i in self._index.items():
+            if agent not in actions:
+                raise ValueError(f"no action for agent {agent!r}")
+            try:
+                a = np.asarray(actions[agent], dtype=np.float64)
+            except (TypeError, ValueError) as err:
+                raise ValueError(f"action of agent {agent!r} is not numeric: {err}") from err
+            if a.shape != (ACTION_DIM,):
+                raise ValueError(
+                    f"action of agent {agent!r} must have shape ({ACTION_DIM},), got {a.shape}"
+                )
+            if not np.all(np.isfinite(a)):
+                raise ValueError(f"action of agent {agent!r} is not finite: {a}")
+            out[i] = a
+        return out
+
+    def _by_agent(self, values: Any) -> dict[str, Any]:
+        return {agent: values[i] for i, agent in enumerate(self.possible_agents)}
+
+    def state(self) -> np.ndarray:
+        return self.sim.state()
+
+    def render(self) -> np.ndarray | None:
+        if self.render_mode is None:
+            return None
+        if self.render_mode == "rgb_array":
+            return self._render_rgb()
+        if self._viewer is None:
+            import mujoco.viewer  # only for human rendering: needs a display
+
+            self._viewer = mujoco.viewer.launch_passive(self.sim.model, self.sim.data)
+        self._viewer.sync()
+        return None
+
+    def _render_rgb(self) -> np.ndarray:
+        height, width = self.render_size
+        if self._renderer is None:
+            self._renderer = mujoco.Renderer(self.sim.model, height=height, width=width)
+            self._scene_option = mujoco.MjvOption()
+            self._scene_option.geomgroup[:] = 0
+            for group in VISIBLE_GEOM_GROUPS:
+                self._scene_option.geomgroup[group] = 1
+        camera: str | mujoco.MjvCamera = self.render_camera
+        if camera == RENDER_CAMERA_TRACK:
+            camera = mujoco.MjvCamera()
+            camera.type = mujoco.mjtCamera.mjCAMERA_FREE
+            camera.lookat[:] = self.sim.data.xpos[self.sim.world.cargo_body]
+            camera.distance = TRACK_DISTANCE_M
+            camera.azimuth = TRACK_AZIMUTH_DEG
+            camera.elevation = TRACK_ELEVATION_DEG
+        self._renderer.update_scene(self.sim.data, camera=camera, scene_option=self._scene_option)
+        return self._renderer.render()
+
+    def close(self) -> None:
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None
+        if self._viewer is not None:
+            self._viewer.close()
+            self._viewer = None
