@@ -181,7 +181,13 @@ from pettingzoo import ParallelEnv
 
 from astrocargo.agents.trajectories import Reference, Trajectory
 from astrocargo.envs.comms import CommChannel
-from astrocargo.envs.sensors import NOISE_PROFILES, NoiseProfile, SensorPacket, SensorSuite
+from astrocargo.envs.sensors import (
+    NOISE_PROFILES,
+    NoiseProfile,
+    SensorPacket,
+    SensorSuite,
+    estimator_noise_kwargs,
+)
 from astrocargo.envs.sensors import noise_profile as get_noise_profile
 from astrocargo.envs.world import ARM_DEPLOYED_RAD, MAX_ROBOTS, MAX_TIMESTEP_S, World
 from astrocargo.estimator.cargo_estimator import CargoEstimator
@@ -486,7 +492,8 @@ class CargoTransport:
             raise ValueError(f"estimator_kwargs must be a dict or None, got {estimator_kwargs!r}")
         p = self.profile
         self.estimator_kwargs = {
-            "actuation_noise": (p.force_std_n, p.force_rel, p.torque_std_nm, p.torque_rel),
+            **estimator_noise_kwargs(p),
+            "peer_noise_std": tuple(float(x) for x in comm_noise),
             **(estimator_kwargs or {}),
         }
         self.trajectory = Trajectory(trajectory, fast=self.fast)

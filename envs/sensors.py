@@ -65,6 +65,15 @@ NOISE_PROFILES: dict[str, NoiseProfile] = {
 }
 
 
+def estimator_noise_kwargs(profile: NoiseProfile) -> dict:
+    """What a robot knows of its own sensors and propulsion, as ``CargoEstimator`` settings."""
+    p = profile
+    return {
+        "actuation_noise": (p.force_std_n, p.force_rel, p.torque_std_nm, p.torque_rel),
+        "sensor_noise": (p.accel_std, p.gyro_std, p.encoder_std_rad),
+    }
+
+
 def noise_profile(name: str) -> NoiseProfile:
     """The named profile; ``ValueError`` lists the allowed names."""
     if name not in NOISE_PROFILES:

@@ -153,6 +153,15 @@ class CargoEstimator:
             evaluations (``update_every`` must be a multiple); ``warmup_s``: no update before.
         history_s: how long an instant waits for its peers' messages before it is skipped.
         gate_prob: chi-square probability of the normalised innovation gate (None: no gating).
+        sensor_noise: (accel_std m/s^2, gyro_std rad/s, encoder_std rad), white per control
+            step: the robot's known sensor specs. Through the slow filter they become noise on
+            the accelerations in the balance, which enters both the measurement and the regressor
+            (errors in variables); its effect at the current estimate is added to the
+            measurement covariance, and instants whose excitation does not stand above it are not
+            used (``min_excitation_snr``): hovering robots must not learn from their own noise.
+        min_excitation_snr: skip an instant unless its filtered linear or angular acceleration
+            exceeds this many standard deviations of its noise (counted as skipped_low_excitation).
+        peer_noise_std: (force N, moment N m) of the channel's additive noise on peers' wrenches.
         record: keep every accepted update's (z, A, b, R) in ``log`` for the batch baselines.
     """
 
@@ -176,6 +185,9 @@ class CargoEstimator:
         warmup_s: float = 4.0,
         history_s: float = 2.0,
         gate_prob: float | None = 0.9999,
+        sensor_noise: tuple[float, float, float] = (1e-3, 2e-4, 1e-3),
+        min_excitation_snr: float = 5.0,
+        peer_noise_std: tuple[float, float] = (0.0, 0.0),
         record: bool = False,
     ) -> None:
         if regressor_every < 1 or update_every < 1 or update_every % regressor_every:
@@ -220,6 +232,34 @@ class CargoEstimator:
         self._act_cov_sum = np.zeros((6, 6))
         self._act_cov_n = 0
         self._thrust_to_base = wrench_transform(robot.thrust_rot, robot.thrust_pos)
+        sensor_noise = np.asarray(sensor_noise, dtype=float)
+        if sensor_noise.shape != (3,) or np.any(sensor_noise < 0):
+            raise ValueError("sensor_noise must be 3 non-negative numbers")
+        peer_noise = np.asarray(peer_noise_std, dtype=float)
+        if peer_noise.shape != (2,) or np.any(peer_noise < 0):
+            raise ValueError("peer_noise_std must be 2 non-negative numbers")
+        self._peer_noise_cov = np.diag(np.repeat(peer_noise**2, 3))
+        self.min_excitation_snr = float(min_excitation_snr)
+        # Noise gains of the slow filter (impulse response energy of y, y', y''): white noise of
+        # std s per step becomes s * g on the filtered value and its derivatives.
+        probe = StateVariableFilter(1, dt_s, cutoff_hz)
+        probe.step(np.zeros(1))
+        energy = np.zeros(3)
+        for k in range(int(20 * probe.delay_s / dt_s)):
+            energy += np.concatenate(probe.step(np.array([1.0 if k == 0 else 0.0]))) ** 2
+        gains = np.sqrt(energy)
+        # Accelerations in the balance: base linear (accelerometer, y), angular (gyro, y') and
+        # joint (encoders, y'').
+        self._acc_noise = sensor_noise[0] * gains[0]
+        self._ang_acc_noise = sensor_noise[1] * gains[1]
+        self._joint_acc_noise = sensor_noise[2] * gains[2]
+        self._correlated = correlated
+        self._robot_mass = robot.total_mass
+        self._robot_inertia = sum(
+            float(np.linalg.eigvalsh(link.inertia_com)[-1]) for link in robot.links
+        )
+        self._grasp_lever = 0.0
+        self.n_skipped_low_excitation = 0
         self._rot_world_base: np.ndarray | None = None
         self._pos_world_base: np.ndarray | None = None
         self._last_input: tuple[np.ndarray, ...] | None = None
@@ -290,6 +330,7 @@ class CargoEstimator:
         )
         self._act_cov_sum += (to_grasp * std**2) @ to_grasp.T
         self._act_cov_n += 1
+        self._grasp_lever = float(np.linalg.norm(pos_bg))
         self._balance, _, _ = self.balance_filter.step(
             np.concatenate((thrust_g, links_g, regressor.ravel()))
         )
@@ -392,13 +433,18 @@ class CargoEstimator:
                 if inst.tainted:
                     self.n_skipped_tainted += 1
                     continue
+                if not self._excited(inst.regressor):
+                    self.n_skipped_low_excitation += 1
+                    continue
                 peers = np.zeros(6)
                 cov = inst.act_cov.copy()
+                peer_noise = np.zeros((6, 6))
                 for p, m in zip(self.peers, msgs, strict=True):
                     t = self._relative[p].transform()
                     peers += t @ m.wrench_grasp
                     cov += t @ m.wrench_cov_grasp @ t.T
-                meas_cov = self.meas_cov + cov / self.update_every
+                    peer_noise += t @ self._peer_noise_cov @ t.T
+                meas_cov = self.meas_cov + cov / self.update_every + self._sensor_cov() + peer_noise
                 self.ukf.predict()
                 result = self.ukf.update_linear(
                     inst.thrust, inst.regressor, inst.links - peers, meas_cov
@@ -416,6 +462,39 @@ class CargoEstimator:
         for key in [k for k in self._own_fix if k < horizon]:
             del self._own_fix[key]
         return done
+
+    def _excited(self, regressor: np.ndarray) -> bool:
+        """Does the filtered motion of this instant stand above the noise of its measurement?"""
+        acc = regressor[:3, 0]
+        # The force rows' h-columns are skew(wd) + skew(w)^2: wd is their antisymmetric part.
+        m_h = regressor[:3, 1:4]
+        wd = 0.5 * np.array([m_h[2, 1] - m_h[1, 2], m_h[0, 2] - m_h[2, 0], m_h[1, 0] - m_h[0, 1]])
+        # The grasp's accelerations carry the joints' (doubly differentiated encoders) too.
+        nj = self.robot.n_joints
+        ang_noise = np.hypot(self._ang_acc_noise, np.sqrt(nj) * self._joint_acc_noise)
+        lin_noise = np.hypot(self._acc_noise, self._grasp_lever * ang_noise)
+        snr_lin = np.linalg.norm(acc) / max(lin_noise, 1e-300)
+        snr_ang = np.linalg.norm(wd) / max(ang_noise, 1e-300)
+        return max(snr_lin, snr_ang) >= self.min_excitation_snr
+
+    def _sensor_cov(self) -> np.ndarray:
+        """Measurement covariance from the sensors' noise on the filtered accelerations, at the
+        current estimate (scalar per block, magnitudes only): force M sigma_a + m_c L sigma_qdd,
+        moment J sigma_wd + M L sigma_a + m_c |c| L sigma_qdd, with M the robot-plus-cargo mass,
+        L the base-to-grasp lever and J the inertia about the grasp."""
+        pi = self.ukf.params_mean()
+        m_c = pi[0]
+        com = np.linalg.norm(pi[1:4]) / m_c
+        lever = self._grasp_lever
+        total = self._robot_mass + m_c
+        inertia = self._robot_inertia + self._robot_mass * lever**2 + float(pi[4:7].max())
+        force = (total * self._acc_noise) ** 2 + (m_c * lever * self._joint_acc_noise) ** 2
+        moment = (
+            (inertia * self._ang_acc_noise) ** 2
+            + (total * lever * self._acc_noise) ** 2
+            + (m_c * com * lever * self._joint_acc_noise) ** 2
+        )
+        return self._correlated * np.diag([force] * 3 + [moment] * 3)
 
     def set_peers(self, peers: list[int] | tuple[int, ...]) -> None:
         """Change which robots hold the cargo (a robot released it); pending instants restart."""
@@ -441,6 +520,7 @@ class CargoEstimator:
             "skipped_missing": self.n_skipped_missing,
             "skipped_bad_reading": self.n_skipped_tainted + self.ukf.n_skipped_nonfinite,
             "gated": self.ukf.n_gated,
+            "skipped_low_excitation": self.n_skipped_low_excitation,
             "bad_readings": self.n_bad_readings,
             "pending": len(self._pending),
         }

@@ -11,7 +11,7 @@ import pytest
 
 from astrocargo.agents.controllers import CargoState, CooperativeController, RobotState
 from astrocargo.agents.trajectories import Trajectory
-from astrocargo.envs.sensors import SensorSuite, noise_profile
+from astrocargo.envs.sensors import SensorSuite, estimator_noise_kwargs, noise_profile
 from astrocargo.envs.world import World
 from astrocargo.estimator.baselines import (
     Recording,
@@ -79,7 +79,7 @@ def simulate(n_robots, noise, seconds, trajectory, seed=0, pan=True, estimator_k
     rng = np.random.default_rng(seed)
     sensors = SensorSuite(world, noise_profile(noise), rng)
     robots = [world.robot_model(i) for i in range(n_robots)]
-    kwargs = estimator_kwargs or {}
+    kwargs = {**estimator_noise_kwargs(noise_profile(noise)), **(estimator_kwargs or {})}
     estimators = [
         CargoEstimator(robots[i], i, [j for j in range(n_robots) if j != i], DT, **kwargs)
         for i in range(n_robots)
