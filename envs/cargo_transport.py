@@ -199,7 +199,7 @@ from astrocargo.estimator.inertia import (
     principal_rel_errors,
     vec_to_inertia,
 )
-from astrocargo.estimator.rne import RobotDescription
+from astrocargo.estimator.rne import RobotDescription, grasp_pose
 
 ACTION_DIM = 8
 ARM_OFFSET_RAD = 0.5  # reach of the arm actions around the deployed pose
@@ -258,22 +258,6 @@ def _exp(rotvec: np.ndarray) -> np.ndarray:
     quat = np.empty(4)
     mujoco.mju_axisAngle2Quat(quat, rotvec / angle, angle)
     return _quat_to_mat(quat)
-
-
-def grasp_pose_in_base(robot: RobotDescription, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Robot's grasp frame in its base frame at joint angles ``q`` (rotation, position).
-
-    The forward-kinematics part of ``estimator.rne.propagate`` alone (checked against it in the
-    tests): ``propagate`` also carries rates and accelerations and costs ~10x more, and the env
-    needs this pose for every robot at every step.
-    """
-    rots, poss = [np.eye(3)], [np.zeros(3)]
-    for k, link in enumerate(robot.links[1:]):
-        rot_p = rots[link.parent]
-        rots.append(rot_p @ link.rot_in_parent @ _exp(link.joint_axis * q[k]))
-        poss.append(poss[link.parent] + rot_p @ link.pos_in_parent)
-    rot_g, pos_g = rots[robot.grasp_link], poss[robot.grasp_link]
-    return rot_g @ robot.grasp_rot, pos_g + rot_g @ robot.grasp_pos
 
 
 def observation_layout(n_robots: int, observe_estimates: bool = True) -> dict[str, slice]:
@@ -779,7 +763,7 @@ class CargoTransport:
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Robot i's base pose and velocity if the cargo were on its reference, grasp rigid at
         the arm angles ``joint_pos``: rotation, position, velocity (world)."""
-        grasp_rot, grasp_pos = grasp_pose_in_base(self.robots[i], joint_pos)
+        grasp_rot, grasp_pos = grasp_pose(self.robots[i], joint_pos)
         rot_ch, pos_ch = self.handrail_pose[i]
         rot = ref.rot @ rot_ch @ grasp_rot.T
         pos = ref.pos + ref.rot @ pos_ch - rot @ grasp_pos

@@ -51,6 +51,7 @@ from .rne import (
     RobotDescription,
     balance_in_grasp_frame,
     grasp_from_base,
+    grasp_pose,
     wrench_transform,
 )
 from .ukf import InertialParamUKF
@@ -393,13 +394,8 @@ class CargoEstimator:
         )
 
     def robot_grasp_pose(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Grasp frame in the base frame at joint angles ``q`` (forward kinematics only)."""
-        zeros = np.zeros(3)
-        nj = np.zeros(self.robot.n_joints)
-        *_, rot, pos = balance_in_grasp_frame(
-            self.robot, zeros, zeros, zeros, q, nj, nj, np.zeros(6)
-        )
-        return rot, pos
+        """Grasp frame in the base frame at joint angles ``q``."""
+        return grasp_pose(self.robot, q)
 
     def receive(self, message: WrenchMessage) -> None:
         """Store a peer's message (messages from robots that are not peers are ignored)."""

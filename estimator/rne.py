@@ -182,6 +182,18 @@ def propagate(
     )
 
 
+def grasp_pose(robot: RobotDescription, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Grasp frame in the base frame at joint angles ``q`` (rotation, position): the
+    forward-kinematics part of ``propagate`` alone, ~10x cheaper (tests hold them equal)."""
+    rots, poss = [np.eye(3)], [np.zeros(3)]
+    for k, link in enumerate(robot.links[1:]):
+        rot_p = rots[link.parent]
+        rots.append(rot_p @ link.rot_in_parent @ _axis_rotation(link.joint_axis, np.asarray(q[k])))
+        poss.append(poss[link.parent] + rot_p @ link.pos_in_parent)
+    rot_g, pos_g = rots[robot.grasp_link], poss[robot.grasp_link]
+    return rot_g @ robot.grasp_rot, pos_g + rot_g @ robot.grasp_pos
+
+
 def link_momentum_rate(robot: RobotDescription, kin: Kinematics) -> np.ndarray:
     """Sum over the robot's own links of the rate of change of momentum, as a wrench in B about
     B's origin (..., 6): what the robot's own bodies absorb of the external wrench."""

@@ -23,7 +23,6 @@ from astrocargo.envs import astrobee_cargo_v0
 from astrocargo.envs.cargo_transport import (
     ARM_SPEED_RADPS,
     AstrobeeCargoEnv,
-    grasp_pose_in_base,
     observation_layout,
 )
 from astrocargo.estimator.inertia import (
@@ -31,7 +30,7 @@ from astrocargo.estimator.inertia import (
     mass_rel_error,
     transform_params,
 )
-from astrocargo.estimator.rne import propagate
+from astrocargo.estimator.rne import grasp_pose, propagate
 
 CARGO = {
     "cargo_com_m": (0.02, -0.03, 0.04),
@@ -260,12 +259,12 @@ def test_constructor_validation(kwargs, match):
 
 
 def test_grasp_pose_matches_the_estimator_kinematics():
-    """The env's forward kinematics of the grasp equals estimator.rne.propagate's."""
+    """rne.grasp_pose (forward kinematics only) equals rne.propagate's grasp frame."""
     robot = astrobee_cargo_v0.parallel_env(n_robots=1).sim.robots[0]
     zeros = np.zeros(3)
     for q in np.random.default_rng(0).uniform(-1.5, 1.5, (10, 2)):
         kin = propagate(robot, zeros, zeros, zeros, q, np.zeros(2), np.zeros(2))
-        rot, pos = grasp_pose_in_base(robot, q)
+        rot, pos = grasp_pose(robot, q)
         np.testing.assert_allclose(rot, kin.grasp_rot, atol=1e-14)
         np.testing.assert_allclose(pos, kin.grasp_pos, atol=1e-14)
 
