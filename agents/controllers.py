@@ -23,7 +23,7 @@ from astrocargo.estimator.inertia import (
     params_from_mass_com_inertia,
     transform_params,
 )
-from astrocargo.estimator.rne import RobotDescription, propagate, wrench_transform
+from astrocargo.estimator.rne import RobotDescription, grasp_pose, link_poses, wrench_transform
 
 from .trajectories import Reference
 
@@ -84,18 +84,19 @@ class CooperativeController:
     ) -> None:
         self.robots = list(robots)
         self.gains = (pos_kp, pos_kd, att_kp, att_kd)
+        self._link_params: dict[int, np.ndarray] = {}
 
     def _robot_params_world(self, robot: RobotDescription, state: RobotState) -> np.ndarray:
-        nj = robot.n_joints
-        zeros = np.zeros(3)
-        kin = propagate(robot, zeros, zeros, zeros, state.joint_pos, np.zeros(nj), np.zeros(nj))
-        total = np.zeros(10)
-        for k, link in enumerate(robot.links):
-            pi_link = params_from_mass_com_inertia(link.mass, link.com, link.inertia_com)
-            rot = state.rot @ kin.rot[k]
-            pos = state.pos + state.rot @ kin.pos[k]
-            total = total + transform_params(pi_link, rot, pos)
-        return total
+        """The robot's standard parameters (all links) in the world frame."""
+        key = id(robot)
+        if key not in self._link_params:
+            self._link_params[key] = np.stack(
+                [params_from_mass_com_inertia(k.mass, k.com, k.inertia_com) for k in robot.links]
+            )
+        rots, poss = link_poses(robot, state.joint_pos)
+        return transform_params(
+            self._link_params[key], state.rot @ rots, state.pos + poss @ state.rot.T
+        ).sum(axis=0)
 
     def commands(
         self,
@@ -138,3 +139,124 @@ class CooperativeController:
         scale = 1.0 / ratio if ratio > 1.0 else 1.0
         self.last_ratio = ratio
         return [scale * u for u in cmds]
+
+
+def _exp_rotvec(v: np.ndarray) -> np.ndarray:
+    angle = float(np.linalg.norm(v))
+    if angle < 1e-12:
+        return np.eye(3)
+    k = v / angle
+    kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.eye(3) + np.sin(angle) * kx + (1.0 - np.cos(angle)) * kx @ kx
+
+
+class ObservationController:
+    """The cooperative controller driven by the env's observations only, scored like a policy.
+
+    Each robot works out the team's wrench from its own observation, in its own base frame: its
+    base tracking errors stand for the cargo's (the grasp is rigid), the cargo and the other
+    robots are placed by the known grasp geometry (handrail poses on the cargo; peers' arms
+    assumed at this robot's own angles, since all follow the same pan ramp), and the cargo's
+    inertia comes from ``cargo_model``: "estimate" (this robot's own live estimate, from the
+    observation), "none" (no cargo), or "truth" (``truth_params``, for comparison only). It then
+    applies its share of the allocation (``CooperativeController``) and sends the arm targets of
+    the reference pan ramp.
+
+    ``predict(obs)`` takes the env's observation dict (agent -> obs) or an array (n_robots,
+    obs_dim) in agent order and returns actions of the same form, with SB3's signature.
+    """
+
+    def __init__(
+        self,
+        robots: list[RobotDescription],
+        handrail_poses: list[tuple[np.ndarray, np.ndarray]],
+        layout: dict[str, slice],
+        cargo_model: str = "estimate",
+        truth_params: np.ndarray | None = None,
+        arm_offset_scale_rad: float = 0.5,
+    ) -> None:
+        if cargo_model not in CARGO_MODELS:
+            raise ValueError(f"cargo_model must be one of {CARGO_MODELS}, got {cargo_model!r}")
+        if cargo_model == "truth" and truth_params is None:
+            raise ValueError('cargo_model="truth" needs truth_params (cargo frame)')
+        if cargo_model == "estimate" and "estimate_mean" not in layout:
+            raise ValueError('cargo_model="estimate" needs observe_estimates=True in the env')
+        self.robots = list(robots)
+        self.handrail_poses = [(np.asarray(r), np.asarray(p)) for r, p in handrail_poses]
+        self.layout = layout
+        self.cargo_model = cargo_model
+        self.truth_params = None if truth_params is None else np.asarray(truth_params, float)
+        self.arm_scale = float(arm_offset_scale_rad)
+        self.team = CooperativeController(self.robots)
+
+    @classmethod
+    def for_env(cls, env, cargo_model: str = "estimate") -> ObservationController:
+        """Build from an ``AstrobeeCargoEnv`` (geometry; the truth only for "truth")."""
+        sim = env.sim
+        truth = sim.world.cargo_params() if cargo_model == "truth" else None
+        return cls(sim.robots, sim.handrail_pose, sim.obs_layout, cargo_model, truth)
+
+    def _act_one(self, i: int, o: np.ndarray) -> np.ndarray:
+        lay = self.layout
+        q = o[lay["joint_pos"]]
+        # Cargo frame in this robot's base frame, through its grasp and the handrail it holds.
+        rot_bg, pos_bg = grasp_pose(self.robots[i], q)
+        rot_ch, pos_ch = self.handrail_poses[i]
+        rot_bc = rot_bg @ rot_ch.T
+        pos_bc = pos_bg - rot_bc @ pos_ch
+        # Other robots' bases in this base frame (their arms assumed at this robot's angles).
+        states = []
+        for j, robot in enumerate(self.robots):
+            rot_bgj, pos_bgj = grasp_pose(robot, q)
+            rot_chj, pos_chj = self.handrail_poses[j]
+            rot_cb = rot_chj @ rot_bgj.T
+            pos_cb = pos_chj - rot_cb @ pos_bgj
+            states.append(RobotState(rot_bc @ rot_cb, pos_bc + rot_bc @ pos_cb, q))
+        # Tracking errors of the base stand for the cargo's (rigid assembly).
+        e_rot = o[lay["base_att_err"]]
+        w = o[lay["base_ang_vel"]]
+        ref_w = o[lay["ref_ang_vel"]]
+        ref_wd = o[lay["ref_ang_acc"]]
+        rel = -o[lay["ref_pos_rel"]]  # base minus cargo reference, base frame
+        ref_acc_base = (
+            o[lay["ref_acc"]] + np.cross(ref_wd, rel) + np.cross(ref_w, np.cross(ref_w, rel))
+        )
+        cargo = CargoState(rot_bc, pos_bc, np.zeros(3), w)
+        # A reference whose errors relative to `cargo` are the base's: position and velocity
+        # (the cargo moves with the base), attitude (R_ref = R exp(-e) in base axes).
+        ref = Reference(
+            pos=pos_bc - o[lay["base_pos_err"]],
+            vel=-o[lay["base_vel_err"]],
+            acc=ref_acc_base,
+            rot=_exp_rotvec(-e_rot) @ rot_bc,
+            w=ref_w,
+            wd=ref_wd,
+            pan=float(o[lay["ref_pan"]][0]),
+            pan_rate=float(o[lay["ref_pan"]][1]),
+        )
+        params = None
+        if self.cargo_model == "truth":
+            params = self.truth_params
+        elif self.cargo_model == "estimate":
+            # Own estimate is in this robot's grasp frame; the cargo frame is (rot_ch, pos_ch)^-1.
+            params = transform_params(o[lay["estimate_mean"]], rot_ch, pos_ch)
+        thrust = self.team.commands(ref, cargo, states, params)[i]
+        action = np.zeros(8)
+        action[:6] = thrust / self.robots[i].thrust_limit
+        action[7] = np.clip(ref.pan / self.arm_scale, -1.0, 1.0)
+        return action
+
+    def predict(self, observation, state=None, episode_start=None, deterministic=False):
+        """SB3's signature: returns (actions, state)."""
+        del episode_start, deterministic
+        if isinstance(observation, dict):
+            agents = list(observation)
+            acts = {a: self._act_one(i, np.asarray(observation[a])) for i, a in enumerate(agents)}
+            return acts, state
+        obs = np.asarray(observation, dtype=float)
+        if obs.ndim != 2 or obs.shape[0] != len(self.robots):
+            raise ValueError(
+                f"observation must be a dict or an array ({len(self.robots)}, obs_dim), "
+                f"got shape {obs.shape}"
+            )
+        return np.stack([self._act_one(i, o) for i, o in enumerate(obs)]), state
