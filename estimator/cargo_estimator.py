@@ -45,7 +45,12 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.stats import chi2
 
-from .inertia import params_from_mass_com_inertia
+from .inertia import (
+    inertia_to_vec,
+    log_cholesky_to_params,
+    mass_com_inertia_from_params,
+    params_from_mass_com_inertia,
+)
 from .preprocess import Preprocessor, StateVariableFilter
 from .rne import (
     RobotDescription,
@@ -502,6 +507,18 @@ class CargoEstimator:
     def params_mean(self) -> np.ndarray:
         """Estimated cargo parameters pi (10,) in this robot's grasp frame."""
         return self.ukf.params_mean()
+
+    def physical_estimate(self) -> tuple[np.ndarray, np.ndarray]:
+        """Mean and standard deviation of [m, c_x, c_y, c_z, I_xx, I_yy, I_zz, I_xy, I_xz, I_yz]
+        (kg, m, kg m^2; inertia about the centre of mass, grasp-frame axes), by the unscented
+        transform of the filter's sigma points (every one a physical body)."""
+        sigmas = log_cholesky_to_params(self.ukf.sigma_points())
+        mass, com, inertia = mass_com_inertia_from_params(sigmas)
+        values = np.concatenate((mass[:, None], com, inertia_to_vec(inertia)), axis=1)
+        mean = self.ukf.Wm @ values
+        dev = values - mean
+        var = self.ukf.Wc @ (dev * dev)
+        return mean, np.sqrt(np.maximum(var, 0.0))
 
     def params_cov(self) -> np.ndarray:
         return self.ukf.params_cov()
