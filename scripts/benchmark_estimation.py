@@ -66,6 +66,32 @@ class Case:
         return f"{self.name}__seed{self.seed}"
 
 
+def smoke_cases(duration: float) -> list[Case]:
+    """Three short cases (tests and a quick check of the pipeline)."""
+    return [
+        Case(
+            "smoke: 1 robot",
+            robots=1,
+            trajectory="figure8_tumble",
+            seed=s,
+            duration=duration,
+            noise="ideal",
+        )
+        for s in range(2)
+    ] + [
+        Case(
+            "control: smoke, none",
+            robots=1,
+            trajectory="figure8_yaw",
+            seed=0,
+            duration=duration,
+            noise="ideal",
+            cargo_model="none",
+            analyse=False,
+        )
+    ]
+
+
 def standard_cases(seeds: int, duration: float) -> list[Case]:
     cases = []
     scenarios = [
@@ -449,6 +475,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seeds", type=int, default=5, help="seeds per scenario (standard suite)")
     p.add_argument("--workers", type=int, default=2, help="processes for the cases")
     p.add_argument("--duration", type=float, default=90.0, help="simulated seconds per case")
+    p.add_argument("--suite", choices=("standard", "smoke"), default="standard")
     # One custom case (these exact flags); with --robots the standard suite is not run.
     p.add_argument("--robots", type=int)
     p.add_argument("--seed", type=int, default=0)
@@ -496,7 +523,10 @@ def main(argv: list[str] | None = None) -> int:
         return 0
 
     out_dir = Path(args.out_dir)
-    cases = standard_cases(args.seeds, args.duration)
+    if args.suite == "smoke":
+        cases = smoke_cases(args.duration)
+    else:
+        cases = standard_cases(args.seeds, args.duration)
     print(f"seeds 0..{args.seeds - 1}; {len(cases)} cases; output {out_dir}")
     results = run_all(cases, out_dir, args.workers)
     summary = summarise(results)
