@@ -194,10 +194,18 @@ def link_poses(robot: RobotDescription, q: np.ndarray) -> tuple[np.ndarray, np.n
 
 
 def grasp_pose(robot: RobotDescription, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Grasp frame in the base frame at joint angles ``q`` (rotation, position)."""
-    rots, poss = link_poses(robot, q)
-    rot_g, pos_g = rots[robot.grasp_link], poss[robot.grasp_link]
-    return rot_g @ robot.grasp_rot, pos_g + rot_g @ robot.grasp_pos
+    """Grasp frame in the base frame at joint angles ``q`` (rotation, position). Single sample,
+    on Python floats (called per robot per step by the env and the controller); the same forward
+    kinematics as ``link_poses`` and ``propagate`` (tests hold them equal)."""
+    links, g, grot, gpos = _fast_constants(robot)
+    qs = [float(x) for x in q]
+    rots = [((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))]
+    poss = [(0.0, 0.0, 0.0)]
+    for k, (parent, r0, pos, _axis, kk, *_rest) in enumerate(links[1:], start=1):
+        rots.append(_m_m(_m_m(rots[parent], r0), _rodrigues(kk, qs[k - 1])))
+        poss.append(_v_add(poss[parent], _m_v(rots[parent], pos)))
+    rot_g = rots[g]
+    return np.array(_m_m(rot_g, grot)), np.array(_v_add(poss[g], _m_v(rot_g, gpos)))
 
 
 def link_momentum_rate(robot: RobotDescription, kin: Kinematics) -> np.ndarray:
@@ -345,6 +353,18 @@ def _m_m(a, b):
     )
 
 
+def _rodrigues(kk, angle: float):
+    """I + sin K + (1 - cos) K^2 for a precomputed (K, K^2)."""
+    s, c1 = math.sin(angle), 1.0 - math.cos(angle)
+    (k00, k01, k02), (k10, k11, k12), (k20, k21, k22) = kk[0]
+    (m00, m01, m02), (m10, m11, m12), (m20, m21, m22) = kk[1]
+    return (
+        (1.0 + s * k00 + c1 * m00, s * k01 + c1 * m01, s * k02 + c1 * m02),
+        (s * k10 + c1 * m10, 1.0 + s * k11 + c1 * m11, s * k12 + c1 * m12),
+        (s * k20 + c1 * m20, s * k21 + c1 * m21, 1.0 + s * k22 + c1 * m22),
+    )
+
+
 _FAST_CACHE: dict[int, tuple] = {}
 
 
@@ -410,26 +430,7 @@ def balance_in_grasp_frame(
     for k, (parent, r0, pos, axis, kk, mass, com, inertia) in enumerate(links):
         if k:
             j = k - 1
-            s, c = math.sin(qs[j]), math.cos(qs[j])
-            kx, kx2 = kk
-            c1 = 1.0 - c
-            rq = (
-                (
-                    1.0 + s * kx[0][0] + c1 * kx2[0][0],
-                    s * kx[0][1] + c1 * kx2[0][1],
-                    s * kx[0][2] + c1 * kx2[0][2],
-                ),
-                (
-                    s * kx[1][0] + c1 * kx2[1][0],
-                    1.0 + s * kx[1][1] + c1 * kx2[1][1],
-                    s * kx[1][2] + c1 * kx2[1][2],
-                ),
-                (
-                    s * kx[2][0] + c1 * kx2[2][0],
-                    s * kx[2][1] + c1 * kx2[2][1],
-                    1.0 + s * kx[2][2] + c1 * kx2[2][2],
-                ),
-            )
+            rq = _rodrigues(kk, qs[j])
             rp = rots[parent]
             rot = _m_m(_m_m(rp, r0), rq)
             r = _m_v(rp, pos)
