@@ -71,6 +71,7 @@ def estimator_noise_kwargs(profile: NoiseProfile) -> dict:
     return {
         "actuation_noise": (p.force_std_n, p.force_rel, p.torque_std_nm, p.torque_rel),
         "sensor_noise": (p.accel_std, p.gyro_std, p.encoder_std_rad),
+        "localization_noise": (p.position_std_m, p.attitude_std_rad),
     }
 
 
@@ -88,8 +89,8 @@ class SensorPacket:
     """One robot's readings at one control step."""
 
     time_s: float
-    accel_imu: np.ndarray  # (3,) m/s^2, IMU frame
-    gyro_imu: np.ndarray  # (3,) rad/s, IMU frame
+    accel_imu: np.ndarray | None  # (3,) m/s^2, IMU frame; None: the frame is missing (a fault)
+    gyro_imu: np.ndarray | None  # (3,) rad/s, IMU frame; None with accel_imu
     joint_pos_rad: np.ndarray  # (n_joints,)
     base_pos_world: np.ndarray | None  # (3,) m, only at a localization fix
     base_quat_world: np.ndarray | None  # (4,) w x y z, only at a localization fix

@@ -292,6 +292,16 @@ class World:
         rot = _quat_to_mat(self.model.site_quat[s])
         return transform_params(self.cargo_params(), rot.T, -rot.T @ self.model.site_pos[s])
 
+    def relative_grasp(self, i: int, j: int) -> tuple[np.ndarray, np.ndarray]:
+        """Pose (rotation, position) of robot j's grasp frame in robot i's: the grasp layout on
+        the cargo's handrails, known geometry."""
+        poses = []
+        for k in (i, j):
+            s = self.robots[k].cargo_grasp_site
+            poses.append((_quat_to_mat(self.model.site_quat[s]), self.model.site_pos[s]))
+        (rot_i, pos_i), (rot_j, pos_j) = poses
+        return rot_i.T @ rot_j, rot_i.T @ (pos_j - pos_i)
+
     def set_cargo(
         self,
         mass_kg: float,

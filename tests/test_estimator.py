@@ -80,10 +80,11 @@ def simulate(n_robots, noise, seconds, trajectory, seed=0, pan=True, estimator_k
     sensors = SensorSuite(world, noise_profile(noise), rng)
     robots = [world.robot_model(i) for i in range(n_robots)]
     kwargs = {**estimator_noise_kwargs(noise_profile(noise)), **(estimator_kwargs or {})}
-    estimators = [
-        CargoEstimator(robots[i], i, [j for j in range(n_robots) if j != i], DT, **kwargs)
-        for i in range(n_robots)
-    ]
+    estimators = []
+    for i in range(n_robots):
+        peers = [j for j in range(n_robots) if j != i]
+        layout = {j: world.relative_grasp(i, j) for j in peers}
+        estimators.append(CargoEstimator(robots[i], i, peers, DT, relative_grasps=layout, **kwargs))
     controller = CooperativeController(robots)
     ref_fn = Trajectory(trajectory, pan_ramp=pan)
     truth = world.cargo_params()
