@@ -94,27 +94,24 @@ def smoke_cases(duration: float) -> list[Case]:
 
 def standard_cases(seeds: int, duration: float) -> list[Case]:
     cases = []
+    # One robot cannot follow figure8_tumble within its propulsion limits (measured: 8.6 deg mean
+    # attitude error, then a wall contact), so the single-robot scenarios fly the paper's
+    # figure8_yaw; the multi-robot ones fly the tumble (and 2 robots the yaw too).
     scenarios = [
-        ("1 robot, fixed arm", dict(robots=1, pan=False)),
-        ("1 robot, pan ramp", dict(robots=1)),
-        ("2 robots", dict(robots=2)),
-        ("3 robots", dict(robots=3)),
-        ("2 robots, 0.1 s latency, 20 % drop", dict(robots=2, comm_latency=0.1, comm_drop=0.2)),
+        ("yaw: 1 robot, fixed arm", "figure8_yaw", dict(robots=1, pan=False)),
+        ("yaw: 1 robot, pan ramp", "figure8_yaw", dict(robots=1)),
+        ("yaw: 2 robots", "figure8_yaw", dict(robots=2)),
+        ("tumble: 2 robots", "figure8_tumble", dict(robots=2)),
+        ("tumble: 3 robots", "figure8_tumble", dict(robots=3)),
+        (
+            "tumble: 2 robots, 0.1 s latency, 20 % drop",
+            "figure8_tumble",
+            dict(robots=2, comm_latency=0.1, comm_drop=0.2),
+        ),
     ]
     for seed in range(seeds):
-        for name, kw in scenarios:
-            cases.append(
-                Case(
-                    f"tumble: {name}",
-                    trajectory="figure8_tumble",
-                    seed=seed,
-                    duration=duration,
-                    **kw,
-                )
-            )
-        cases.append(
-            Case("yaw: 2 robots", robots=2, trajectory="figure8_yaw", seed=seed, duration=duration)
-        )
+        for name, traj, kw in scenarios:
+            cases.append(Case(name, trajectory=traj, seed=seed, duration=duration, **kw))
     for traj, fast in (("figure8_yaw", False), ("figure8_tumble", False), ("figure8_yaw", True)):
         for model in ("estimate", "none", "truth"):
             label = f"control: {traj}{' fast' if fast else ''}, {model}"
