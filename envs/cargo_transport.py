@@ -111,9 +111,11 @@ centre, aligned with the module. The first observation comes from one sensor rea
 ## Episode End
 
 Termination (every agent): any contact of a robot or the cargo with the module
-(`infos["termination_reason"] == "wall_contact"`), or a non-finite or unstable physics state
-(`"non_finite"`). Truncation (every agent): after `max_cycles` control steps. `agents` is empty
-once the episode has ended; stepping again raises `RuntimeError` until `reset`.
+(`infos["termination_reason"] == "wall_contact"`), or a non-finite or unstable physics state or a
+non-finite observation (`"non_finite"`; the observation is then returned with zeros in place of
+the non-finite entries, so no NaN ever leaves the env without a reason). Truncation (every
+agent): after `max_cycles` control steps. `agents` is empty once the episode has ended;
+stepping again raises `RuntimeError` until `reset`.
 
 ## Infos
 
@@ -121,7 +123,56 @@ Per agent: `reward_<term>` (above), `termination_reason` (None, "wall_contact", 
 `time_s`, `clipped_actions` (entries of this agent's action outside [-1, 1] this step),
 `wall_contacts`, `true_params` (the cargo's pi in this robot's grasp frame), with estimators on:
 `estimate`, `estimate_std`, `mass_rel_err`, `com_err_m`, `principal_rel_err` (3, sorted
-principal moments), `estimator` (the estimator's counters); and `comm` (channel statistics).
+principal moments), `estimator` (the estimator's counters, `CargoEstimator.counters`: updates,
+rolled_back, skipped_missing, skipped_bad_reading, skipped_peer_tainted, skipped_after_gate,
+skipped_low_excitation, gated, bad_readings, missing_imu, fixes, stale_messages, pending); `comm`
+(channel statistics); and `faults`: what was injected on this robot so far this episode
+(imu_frames_missing, fixes_missing, propulsion_steps, messages_lost_sent,
+messages_lost_received, messages_delayed_sent, messages_delayed_received: message copies) and
+`active`, the kinds of its faults active at this step.
+
+## Faults
+
+`faults` is a list of faults, each a dict (or a `Fault`) with `kind`, `robot`, `start_s`,
+`duration_s` and its kind's own fields; a fault is active at the control steps whose end time
+k * dt lies in [start_s, start_s + duration_s). Faults draw from their own generator (spawned
+from the reset seed only when there are faults) and act after the ordinary noise draws, so a run
+with faults and one without, seeded alike, are identical until the first fault starts.
+
+| kind                  | fields           | effect                                            |
+|-----------------------|------------------|---------------------------------------------------|
+| `imu_dropout`         | `prob` (1.0)     | its IMU frames are missing (each with `prob`)     |
+| `localization_outage` |                  | it gets no localization fix                       |
+| `propulsion`          | `scale` (0.0)    | delivered thrust = `scale` x (command + noise);   |
+|                       |                  | it and its estimator still believe the command    |
+| `comm_burst`          | `prob` (1.0)     | message copies sent by or to it are lost          |
+| `comm_delay`          | `delay_s` (> 0)  | its messages arrive `delay_s` later than the      |
+|                       |                  | latency (rounded to control periods)              |
+
+What the estimators do, and what it costs them (two robots, nominal noise, figure-eight, the
+scripted controller's actions replayed; the 18 s figures are asserted in
+tests/test_robustness.py, the 60 s ones were measured once the same way; "changed": final error
+minus that of the same run without the fault):
+
+- a missing IMU frame is held (the navigator and the estimator use the previous one), counted
+  (`missing_imu`), and taints the instants within the estimator's filter memory (about 4.9 s):
+  they are skipped (`skipped_bad_reading`) and the messages of those instants go out flagged, so
+  the peers skip them too (`skipped_peer_tainted`). The estimate does not move meanwhile;
+- during an outage the robot dead-reckons (navigation drift < 2 cm over 5 s); its estimator counts
+  fewer `fixes` and pauses the relative-grasp average; the wrench balance itself needs no fix;
+- a lost message costs the receiver that instant (`skipped_missing`, one per lost copy); a
+  delayed one within the estimators' `history_s` (2 s) costs nothing, a later one costs the
+  instant and is counted as `stale_messages` on arrival;
+- for these four, the final errors exceed the fault-free run's by less than 1 % mass and 5 mm
+  centre of mass (faults of 1-5 s at 9 s, 18 s runs);
+- a weakened or dead thruster makes the wrench balance inconsistent. Once the estimate is
+  confident, the NIS gate rejects the first inconsistent instant (`gated`), the updates of the
+  instants within the filter memory before it are undone (`rolled_back`) and those after it
+  skipped (`skipped_after_gate`): half or no thrust for 3 s at 30 s changed the final (60 s)
+  errors by less than 0.3 % mass and 0.3 mm, no thrust for 3 s at 9 s by less than 1 % and
+  1.2 cm. A fault the gate cannot see is absorbed as a wrong cargo: half thrust for 3 s at 9 s
+  (estimate still wide) gave 8-10 % extra mass error at 18 s, 1.5-2.4 % at 60 s; 80 % thrust for
+  10 s at 30 s, 2.3-3.2 % and 1-2 cm at 60 s.
 
 ## State
 
@@ -139,17 +190,21 @@ the arm targets (2 per robot).
 | `trajectory`        | "figure8_yaw" | cargo reference: one of `Trajectory.NAMES`               |
 | `fast`              | False         | twice the figure-eight speed                             |
 | `noise`             | "nominal"     | sensor and actuation noise: one of `NOISE_PROFILES`      |
-| `cargo_mass_kg`     | 5.0           | mass, or (low, high): uniform draw at each reset         |
-| `cargo_com_m`       | None          | CoM in the cargo frame (3), or None: uniform in +-0.03 m |
-| `cargo_inertia`     | None          | (I_xx, I_yy, I_zz, I_xy, I_xz, I_yz) about the CoM, or   |
-|                     |               | None: uniform 0.42 x 0.30 x 0.25 m box of that mass      |
-| `comm_latency`      | 0.0           | message latency, s (rounded to control periods)          |
+| `cargo_mass_kg`     | 5.0           | mass in [0.1, 100] kg, or (low, high): uniform draw at   |
+|                     |               | each reset                                               |
+| `cargo_com_m`       | None          | CoM in the cargo frame (3, within the bag's half sizes), |
+|                     |               | or None: uniform in +-0.03 m                             |
+| `cargo_inertia`     | None          | (I_xx, I_yy, I_zz, I_xy, I_xz, I_yz) about the CoM,      |
+|                     |               | physical, principal moments <= m d^2 (d: bag diagonal); |
+|                     |               | or None: uniform 0.42 x 0.30 x 0.25 m box of that mass   |
+| `comm_latency`      | 0.0           | message latency in [0, 60] s (rounded to periods)        |
 | `comm_drop`         | 0.0           | probability that one message to one receiver is lost     |
-| `comm_noise`        | (0.0, 0.0)    | std of the noise on sent wrenches (force N, moment N m)  |
-| `control_hz`        | 62.5          | control rate, Hz                                         |
+| `comm_noise`        | (0.0, 0.0)    | std of the noise on sent wrenches (force N, moment N m), |
+|                     |               | at most (10, 1)                                          |
+| `control_hz`        | 62.5          | control rate, 10 to 1000 Hz                              |
 | `frame_skip`        | None          | physics steps per control step (None: MJCF's 16 ms step) |
 | `max_cycles`        | None          | control steps per episode (None: 90 s, 5625 at 62.5 Hz)  |
-| `w_track`           | 1.0           | weight of the tracking term                              |
+| `w_track`           | 1.0           | weight of the tracking term (every weight: |w| <= 1e6)   |
 | `w_effort`          | 0.01          | weight of the effort term                                |
 | `w_info`            | 0.0           | weight of the information-gain term                      |
 | `w_contact`         | 1.0           | weight of the wall-contact term                          |
@@ -158,6 +213,7 @@ the arm targets (2 per robot).
 | `estimators`        | True          | run the estimators (False: physics only, benchmarks)     |
 | `estimator_kwargs`  | None          | keyword arguments of `CargoEstimator`; `actuation_noise` |
 |                     |               | defaults to the noise profile's                          |
+| `faults`            | None          | injected faults (section Faults), a list of dicts        |
 | `render_mode`       | None          | None, "rgb_array" or "human"                             |
 | `render_width`      | 640           | rgb_array width, pixels (at most 1280)                   |
 | `render_height`     | 480           | rgb_array height, pixels (at most 720)                   |
@@ -165,11 +221,14 @@ the arm targets (2 per robot).
 
 ## Version History
 
-- v0: first version.
+- v0: first version. Later additions, compatible: `faults`; argument bounds (cargo mass 0.1-100
+  kg, centre of mass within the bag, inertia at most m d^2, control rate 10-1000 Hz, latency at
+  most 60 s, channel noise at most (10 N, 1 N m), reward weights at most 1e6 in size).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from typing import Any
@@ -208,6 +267,16 @@ CONTROL_HZ = 62.5  # Astrobee GNC and PMC rate (facts file section 3.1)
 EPISODE_S = 90.0  # default episode length: the seed paper's runs last 90 s
 CARGO_BOX_M = (0.42, 0.30, 0.25)  # the bag's outer size (assets/cargo.xml)
 CARGO_COM_SPREAD_M = 0.03  # sampled centre of mass: uniform in +-this per axis
+# Accepted cargo masses: an empty bag (the ISAAC cargo model's 0.5 kg, facts file section 7) to
+# ten Astrobees' worth; beyond that two robots' 0.4 N cannot move it within an episode.
+CARGO_MASS_LIMITS_KG = (0.1, 100.0)
+# The cargo's mass lies in its bag: its centre of mass too, and no mass is farther than the bag's
+# diagonal from an axis through it, so each principal moment is at most m * diagonal^2.
+CARGO_DIAGONAL_M = math.hypot(*CARGO_BOX_M)
+CONTROL_HZ_LIMITS = (10.0, 1000.0)  # estimator filters need >= 10 Hz (1 Hz pre-filter cutoff)
+MAX_REWARD_WEIGHT = 1e6  # keeps every weighted term finite
+MAX_COMM_LATENCY_S = 60.0  # far beyond the estimators' history (2 s): nothing then arrives in time
+MAX_COMM_NOISE = (10.0, 1.0)  # force N, moment N m: 25 times the propulsion limits
 ROTATION_WEIGHT_M_PER_RAD = 0.5  # tracking term: metres of position error per radian
 RENDER_CAMERA_TRACK = "track"
 # Tracking camera: behind and above one robot's shoulder, framing the cargo and its robots
@@ -318,19 +387,27 @@ class BaseNavigator:
         if packet.base_pos_world is None or packet.base_quat_world is None:
             raise ValueError("the navigator starts from a packet with a localization fix")
         self.rot = _quat_to_mat(packet.base_quat_world)
-        self.w_base = self.imu_rot @ packet.gyro_imu
+        if packet.gyro_imu is None or packet.accel_imu is None:
+            self._last_imu = (np.zeros(3), np.zeros(3))  # at rest
+        else:
+            self._last_imu = (packet.gyro_imu, packet.accel_imu)
+        self.w_base = self.imu_rot @ self._last_imu[0]
         self.p_imu = packet.base_pos_world + self.rot @ self.imu_pos
         self.v_imu = np.zeros(3)
         self.cov = np.diag([self.pos_var, NAV_STD_FLOOR**2])
         self.att_cov = self.att_var
 
     def update(self, packet: SensorPacket) -> None:
-        """Propagate over one control period with the packet's IMU means; blend in its fix."""
+        """Propagate over one control period with the packet's IMU means (the previous ones when
+        the frame is missing); blend in its fix."""
         dt = self.dt_s
-        w = self.imu_rot @ packet.gyro_imu
+        if packet.gyro_imu is not None and packet.accel_imu is not None:
+            self._last_imu = (packet.gyro_imu, packet.accel_imu)
+        gyro, accel = self._last_imu
+        w = self.imu_rot @ gyro
         rot_mid_imu = self.rot @ _exp(0.5 * dt * w) @ self.imu_rot
         self.rot = self.rot @ _exp(dt * w)
-        v_new = self.v_imu + dt * (rot_mid_imu @ packet.accel_imu)
+        v_new = self.v_imu + dt * (rot_mid_imu @ accel)
         self.p_imu = self.p_imu + 0.5 * dt * (self.v_imu + v_new)
         self.v_imu = v_new
         self.w_base = w
@@ -379,6 +456,122 @@ def _check_finite_number(name: str, value: Any, allowed: str) -> float:
     return float(value)
 
 
+def _check_finite_array(name: str, value: Any, shape: tuple[int, ...], allowed: str) -> np.ndarray:
+    """``value`` as a finite float array of ``shape`` (numbers only: no strings, no booleans)."""
+    try:
+        raw = np.asarray(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be {allowed}, got {value!r}") from None
+    if raw.dtype.kind not in "iuf" or raw.shape != shape or not np.all(np.isfinite(raw)):
+        raise ValueError(f"{name} must be {allowed}, got {value!r}")
+    return raw.astype(float)
+
+
+def _check_choice(name: str, value: Any, allowed: Any) -> str:
+    if not isinstance(value, str) or value not in allowed:
+        raise ValueError(f"unknown {name} {value!r}; allowed: {sorted(allowed)}")
+    return value
+
+
+FAULT_KINDS: dict[str, tuple[str, ...]] = {  # kind -> its own optional fields
+    "imu_dropout": ("prob",),
+    "localization_outage": (),
+    "propulsion": ("scale",),
+    "comm_burst": ("prob",),
+    "comm_delay": ("delay_s",),
+}
+# infos[agent]["faults"]: counted by the env, and by the channel (copies, comms.FAULT_STATS).
+FAULT_COUNTERS = ("imu_frames_missing", "fixes_missing", "propulsion_steps")
+
+
+@dataclass(frozen=True)
+class Fault:
+    """One injected fault (see the module docstring, section Faults).
+
+    ``kind`` one of ``FAULT_KINDS``; ``robot`` the robot it hits; active over the control steps
+    whose end time t = k * dt lies in [start_s, start_s + duration_s). ``prob``: per IMU frame
+    (imu_dropout) or per message copy (comm_burst), the probability that it is lost;
+    ``scale``: delivered / commanded thrust (propulsion; 0 is dead); ``delay_s``: extra delay of
+    the robot's messages (comm_delay, rounded to whole control periods).
+    """
+
+    kind: str
+    robot: int
+    start_s: float
+    duration_s: float
+    prob: float = 1.0
+    scale: float = 0.0
+    delay_s: float = 0.0
+
+    @classmethod
+    def parse(cls, spec: Fault | dict[str, Any], n_robots: int) -> Fault:
+        """A validated ``Fault`` from a ``Fault`` or a dict of its fields (``ValueError``)."""
+        if isinstance(spec, Fault):  # the fields of other kinds must hold their defaults
+            own = ("kind", "robot", "start_s", "duration_s", *FAULT_KINDS.get(spec.kind, ()))
+            spec = {
+                f.name: getattr(spec, f.name)
+                for f in dataclasses.fields(spec)
+                if f.name in own or getattr(spec, f.name) != f.default
+            }
+        if not isinstance(spec, dict):
+            raise ValueError(f"a fault must be a dict or a Fault, got {spec!r}")
+        kind = spec.get("kind")
+        if not isinstance(kind, str) or kind not in FAULT_KINDS:
+            raise ValueError(f"unknown fault kind {kind!r}; allowed: {list(FAULT_KINDS)}")
+        allowed = ("kind", "robot", "start_s", "duration_s", *FAULT_KINDS[kind])
+        for key in spec:
+            if key not in allowed:
+                raise ValueError(f"fault {kind!r} takes the fields {list(allowed)}, got {key!r}")
+        for key in ("robot", "start_s", "duration_s"):
+            if key not in spec:
+                raise ValueError(f"fault {kind!r} needs {key!r} (fields: {list(allowed)})")
+        robot = spec["robot"]
+        if isinstance(robot, bool) or not isinstance(robot, int | np.integer):
+            raise ValueError(f"fault {kind!r}: robot must be an integer, got {robot!r}")
+        if not 0 <= robot < n_robots:
+            raise ValueError(f"fault {kind!r}: robot must be in 0..{n_robots - 1}, got {robot}")
+        start = _check_finite_number("fault start_s", spec["start_s"], "a finite number >= 0 s")
+        duration = _check_finite_number(
+            "fault duration_s", spec["duration_s"], "a finite number > 0 s"
+        )
+        if start < 0 or duration <= 0:
+            raise ValueError(
+                f"fault {kind!r}: need start_s >= 0 and duration_s > 0, got {start}, {duration}"
+            )
+        values = {}
+        for key, low, high, low_open in (
+            ("prob", 0.0, 1.0, True),
+            ("scale", 0.0, 1.0, False),
+            ("delay_s", 0.0, math.inf, True),
+        ):
+            if key not in FAULT_KINDS[kind] or key not in spec:
+                continue
+            value = _check_finite_number(f"fault {key}", spec[key], f"a number in ({low}, {high}]")
+            if not (low < value if low_open else low <= value) or value > high:
+                bracket = "(" if low_open else "["
+                raise ValueError(
+                    f"fault {kind!r}: {key} must be in {bracket}{low}, {high}], got {value}"
+                )
+            values[key] = value
+        if kind == "comm_delay" and "delay_s" not in values:
+            raise ValueError("fault 'comm_delay' needs 'delay_s' > 0 s")
+        return cls(kind, int(robot), start, duration, **values)
+
+    def steps(self, dt_s: float) -> tuple[int, int]:
+        """The control steps [first, end) it is active at (step k ends at k * dt_s)."""
+        first = max(1, math.ceil(self.start_s / dt_s - 1e-9))
+        end = max(first, math.ceil((self.start_s + self.duration_s) / dt_s - 1e-9))
+        return first, end
+
+
+def _parse_faults(faults: Any, n_robots: int) -> tuple[Fault, ...]:
+    if faults is None:
+        return ()
+    if isinstance(faults, dict | Fault) or not isinstance(faults, list | tuple):
+        raise ValueError(f"faults must be None or a list of dicts (or Faults), got {faults!r}")
+    return tuple(Fault.parse(f, n_robots) for f in faults)
+
+
 class CargoTransport:
     """The world, sensors, channel, estimators and the robots' own navigation, with no
     multi-agent API: ``reset(rng)`` then ``step(actions)`` with an (n_robots, 8) array.
@@ -409,15 +602,13 @@ class CargoTransport:
         observe_estimates: bool = True,
         estimators: bool = True,
         estimator_kwargs: dict[str, Any] | None = None,
+        faults: list[dict[str, Any] | Fault] | None = None,
     ) -> None:
         if isinstance(n_robots, bool) or not isinstance(n_robots, int | np.integer):
             raise ValueError(f"n_robots must be an integer in 1..{MAX_ROBOTS}, got {n_robots!r}")
         if not 1 <= n_robots <= MAX_ROBOTS:
             raise ValueError(f"n_robots must be in 1..{MAX_ROBOTS}, got {n_robots}")
-        if trajectory not in Trajectory.NAMES:
-            raise ValueError(
-                f"unknown trajectory {trajectory!r}; allowed: {list(Trajectory.NAMES)}"
-            )
+        _check_choice("trajectory", trajectory, Trajectory.NAMES)
         for name, flag in (
             ("fast", fast),
             ("observe_estimates", observe_estimates),
@@ -425,11 +616,11 @@ class CargoTransport:
         ):
             if not isinstance(flag, bool | np.bool_):
                 raise ValueError(f"{name} must be True or False, got {flag!r}")
-        if noise not in NOISE_PROFILES:
-            raise ValueError(f"unknown noise profile {noise!r}; allowed: {sorted(NOISE_PROFILES)}")
+        _check_choice("noise profile", noise, NOISE_PROFILES)
         if observe_estimates and not estimators:
             raise ValueError("observe_estimates=True needs estimators=True")
         self.n_robots = int(n_robots)
+        self.faults = _parse_faults(faults, self.n_robots)
         self.trajectory_name = trajectory
         self.fast = bool(fast)
         self.noise = noise
@@ -438,9 +629,11 @@ class CargoTransport:
         self.use_estimators = bool(estimators)
         self._set_cargo_args(cargo_mass_kg, cargo_com_m, cargo_inertia)
 
-        control_hz = _check_finite_number("control_hz", control_hz, "a positive number of Hz")
-        if control_hz <= 0:
-            raise ValueError(f"control_hz must be a positive number of Hz, got {control_hz}")
+        low_hz, high_hz = CONTROL_HZ_LIMITS
+        allowed_hz = f"a number of Hz in [{low_hz}, {high_hz}]"
+        control_hz = _check_finite_number("control_hz", control_hz, allowed_hz)
+        if not low_hz <= control_hz <= high_hz:
+            raise ValueError(f"control_hz must be {allowed_hz}, got {control_hz}")
         self.control_hz = control_hz
         self.dt_s = 1.0 / control_hz
         self.world = World(self.n_robots)
@@ -459,13 +652,31 @@ class CargoTransport:
         self.world.model.opt.timestep = self.dt_s / self.frame_skip
         self.model = self.world.model
         self.data = mujoco.MjData(self.model)
+        # Each fault with the control steps [first, end) it is active at.
+        self._fault_windows = [(f, *f.steps(self.dt_s)) for f in self.faults]
 
-        self.comm_args = (comm_latency, comm_drop, comm_noise)
+        latency = _check_finite_number(
+            "comm_latency", comm_latency, f"a latency in [0, {MAX_COMM_LATENCY_S}] s"
+        )
+        if not 0.0 <= latency <= MAX_COMM_LATENCY_S:
+            raise ValueError(
+                f"comm_latency must be a latency in [0, {MAX_COMM_LATENCY_S}] s, got {latency}"
+            )
+        allowed_noise = f"two numbers (force N, moment N m) in [0, {MAX_COMM_NOISE}]"
+        noise_std = _check_finite_array(
+            "comm_noise (the channel's noise_std)", comm_noise, (2,), allowed_noise
+        )
+        if np.any(noise_std < 0) or np.any(noise_std > MAX_COMM_NOISE):
+            raise ValueError(f"comm_noise (noise_std) must be {allowed_noise}, got {comm_noise!r}")
+        self.comm_args = (latency, comm_drop, tuple(noise_std))
         CommChannel(self.n_robots, *self.comm_args, self.dt_s, np.random.default_rng(0))
 
         self.weights = {}
+        allowed_w = f"a number in [-{MAX_REWARD_WEIGHT:g}, {MAX_REWARD_WEIGHT:g}]"
         for term, weight in zip(REWARD_TERMS, (w_track, w_effort, w_info, w_contact), strict=True):
-            self.weights[term] = _check_finite_number(f"w_{term}", weight, "a finite number")
+            self.weights[term] = _check_finite_number(f"w_{term}", weight, allowed_w)
+            if abs(self.weights[term]) > MAX_REWARD_WEIGHT:
+                raise ValueError(f"w_{term} must be {allowed_w}, got {weight}")
         self.shared_reward = _check_finite_number(
             "shared_reward", shared_reward, "a number in [0, 1]"
         )
@@ -477,7 +688,7 @@ class CargoTransport:
         p = self.profile
         self.estimator_kwargs = {
             **estimator_noise_kwargs(p),
-            "peer_noise_std": tuple(float(x) for x in comm_noise),
+            "peer_noise_std": tuple(float(x) for x in noise_std),
             **(estimator_kwargs or {}),
         }
         self.trajectory = Trajectory(trajectory, fast=self.fast)
@@ -513,39 +724,46 @@ class CargoTransport:
 
     # ------------------------------------------------------------------ arguments
     def _set_cargo_args(self, mass_kg: Any, com_m: Any, inertia: Any) -> None:
+        low_kg, high_kg = CARGO_MASS_LIMITS_KG
+        allowed = f"a mass in [{low_kg}, {high_kg}] kg, or a range (low, high) within it"
         if isinstance(mass_kg, tuple | list | np.ndarray):
-            bounds = np.asarray(mass_kg, dtype=float)
-            if bounds.shape != (2,) or not np.all(np.isfinite(bounds)):
-                raise ValueError(f"cargo_mass_kg must be a number or (low, high), got {mass_kg!r}")
+            bounds = _check_finite_array("cargo_mass_kg", mass_kg, (2,), allowed)
         else:
-            m = _check_finite_number("cargo_mass_kg", mass_kg, "a positive number or (low, high)")
-            bounds = np.array([m, m])
-        if not 0 < bounds[0] <= bounds[1]:
-            raise ValueError(
-                f"cargo_mass_kg must be positive, as a range 0 < low <= high, got {mass_kg!r}"
-            )
+            bounds = np.full(2, _check_finite_number("cargo_mass_kg", mass_kg, allowed))
+        if not low_kg <= bounds[0] <= bounds[1] <= high_kg:
+            raise ValueError(f"cargo_mass_kg must be {allowed}, low <= high, got {mass_kg!r}")
         self.cargo_mass_range = bounds
+        half_box = 0.5 * np.asarray(CARGO_BOX_M)
         if com_m is None:
             self.cargo_com = None
         else:
-            com = np.asarray(com_m, dtype=float)
-            if com.shape != (3,) or not np.all(np.isfinite(com)):
-                raise ValueError(f"cargo_com_m must be None or 3 finite numbers, got {com_m!r}")
+            allowed = f"None or 3 numbers (m) within the bag, |c| <= {tuple(half_box)}"
+            com = _check_finite_array("cargo_com_m", com_m, (3,), allowed)
+            if np.any(np.abs(com) > half_box):
+                raise ValueError(f"cargo_com_m must be {allowed}, got {com_m!r}")
             self.cargo_com = com
         if inertia is None:
             self.cargo_inertia = None
         else:
-            vec = np.asarray(inertia, dtype=float)
-            if vec.shape != (6,) or not np.all(np.isfinite(vec)):
-                raise ValueError(
-                    "cargo_inertia must be None or 6 finite numbers (I_xx, I_yy, I_zz, I_xy, "
-                    f"I_xz, I_yz) about the centre of mass, got {inertia!r}"
-                )
+            vec = _check_finite_array(
+                "cargo_inertia",
+                inertia,
+                (6,),
+                "None or 6 finite numbers (I_xx, I_yy, I_zz, I_xy, I_xz, I_yz) about the centre "
+                "of mass",
+            )
             tensor = vec_to_inertia(vec)
             try:  # realisable about the centre of mass, whatever the mass
                 check_physical(params_from_mass_com_inertia(1.0, np.zeros(3), tensor))
             except ValueError as err:
                 raise ValueError(f"cargo_inertia is not a physical inertia tensor: {err}") from err
+            max_moment = bounds[0] * CARGO_DIAGONAL_M**2
+            if np.linalg.eigvalsh(tensor)[-1] > max_moment:
+                raise ValueError(
+                    f"cargo_inertia: a principal moment exceeds m * d^2 = {max_moment:.3g} kg m^2 "
+                    f"(mass {bounds[0]} kg within the bag, diagonal d = {CARGO_DIAGONAL_M:.3f} m), "
+                    f"got {inertia!r}"
+                )
             self.cargo_inertia = tensor
 
     def _sample_cargo(self, rng: np.random.Generator) -> tuple[float, np.ndarray, np.ndarray]:
@@ -578,6 +796,9 @@ class CargoTransport:
         """Start an episode; sensor, channel and cargo generators are spawned from ``rng``.
         Returns the observations (n_robots, obs_dim) and infos."""
         sensor_rng, comm_rng, cargo_rng = rng.spawn(3)
+        # Spawned only with faults, so that a run without them draws as it always did.
+        self.fault_rng = rng.spawn(1)[0] if self.faults else None
+        self.fault_counts = {k: np.zeros(self.n_robots, dtype=np.int64) for k in FAULT_COUNTERS}
         self.cargo = self._sample_cargo(cargo_rng)
         self.world.set_cargo(*self.cargo)
         self.world.reset_data(self.data)
@@ -586,7 +807,14 @@ class CargoTransport:
             self.world.cargo_params_in_grasp_frame(i) for i in range(self.n_robots)
         ]
         self.sensors = SensorSuite(self.world, self.profile, sensor_rng)
-        self.channel = CommChannel(self.n_robots, *self.comm_args, self.dt_s, comm_rng)
+        self.channel = CommChannel(
+            self.n_robots, *self.comm_args, self.dt_s, comm_rng, fault_rng=self.fault_rng
+        )
+        for fault, first, end in self._fault_windows:
+            if fault.kind == "comm_burst":
+                self.channel.add_burst(fault.robot, first, end, fault.prob)
+            elif fault.kind == "comm_delay":
+                self.channel.add_delay(fault.robot, first, end, fault.delay_s)
         self.estimators = self._make_estimators() if self.use_estimators else []
         self.navigators = [BaseNavigator(r, self.dt_s, self.profile) for r in self.robots]
         self.arm_targets = np.tile(np.asarray(ARM_DEPLOYED_RAD), (self.n_robots, 1))
@@ -675,7 +903,13 @@ class CargoTransport:
             self.joint_ranges[..., 0],
             self.joint_ranges[..., 1],
         )
-        self.data.ctrl[self._thrust_ctrl] = self.sensors.actuate(commands)
+        delivered = self.sensors.actuate(commands)
+        weakened = set()
+        for fault in self._active_faults("propulsion", self.step_count):
+            delivered[fault.robot] *= fault.scale
+            weakened.add(fault.robot)
+        self.fault_counts["propulsion_steps"][list(weakened)] += 1
+        self.data.ctrl[self._thrust_ctrl] = delivered
         self.data.ctrl[self._arm_ctrl] = self.arm_targets
         self.sensors.begin_period(self.data)
         return commands
@@ -686,7 +920,39 @@ class CargoTransport:
         return bool(np.all(np.isfinite(d.qpos)) and np.all(np.isfinite(d.qvel)) and not unstable)
 
     def _read_sensors(self, k: int) -> list[SensorPacket]:
-        return self.sensors.read(self.data, k)
+        """Every robot's packet, with the faults of step ``k`` applied (after the sensor noise
+        draws, so a run with faults draws the same noise as one without)."""
+        packets = self.sensors.read(self.data, k)
+        for fault in self._active_faults("imu_dropout", k):
+            i = fault.robot
+            if packets[i].accel_imu is None:
+                continue  # two overlapping dropouts
+            if fault.prob < 1.0 and self.fault_rng.random() >= fault.prob:
+                continue
+            packets[i] = dataclasses.replace(packets[i], accel_imu=None, gyro_imu=None)
+            self.fault_counts["imu_frames_missing"][i] += 1
+        for fault in self._active_faults("localization_outage", k):
+            i = fault.robot
+            if packets[i].base_pos_world is not None:
+                packets[i] = dataclasses.replace(
+                    packets[i], base_pos_world=None, base_quat_world=None
+                )
+                self.fault_counts["fixes_missing"][i] += 1
+        return packets
+
+    def _active_faults(self, kind: str, k: int) -> list[Fault]:
+        """The faults of ``kind`` active at control step ``k``."""
+        return [f for f, first, end in self._fault_windows if f.kind == kind and first <= k < end]
+
+    def _fault_info(self, i: int) -> dict[str, Any]:
+        """Robot i's injected-fault counters (episode totals) and the kinds active now."""
+        info: dict[str, Any] = {k: int(v[i]) for k, v in self.fault_counts.items()}
+        info.update({f"messages_{k}": int(v[i]) for k, v in self.channel.fault_stats.items()})
+        k = self.step_count
+        info["active"] = [
+            f.kind for f, first, end in self._fault_windows if f.robot == i and first <= k < end
+        ]
+        return info
 
     def _update_estimators(self, packets: list[SensorPacket], commands: np.ndarray, k: int) -> None:
         """Each estimator ingests its own packet and command; messages go through the channel;
@@ -866,6 +1132,7 @@ class CargoTransport:
                 wall_contacts=int(wall_contacts[i]),
                 true_params=self.true_params_grasp[i].copy(),
                 comm=comm,
+                faults=self._fault_info(i),
             )
             if self.estimators:
                 info.update(
@@ -936,6 +1203,7 @@ class AstrobeeCargoEnv(ParallelEnv):
         observe_estimates: bool = True,
         estimators: bool = True,
         estimator_kwargs: dict[str, Any] | None = None,
+        faults: list[dict[str, Any] | Fault] | None = None,
         render_mode: str | None = None,
         render_width: int = 640,
         render_height: int = 480,
@@ -967,6 +1235,7 @@ class AstrobeeCargoEnv(ParallelEnv):
             observe_estimates=observe_estimates,
             estimators=estimators,
             estimator_kwargs=estimator_kwargs,
+            faults=faults,
         )
         if max_cycles is None:
             max_cycles = round(EPISODE_S * self.sim.control_hz)

@@ -15,17 +15,58 @@ two fields keep describing one wrench (isotropic noise has the same law in eithe
 All randomness comes from the ``np.random.Generator`` given to the constructor, drawn in a fixed
 order (per message: receivers in increasing index, drop then noise), so a seeded channel is
 reproducible.
+
+Faults (``add_burst``, ``add_delay``), each over a window of control steps [first, end):
+
+- a burst of loss on robot r: every copy sent by r or addressed to r in the window is lost (each
+  with probability ``prob``, drawn from the separate ``fault_rng``);
+- a delay of robot r's messages: a copy sent by r in the window arrives ``delay_s`` (rounded to
+  whole periods, as the latency) later than the usual latency.
+
+The ordinary loss and noise draws happen first, exactly as without the fault, so a faulty channel
+and a healthy one seeded alike agree on every copy the fault does not touch. What the faults did
+is counted per robot in ``fault_stats`` (``lost_sent``, ``lost_received``, ``delayed_sent``,
+``delayed_received``: copies), apart from ``stats``.
 """
 
 from __future__ import annotations
 
 import dataclasses
 from collections import defaultdict
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 WRENCH_FIELDS = ("wrench_grasp", "wrench_world")
+
+
+FAULT_STATS = ("lost_sent", "lost_received", "delayed_sent", "delayed_received")
+
+
+@dataclass(frozen=True)
+class _LinkFault:
+    robot: int
+    first_step: int
+    end_step: int  # exclusive
+    prob: float = 1.0  # burst: probability that one copy is lost
+    extra_steps: int = 0  # delay
+
+    def active(self, step: int) -> bool:
+        return self.first_step <= step < self.end_step
+
+
+def _is_number(value: Any) -> bool:
+    """A real number, not a boolean (True would read as 1 s or probability 1)."""
+    return isinstance(value, int | float | np.integer | np.floating) and not isinstance(
+        value, bool | np.bool_
+    )
+
+
+def _periods(seconds: float, dt_s: float) -> int:
+    """Nearest whole number of control periods, halves up (round() takes halves to even: 0.2 s
+    at 16 ms would be 12 periods); the tiny margin absorbs float error in seconds / dt."""
+    return int(np.floor(seconds / dt_s + 0.5 + 1e-9))
 
 
 class CommChannel:
@@ -37,7 +78,8 @@ class CommChannel:
         drop_prob: probability in [0, 1] that one copy (one message to one receiver) is lost.
         noise_std: (force N, moment N m) standard deviation of the additive wrench noise per axis.
         dt_s: control period in seconds.
-        rng: the generator every random draw comes from.
+        rng: the generator every random draw of loss and noise comes from.
+        fault_rng: the generator of the faults' draws (needed by a burst with ``prob`` < 1).
     """
 
     def __init__(
@@ -48,16 +90,17 @@ class CommChannel:
         noise_std: tuple[float, float],
         dt_s: float,
         rng: np.random.Generator,
+        fault_rng: np.random.Generator | None = None,
     ) -> None:
         if isinstance(n_robots, bool) or not isinstance(n_robots, int | np.integer):
             raise ValueError(f"n_robots must be a positive integer, got {n_robots!r}")
         if n_robots < 1:
             raise ValueError(f"n_robots must be a positive integer, got {n_robots}")
-        if not (isinstance(dt_s, int | float) and np.isfinite(dt_s) and dt_s > 0):
+        if not (_is_number(dt_s) and np.isfinite(dt_s) and dt_s > 0):
             raise ValueError(f"dt_s must be a positive finite number of seconds, got {dt_s!r}")
-        if not (isinstance(latency_s, int | float) and np.isfinite(latency_s) and latency_s >= 0):
+        if not (_is_number(latency_s) and np.isfinite(latency_s) and latency_s >= 0):
             raise ValueError(f"latency_s must be a finite number >= 0 s, got {latency_s!r}")
-        if not (isinstance(drop_prob, int | float) and 0.0 <= drop_prob <= 1.0):
+        if not (_is_number(drop_prob) and 0.0 <= drop_prob <= 1.0):
             raise ValueError(f"drop_prob must be a probability in [0, 1], got {drop_prob!r}")
         noise = np.asarray(noise_std, dtype=float)
         if noise.shape != (2,) or not np.all(np.isfinite(noise)) or np.any(noise < 0):
@@ -67,17 +110,60 @@ class CommChannel:
             )
         if not isinstance(rng, np.random.Generator):
             raise ValueError(f"rng must be a numpy.random.Generator, got {type(rng).__name__}")
+        if fault_rng is not None and not isinstance(fault_rng, np.random.Generator):
+            raise ValueError(
+                f"fault_rng must be None or a Generator, got {type(fault_rng).__name__}"
+            )
         self.n_robots = int(n_robots)
         self.dt_s = float(dt_s)
         self.latency_s = float(latency_s)
-        # Nearest whole period, halves up (round() takes halves to even: 0.2 s at 16 ms would be
-        # 12 periods); the tiny margin absorbs float error in latency / dt.
-        self.latency_steps = int(np.floor(self.latency_s / self.dt_s + 0.5 + 1e-9))
+        self.latency_steps = _periods(self.latency_s, self.dt_s)
         self.drop_prob = float(drop_prob)
         self.noise_std = noise
         self.rng = rng
         self._queue: dict[int, list[tuple[int, Any]]] = defaultdict(list)  # due step -> copies
         self.stats = {"sent": 0, "delivered": 0, "dropped": 0, "in_flight": 0}
+        self.fault_rng = fault_rng
+        self._bursts: list[_LinkFault] = []
+        self._delays: list[_LinkFault] = []
+        self.fault_stats = {k: np.zeros(self.n_robots, dtype=np.int64) for k in FAULT_STATS}
+
+    def _check_window(self, robot: int, first_step: int, end_step: int) -> None:
+        if isinstance(robot, bool) or not isinstance(robot, int | np.integer):
+            raise ValueError(f"robot must be an integer in 0..{self.n_robots - 1}, got {robot!r}")
+        if not 0 <= robot < self.n_robots:
+            raise ValueError(f"robot must be in 0..{self.n_robots - 1}, got {robot}")
+        for name, step in (("first_step", first_step), ("end_step", end_step)):
+            if isinstance(step, bool) or not isinstance(step, int | np.integer):
+                raise ValueError(f"{name} must be an integer control step, got {step!r}")
+        if not 0 <= first_step <= end_step:
+            raise ValueError(f"need 0 <= first_step <= end_step, got {first_step}, {end_step}")
+
+    def add_burst(self, robot: int, first_step: int, end_step: int, prob: float = 1.0) -> None:
+        """Lose the copies sent by or to ``robot`` at steps [first_step, end_step), each with
+        probability ``prob`` (drawn from ``fault_rng`` when below 1)."""
+        self._check_window(robot, first_step, end_step)
+        if not (_is_number(prob) and 0.0 < prob <= 1.0):
+            raise ValueError(f"prob must be a probability in (0, 1], got {prob!r}")
+        if prob < 1.0 and self.fault_rng is None:
+            raise ValueError("a burst with prob < 1 needs the channel's fault_rng")
+        self._bursts.append(_LinkFault(int(robot), int(first_step), int(end_step), float(prob)))
+
+    def add_delay(self, robot: int, first_step: int, end_step: int, delay_s: float) -> None:
+        """Delay the copies ``robot`` sends at steps [first_step, end_step) by ``delay_s``
+        beyond the latency (rounded to whole periods)."""
+        self._check_window(robot, first_step, end_step)
+        if not (_is_number(delay_s) and np.isfinite(delay_s) and delay_s >= 0):
+            raise ValueError(f"delay_s must be a finite number >= 0 s, got {delay_s!r}")
+        extra = _periods(float(delay_s), self.dt_s)
+        self._delays.append(_LinkFault(int(robot), int(first_step), int(end_step), 1.0, extra))
+
+    def _lost_to_burst(self, sender: int, receiver: int, step: int) -> bool:
+        for burst in self._bursts:
+            if burst.robot in (sender, receiver) and burst.active(step):
+                if burst.prob >= 1.0 or self.fault_rng.random() < burst.prob:
+                    return True
+        return False
 
     def send(self, message: Any, step: int | None = None) -> None:
         """Publish ``message`` (a dataclass with ``sender``, ``wrench_grasp``, ``wrench_world``
@@ -94,14 +180,24 @@ class CommChannel:
         if isinstance(step, bool) or not isinstance(step, int | np.integer):
             raise ValueError(f"step must be an integer control step, got {step!r}")
         self.stats["sent"] += 1
-        due = int(step) + self.latency_steps
+        step = int(step)
+        extra = sum(d.extra_steps for d in self._delays if d.robot == sender and d.active(step))
+        due = step + self.latency_steps + extra
         for receiver in range(self.n_robots):
             if receiver == sender:
                 continue
             if self.drop_prob > 0 and self.rng.random() < self.drop_prob:
                 self.stats["dropped"] += 1
                 continue
-            self._queue[due].append((receiver, self._copy(message)))
+            copy = self._copy(message)
+            if self._bursts and self._lost_to_burst(sender, receiver, step):
+                self.fault_stats["lost_sent"][sender] += 1
+                self.fault_stats["lost_received"][receiver] += 1
+                continue
+            if extra:
+                self.fault_stats["delayed_sent"][sender] += 1
+                self.fault_stats["delayed_received"][receiver] += 1
+            self._queue[due].append((receiver, copy))
             self.stats["in_flight"] += 1
 
     def _copy(self, message: Any) -> Any:

@@ -7,7 +7,9 @@ Sections:
 - env: one `AstrobeeCargoEnv.step` (N = 1, 2, 4 robots; estimators on and off) against bare
   MuJoCo `mj_step(nstep=frame_skip)` of the same model; real-time factor = control period / mean
   step time.
-- training: not implemented yet.
+- training: environment steps per second inside SB3's loop (PPO rollouts and updates, set up
+  as scripts/train.py does) for 1 and 2 environment copies (2 copies: in-process, and one
+  subprocess per copy as subprocess_steps_per_s).
 
 Usage:
     python scripts/benchmark_performance.py [--only {estimator,env,training}] [--json FILE]
@@ -252,9 +254,58 @@ def bench_env() -> dict[str, dict[str, float]]:
     return results
 
 
-def bench_training() -> dict[str, float]:
-    """Training throughput (to be written with the training script)."""
-    raise NotImplementedSection("training")
+TRAIN_COPIES = (1, 2)
+TRAIN_WARMUP_ROLLOUTS = 1
+TRAIN_ROLLOUTS = 4
+
+
+def _load_train_script():
+    """scripts/train.py as a module (its model set-up is what is measured)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("train", Path(__file__).with_name("train.py"))
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def bench_training() -> dict[str, dict[str, float]]:
+    """Environment steps per second inside SB3's PPO loop (rollouts and updates), per copies."""
+    train = _load_train_script()
+    results: dict[str, dict[str, float]] = {}
+    print(
+        f"training: PPO as scripts/train.py sets it up (2 robots, estimates observed, "
+        f"LEARNING_TASK), {TRAIN_ROLLOUTS} rollouts timed after {TRAIN_WARMUP_ROLLOUTS} warm-up, "
+        f"seed {SEED}; an environment step is one control step of one copy (2 samples)"
+    )
+    print(f"  {'copies':>6} {'env steps/s':>12} {'samples/s':>10} {'rollout':>9} {'where':>11}")
+    for copies in TRAIN_COPIES:
+        for subprocess in (False, True) if copies > 1 else (False,):
+            argv = ["--copies", str(copies), "--no-progress-bar", "--seed", str(SEED)]
+            args = train.build_parser().parse_args(argv + (["--subprocess"] if subprocess else []))
+            model, _ = train.build_model(args, SEED)
+            per_rollout = model.n_steps * model.get_env().num_envs
+            model.learn(TRAIN_WARMUP_ROLLOUTS * per_rollout)
+            start = time.perf_counter()
+            model.learn(TRAIN_ROLLOUTS * per_rollout, reset_num_timesteps=False)
+            wall = time.perf_counter() - start
+            model.get_env().close()
+            samples_per_s = TRAIN_ROLLOUTS * per_rollout / wall
+            row = {
+                "steps_per_s": samples_per_s / args.robots,
+                "samples_per_s": samples_per_s,
+                "samples_per_rollout": per_rollout,
+            }
+            where = "subprocess" if subprocess else "in-process"
+            if subprocess:
+                results[str(copies)]["subprocess_steps_per_s"] = row["steps_per_s"]
+            else:
+                results[str(copies)] = row
+            print(
+                f"  {copies:>6} {row['steps_per_s']:12.0f} {samples_per_s:10.0f} "
+                f"{per_rollout:9d} {where:>11}"
+            )
+    return results
 
 
 SECTIONS: dict[str, Callable[[], dict[str, float]]] = {

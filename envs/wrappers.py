@@ -1,0 +1,407 @@
+"""Adapters from the PettingZoo cargo env to Stable-Baselines3 and Gymnasium.
+
+- ``SharedPolicyVecEnv``: an SB3 ``VecEnv`` with parameter sharing. Every robot of every copy of
+  the parallel env is one slot (slot ``c * n_robots + i`` is robot ``i`` of copy ``c``), so one
+  policy acts for all robots from their local observations. Copies run in this process or, with
+  ``subprocess=True``, one subprocess each. An episode ends for all robots of a copy at once;
+  the copy then resets itself and each of its slots reports ``terminal_observation`` and
+  ``TimeLimit.truncated`` (True at ``max_cycles``, False on termination), so SB3 bootstraps
+  the value at the time limit only. ``seed(s)`` gives copy ``c`` the seed ``s + c`` at the next
+  reset; later episodes continue each copy's own generator, so a run is reproducible.
+- ``SlotController``: runs a controller that acts on one copy's observations (n_robots, obs_dim)
+  (e.g. ``ObservationController``) on all the slots of a ``SharedPolicyVecEnv``.
+- ``CentralizedCargoEnv``: a single-agent ``gymnasium.Env`` in which one policy drives all robots:
+  the observation is the robots' observations concatenated in agent order, the action the robots'
+  actions concatenated, the reward the robots' mean reward. Registered as ``ENV_ID``
+  (``astrocargo/AstrobeeCargo-v0``); ``gymnasium.make("astrocargo.envs.wrappers:" + ENV_ID)``
+  imports this module and makes it in one call.
+
+SuperSuit's ``pettingzoo_env_to_vec_env_v1`` is not used: with SB3 2.9 it reports truncation as
+termination, breaks ``seed=`` and starts every copy identical (shared/reference/pitfalls.md).
+"""
+
+from __future__ import annotations
+
+import copy
+import functools
+import multiprocessing as mp
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import gymnasium
+import numpy as np
+from gymnasium import spaces
+from pettingzoo import ParallelEnv
+from stable_baselines3.common.vec_env.base_vec_env import (
+    CloudpickleWrapper,
+    VecEnv,
+    VecEnvIndices,
+    VecEnvStepReturn,
+)
+
+ENV_ID = "astrocargo/AstrobeeCargo-v0"
+# The learning task of scripts/train.py, evaluate.py and the training benchmark: the first 10 s
+# of the figure-eight (the reference starts moving from rest), nominal noise, the policy acting
+# at 12.5 Hz (every fifth GNC period) so that a 10 s episode is 125 decisions.
+LEARNING_TASK: dict[str, Any] = {
+    "trajectory": "figure8_yaw",
+    "control_hz": 12.5,
+    "max_cycles": 125,
+    "noise": "nominal",
+}
+
+
+def cargo_env_fn(**env_kwargs: Any) -> Callable[[], ParallelEnv]:
+    """A picklable factory of ``astrobee_cargo_v0.parallel_env(**env_kwargs)``."""
+    return functools.partial(_make_cargo_env, **env_kwargs)
+
+
+def _make_cargo_env(**env_kwargs: Any) -> ParallelEnv:
+    from astrocargo.envs import astrobee_cargo_v0
+
+    return astrobee_cargo_v0.parallel_env(**env_kwargs)
+
+
+# --------------------------------------------------------------------------- one copy
+
+
+class _Copy:
+    """One parallel env seen as arrays in agent order, resetting itself when its episode ends."""
+
+    def __init__(self, env: ParallelEnv) -> None:
+        self.env = env
+        self.agents = list(env.possible_agents)
+
+    def reset(self, seed: int | None, options: dict | None) -> tuple[np.ndarray, list[dict]]:
+        obs, infos = self.env.reset(seed=seed, options=options or None)
+        return self._stack(obs), [dict(infos.get(a, {})) for a in self.agents]
+
+    def step(self, actions: np.ndarray) -> tuple:
+        """Returns obs (n, d), rewards (n,), dones (n,), infos and the reset infos."""
+        actions_by_agent = dict(zip(self.agents, actions, strict=True))
+        obs, rewards, terms, truncs, infos = self.env.step(actions_by_agent)
+        terminated = np.array([bool(terms[a]) for a in self.agents])
+        truncated = np.array([bool(truncs[a]) for a in self.agents])
+        dones = terminated | truncated
+        if dones.any() and not dones.all():
+            raise RuntimeError(
+                "SharedPolicyVecEnv needs episodes that end for all agents at once; agents "
+                f"{[a for a, d in zip(self.agents, dones, strict=True) if not d]} are still running"
+            )
+        obs_array = self._stack(obs)
+        infos = [dict(infos[a]) for a in self.agents]
+        reset_infos = [{} for _ in self.agents]
+        if dones[0]:
+            for i, info in enumerate(infos):
+                info["terminal_observation"] = obs_array[i]
+                info["TimeLimit.truncated"] = bool(truncated[i] and not terminated[i])
+            obs_array, reset_infos = self.reset(None, None)
+        reward_array = np.array([rewards[a] for a in self.agents], dtype=np.float32)
+        return obs_array, reward_array, dones, infos, reset_infos
+
+    def _stack(self, obs: dict[str, np.ndarray]) -> np.ndarray:
+        return np.stack([obs[a] for a in self.agents])
+
+
+def _worker(remote: Any, parent_remote: Any, env_fn: CloudpickleWrapper) -> None:
+    """Subprocess loop: one copy, commands (name, data) from the pipe."""
+    parent_remote.close()
+    copy = _Copy(env_fn.var())
+    try:
+        while True:
+            cmd, data = remote.recv()
+            if cmd == "step":
+                remote.send(copy.step(data))
+            elif cmd == "reset":
+                remote.send(copy.reset(*data))
+            elif cmd == "render":
+                remote.send(copy.env.render())
+            elif cmd == "get_attr":
+                remote.send(getattr(copy.env, data))
+            elif cmd == "set_attr":
+                remote.send(setattr(copy.env, data[0], data[1]))
+            elif cmd == "env_method":
+                remote.send(getattr(copy.env, data[0])(*data[1], **data[2]))
+            elif cmd == "close":
+                copy.env.close()
+                remote.close()
+                break
+            else:
+                raise NotImplementedError(f"unknown command {cmd!r}")
+    except (EOFError, KeyboardInterrupt):
+        pass
+
+
+# --------------------------------------------------------------------------- VecEnv
+
+
+class SharedPolicyVecEnv(VecEnv):
+    """SB3 ``VecEnv`` over ``n_copies`` copies of a parallel env, one slot per robot per copy.
+
+    ``env_fn`` makes one copy (picklable when ``subprocess=True``: ``cargo_env_fn(**kwargs)``).
+    All agents must share one observation space and one action space (parameter sharing).
+    ``start_method`` is a ``multiprocessing`` start method; the default, "forkserver" where
+    available, is safe with torch's threads but needs the usual ``if __name__ == "__main__"``.
+    """
+
+    def __init__(
+        self,
+        env_fn: Callable[[], ParallelEnv],
+        n_copies: int = 1,
+        subprocess: bool = False,
+        start_method: str | None = None,
+    ) -> None:
+        if isinstance(n_copies, bool) or not isinstance(n_copies, int) or n_copies < 1:
+            raise ValueError(f"n_copies must be a positive integer, got {n_copies!r}")
+        self.n_copies = n_copies
+        self.subprocess = bool(subprocess)
+        self.closed = False
+        self._actions: np.ndarray | None = None
+        first = env_fn()
+        agents = list(first.possible_agents)
+        obs_space = first.observation_space(agents[0])
+        act_space = first.action_space(agents[0])
+        for agent in agents[1:]:
+            same = first.observation_space(agent) == obs_space
+            if not same or first.action_space(agent) != act_space:
+                raise ValueError(
+                    f"parameter sharing needs identical spaces for all agents; {agent!r} differs "
+                    f"from {agents[0]!r}"
+                )
+        self.n_robots = len(agents)
+        self.possible_agents = agents
+        if self.subprocess:
+            first.close()
+            if start_method is None:
+                methods = mp.get_all_start_methods()
+                start_method = "forkserver" if "forkserver" in methods else "spawn"
+            ctx = mp.get_context(start_method)
+            pipes = [ctx.Pipe() for _ in range(n_copies)]
+            self.remotes = [parent for parent, _ in pipes]
+            self.processes = []
+            for parent, child in pipes:
+                process = ctx.Process(
+                    target=_worker, args=(child, parent, CloudpickleWrapper(env_fn)), daemon=True
+                )
+                process.start()
+                self.processes.append(process)
+                child.close()
+        else:
+            self.copies = [_Copy(first)] + [_Copy(env_fn()) for _ in range(n_copies - 1)]
+        self._copy_seeds: list[int | None] = [None] * n_copies
+        super().__init__(n_copies * self.n_robots, obs_space, act_space)
+
+    # ------------------------------------------------------------------ slots <-> copies
+    def _split(self, per_slot: np.ndarray) -> np.ndarray:
+        return np.asarray(per_slot).reshape(self.n_copies, self.n_robots, *np.shape(per_slot)[1:])
+
+    def _call_all(self, cmd: str, per_copy: Sequence[Any]) -> list[Any]:
+        """Run ``cmd`` on every copy with its own data; results in copy order."""
+        if self.subprocess:
+            for remote, data in zip(self.remotes, per_copy, strict=True):
+                remote.send((cmd, data))
+            return [remote.recv() for remote in self.remotes]
+        if cmd == "step":
+            return [c.step(a) for c, a in zip(self.copies, per_copy, strict=True)]
+        return [c.reset(*data) for c, data in zip(self.copies, per_copy, strict=True)]
+
+    def _call_copies(self, cmd: str, data: Any, indices: VecEnvIndices) -> list[Any]:
+        """Run an attribute command on the copies of ``indices`` (slots); one result per slot."""
+        slots = list(self._get_indices(indices))
+        copies = sorted({s // self.n_robots for s in slots})
+        results = {}
+        if self.subprocess:
+            for c in copies:
+                self.remotes[c].send((cmd, data))
+            results = {c: self.remotes[c].recv() for c in copies}
+        else:
+            for c in copies:
+                env = self.copies[c].env
+                if cmd == "get_attr":
+                    results[c] = getattr(env, data)
+                elif cmd == "set_attr":
+                    results[c] = setattr(env, data[0], data[1])
+                elif cmd == "env_method":
+                    results[c] = getattr(env, data[0])(*data[1], **data[2])
+                else:  # render
+                    results[c] = env.render()
+        return [results[s // self.n_robots] for s in slots]
+
+    # ------------------------------------------------------------------ VecEnv API
+    def seed(self, seed: int | None = None) -> list[int | None]:
+        """Copy ``c`` gets ``seed + c`` at the next reset (a random base seed if None);
+        returns the seed of every slot."""
+        if seed is None:
+            seed = int(np.random.default_rng().integers(np.iinfo(np.uint32).max))
+        self._copy_seeds = [int(seed) + c for c in range(self.n_copies)]
+        return [s for s in self._copy_seeds for _ in range(self.n_robots)]
+
+    def reset(self) -> np.ndarray:
+        # set_options() stores one dict per slot: a copy takes its first robot's.
+        options = [self._options[c * self.n_robots] for c in range(self.n_copies)]
+        results = self._call_all("reset", list(zip(self._copy_seeds, options, strict=True)))
+        self._copy_seeds = [None] * self.n_copies
+        self._reset_seeds()
+        self._reset_options()
+        self.reset_infos = [info for _, infos in results for info in infos]
+        return np.concatenate([obs for obs, _ in results])
+
+    def step_async(self, actions: np.ndarray) -> None:
+        actions = np.asarray(actions)
+        if actions.shape[0] != self.num_envs:
+            raise ValueError(f"expected actions for {self.num_envs} slots, got {actions.shape}")
+        self._actions = self._split(actions)
+
+    def step_wait(self) -> VecEnvStepReturn:
+        if self._actions is None:
+            raise RuntimeError("step_wait() without step_async()")
+        results = self._call_all("step", list(self._actions))
+        self._actions = None
+        obs, rewards, dones, infos, reset_infos = zip(*results, strict=True)
+        self.reset_infos = [info for per_copy in reset_infos for info in per_copy]
+        infos = [info for per_copy in infos for info in per_copy]
+        return np.concatenate(obs), np.concatenate(rewards), np.concatenate(dones), infos
+
+    def close(self) -> None:
+        if self.closed:
+            return
+        if self.subprocess:
+            for remote in self.remotes:
+                remote.send(("close", None))
+            for process in self.processes:
+                process.join()
+        else:
+            for c in self.copies:
+                c.env.close()
+        self.closed = True
+
+    def get_attr(self, attr_name: str, indices: VecEnvIndices = None) -> list[Any]:
+        return self._call_copies("get_attr", attr_name, indices)
+
+    def set_attr(self, attr_name: str, value: Any, indices: VecEnvIndices = None) -> None:
+        self._call_copies("set_attr", (attr_name, value), indices)
+
+    def env_method(
+        self, method_name: str, *method_args, indices: VecEnvIndices = None, **method_kwargs
+    ) -> list[Any]:
+        return self._call_copies("env_method", (method_name, method_args, method_kwargs), indices)
+
+    def env_is_wrapped(self, wrapper_class: type, indices: VecEnvIndices = None) -> list[bool]:
+        return [False for _ in self._get_indices(indices)]  # copies are bare parallel envs
+
+    def get_images(self) -> Sequence[np.ndarray | None]:
+        """One frame per copy (not per slot): the copy's robots share one scene."""
+        return self._call_copies("render", None, list(range(0, self.num_envs, self.n_robots)))
+
+
+def make_vec_env(
+    n_copies: int = 1,
+    seed: int | None = None,
+    subprocess: bool = False,
+    start_method: str | None = None,
+    **env_kwargs: Any,
+) -> SharedPolicyVecEnv:
+    """``SharedPolicyVecEnv`` of ``astrobee_cargo_v0.parallel_env(**env_kwargs)``, seeded."""
+    venv = SharedPolicyVecEnv(cargo_env_fn(**env_kwargs), n_copies, subprocess, start_method)
+    if seed is not None:
+        venv.seed(seed)
+    return venv
+
+
+class SlotController:
+    """Drive every copy of a ``SharedPolicyVecEnv`` with a per-copy controller.
+
+    ``controller.predict(obs (n_robots, obs_dim))`` returns ``(actions (n_robots, 8), state)``
+    (``ObservationController`` does); ``predict`` here takes all slots (n_copies * n_robots,
+    obs_dim), with SB3's signature, so it can be scored like a policy.
+    """
+
+    def __init__(self, controller: Any, n_robots: int) -> None:
+        self.controller = controller
+        self.n_robots = int(n_robots)
+
+    def predict(self, observation, state=None, episode_start=None, deterministic=False):
+        del episode_start, deterministic
+        obs = np.asarray(observation)
+        if obs.ndim != 2 or obs.shape[0] % self.n_robots:
+            raise ValueError(
+                f"observation must be (n_copies * {self.n_robots}, obs_dim), got {obs.shape}"
+            )
+        blocks = obs.reshape(-1, self.n_robots, obs.shape[1])
+        actions = [self.controller.predict(block)[0] for block in blocks]
+        return np.concatenate(actions).astype(np.float32), state
+
+
+# --------------------------------------------------------------------------- single agent
+
+
+class CentralizedCargoEnv(gymnasium.Env):
+    """One policy drives all robots: observations and actions concatenated in agent order.
+
+    Keyword arguments are those of ``astrobee_cargo_v0.parallel_env``. The reward is the mean of
+    the robots' rewards (with the default ``shared_reward=1`` all robots get the team reward);
+    ``info`` holds ``termination_reason`` and ``agents`` (each robot's info). The episode ends as
+    the parallel env's does (its own truncation at ``max_cycles``: no ``TimeLimit`` is added).
+    """
+
+    metadata = {"render_modes": ["rgb_array", "human"], "render_fps": 62}
+
+    def __init__(self, render_mode: str | None = None, **env_kwargs: Any) -> None:
+        self.parallel_env = _make_cargo_env(render_mode=render_mode, **env_kwargs)
+        self.render_mode = render_mode
+        self.metadata = {**self.metadata, "render_fps": self.parallel_env.metadata["render_fps"]}
+        self.agents = list(self.parallel_env.possible_agents)
+        obs_spaces = [self.parallel_env.observation_space(a) for a in self.agents]
+        act_spaces = [self.parallel_env.action_space(a) for a in self.agents]
+        self.obs_dim = obs_spaces[0].shape[0]
+        self.act_dim = act_spaces[0].shape[0]
+        self.observation_space = spaces.Box(
+            np.concatenate([s.low for s in obs_spaces]),
+            np.concatenate([s.high for s in obs_spaces]),
+            dtype=np.float64,
+        )
+        self.action_space = spaces.Box(
+            np.concatenate([s.low for s in act_spaces]),
+            np.concatenate([s.high for s in act_spaces]),
+            dtype=np.float32,
+        )
+
+    @property
+    def sim(self) -> Any:
+        """The parallel env's ``CargoTransport`` (truth, tracking error)."""
+        return self.parallel_env.sim
+
+    def reset(
+        self, *, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[np.ndarray, dict[str, Any]]:
+        super().reset(seed=seed)
+        obs, infos = self.parallel_env.reset(seed=seed, options=options)
+        return self._concat(obs), {"agents": copy.deepcopy(infos)}
+
+    def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        per_robot = np.asarray(action, dtype=np.float64).reshape(len(self.agents), self.act_dim)
+        obs, rewards, terms, truncs, infos = self.parallel_env.step(
+            dict(zip(self.agents, per_robot, strict=True))
+        )
+        reward = float(np.mean([rewards[a] for a in self.agents]))
+        terminated = any(terms[a] for a in self.agents)
+        truncated = any(truncs[a] for a in self.agents) and not terminated
+        info = {
+            "termination_reason": infos[self.agents[0]].get("termination_reason"),
+            # The parallel env may hand out one array in several steps' infos: copy.
+            "agents": copy.deepcopy(infos),
+        }
+        return self._concat(obs), reward, terminated, truncated, info
+
+    def render(self) -> np.ndarray | None:
+        return self.parallel_env.render()
+
+    def close(self) -> None:
+        self.parallel_env.close()
+
+    def _concat(self, obs: dict[str, np.ndarray]) -> np.ndarray:
+        return np.concatenate([obs[a] for a in self.agents])
+
+
+if ENV_ID not in gymnasium.registry:
+    gymnasium.register(id=ENV_ID, entry_point="astrocargo.envs.wrappers:CentralizedCargoEnv")
