@@ -269,7 +269,7 @@ def plot_curves(curves: dict, baselines: list[dict], path: Path) -> None:
                 xytext=(-10, 6),
                 fontsize=8,
             )
-        for base, style in zip(baselines, ("--", ":", "-."), strict=False):
+        for base, style in zip(baselines, ("-.", "--", ":"), strict=False):
             ax.axhline(
                 base["summary"][key]["mean"], color="k", ls=style, lw=1, label=base["policy"]
             )
@@ -330,7 +330,10 @@ def main(argv: list[str] | None = None) -> int:
         print_table(results)
     curves = learning_curves(args.curve, task, args.episodes, args.seed) if args.curve else {}
     if curves and args.plot is not None:
-        plot_curves(curves, results, args.plot)
+        baselines = [
+            r for r, p in zip(results, policies, strict=True) if not isinstance(p, TrainedPolicy)
+        ]
+        plot_curves(curves, baselines, args.plot)
         print(f"wrote {args.plot}")
     if args.json is not None:
         out = {"seed": args.seed, "episodes": args.episodes, "task": task, "results": results}
