@@ -784,8 +784,14 @@ class CargoTransport:
         out = []
         for i in range(self.n_robots):
             peers = [j for j in range(self.n_robots) if j != i]
+            # The grasp layout (which handrails the team holds) is known geometry, like the
+            # handrail poses the observations use; estimating it from fixes biases early updates.
+            kwargs = {
+                "relative_grasps": {j: self.world.relative_grasp(i, j) for j in peers},
+                **self.estimator_kwargs,
+            }
             try:
-                est = CargoEstimator(self.robots[i], i, peers, self.dt_s, **self.estimator_kwargs)
+                est = CargoEstimator(self.robots[i], i, peers, self.dt_s, **kwargs)
             except TypeError as err:
                 raise ValueError(f"bad estimator_kwargs {self.estimator_kwargs!r}: {err}") from err
             out.append(est)
