@@ -248,7 +248,14 @@ from astrocargo.envs.sensors import (
     estimator_noise_kwargs,
 )
 from astrocargo.envs.sensors import noise_profile as get_noise_profile
-from astrocargo.envs.world import ARM_DEPLOYED_RAD, MAX_ROBOTS, MAX_TIMESTEP_S, World
+from astrocargo.envs.world import (
+    ARM_DEPLOYED_RAD,
+    MAX_ROBOTS,
+    MAX_TIMESTEP_S,
+    World,
+    _mat_to_quat,
+    _quat_to_mat,
+)
 from astrocargo.estimator.cargo_estimator import CargoEstimator
 from astrocargo.estimator.inertia import (
     check_physical,
@@ -291,18 +298,6 @@ TERMINATION_REASONS = ("wall_contact", "non_finite")
 
 
 # --------------------------------------------------------------------------- small helpers
-
-
-def _quat_to_mat(quat: np.ndarray) -> np.ndarray:
-    mat = np.empty(9)
-    mujoco.mju_quat2Mat(mat, np.asarray(quat, dtype=float))
-    return mat.reshape(3, 3)
-
-
-def _mat_to_quat(rot: np.ndarray) -> np.ndarray:
-    quat = np.empty(4)
-    mujoco.mju_mat2Quat(quat, np.ascontiguousarray(rot, dtype=float).reshape(9))
-    return quat
 
 
 def _rotvec(rot: np.ndarray) -> np.ndarray:

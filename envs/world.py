@@ -57,7 +57,7 @@ def _quat_to_mat(quat: np.ndarray) -> np.ndarray:
 
 def _mat_to_quat(mat: np.ndarray) -> np.ndarray:
     quat = np.empty(4)
-    mujoco.mju_mat2Quat(quat, np.asarray(mat, dtype=float).reshape(9))
+    mujoco.mju_mat2Quat(quat, np.ascontiguousarray(mat, dtype=float).reshape(9))
     return quat
 
 

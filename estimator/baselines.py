@@ -139,3 +139,13 @@ def unrevealed_directions(
     lam, w = np.linalg.eigh(inv_chol @ fisher @ inv_chol.T)
     del inv_chol
     return [chol @ w[:, i] for i in range(lam.size) if lam[i] < ratio]
+
+
+def convergence_time(times: np.ndarray, rel_err: np.ndarray, tol: float) -> float | None:
+    """First time after which ``rel_err`` stays within ``tol`` (None if it never does)."""
+    outside = np.nonzero(np.asarray(rel_err) > tol)[0]
+    if outside.size == 0:
+        return float(times[0])
+    if outside[-1] == len(times) - 1:
+        return None
+    return float(times[outside[-1] + 1])

@@ -131,15 +131,6 @@ def standard_cases(seeds: int, duration: float) -> list[Case]:
 
 
 # ------------------------------------------------------------------------------- one case
-def _convergence_time(times: np.ndarray, rel_err: np.ndarray) -> float | None:
-    outside = np.nonzero(rel_err > MASS_TOL)[0]
-    if outside.size == 0:
-        return float(times[0])
-    if outside[-1] == len(times) - 1:
-        return None
-    return float(times[outside[-1] + 1])
-
-
 def run_case(case: Case) -> dict:
     """Simulate one case and analyse it (runs in a worker process)."""
     from astrocargo.agents.controllers import ObservationController
@@ -149,6 +140,7 @@ def run_case(case: Case) -> dict:
         PARAM_NAMES,
         Recording,
         batch_wls,
+        convergence_time,
         crlb,
         fisher_information,
         project_physical,
@@ -219,8 +211,8 @@ def run_case(case: Case) -> dict:
             "mass_rel_err": float(mass_rel_error(mean, truth)),
             "com_err_m": float(com_error_m(mean, truth)),
             "principal_rel_err": [float(x) for x in principal_rel_errors(mean, truth)],
-            "mass_convergence_s": _convergence_time(
-                times, np.abs(mass_est[:, i] - truth[0]) / truth[0]
+            "mass_convergence_s": convergence_time(
+                times, np.abs(mass_est[:, i] - truth[0]) / truth[0], MASS_TOL
             ),
             "nees": float(err @ np.linalg.solve(cov, err)),
             "counters": est.counters,

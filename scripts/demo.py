@@ -27,6 +27,7 @@ from tqdm import tqdm  # noqa: E402
 from astrocargo.agents.controllers import ObservationController  # noqa: E402
 from astrocargo.agents.trajectories import Trajectory  # noqa: E402
 from astrocargo.envs import astrobee_cargo_v0  # noqa: E402
+from astrocargo.estimator.baselines import convergence_time  # noqa: E402
 from astrocargo.estimator.inertia import (  # noqa: E402
     inertia_to_vec,
     mass_com_inertia_from_params,
@@ -40,16 +41,6 @@ def physical(pi: np.ndarray) -> np.ndarray:
     """[m, c, I about the centre of mass (xx, yy, zz, xy, xz, yz)] of standard parameters."""
     mass, com, inertia = mass_com_inertia_from_params(pi)
     return np.concatenate(([mass], com, inertia_to_vec(inertia)))
-
-
-def convergence_time(times: np.ndarray, rel_err: np.ndarray, tol: float) -> float | None:
-    """First time after which ``rel_err`` stays within ``tol`` (None if it never does)."""
-    outside = np.nonzero(rel_err > tol)[0]
-    if outside.size == 0:
-        return float(times[0])
-    if outside[-1] == len(times) - 1:
-        return None
-    return float(times[outside[-1] + 1])
 
 
 def run(args: argparse.Namespace) -> dict:
