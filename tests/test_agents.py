@@ -4,11 +4,10 @@
 import mujoco
 import numpy as np
 import pytest
+from true_state import true_states
 
 from astrocargo.agents.controllers import (
-    CargoState,
     CooperativeController,
-    RobotState,
     rotation_log,
 )
 from astrocargo.agents.trajectories import (
@@ -85,25 +84,10 @@ def _run_controller(world, data, ref_fn, seconds):
     controller = CooperativeController([world.robot_model(i) for i in range(world.n_robots)])
     truth = world.cargo_params()
     nsub = round(0.016 / model.opt.timestep)
-    vel = np.zeros(6)
     errors = []
     for k in range(int(seconds / 0.016)):
         ref = ref_fn(k * 0.016)
-        mujoco.mj_objectVelocity(model, data, mujoco.mjtObj.mjOBJ_XBODY, world.cargo_body, vel, 0)
-        cargo = CargoState(
-            data.xmat[world.cargo_body].reshape(3, 3).copy(),
-            data.xpos[world.cargo_body].copy(),
-            vel[3:].copy(),
-            vel[:3].copy(),
-        )
-        states = [
-            RobotState(
-                data.xmat[h.base_body].reshape(3, 3).copy(),
-                data.xpos[h.base_body].copy(),
-                data.qpos[list(h.arm_qpos_adr)].copy(),
-            )
-            for h in world.robots
-        ]
+        cargo, states = true_states(world, data)
         commands = controller.commands(ref, cargo, states, truth)
         for h, cmd, robot in zip(world.robots, commands, controller.robots, strict=True):
             assert np.all(np.abs(cmd) <= robot.thrust_limit + 1e-12)

@@ -13,12 +13,12 @@ import os
 import subprocess
 import sys
 
-import mujoco
 import numpy as np
 import pytest
 from pettingzoo.test import api_test, parallel_api_test, parallel_seed_test
+from true_state import true_states
 
-from astrocargo.agents.controllers import CargoState, CooperativeController, RobotState
+from astrocargo.agents.controllers import CooperativeController
 from astrocargo.envs import astrobee_cargo_v0
 from astrocargo.envs.cargo_transport import (
     ARM_SPEED_RADPS,
@@ -352,20 +352,9 @@ def test_rgb_array_render():
 def _scripted_actions(env, controller):
     """Thrust of the cooperative controller from the true state (see the module docstring)."""
     sim = env.sim
-    m, d, world = sim.model, sim.data, sim.world
+    d, world = sim.data, sim.world
     ref = sim.reference()
-    vel = np.zeros(6)
-    mujoco.mj_objectVelocity(m, d, mujoco.mjtObj.mjOBJ_XBODY, world.cargo_body, vel, 0)
-    b = world.cargo_body
-    cargo = CargoState(d.xmat[b].reshape(3, 3).copy(), d.xpos[b].copy(), vel[3:], vel[:3])
-    robots = [
-        RobotState(
-            d.xmat[h.base_body].reshape(3, 3).copy(),
-            d.xpos[h.base_body].copy(),
-            d.qpos[list(h.arm_qpos_adr)].copy(),
-        )
-        for h in world.robots
-    ]
+    cargo, robots = true_states(world, d)
     commands = controller.commands(ref, cargo, robots, sim.true_params)
     actions = {}
     for i, agent in enumerate(env.possible_agents):

@@ -8,8 +8,9 @@ its robot senses.
 import mujoco
 import numpy as np
 import pytest
+from true_state import true_states
 
-from astrocargo.agents.controllers import CargoState, CooperativeController, RobotState
+from astrocargo.agents.controllers import CooperativeController
 from astrocargo.agents.trajectories import Trajectory
 from astrocargo.envs.sensors import SensorSuite, estimator_noise_kwargs, noise_profile
 from astrocargo.envs.world import World
@@ -89,24 +90,9 @@ def simulate(n_robots, noise, seconds, trajectory, seed=0, pan=True, estimator_k
     ref_fn = Trajectory(trajectory, pan_ramp=pan)
     truth = world.cargo_params()
     nsub = round(DT / model.opt.timestep)
-    vel = np.zeros(6)
     for k in range(int(seconds / DT)):
         ref = ref_fn(k * DT)
-        mujoco.mj_objectVelocity(model, data, mujoco.mjtObj.mjOBJ_XBODY, world.cargo_body, vel, 0)
-        cargo = CargoState(
-            data.xmat[world.cargo_body].reshape(3, 3).copy(),
-            data.xpos[world.cargo_body].copy(),
-            vel[3:].copy(),
-            vel[:3].copy(),
-        )
-        states = [
-            RobotState(
-                data.xmat[h.base_body].reshape(3, 3).copy(),
-                data.xpos[h.base_body].copy(),
-                data.qpos[list(h.arm_qpos_adr)].copy(),
-            )
-            for h in world.robots
-        ]
+        cargo, states = true_states(world, data)
         commands = controller.commands(ref, cargo, states, truth)
         for h, cmd in zip(world.robots, commands, strict=True):
             data.ctrl[list(h.thrust_actuators)] = sensors.actuate(cmd)
