@@ -10,8 +10,16 @@ Each finished case is written at once (atomic rename) under ``--out-dir/cases/``
 the same output directory skips finished cases, so an interrupted run resumes and leaves readable
 results. The summary is ``results.json``, ``results.md`` (tables) and plots.
 
+Cases run on this machine in a process pool (``--backend local --workers N``, the default) or as
+Ray tasks on a cluster (``--backend ray --ray-address HOST:PORT``, default ``$RAY_ADDRESS``, else a
+new local Ray instance; needs ``pip install 'astrocargo[ray]'`` and astrocargo installed on every
+node). Each case depends only on its seed, so both backends give the same numbers; a case whose
+Ray worker dies runs again.
+
     python scripts/benchmark_estimation.py                         # the standard suite
     python scripts/benchmark_estimation.py --seeds 2 --duration 30  # a quick look
+    python scripts/benchmark_estimation.py --suite sweep --seeds 40 --duration 30 \\
+        --backend ray --ray-address HEAD:6379                      # Monte Carlo over cargos
     python scripts/benchmark_estimation.py --robots 2 --duration 90 --seed 3 --noise nominal \\
         --trajectory figure8_tumble --cargo-mass 5 --cargo-com 0.02,-0.03,0.04 \\
         --cargo-inertia 0.07,0.10,0.11,0.005,0,-0.004 --comm-latency 0.1 --comm-drop 0.2 \\
@@ -21,18 +29,24 @@ results. The summary is ``results.json``, ``results.md`` (tables) and plots.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import sys
 import tempfile
 import time
+from collections.abc import Iterator
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-import numpy as np
-
 os.environ.setdefault("MUJOCO_GL", "egl")
+# One BLAS thread per case: the matrices are tiny, and with several cases at once (pool workers,
+# Ray tasks) more threads only contend for the cores (measured: 2 cases at once on 2 cores took
+# 15-21 s each with OpenBLAS's default threads, 7-9 s with one). Ray's workers get one already.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402
 
 # Default cargo: 5 kg, off-centre, full inertia tensor (cargo frame, about the centre of mass).
 CARGO_MASS = 5.0
@@ -40,6 +54,10 @@ CARGO_COM = (0.02, -0.03, 0.04)
 CARGO_INERTIA = (0.07, 0.10, 0.11, 0.005, 0.0, -0.004)
 MASS_TOL = 0.02
 CONTROL_HZ = 62.5
+BACKENDS = ("local", "ray")
+# A Ray task whose worker process or node dies is run again up to this many times; an exception
+# raised by the case itself is not retried (it would fail the same way).
+RAY_MAX_RETRIES = 3
 
 
 @dataclass(frozen=True)
@@ -56,7 +74,7 @@ class Case:
     comm_drop: float = 0.0
     cargo_mass: float = CARGO_MASS
     cargo_com: tuple = CARGO_COM
-    cargo_inertia: tuple = CARGO_INERTIA
+    cargo_inertia: tuple | None = CARGO_INERTIA  # None: the uniform bag of that mass
     cargo_model: str = "estimate"
     analyse: bool = True  # False: control comparison only
     extra: dict = field(default_factory=dict)
@@ -90,6 +108,30 @@ def smoke_cases(duration: float) -> list[Case]:
             analyse=False,
         )
     ]
+
+
+def sweep_cases(seeds: int, duration: float) -> list[Case]:
+    """Monte Carlo over cargos: one case per seed, 2 robots on the tumbling figure-eight with
+    nominal noise, the cargo's mass (2-10 kg) and centre of mass (+-3 cm per axis) drawn from the
+    seed, inertia that of the uniform bag of that mass."""
+    cases = []
+    for seed in range(seeds):
+        rng = np.random.default_rng(seed)
+        mass = round(float(rng.uniform(2.0, 10.0)), 3)
+        com = tuple(round(float(x), 4) for x in rng.uniform(-0.03, 0.03, 3))
+        cases.append(
+            Case(
+                "sweep: 2 robots, tumble, random cargo",
+                robots=2,
+                trajectory="figure8_tumble",
+                seed=seed,
+                duration=duration,
+                cargo_mass=mass,
+                cargo_com=com,
+                cargo_inertia=None,
+            )
+        )
+    return cases
 
 
 def standard_cases(seeds: int, duration: float) -> list[Case]:
@@ -272,10 +314,23 @@ def case_path(out_dir: Path, case: Case) -> Path:
     return out_dir / "cases" / f"{safe}.json"
 
 
-def run_all(cases: list[Case], out_dir: Path, workers: int) -> list[dict]:
-    """Run the cases not already finished under ``out_dir``; return every case's result."""
+def run_all(
+    cases: list[Case],
+    out_dir: Path,
+    workers: int,
+    backend: str = "local",
+    ray_address: str | None = None,
+) -> list[dict]:
+    """Run the cases not already finished under ``out_dir``; return every case's result.
+
+    ``backend`` "local": a pool of ``workers`` processes on this machine (in this process if
+    ``workers`` <= 1); "ray": one Ray task per case on the cluster at ``ray_address`` (None: a new
+    local instance; an existing connection of this process is used as it is). Each result is
+    written as soon as its case finishes."""
     from tqdm import tqdm
 
+    if backend not in BACKENDS:
+        raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
     done, todo = {}, []
     for case in cases:
         path = case_path(out_dir, case)
@@ -288,20 +343,74 @@ def run_all(cases: list[Case], out_dir: Path, workers: int) -> list[dict]:
         todo.append(case)
     if done:
         print(f"resuming: {len(done)} finished cases kept, {len(todo)} to run")
-    bar = tqdm(total=len(todo), desc="cases", unit="case")
-    if workers <= 1:
-        for case in todo:
-            done[case.key] = _finish(case, run_case(case), out_dir)
-            bar.update()
-    else:
-        with ProcessPoolExecutor(max_workers=workers) as pool:
-            futures = {pool.submit(run_case, c): c for c in todo}
-            for fut in as_completed(futures):
-                case = futures[fut]
-                done[case.key] = _finish(case, fut.result(), out_dir)
+    if todo:
+        if backend == "ray":
+            finished = _finished_on_ray(todo, ray_address)
+        else:
+            finished = _finished_in_pool(todo, workers)
+        with tqdm(total=len(todo), desc="cases", unit="case") as bar:
+            for case, result in finished:
+                done[case.key] = _finish(case, result, out_dir)
                 bar.update()
-    bar.close()
     return [done[c.key] for c in cases]
+
+
+def _finished_in_pool(cases: list[Case], workers: int) -> Iterator[tuple[Case, dict]]:
+    """(case, result) pairs in the order the cases finish, on this machine."""
+    if workers <= 1:
+        for case in cases:
+            yield case, run_case(case)
+        return
+    with ProcessPoolExecutor(max_workers=workers) as pool:
+        futures = {pool.submit(run_case, c): c for c in cases}
+        for fut in as_completed(futures):
+            yield futures[fut], fut.result()
+
+
+def _finished_on_ray(cases: list[Case], address: str | None) -> Iterator[tuple[Case, dict]]:
+    """(case, result) pairs in the order the cases finish, one Ray task per case."""
+    ray = import_ray()
+    with ray_connection(ray, address):
+        module = sys.modules[run_case.__module__]
+        if module.__name__ != "__main__":
+            # Imported (tests, notebooks): ship this script's code to the workers, which need
+            # astrocargo installed but not this file on their path.
+            ray.cloudpickle.register_pickle_by_value(module)
+        task = ray.remote(num_cpus=1, max_retries=RAY_MAX_RETRIES)(run_case)
+        case_of = {task.remote(case): case for case in cases}
+        pending = list(case_of)
+        while pending:
+            ready, pending = ray.wait(pending, num_returns=1)
+            for ref in ready:
+                yield case_of.pop(ref), ray.get(ref)
+
+
+def import_ray():
+    """The ``ray`` module, or an error that says how to install it."""
+    try:
+        import ray
+    except ImportError as err:
+        raise ImportError(
+            "the Ray backend needs Ray: pip install 'astrocargo[ray]' (or pip install -e '.[ray]' "
+            "in a checkout)"
+        ) from err
+    return ray
+
+
+@contextlib.contextmanager
+def ray_connection(ray, address: str | None) -> Iterator[None]:
+    """Connect to the Ray cluster at ``address`` (None: start a local instance) for the block;
+    a connection this process already has is used and left open."""
+    if ray.is_initialized():
+        yield
+        return
+    # Workers on other nodes do not inherit this shell: pass the rendering backend along.
+    env_vars = {"MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
+    ray.init(address=address or "local", runtime_env={"env_vars": env_vars})
+    try:
+        yield
+    finally:
+        ray.shutdown()
 
 
 def _finish(case: Case, result: dict, out_dir: Path) -> dict:
@@ -468,9 +577,23 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--out-dir", default="out/benchmark_estimation")
     p.add_argument("--seeds", type=int, default=5, help="seeds per scenario (standard suite)")
-    p.add_argument("--workers", type=int, default=2, help="processes for the cases")
+    p.add_argument(
+        "--workers", type=int, default=2, help="processes for the cases (--backend local)"
+    )
     p.add_argument("--duration", type=float, default=90.0, help="simulated seconds per case")
-    p.add_argument("--suite", choices=("standard", "smoke"), default="standard")
+    p.add_argument(
+        "--suite",
+        choices=("standard", "smoke", "sweep"),
+        default="standard",
+        help="sweep: --seeds cases, each a random cargo",
+    )
+    p.add_argument("--backend", choices=BACKENDS, default="local", help="where cases run")
+    p.add_argument(
+        "--ray-address",
+        default=os.environ.get("RAY_ADDRESS"),
+        help="Ray cluster (HOST:PORT) for --backend ray; default $RAY_ADDRESS, else a new local "
+        "Ray instance",
+    )
     # One custom case (these exact flags); with --robots the standard suite is not run.
     p.add_argument("--robots", type=int)
     p.add_argument("--seed", type=int, default=0)
@@ -520,10 +643,24 @@ def main(argv: list[str] | None = None) -> int:
     out_dir = Path(args.out_dir)
     if args.suite == "smoke":
         cases = smoke_cases(args.duration)
+    elif args.suite == "sweep":
+        cases = sweep_cases(args.seeds, args.duration)
     else:
         cases = standard_cases(args.seeds, args.duration)
-    print(f"seeds 0..{args.seeds - 1}; {len(cases)} cases; output {out_dir}")
-    results = run_all(cases, out_dir, args.workers)
+    where = (
+        f"{args.workers} local processes"
+        if args.backend == "local"
+        else f"Ray at {args.ray_address or 'a new local instance'}"
+    )
+    print(f"seeds 0..{args.seeds - 1}; {len(cases)} cases on {where}; output {out_dir}")
+    if args.backend == "ray":
+        try:
+            import_ray()
+        except ImportError as err:
+            p.error(str(err))
+    start = time.perf_counter()
+    results = run_all(cases, out_dir, args.workers, args.backend, args.ray_address)
+    print(f"cases finished in {time.perf_counter() - start:.1f} s")
     summary = summarise(results)
     atomic_write_json(out_dir / "results.json", {"summary": summary, "cases": results})
     table = markdown(summary)

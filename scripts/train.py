@@ -1,4 +1,4 @@
-"""Train PPO or SAC on the Astrobee cargo env with Stable-Baselines3.
+"""Train PPO or SAC on the Astrobee cargo env with Stable-Baselines3, or PPO with RLlib on Ray.
 
 Two views of the multi-robot env:
 - ``shared`` (default): one policy shared by all robots, each acting on its own observation
@@ -16,12 +16,28 @@ in the central view.
         --seed 1 --checkpoint-every 50000 --log-dir runs/ppo_est
     python scripts/train.py ... --no-estimates --log-dir runs/ppo_noest
     tensorboard --logdir runs
+
+``--backend rllib`` (needs ``pip install 'astrocargo[ray]'``) trains PPO with RLlib instead, for
+runs that outgrow one machine: the parallel env is wrapped in RLlib's ``ParallelPettingZooEnv``,
+all robots act with one shared policy (the ``shared`` view), and ``--env-runners`` sampling
+actors are spread over the Ray cluster at ``--ray-address`` (default ``$RAY_ADDRESS``, else a new
+local instance; ``--copies`` and ``--subprocess`` are SB3's); the learner runs in this process.
+Observations are normalised with RLlib's ``MeanStdFilter`` (rewards are not). ``--timesteps``
+counts robot samples as above. The run folder receives ``checkpoint/``
+(``Algorithm.from_checkpoint`` restores it), ``config.json`` and ``progress.csv`` (one row per
+training iteration).
+
+    python scripts/train.py --backend rllib --ray-address HEAD:6379 --env-runners 8 \\
+        --timesteps 600000 --seed 1 --log-dir runs/rllib_ppo
 """
 
 from __future__ import annotations
 
 import argparse
 import ast
+import contextlib
+import csv
+import dataclasses
 import json
 import os
 import platform
@@ -54,6 +70,9 @@ from astrocargo.envs.wrappers import (  # noqa: E402
 
 ALGOS = {"ppo": PPO, "sac": SAC}
 VIEWS = ("shared", "central")
+BACKENDS = ("sb3", "rllib")
+RLLIB_ENV = "astrocargo_v0"  # RLlib's registry name of the wrapped parallel env
+RLLIB_POLICY = "shared"  # the one policy every robot acts with
 # Hyperparameters, all in one place. PPO's n_steps is per slot: a rollout holds
 # n_steps * slots samples (slots = copies * robots in the shared view).
 HYPERPARAMS: dict[str, dict[str, Any]] = {
@@ -70,6 +89,21 @@ HYPERPARAMS: dict[str, dict[str, Any]] = {
         "ent_coef": 0.0,
         # Small initial exploration: torque noise alone doubles the attitude error.
         "policy_kwargs": {"net_arch": [64, 64], "log_std_init": -1.5},
+    },
+    # RLlib's PPO (--backend rllib), the SB3 values where RLlib has them. Its batch counts
+    # environment steps: 2048 steps of 2 robots are SB3's rollout of 4096 samples. Keys of
+    # RLlib's DefaultModelConfig (fcnet_hiddens, vf_share_layers) go to the model.
+    "rllib_ppo": {
+        "train_batch_size_per_learner": 2048,
+        "minibatch_size": 512,
+        "num_epochs": 5,
+        "lr": 3e-4,
+        "gamma": 0.99,
+        "lambda_": 0.98,
+        "clip_param": 0.2,
+        "entropy_coeff": 0.0,
+        "fcnet_hiddens": [64, 64],
+        "vf_share_layers": False,
     },
     "sac": {
         "learning_rate": 3e-4,
@@ -215,6 +249,164 @@ def train(args: argparse.Namespace) -> tuple[BaseAlgorithm, Path]:
     return model, log_dir
 
 
+# ------------------------------------------------------------------------------- RLlib
+def make_rllib_env(env_config: dict[str, Any]):
+    """RLlib's env creator: ``astrobee_cargo_v0.parallel_env(**env_config)`` wrapped in
+    ``ParallelPettingZooEnv`` (runs in the env runners)."""
+    from ray.rllib.env.wrappers.pettingzoo_env import ParallelPettingZooEnv
+
+    from astrocargo.envs import astrobee_cargo_v0
+
+    return ParallelPettingZooEnv(astrobee_cargo_v0.parallel_env(**env_config))
+
+
+def _shared_policy(agent_id: str, episode: Any, **kwargs: Any) -> str:
+    return RLLIB_POLICY
+
+
+def _observation_filter(env: Any, spaces: Any, device: Any):
+    from ray.rllib.connectors.env_to_module.mean_std_filter import MeanStdFilter
+
+    return MeanStdFilter(multi_agent=True)
+
+
+def import_ray():
+    """The ``ray`` module, or an error that says how to install it."""
+    try:
+        import ray
+    except ImportError as err:
+        raise ImportError(
+            "--backend rllib needs Ray and RLlib: pip install 'astrocargo[ray]' (or pip install "
+            "-e '.[ray]' in a checkout)"
+        ) from err
+    return ray
+
+
+@contextlib.contextmanager
+def ray_connection(ray, address: str | None):
+    """Connect to the Ray cluster at ``address`` (None: start a local instance) for the block;
+    a connection this process already has is used and left open."""
+    if ray.is_initialized():
+        yield
+        return
+    # Env runners on other nodes do not inherit this shell: pass these settings along.
+    env_vars = {
+        "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl"),
+        "OPENBLAS_NUM_THREADS": os.environ["OPENBLAS_NUM_THREADS"],
+    }
+    ray.init(address=address or "local", runtime_env={"env_vars": env_vars})
+    try:
+        yield
+    finally:
+        ray.shutdown()
+
+
+def build_rllib_config(args: argparse.Namespace, seed: int, hyper: dict[str, Any]):
+    """RLlib ``PPOConfig``: the wrapped env, one shared policy, ``--env-runners`` env runners."""
+    from ray.rllib.algorithms.ppo import PPOConfig
+    from ray.rllib.core.rl_module.default_model_config import DefaultModelConfig
+
+    model_keys = {f.name for f in dataclasses.fields(DefaultModelConfig)}
+    model = {k: v for k, v in hyper.items() if k in model_keys}
+    training = {k: v for k, v in hyper.items() if k not in model_keys}
+    return (
+        PPOConfig()
+        .environment(RLLIB_ENV, env_config=env_kwargs(args))
+        .framework("torch")
+        .env_runners(
+            num_env_runners=args.env_runners,
+            num_envs_per_env_runner=1,
+            num_cpus_per_env_runner=1,
+            env_to_module_connector=_observation_filter,
+        )
+        .multi_agent(policies={RLLIB_POLICY}, policy_mapping_fn=_shared_policy)
+        .rl_module(model_config=DefaultModelConfig(**model))
+        .training(**training)
+        .debugging(seed=seed)
+    )
+
+
+def train_rllib(args: argparse.Namespace) -> Path:
+    """Train PPO with RLlib until ``--timesteps`` robot samples; save a checkpoint, the
+    configuration and per-iteration progress. Returns the run folder."""
+    ray = import_ray()
+    from ray.tune.registry import register_env
+
+    seed = args.seed if args.seed is not None else int(np.random.default_rng().integers(2**31))
+    print(f"seed {seed}")
+    torch.set_num_threads(args.torch_threads)
+    log_dir = Path(args.log_dir).resolve()
+    log_dir.mkdir(parents=True, exist_ok=True)
+    hyper = {**HYPERPARAMS["rllib_ppo"], **dict(args.hyperparams or [])}
+    config = {
+        "backend": "rllib",
+        "algo": "ppo",
+        "view": "shared",
+        "seed": seed,
+        "timesteps": args.timesteps,
+        "env_runners": args.env_runners,
+        "ray_address": args.ray_address,
+        "env_kwargs": env_kwargs(args),
+        "hyperparams": hyper,
+        "versions": {
+            "python": platform.python_version(),
+            "ray": ray.__version__,
+            "torch": torch.__version__,
+        },
+        "command": " ".join(sys.argv),
+    }
+    (log_dir / "config.json").write_text(json.dumps(config, indent=2) + "\n")
+    with ray_connection(ray, args.ray_address):
+        module = sys.modules[make_rllib_env.__module__]
+        if module.__name__ != "__main__":
+            # Imported (tests): ship this script's functions to the env runners by value.
+            ray.cloudpickle.register_pickle_by_value(module)
+        register_env(RLLIB_ENV, make_rllib_env)
+        algo = build_rllib_config(args, seed, hyper).build_algo()
+        start = time.perf_counter()
+        samples, iteration, next_checkpoint = 0, 0, args.checkpoint_every
+        with open(log_dir / "progress.csv", "w", newline="") as f:
+            progress = csv.writer(f)
+            progress.writerow(["iteration", "samples", "env_steps", "robot_return_mean", "wall_s"])
+            while samples < args.timesteps:
+                result = algo.train()
+                iteration += 1
+                runners = result["env_runners"]
+                samples = int(sum(runners["num_agent_steps_sampled_lifetime"].values()))
+                env_steps = int(runners["num_env_steps_sampled_lifetime"])
+                # Per robot, as SB3's monitor counts it (RLlib's episode return sums the robots).
+                returns = runners.get("agent_episode_returns_mean", {})
+                ret = float(np.mean(list(returns.values()))) if returns else float("nan")
+                wall_s = time.perf_counter() - start
+                progress.writerow([iteration, samples, env_steps, ret, round(wall_s, 2)])
+                f.flush()
+                print(
+                    f"iteration {iteration}: {samples} samples, return per robot {ret:.3f}, "
+                    f"{wall_s:.0f} s"
+                )
+                if args.checkpoint_every and samples >= next_checkpoint:
+                    algo.save_to_path(str(log_dir / "checkpoints" / f"samples_{samples}"))
+                    next_checkpoint = samples + args.checkpoint_every
+        checkpoint = log_dir / "checkpoint"
+        algo.save_to_path(str(checkpoint))
+        config.update(
+            wall_s=time.perf_counter() - start,
+            samples=samples,
+            iterations=iteration,
+            checkpoint=str(checkpoint),
+            robot_return_mean=ret,
+        )
+        (log_dir / "config.json").write_text(json.dumps(config, indent=2) + "\n")
+        trial_dir = Path(algo.logdir)
+        algo.stop()
+        with contextlib.suppress(OSError):
+            trial_dir.rmdir()  # Ray's empty per-run folder under ~/ray_results
+    print(
+        f"trained {samples} samples in {config['wall_s']:.0f} s (seed {seed}); saved to {log_dir}"
+    )
+    return log_dir
+
+
 def parse_override(text: str) -> tuple[str, Any]:
     """'key=value' with a Python literal value, for --hyperparams."""
     key, sep, value = text.partition("=")
@@ -228,6 +420,21 @@ def parse_override(text: str) -> tuple[str, Any]:
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument(
+        "--backend",
+        choices=BACKENDS,
+        default="sb3",
+        help="sb3: this machine; rllib: PPO on a Ray cluster (shared view)",
+    )
+    parser.add_argument(
+        "--ray-address",
+        default=os.environ.get("RAY_ADDRESS"),
+        help="Ray cluster (HOST:PORT) for --backend rllib; default $RAY_ADDRESS, else a new "
+        "local Ray instance",
+    )
+    parser.add_argument(
+        "--env-runners", type=int, default=2, help="RLlib sampling actors (--backend rllib)"
+    )
     parser.add_argument("--algo", choices=sorted(ALGOS), default="ppo")
     parser.add_argument("--view", choices=VIEWS, default="shared")
     parser.add_argument("--robots", type=int, default=2, help="robots holding the cargo, 1..4")
@@ -281,7 +488,18 @@ def main(argv: list[str] | None = None) -> int:
             parser.error(f"--{name.replace('_', '-')} must be a positive integer")
     if not 1 <= args.robots <= 4:
         parser.error("--robots must be in 1..4")
-    train(args)
+    if args.backend == "rllib":
+        if args.algo != "ppo" or args.view != "shared":
+            parser.error("--backend rllib trains PPO in the shared view only")
+        if args.env_runners < 0:
+            parser.error("--env-runners must be 0 (sample in this process) or more")
+        try:
+            import_ray()
+        except ImportError as err:
+            parser.error(str(err))
+        train_rllib(args)
+    else:
+        train(args)
     return 0
 
 
