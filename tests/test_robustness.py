@@ -250,7 +250,7 @@ def test_propulsion_dead(clean):
 def test_propulsion_weakened(clean, robot, gated):
     """Half thrust for 3 s, 2 s after the first updates: robot 1's commands then are large
     enough for the gate (as when dead); robot 0's are not, and while the estimate is still wide
-    a weakened thruster looks like a heavier cargo: it is absorbed, within 15 % mass and 2 cm of
+    a weakened thruster looks like a heavier cargo: its own estimator absorbs it, within 15 % mass and 2 cm of
     the clean run's errors at 18 s (the env docstring gives the longer-run figures)."""
     fault = Fault("propulsion", robot, FAULT_START_S, 3.0, scale=0.5)
     ep = _run([fault], clean.actions)
@@ -259,7 +259,9 @@ def test_propulsion_weakened(clean, robot, gated):
         assert np.all(_counter(ep, "gated") >= 1)
         _assert_within(ep, clean, mass_rel=0.02, com_m=0.01)
     else:
-        assert np.all(_counter(ep, "gated") == 0)
+        # Its own estimator absorbs it (the peer, which takes its messages at face value, may
+        # gate an instant).
+        assert _counter(ep, "gated")[robot] == 0
         _assert_within(ep, clean, mass_rel=0.15, com_m=0.02)
 
 
