@@ -9,7 +9,9 @@ c (world axes):
     F = M (a + wd x (c - p) + w x (w x (c - p))),     tau = I_c wd + w x I_c w.
 The wrench is allocated among the robots through the grasp geometry by the minimum-norm solution
 weighted by each robot's propulsion limits, then scaled down uniformly if any robot saturates (so
-the direction of the total wrench is kept).
+the direction of the total wrench is kept). A robot that has let go of the cargo (its state None)
+is part of neither the composite body nor the allocation: the robots still holding share the
+whole wrench.
 """
 
 from __future__ import annotations
@@ -102,19 +104,26 @@ class CooperativeController:
         self,
         ref: Reference,
         cargo: CargoState,
-        robot_states: list[RobotState],
+        robot_states: list[RobotState | None],
         cargo_params: np.ndarray | None,
     ) -> list[np.ndarray]:
         """Thrust commands (6,) per robot, [force N; torque N m] in each base frame.
 
-        ``cargo_params``: the cargo's standard parameters in the cargo frame, or None for no model.
+        ``robot_states``: one per robot, None for a robot that has let go of the cargo (its
+        command is zero). ``cargo_params``: the cargo's standard parameters in the cargo frame,
+        or None for no model.
         """
+        if len(robot_states) != len(self.robots):
+            raise ValueError(
+                f"robot_states must hold one entry per robot ({len(self.robots)}), "
+                f"got {len(robot_states)}"
+            )
+        holding = [i for i, st in enumerate(robot_states) if st is not None]
+        if not holding:
+            raise ValueError("no robot holds the cargo: every robot state is None")
         kp, kd, akp, akd = self.gains
         total = sum(
-            (
-                self._robot_params_world(r, s)
-                for r, s in zip(self.robots, robot_states, strict=True)
-            ),
+            (self._robot_params_world(self.robots[i], robot_states[i]) for i in holding),
             np.zeros(10),
         )
         if cargo_params is not None:
@@ -129,8 +138,8 @@ class CooperativeController:
         torque = inertia @ wd + np.cross(w, inertia @ w)
         wrench = np.concatenate((force, torque))
         # Allocation: sum_i G_i u_i = wrench, G_i maps robot i's body wrench to world about com.
-        gs = [wrench_transform(s.rot, s.pos - com) for s in robot_states]
-        limits = [r.thrust_limit for r in self.robots]
+        gs = [wrench_transform(robot_states[i].rot, robot_states[i].pos - com) for i in holding]
+        limits = [self.robots[i].thrust_limit for i in holding]
         weight = [np.diag(lim**2) for lim in limits]
         mat = sum(g @ wgt @ g.T for g, wgt in zip(gs, weight, strict=True))
         lam = np.linalg.solve(mat, wrench)
@@ -138,7 +147,10 @@ class CooperativeController:
         ratio = max(float(np.max(np.abs(u) / lim)) for u, lim in zip(cmds, limits, strict=True))
         scale = 1.0 / ratio if ratio > 1.0 else 1.0
         self.last_ratio = ratio
-        return [scale * u for u in cmds]
+        out = [np.zeros(6) for _ in self.robots]
+        for i, u in zip(holding, cmds, strict=True):
+            out[i] = scale * u
+        return out
 
 
 def _exp_rotvec(v: np.ndarray) -> np.ndarray:
@@ -163,7 +175,11 @@ class ObservationController:
     the reference pan ramp.
 
     ``predict(obs)`` takes the env's observation dict (agent -> obs) or an array (n_robots,
-    obs_dim) in agent order and returns actions of the same form, with SB3's signature.
+    obs_dim) in agent order and returns actions of the same form, with SB3's signature. The
+    agents of a dict are the robots holding the cargo: the team's wrench is shared among them
+    only. After a robot has let go (the env's ``release_at``), pass the observations of the
+    agents still acting, ``{a: obs[a] for a in env.agents}``: the dict the env returns at the
+    release step still holds the released robot's final observation.
     """
 
     def __init__(
@@ -174,6 +190,7 @@ class ObservationController:
         cargo_model: str = "estimate",
         truth_params: np.ndarray | None = None,
         arm_offset_scale_rad: float = 0.5,
+        agents: list[str] | None = None,
     ) -> None:
         if cargo_model not in CARGO_MODELS:
             raise ValueError(f"cargo_model must be one of {CARGO_MODELS}, got {cargo_model!r}")
@@ -188,15 +205,27 @@ class ObservationController:
         self.truth_params = None if truth_params is None else np.asarray(truth_params, float)
         self.arm_scale = float(arm_offset_scale_rad)
         self.team = CooperativeController(self.robots)
+        # Agent name -> robot index (the env's possible_agents, in robot order).
+        names = agents if agents is not None else [f"astrobee_{i}" for i in range(len(robots))]
+        if len(names) != len(self.robots):
+            raise ValueError(f"agents must name the {len(self.robots)} robots, got {names!r}")
+        self.robot_index = {name: i for i, name in enumerate(names)}
 
     @classmethod
     def for_env(cls, env, cargo_model: str = "estimate") -> ObservationController:
         """Build from an ``AstrobeeCargoEnv`` (geometry; the truth only for "truth")."""
         sim = env.sim
         truth = sim.world.cargo_params() if cargo_model == "truth" else None
-        return cls(sim.robots, sim.handrail_pose, sim.obs_layout, cargo_model, truth)
+        return cls(
+            sim.robots,
+            sim.handrail_pose,
+            sim.obs_layout,
+            cargo_model,
+            truth,
+            agents=list(env.possible_agents),
+        )
 
-    def _act_one(self, i: int, o: np.ndarray) -> np.ndarray:
+    def _act_one(self, i: int, o: np.ndarray, holding: list[int]) -> np.ndarray:
         lay = self.layout
         q = o[lay["joint_pos"]]
         # Cargo frame in this robot's base frame, through its grasp and the handrail it holds.
@@ -205,8 +234,11 @@ class ObservationController:
         rot_bc = rot_bg @ rot_ch.T
         pos_bc = pos_bg - rot_bc @ pos_ch
         # Other robots' bases in this base frame (their arms assumed at this robot's angles).
-        states = []
+        states: list[RobotState | None] = []
         for j, robot in enumerate(self.robots):
+            if j not in holding:
+                states.append(None)
+                continue
             rot_bgj, pos_bgj = grasp_pose(robot, q)
             rot_chj, pos_chj = self.handrail_poses[j]
             rot_cb = rot_chj @ rot_bgj.T
@@ -250,8 +282,14 @@ class ObservationController:
         """SB3's signature: returns (actions, state)."""
         del episode_start, deterministic
         if isinstance(observation, dict):
-            agents = list(observation)
-            acts = {a: self._act_one(i, np.asarray(observation[a])) for i, a in enumerate(agents)}
+            unknown = [a for a in observation if a not in self.robot_index]
+            if unknown:
+                raise ValueError(f"unknown agents {unknown}; agents: {list(self.robot_index)}")
+            holding = sorted(self.robot_index[a] for a in observation)
+            acts = {
+                a: self._act_one(self.robot_index[a], np.asarray(o), holding)
+                for a, o in observation.items()
+            }
             return acts, state
         obs = np.asarray(observation, dtype=float)
         if obs.ndim != 2 or obs.shape[0] != len(self.robots):
@@ -259,4 +297,5 @@ class ObservationController:
                 f"observation must be a dict or an array ({len(self.robots)}, obs_dim), "
                 f"got shape {obs.shape}"
             )
-        return np.stack([self._act_one(i, o) for i, o in enumerate(obs)]), state
+        holding = list(range(len(self.robots)))
+        return np.stack([self._act_one(i, o, holding) for i, o in enumerate(obs)]), state

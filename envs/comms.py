@@ -23,6 +23,10 @@ Faults (``add_burst``, ``add_delay``), each over a window of control steps [firs
 - a delay of robot r's messages: a copy sent by r in the window arrives ``delay_s`` (rounded to
   whole periods, as the latency) later than the usual latency.
 
+A robot that lets go of the cargo leaves the channel (``disconnect``): the copies in flight from
+or to it are discarded (counted in ``discarded``), later copies are not addressed to it
+(no draws are made for it), and it may send nothing more.
+
 The ordinary loss and noise draws happen first, exactly as without the fault, so a faulty channel
 and a healthy one seeded alike agree on every copy the fault does not touch. What the faults did
 is counted per robot in ``fault_stats`` (``lost_sent``, ``lost_received``, ``delayed_sent``,
@@ -123,16 +127,21 @@ class CommChannel:
         self.rng = rng
         self._queue: dict[int, list[tuple[int, Any]]] = defaultdict(list)  # due step -> copies
         self.stats = {"sent": 0, "delivered": 0, "dropped": 0, "in_flight": 0}
+        self.disconnected: set[int] = set()
+        self.discarded = 0  # copies in flight when their sender or receiver left
         self.fault_rng = fault_rng
         self._bursts: list[_LinkFault] = []
         self._delays: list[_LinkFault] = []
         self.fault_stats = {k: np.zeros(self.n_robots, dtype=np.int64) for k in FAULT_STATS}
 
-    def _check_window(self, robot: int, first_step: int, end_step: int) -> None:
+    def _check_robot(self, robot: int) -> None:
         if isinstance(robot, bool) or not isinstance(robot, int | np.integer):
             raise ValueError(f"robot must be an integer in 0..{self.n_robots - 1}, got {robot!r}")
         if not 0 <= robot < self.n_robots:
             raise ValueError(f"robot must be in 0..{self.n_robots - 1}, got {robot}")
+
+    def _check_window(self, robot: int, first_step: int, end_step: int) -> None:
+        self._check_robot(robot)
         for name, step in (("first_step", first_step), ("end_step", end_step)):
             if isinstance(step, bool) or not isinstance(step, int | np.integer):
                 raise ValueError(f"{name} must be an integer control step, got {step!r}")
@@ -158,6 +167,26 @@ class CommChannel:
         extra = _periods(float(delay_s), self.dt_s)
         self._delays.append(_LinkFault(int(robot), int(first_step), int(end_step), 1.0, extra))
 
+    def disconnect(self, robot: int) -> None:
+        """``robot`` leaves the channel (it let go of the cargo): the copies in flight from or to
+        it are discarded, and it neither sends nor receives any more."""
+        self._check_robot(robot)
+        robot = int(robot)
+        self.disconnected.add(robot)
+        for due in list(self._queue):
+            kept = [
+                (receiver, msg)
+                for receiver, msg in self._queue[due]
+                if receiver != robot and msg.sender != robot
+            ]
+            discarded = len(self._queue[due]) - len(kept)
+            self.discarded += discarded
+            self.stats["in_flight"] -= discarded
+            if kept:
+                self._queue[due] = kept
+            else:
+                del self._queue[due]
+
     def _lost_to_burst(self, sender: int, receiver: int, step: int) -> bool:
         for burst in self._bursts:
             if burst.robot in (sender, receiver) and burst.active(step):
@@ -175,6 +204,8 @@ class CommChannel:
             raise ValueError(f"message.sender must be an integer, got {sender!r}")
         if not 0 <= sender < self.n_robots:
             raise ValueError(f"message.sender must be in 0..{self.n_robots - 1}, got {sender}")
+        if sender in self.disconnected:
+            raise ValueError(f"robot {sender} has left the channel (disconnect): it cannot send")
         if step is None:
             step = getattr(message, "stamp", None)
         if isinstance(step, bool) or not isinstance(step, int | np.integer):
@@ -184,7 +215,7 @@ class CommChannel:
         extra = sum(d.extra_steps for d in self._delays if d.robot == sender and d.active(step))
         due = step + self.latency_steps + extra
         for receiver in range(self.n_robots):
-            if receiver == sender:
+            if receiver == sender or receiver in self.disconnected:
                 continue
             if self.drop_prob > 0 and self.rng.random() < self.drop_prob:
                 self.stats["dropped"] += 1

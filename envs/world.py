@@ -17,6 +17,15 @@ rigid model and the simulation disagree by several times the propulsion limits a
 (scratch measurement kept in the commit history). Contacts between the arm links and the cargo
 are excluded (the fingers close around the handrail).
 
+Release: a robot that lets go of the cargo leaves this tree, so the world is rebuilt without it
+(``World.without_robots``) and the state of every remaining joint, actuator and the time are
+copied over (``World.load_state``): the cargo and the robots still holding it continue exactly
+where they were (same positions and velocities, so the same momentum), and the released robot,
+with the momentum it carried (``World.momentum``), is no longer simulated. It is removed rather
+than kept as a second free body: nobody commands it any more, it would drift through the module
+into walls (a wall contact ends the episode) or into the cargo (a disturbance no estimator
+models), and while it does not touch anything its presence changes nothing for the others.
+
 ``World.robot_model(i)`` reads robot i's known model (link masses, centres of mass, inertias, joint
 axes, fixed transforms, IMU / thrust / grasp frames) from the compiled model, merging bodies without
 joints into their parent: it is the estimator's single source of truth.
@@ -59,6 +68,20 @@ def _mat_to_quat(mat: np.ndarray) -> np.ndarray:
     quat = np.empty(4)
     mujoco.mju_mat2Quat(quat, np.ascontiguousarray(mat, dtype=float).reshape(9))
     return quat
+
+
+_JOINT_QPOS = {
+    int(mujoco.mjtJoint.mjJNT_FREE): 7,
+    int(mujoco.mjtJoint.mjJNT_BALL): 4,
+    int(mujoco.mjtJoint.mjJNT_SLIDE): 1,
+    int(mujoco.mjtJoint.mjJNT_HINGE): 1,
+}
+_JOINT_DOFS = {
+    int(mujoco.mjtJoint.mjJNT_FREE): 6,
+    int(mujoco.mjtJoint.mjJNT_BALL): 3,
+    int(mujoco.mjtJoint.mjJNT_SLIDE): 1,
+    int(mujoco.mjtJoint.mjJNT_HINGE): 1,
+}
 
 
 def _fmt(v: np.ndarray) -> str:
@@ -148,9 +171,12 @@ class World:
     """An ISS module with one cargo held by ``n_robots`` Astrobees.
 
     Args:
-        n_robots: number of robots, 1 to ``MAX_ROBOTS``.
-        timestep_s: physics step; ``None`` keeps the MJCF's 0.002 s.
+        n_robots: number of robots, 1 to ``MAX_ROBOTS``; robot i holds handrail i.
+        timestep_s: physics step; ``None`` keeps the MJCF's 0.016 s.
         cargo_pos_m: initial position of the cargo centre in the module frame.
+        holding: the robots (indices in 0..n_robots-1) that hold the cargo and are simulated;
+            ``None``: all of them. ``robots`` lists their handles in increasing index (the
+            handle's ``index`` is the robot's); the others are absent from the model.
     """
 
     def __init__(
@@ -158,6 +184,7 @@ class World:
         n_robots: int = 2,
         timestep_s: float | None = None,
         cargo_pos_m: tuple[float, float, float] = (0.0, 0.0, 0.0),
+        holding: tuple[int, ...] | list[int] | None = None,
     ) -> None:
         if isinstance(n_robots, bool) or not isinstance(n_robots, int | np.integer):
             raise ValueError(f"n_robots must be an integer in 1..{MAX_ROBOTS}, got {n_robots!r}")
@@ -171,12 +198,18 @@ class World:
         if cargo_pos.shape != (3,) or not np.all(np.isfinite(cargo_pos)):
             raise ValueError(f"cargo_pos_m must be 3 finite numbers, got {cargo_pos_m!r}")
         self.n_robots = int(n_robots)
+        self.holding = self._check_holding(holding)
+        self.cargo_pos = cargo_pos
         self.robot_asset_model = mujoco.MjModel.from_xml_path(str(ASSETS_DIR / "astrobee.xml"))
         self.spec = self._build_spec(cargo_pos)
         if timestep_s is not None:
             self.spec.option.timestep = float(timestep_s)
         self.model = self.spec.compile()
-        self.robots = tuple(self._handles(i) for i in range(self.n_robots))
+        self.robots = tuple(self._handles(i) for i in self.holding)
+        # Handrail i is on the cargo whether or not robot i holds it (known geometry).
+        self.handrail_sites = tuple(
+            self.model.site(f"cargo/grasp_{i}").id for i in range(self.n_robots)
+        )
         # Commands are clipped to the propulsion limits (ctrlrange) by whoever issues them; the
         # actuation noise added afterwards (sensors.SensorSuite.actuate) is error of the delivered
         # wrench, not part of the command, so MuJoCo must not clip it: one-sided clipping of the
@@ -193,6 +226,22 @@ class World:
         model = _read_robot_model(self.robot_asset_model)
         self._robot_models = (model,) * self.n_robots  # identical robots
 
+    def _check_holding(self, holding: object) -> tuple[int, ...]:
+        if holding is None:
+            return tuple(range(self.n_robots))
+        if not isinstance(holding, tuple | list):
+            raise ValueError(f"holding must be None or a list of robot indices, got {holding!r}")
+        for i in holding:
+            if isinstance(i, bool) or not isinstance(i, int | np.integer):
+                raise ValueError(f"holding: robot indices must be integers, got {i!r}")
+            if not 0 <= i < self.n_robots:
+                raise ValueError(
+                    f"holding: robot indices must be in 0..{self.n_robots - 1}, got {i}"
+                )
+        if len(set(holding)) != len(holding):
+            raise ValueError(f"holding names a robot twice: {holding!r}")
+        return tuple(sorted(int(i) for i in holding))
+
     # ------------------------------------------------------------------ building
     def _build_spec(self, cargo_pos: np.ndarray) -> mujoco.MjSpec:
         spec = mujoco.MjSpec.from_file(str(ASSETS_DIR / "iss_module.xml"))
@@ -200,6 +249,9 @@ class World:
         cargo_grasp = self._site_poses(cargo.copy(), [f"grasp_{i}" for i in range(MAX_ROBOTS)])
         spec.attach(cargo, prefix="cargo/", frame=spec.worldbody.add_frame(pos=cargo_pos))
         bag = spec.body("cargo/bag")
+        # set_cargo moves the inertial frame at run time: never compile the bag as a "simple"
+        # body (inertial frame on the body frame), which it would be with no robot attached.
+        bag.simple = 0
 
         # Gripper pose in the cargo frame: its grasp site on the cargo's grasp_i site.
         m = self.robot_asset_model
@@ -208,7 +260,7 @@ class World:
             raise ValueError(f"the grasp site must be on the {GRASP_BODY} body")
         rot_gs, pos_gs = _quat_to_mat(m.site_quat[s]), m.site_pos[s]
         held_xml = _robot_held_xml(m)
-        for i in range(self.n_robots):
+        for i in self.holding:
             rot_cs, pos_cs = cargo_grasp[i]
             rot_cg = rot_cs @ rot_gs.T
             frame = bag.add_frame(pos=pos_cs - rot_cg @ pos_gs, quat=_mat_to_quat(rot_cg))
@@ -276,6 +328,82 @@ class World:
         data.ctrl[:] = self.ctrl_grasp
         mujoco.mj_forward(self.model, data)
 
+    # ------------------------------------------------------------------ release
+    def handle(self, i: int) -> RobotHandles:
+        """The handles of robot i, which must be holding the cargo in this world."""
+        for h in self.robots:
+            if h.index == i:
+                return h
+        raise ValueError(f"robot {i} is not in this world; holding: {self.holding}")
+
+    def without_robots(self, released: tuple[int, ...] | list[int]) -> World:
+        """This world rebuilt without the robots ``released`` (they let go of the cargo): same
+        timestep and cargo; load the state with ``load_state``."""
+        for i in released:
+            self.handle(i)
+        world = World(
+            self.n_robots,
+            cargo_pos_m=tuple(self.cargo_pos),
+            holding=tuple(i for i in self.holding if i not in released),
+        )
+        world.model.opt.timestep = self.model.opt.timestep
+        b, nb = self.cargo_body, world.cargo_body
+        for field in ("body_mass", "body_ipos", "body_inertia", "body_iquat"):
+            getattr(world.model, field)[nb] = getattr(self.model, field)[b]
+        mujoco.mj_setConst(world.model, mujoco.MjData(world.model))
+        return world
+
+    def layout_in(self, other: World) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Where this world's qpos entries, qvel entries and bodies sit in ``other``'s (a world
+        holding at least the same robots), matched by name: three index arrays (body 0, the
+        module, maps to 0)."""
+        m, o = self.model, other.model
+        qpos, qvel = [], []
+        for j in range(m.njnt):
+            k = o.joint(m.joint(j).name).id  # every joint is named (cargo/root, astrobee_i/...)
+            kind = int(m.jnt_type[j])
+            qpos.extend(range(o.jnt_qposadr[k], o.jnt_qposadr[k] + _JOINT_QPOS[kind]))
+            qvel.extend(range(o.jnt_dofadr[k], o.jnt_dofadr[k] + _JOINT_DOFS[kind]))
+        bodies = [o.body(m.body(b).name).id for b in range(m.nbody)]
+        return np.array(qpos, dtype=int), np.array(qvel, dtype=int), np.array(bodies, dtype=int)
+
+    def load_state(self, source: World, source_data: mujoco.MjData, data: mujoco.MjData) -> None:
+        """Copy into ``data`` the state of ``source_data`` (a state of world ``source``) for every
+        joint and actuator present here, matched by name: time, positions, velocities, controls,
+        activations and the solver's warm start; then ``mj_forward``. The bodies present in both
+        worlds end with the same poses and velocities."""
+        src, dst = source.model, self.model
+        qpos, qvel, _ = self.layout_in(source)
+        mujoco.mj_resetData(dst, data)
+        data.time = source_data.time
+        data.qpos[:] = source_data.qpos[qpos]
+        data.qvel[:] = source_data.qvel[qvel]
+        data.qacc_warmstart[:] = source_data.qacc_warmstart[qvel]
+        for a in range(dst.nu):
+            k = src.actuator(dst.actuator(a).name).id
+            data.ctrl[a] = source_data.ctrl[k]
+            if dst.actuator_actadr[a] >= 0:
+                n = dst.actuator_actnum[a]
+                aa, ab = dst.actuator_actadr[a], src.actuator_actadr[k]
+                data.act[aa : aa + n] = source_data.act[ab : ab + n]
+        mujoco.mj_forward(dst, data)
+
+    def momentum(self, data: mujoco.MjData, bodies: tuple[int, ...] | None = None) -> np.ndarray:
+        """Linear momentum (kg m/s) and angular momentum about the world origin (kg m^2/s), world
+        axes, of ``bodies`` (default: every body but the world), (6,); ``data`` after
+        ``mj_forward``."""
+        m = self.model
+        out = np.zeros(6)
+        vel = np.zeros(6)
+        for b in range(1, m.nbody) if bodies is None else bodies:
+            mujoco.mj_objectVelocity(m, data, mujoco.mjtObj.mjOBJ_BODY, b, vel, 0)
+            rot = data.ximat[b].reshape(3, 3)
+            linear = m.body_mass[b] * vel[3:]
+            out[:3] += linear
+            out[3:] += rot @ (m.body_inertia[b] * (rot.T @ vel[:3]))
+            out[3:] += np.cross(data.xipos[b], linear)
+        return out
+
     # ------------------------------------------------------------------ cargo
     def cargo_params(self) -> np.ndarray:
         """True cargo parameters pi (10,) in the cargo frame (origin at the bag's centre)."""
@@ -288,7 +416,7 @@ class World:
 
     def cargo_params_in_grasp_frame(self, i: int) -> np.ndarray:
         """True cargo parameters pi (10,) in robot i's grasp frame (what its estimator finds)."""
-        s = self.robots[i].cargo_grasp_site
+        s = self.handrail_sites[i]
         rot = _quat_to_mat(self.model.site_quat[s])
         return transform_params(self.cargo_params(), rot.T, -rot.T @ self.model.site_pos[s])
 
@@ -297,7 +425,7 @@ class World:
         the cargo's handrails, known geometry."""
         poses = []
         for k in (i, j):
-            s = self.robots[k].cargo_grasp_site
+            s = self.handrail_sites[k]
             poses.append((_quat_to_mat(self.model.site_quat[s]), self.model.site_pos[s]))
         (rot_i, pos_i), (rot_j, pos_j) = poses
         return rot_i.T @ rot_j, rot_i.T @ (pos_j - pos_i)

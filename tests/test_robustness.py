@@ -25,7 +25,7 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from pettingzoo.test import parallel_api_test
+from pettingzoo.test import api_test, parallel_api_test
 
 from astrocargo.agents.controllers import ObservationController
 from astrocargo.envs import astrobee_cargo_v0
@@ -437,6 +437,9 @@ def valid_kwargs(draw) -> dict:
             f["delay_s"] = draw(_finite_floats(0.01, 3.0))
         faults.append(f)
     kw["faults"] = faults or None
+    robots = draw(st.lists(st.integers(0, n - 1), unique=True, max_size=n))
+    if robots:
+        kw["release_at"] = [(i, draw(_finite_floats(0.0, 0.6))) for i in robots]
     return kw
 
 
@@ -457,7 +460,7 @@ def test_valid_arguments_pass_the_api_test(kwargs):
         obs, rewards, terms, truncs, infos = env.step(
             {a: rng.uniform(-1.0, 1.0, 8) for a in env.agents}
         )
-        for agent in env.possible_agents:
+        for agent in obs:  # the agents live at this step (a release drops one)
             assert np.all(np.isfinite(obs[agent])) and math.isfinite(rewards[agent])
             assert terms[agent] == (infos[agent]["termination_reason"] is not None)
         if not env.agents:
@@ -513,6 +516,17 @@ INVALID = {
         st.just([{"kind": "imu_dropout", "robot": 9, "start_s": 0, "duration_s": 1}]),
         st.just([{"kind": "propulsion", "robot": 0, "start_s": 0, "duration_s": 1, "delay_s": 1}]),
         st.just({"kind": "comm_burst"}),
+    ),
+    "release_at": st.one_of(
+        st.just([(0, -1.0)]),
+        st.just([(2, 1.0)]),
+        st.just([(0, 1.0), (0, 2.0)]),
+        st.just([(True, 1.0)]),
+        st.just([(0, math.nan)]),
+        st.just([(0, "1")]),
+        st.just([(0, 1.0, 2.0)]),
+        st.just((0, 1.0)),
+        st.just("soon"),
     ),
     "render_mode": st.one_of(st.just("ansi"), st.text(min_size=1, max_size=3)),
     "render_width": st.one_of(st.integers(-5, 0), st.integers(1281, 5000)),
@@ -602,9 +616,9 @@ def test_action_sequences(n_robots, estimators, plan):
 
 
 def test_set_peers_stops_expecting_a_released_robot():
-    """Estimator level (the env has no release yet, see the report): after set_peers without
-    robot 2, instants complete with robot 1's messages alone; the pending ones are given up and
-    counted, and the filters' memory of the change is skipped as tainted."""
+    """Estimator level (the env's release calls it, see the release tests below): after
+    set_peers without robot 2, instants complete with robot 1's messages alone; the pending ones
+    are given up and counted, and the filters' memory of the change is skipped as tainted."""
     from astrocargo.envs.world import World
     from astrocargo.estimator.cargo_estimator import CargoEstimator
 
@@ -639,3 +653,325 @@ def test_set_peers_stops_expecting_a_released_robot():
     assert counters["skipped_low_excitation"] > 0  # later instants are processed (no motion)
     with pytest.raises(ValueError, match="own peer"):
         est.set_peers([0, 1])
+
+
+# --------------------------------------------------------------------------- robot release
+
+RELEASE_S = 8.0  # the estimators have converged (ideal sensors) and keep updating
+RELEASE_RUN_S = 20.0
+# Ideal sensors: the remaining estimators' final errors (the env docstring, section Release).
+RELEASE_BOUND = (0.01, 0.005)  # mass relative, centre of mass m
+# RK4 at 16 ms with the arm servos' internal forces: momentum drifts by ~1e-6 of itself in 1 s,
+# with or without a release (measured on both).
+MOMENTUM_DRIFT = 1e-5
+
+
+def _release_env(n_robots, release_at, **kwargs):
+    kwargs = {"noise": "ideal", "max_cycles": 10**6, **CARGO, **kwargs}
+    return astrobee_cargo_v0.parallel_env(n_robots=n_robots, release_at=release_at, **kwargs)
+
+
+def _state_slots(n_robots: int, robot: int) -> np.ndarray:
+    """Indices of robot ``robot``'s entries in state() (env docstring, section State)."""
+    from astrocargo.envs.world import World
+
+    m = World(n_robots).model
+    h = World(n_robots).robots[robot]
+    qvel0 = 1 + m.nq
+    bodies0 = qvel0 + m.nv
+    targets0 = bodies0 + 13 * (m.nbody - 1) + 10 + 21
+    out = [1 + a for a in h.arm_qpos_adr] + [qvel0 + a for a in h.arm_dof_adr]
+    for b in h.robot_bodies:
+        out += range(bodies0 + 13 * (b - 1), bodies0 + 13 * b)
+    out += [targets0 + 2 * robot, targets0 + 2 * robot + 1]
+    return np.array(out)
+
+
+@pytest.mark.parametrize(
+    ("n_robots", "release_at"),
+    [(2, [(1, 0.1), (0, 0.3)]), (3, [(2, 0.1), (0, 0.1)]), (3, [(1, 0.2)])],
+    ids=["2_both", "3_two_at_once", "3_one"],
+)
+def test_release_passes_the_pettingzoo_api_tests(n_robots, release_at):
+    """PettingZoo's parallel and AEC API tests with robots letting go: the agents shrink, no
+    bookkeeping warning (a dict holding a dead agent or missing a live one)."""
+    env = _release_env(n_robots, release_at)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        parallel_api_test(env, num_cycles=40)
+        api_test(astrobee_cargo_v0.env(n_robots=n_robots, release_at=release_at), num_cycles=30)
+    bookkeeping = [
+        str(w.message)
+        for w in caught
+        if "agent" in str(w.message).lower() and "observation space value" not in str(w.message)
+    ]
+    assert not bookkeeping, bookkeeping
+
+
+def test_release_agent_bookkeeping():
+    """Robot 1 of 3 lets go at 4.5 s (step 282, messages flow from 4 s): that step terminates
+    it, once, with reason
+    "released" and its final observation; from the next step it is in no dict, its actions are
+    ignored (PettingZoo's convention), its peers' slots for it are zeros, the channel no longer
+    carries its messages, and state() keeps its size with robot 1's entries zero. When the last
+    two let go together the episode ends; reset brings everyone back."""
+    env = _release_env(3, [(1, 4.5), (0, 4.6), (2, 4.6)], noise="nominal", comm_latency=0.05)
+    obs, infos = env.reset(seed=SEED)
+    assert [i["holding"] for i in infos.values()] == [[0, 1, 2]] * 3
+    state_dim = env.state().shape
+    k_release, k_last = math.ceil(4.5 / env.sim.dt_s), math.ceil(4.6 / env.sim.dt_s)
+    assert (k_release, k_last) == (282, 288)
+    released_seen = 0
+    lay = observation_layout(3)
+    for k in range(1, k_last):
+        live = env.agents[:]
+        actions = {a: np.full(8, 0.1) for a in live}
+        if k > k_release:
+            actions["astrobee_1"] = np.full(8, np.nan)  # not live: ignored
+        obs, rewards, terms, truncs, infos = env.step(actions)
+        for d in (obs, rewards, terms, truncs, infos):
+            assert list(d) == live
+        released_seen += terms.get("astrobee_1", False)
+        reasons = {a: infos[a]["termination_reason"] for a in live}
+        if k < k_release:
+            assert env.agents == live == env.possible_agents
+            assert all(r is None for r in reasons.values())
+            assert infos["astrobee_0"]["releases"] == 0
+            if k == k_release - 1:  # robot 1's messages arrive until it lets go
+                assert obs["astrobee_0"][lay["peer0_valid"]] == 1.0
+        elif k == k_release:
+            assert reasons == {"astrobee_0": None, "astrobee_1": "released", "astrobee_2": None}
+            assert terms == {"astrobee_0": False, "astrobee_1": True, "astrobee_2": False}
+            assert env.agents == ["astrobee_0", "astrobee_2"]
+            assert np.all(np.isfinite(obs["astrobee_1"])) and np.any(obs["astrobee_1"] != 0)
+            assert infos["astrobee_1"]["released_momentum"].shape == (6,)
+            assert "released_momentum" not in infos["astrobee_0"]
+        else:
+            assert live == env.agents == ["astrobee_0", "astrobee_2"]
+            assert not any(terms.values()) and all(r is None for r in reasons.values())
+        if k >= k_release:
+            for agent in ("astrobee_0", "astrobee_2"):
+                assert infos[agent]["releases"] == 1 and infos[agent]["holding"] == [0, 2]
+            # Robot 0's peer 0 is robot 1 (peers in increasing index): zeroed; robot 2 valid.
+            assert np.all(
+                obs["astrobee_0"][lay["peer0_wrench"].start : lay["peer1_wrench"].start] == 0
+            )
+            assert obs["astrobee_0"][lay["peer1_valid"]] == 1.0
+            assert env.sim.channel.disconnected == {1}
+            state = env.state()
+            assert state.shape == state_dim and np.all(state[_state_slots(3, 1)] == 0)
+            np.testing.assert_array_equal(state[-3:], [1.0, 0.0, 1.0])
+    assert released_seen == 1
+    live = env.agents[:]
+    with pytest.raises(ValueError, match="astrobee_7"):
+        env.step({**{a: np.zeros(8) for a in live}, "astrobee_7": np.zeros(8)})
+    with pytest.raises(ValueError, match="astrobee_2"):
+        env.step({"astrobee_0": np.zeros(8)})  # a live agent without an action
+    obs, rewards, terms, truncs, infos = env.step({a: np.zeros(8) for a in live})  # k_last
+    assert terms == {"astrobee_0": True, "astrobee_2": True} and env.agents == []
+    assert {i["termination_reason"] for i in infos.values()} == {"released"}
+    assert infos["astrobee_0"]["releases"] == 3 and infos["astrobee_0"]["holding"] == []
+    assert env.sim.world.robots == () and np.all(env.state()[-3:] == 0)
+    with pytest.raises(RuntimeError, match="reset"):
+        env.step({})
+    fresh = _release_env(3, None, noise="nominal", comm_latency=0.05)
+    obs, infos = env.reset(seed=SEED)
+    fresh_obs, _ = fresh.reset(seed=SEED)
+    assert env.agents == env.possible_agents and env.sim.model.nbody == fresh.sim.model.nbody
+    for agent in env.agents:
+        np.testing.assert_array_equal(obs[agent], fresh_obs[agent])
+    np.testing.assert_array_equal(env.state(), fresh.state())
+
+
+def test_release_keeps_the_physics_and_accounts_for_momentum():
+    """The twin without release is identical up to the release step; at its end the state is
+    the twin's with robot 1's entries zeroed (nothing else moved), and the twin's momentum is the
+    remaining subsystem's plus what robot 1 carried away (released_momentum), to 1e-12. With no
+    thrust afterwards the remaining subsystem's momentum stays constant (only the arms' internal
+    servo forces act) to the integrator's accuracy, as the twin's does."""
+    n, k_release = 3, math.ceil(1.0 / 0.016)  # the first control instant at or after 1 s
+    env = _release_env(n, [(1, 1.0)])
+    twin = _release_env(n, None)
+    env.reset(seed=SEED)
+    twin.reset(seed=SEED)
+    push = np.array([0.8, -0.5, 0.6, 0.3, -0.4, 0.5, 0.2, 0.3])
+    slots = _state_slots(n, 1)
+    keep = np.setdiff1d(np.arange(env.state().size - n), slots)
+    for k in range(1, k_release + 1):
+        actions = {a: push * (1 + i) / 3 for i, a in enumerate(env.possible_agents)}
+        _, _, _, _, infos = env.step({a: actions[a] for a in env.agents})
+        twin.step(actions)
+        if k < k_release:
+            np.testing.assert_array_equal(env.state(), twin.state())
+    assert env.agents == ["astrobee_0", "astrobee_2"]
+    state, twin_state = env.state(), twin.state()
+    full = twin.sim.model
+    qpos_qvel = np.setdiff1d(np.arange(1 + full.nq + full.nv), slots)  # remaining joints, exact
+    np.testing.assert_array_equal(state[qpos_qvel], twin_state[qpos_qvel])
+    # Body velocities come through MuJoCo's com-based velocities, whose reference point (the
+    # subtree's centre of mass) moved with the robot: equal to rounding.
+    np.testing.assert_allclose(state[keep], twin_state[keep], rtol=0, atol=1e-15)
+    assert np.all(state[slots] == 0) and np.any(twin_state[slots] != 0)
+    carried = infos["astrobee_1"]["released_momentum"]
+    remaining = env.sim.world.momentum(env.sim.data)
+    total = twin.sim.world.momentum(twin.sim.data)
+    assert np.linalg.norm(carried[:3]) > 0.01 and np.linalg.norm(remaining[:3]) > 0.01
+    np.testing.assert_allclose(remaining + carried, total, rtol=0, atol=1e-12)
+    # Carried away: the twin's robot 1 bodies' momentum.
+    bodies = twin.sim.world.handle(1).robot_bodies
+    np.testing.assert_allclose(carried, twin.sim.world.momentum(twin.sim.data, bodies), atol=0)
+    twin_start = total
+    for _ in range(60):
+        env.step({a: np.zeros(8) for a in env.agents})
+        twin.step({a: np.zeros(8) for a in twin.agents})
+        assert np.all(np.isfinite(env.state()))
+        for sim, start in ((env.sim, remaining), (twin.sim, twin_start)):
+            drift = sim.world.momentum(sim.data) - start
+            assert np.linalg.norm(drift) < MOMENTUM_DRIFT * np.linalg.norm(start)
+
+
+@pytest.mark.parametrize(
+    ("n_robots", "comm"),
+    [(2, {}), (3, {"comm_latency": 0.2})],
+    ids=["2_robots", "3_robots_latency_0.2s"],
+)
+def test_release_estimators_continue(n_robots, comm):
+    """The last robot lets go at 8 s (ideal sensors, the scripted controller with the true
+    cargo acting for the robots still holding). The others' estimators give up the instants
+    waiting for its messages (once: skipped_missing), skip the instants within the filters'
+    memory of the change (skipped_bad_reading, exactly those), then keep updating; nothing
+    grows afterwards because of the missing robot; at 20 s they are within RELEASE_BOUND.
+    The released robot's estimator stops where it was. Tracking stays within 5 cm."""
+    gone = n_robots - 1
+    env = _release_env(n_robots, [(gone, RELEASE_S)], **comm)
+    obs, infos = env.reset(seed=SEED)
+    controller = ObservationController.for_env(env, "truth")
+    k_release = round(RELEASE_S / env.sim.dt_s)
+    before: dict[int, dict] = {}
+    release = env.sim._release
+
+    def spy(released):  # the estimators' counters just before the release takes effect
+        before.update({i: env.sim.estimators[i].counters for i in env.sim.holding})
+        release(released)
+
+    env.sim._release = spy
+    history = []  # per step: {agent: counters}
+    for k in range(1, round(RELEASE_RUN_S / env.sim.dt_s) + 1):
+        actions, _ = controller.predict({a: obs[a] for a in env.agents})
+        obs, _, terms, _, infos = env.step(actions)
+        assert env.agents and not any(t for a, t in terms.items() if a != f"astrobee_{gone}")
+        assert env.sim.tracking_error()[0] < 0.05
+        history.append({a: info["estimator"] for a, info in infos.items()})
+        if k == k_release:
+            assert terms[f"astrobee_{gone}"] and set(before) == set(range(n_robots))
+    assert env.agents == [f"astrobee_{i}" for i in range(gone)]
+    if comm:
+        assert env.sim.channel.discarded > 0  # its messages in flight were dropped
+    at_release = history[k_release - 1]
+    for i in range(gone):
+        agent = f"astrobee_{i}"
+        est = env.sim.estimators[i]
+        counters = [h[agent] for h in history]
+        final = counters[-1]
+        # The instants waiting for the released robot are given up once, then nothing is missed.
+        gave_up = before[i]["skipped_missing"] + before[i]["pending"]
+        assert at_release[agent]["skipped_missing"] == gave_up == final["skipped_missing"]
+        if comm:
+            assert before[i]["pending"] > 0  # latency: there were instants waiting
+        # Exactly the instants within the filters' memory are skipped as tainted.
+        tainted = _instants(est, k_release + 1, k_release + est.taint_steps)
+        assert tainted == 30  # 4.9 s every 0.16 s
+        gained = final["skipped_bad_reading"] - at_release[agent]["skipped_bad_reading"]
+        assert gained == tainted
+        assert final["skipped_peer_tainted"] == at_release[agent]["skipped_peer_tainted"]
+        # Updates resume after the memory and keep coming: (nearly) every instant since.
+        resumed = k_release + est.taint_steps + est.history_steps
+        since = _instants(est, resumed + 1, len(history))
+        assert final["updates"] - counters[resumed - 1]["updates"] >= 0.9 * since > 25
+        assert final["gated"] == 0 and final["pending"] <= 3
+        info = infos[agent]
+        assert info["mass_rel_err"] < RELEASE_BOUND[0] and info["com_err_m"] < RELEASE_BOUND[1]
+    frozen = env.sim.estimators[gone].counters
+    assert frozen == history[k_release - 1][f"astrobee_{gone}"]
+
+
+def test_release_is_deterministic():
+    """Same seed, same actions, robots letting go at different times with nominal noise,
+    latency and loss: identical observations, rewards, infos' errors and states at every step,
+    and again after a reset of the same env (the full world is rebuilt at reset)."""
+    kwargs = {"noise": "nominal", "comm_latency": 0.05, "comm_drop": 0.2}
+    release_at = [(0, 1.0), (2, 2.0)]
+    rng = np.random.default_rng(5)
+    actions = rng.uniform(-1.0, 1.0, (200, 3, 8))
+
+    def rollout(env):
+        obs, _ = env.reset(seed=11)
+        out = [np.concatenate([obs[a] for a in env.agents])]
+        for step_actions in actions:
+            acts = dict(zip(env.possible_agents, step_actions, strict=True))
+            obs, rewards, _, _, infos = env.step(acts)  # actions of gone agents: ignored
+            out.append(np.concatenate([obs[a] for a in obs] + [env.state()]))
+            out.append(
+                np.array([rewards[a] for a in obs] + [infos[a]["mass_rel_err"] for a in obs])
+            )
+        return out
+
+    env_a = _release_env(3, release_at, **kwargs)
+    env_b = _release_env(3, release_at, **kwargs)
+    run_a, run_b, run_c = rollout(env_a), rollout(env_b), rollout(env_a)
+    assert env_a.agents == ["astrobee_1"]
+    for a, b, c in zip(run_a, run_b, run_c, strict=True):
+        np.testing.assert_array_equal(a, b)
+        np.testing.assert_array_equal(a, c)
+
+
+def test_cooperative_controller_allocates_over_the_robots_holding():
+    """A robot state None (it let go): zero command for it, and the others' commands equal
+    those of a controller built for them alone."""
+    from true_state import true_states
+
+    from astrocargo.agents.controllers import CooperativeController
+
+    env = _release_env(3, None)
+    env.reset(seed=0)
+    sim = env.sim
+    for _ in range(30):
+        env.step({a: np.full(8, 0.2) for a in env.agents})
+    cargo, states = true_states(sim.world, sim.data)
+    ref = sim.reference()
+    team = CooperativeController(sim.robots)
+    pair = CooperativeController([sim.robots[0], sim.robots[2]])
+    got = team.commands(ref, cargo, [states[0], None, states[2]], sim.true_params)
+    want = pair.commands(ref, cargo, [states[0], states[2]], sim.true_params)
+    np.testing.assert_array_equal(got[1], np.zeros(6))
+    np.testing.assert_allclose(got[0], want[0], rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(got[2], want[1], rtol=1e-12, atol=1e-15)
+    full = team.commands(ref, cargo, states, sim.true_params)
+    assert not np.allclose(got[0], full[0], rtol=1e-3)  # robot 1's absence changed the share
+    with pytest.raises(ValueError, match="no robot holds"):
+        team.commands(ref, cargo, [None, None, None], sim.true_params)
+
+
+def test_channel_disconnect():
+    """Channel level: a robot that leaves has its copies in flight (from and to it) discarded,
+    gets and sends nothing more, and the others' traffic is untouched."""
+
+    def message(sender, stamp):
+        return WrenchMessage(
+            sender, stamp, np.zeros(6), np.zeros(6), np.zeros(3), np.eye(3), False, np.eye(6)
+        )
+
+    ch = CommChannel(3, 0.05, 0.0, (0.0, 0.0), 0.016, np.random.default_rng(0))  # 3 periods
+    for sender in range(3):
+        ch.send(message(sender, 0), 0)
+    assert ch.stats["in_flight"] == 6
+    ch.disconnect(2)
+    assert ch.discarded == 4 and ch.stats["in_flight"] == 2  # 2 -> 0, 2 -> 1, 0 -> 2, 1 -> 2
+    with pytest.raises(ValueError, match="left the channel"):
+        ch.send(message(2, 1), 1)
+    ch.send(message(0, 1), 1)
+    out = ch.deliver(10)
+    assert out[2] == [] and [m.sender for m in out[0]] == [1] and len(out[1]) == 2
+    assert ch.stats["in_flight"] == 0 and ch.stats["delivered"] == 3
+    with pytest.raises(ValueError, match="robot"):
+        ch.disconnect(3)

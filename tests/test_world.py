@@ -507,3 +507,102 @@ def test_robot_model_kinematics_match_mujoco(n_robots: int) -> None:
                 pos = rot_b.T @ (data.site_xpos[site] - pos_b)
                 np.testing.assert_allclose(kin.grasp_rot, rot, rtol=0, atol=EXACT_TOL)
                 np.testing.assert_allclose(kin.grasp_pos, pos, rtol=0, atol=EXACT_TOL)
+
+
+# --------------------------------------------------------------------------- 9. release
+RELEASE_TOL = 1e-12  # state copied, not integrated: rounding only
+
+
+def _moving_state(world: World, seed: int) -> mujoco.MjData:
+    """The world after 0.32 s of random thrust and arm motion from a random twist."""
+    rng = np.random.default_rng(seed)
+    m = world.model
+    world.set_cargo(4.0, (0.01, -0.02, 0.03), random_inertia(rng, 4.0))
+    data = world.make_data()
+    data.qvel[:] = 0.05 * rng.normal(size=m.nv)
+    data.ctrl[:] = world.ctrl_grasp
+    for h in world.robots:
+        limits = m.actuator_ctrlrange[list(h.thrust_actuators), 1]
+        data.ctrl[list(h.thrust_actuators)] = rng.uniform(-limits, limits)
+        data.ctrl[list(h.arm_actuators)] += rng.uniform(-0.3, 0.3, 2)
+    mujoco.mj_step(m, data, nstep=20)
+    mujoco.mj_forward(m, data)
+    return data
+
+
+@pytest.mark.parametrize(
+    ("holding", "match"),
+    [((0, 0), "twice"), ((2,), "0..1"), ([True], "integers"), ("01", "list")],
+)
+def test_holding_validation(holding, match) -> None:
+    with pytest.raises(ValueError, match=match):
+        World(2, holding=holding)
+
+
+def test_world_momentum_matches_mujoco_subtree_momentum() -> None:
+    """World.momentum (about the world origin) against mj_subtreeVel (about the system CoM)."""
+    world = World(3)
+    data = _moving_state(world, 0)
+    linear, angular_com = momentum(world.model, data)
+    mine = world.momentum(data)
+    np.testing.assert_allclose(mine[:3], linear, rtol=0, atol=RELEASE_TOL)
+    about_origin = angular_com + np.cross(data.subtree_com[0], linear)
+    np.testing.assert_allclose(mine[3:], about_origin, rtol=0, atol=RELEASE_TOL)
+    assert np.linalg.norm(linear) > 0.1 and np.linalg.norm(mine[3:]) > 0.01  # not vacuous
+
+
+@pytest.mark.parametrize("released", [(1,), (0, 2), (0, 1, 2)], ids=str)
+def test_release_rebuild_keeps_the_state_and_accounts_for_momentum(released) -> None:
+    """Rebuilt without the released robots, the world continues from the same poses and
+    velocities of every remaining body; the momentum before equals the remaining bodies' after
+    plus the released robots' (World.momentum), to rounding."""
+    world = World(3)
+    data = _moving_state(world, 1)
+    rebuilt = world.without_robots(released)
+    assert rebuilt.holding == tuple(i for i in range(3) if i not in released)
+    assert [h.index for h in rebuilt.robots] == list(rebuilt.holding)
+    assert rebuilt.model.opt.timestep == world.model.opt.timestep
+    np.testing.assert_array_equal(rebuilt.cargo_params(), world.cargo_params())
+    new = mujoco.MjData(rebuilt.model)
+    rebuilt.load_state(world, data, new)
+    assert new.time == data.time
+    m, r = world.model, rebuilt.model
+    old_vel, new_vel = np.zeros(6), np.zeros(6)
+    for b in range(1, r.nbody):
+        ob = m.body(r.body(b).name).id
+        np.testing.assert_allclose(new.xipos[b], data.xipos[ob], rtol=0, atol=RELEASE_TOL)
+        np.testing.assert_allclose(new.xquat[b], data.xquat[ob], rtol=0, atol=RELEASE_TOL)
+        mujoco.mj_objectVelocity(m, data, mujoco.mjtObj.mjOBJ_BODY, ob, old_vel, 0)
+        mujoco.mj_objectVelocity(r, new, mujoco.mjtObj.mjOBJ_BODY, b, new_vel, 0)
+        np.testing.assert_allclose(new_vel, old_vel, rtol=0, atol=RELEASE_TOL)
+    for h in rebuilt.robots:
+        old = world.handle(h.index)
+        np.testing.assert_array_equal(
+            new.ctrl[list(h.arm_actuators)], data.ctrl[list(old.arm_actuators)]
+        )
+    carried = sum(world.momentum(data, world.handle(i).robot_bodies) for i in released)
+    np.testing.assert_allclose(
+        rebuilt.momentum(new) + carried, world.momentum(data), rtol=0, atol=RELEASE_TOL
+    )
+    mujoco.mj_step(r, new, nstep=20)
+    assert_healthy(new)
+    with pytest.raises(ValueError, match="not in this world"):
+        rebuilt.without_robots(released[:1])
+
+
+def test_world_without_a_robot_is_the_world_of_the_others() -> None:
+    """Robot 1 alone at handrail 1 (World(2, holding=(1,))) moves exactly as in a world built
+    with it alone: the removed robot leaves no trace in the physics."""
+    alone = World(2, holding=(1,))
+    both = World(2).without_robots((0,))
+    for world in (alone, both):
+        world.set_cargo(5.0, (0.02, 0.0, -0.01), np.diag([0.08, 0.1, 0.12]))
+    data = [w.make_data() for w in (alone, both)]
+    for w, d in zip((alone, both), data, strict=True):
+        h = w.handle(1)
+        d.ctrl[list(h.thrust_actuators)] = (0.2, -0.1, 0.15, 0.01, -0.01, 0.02)
+        d.ctrl[h.arm_actuators[1]] = 0.3
+        mujoco.mj_step(w.model, d, nstep=100)
+    np.testing.assert_array_equal(data[0].qpos, data[1].qpos)
+    np.testing.assert_array_equal(data[0].qvel, data[1].qvel)
+    assert np.abs(data[0].qvel).max() > 0.01
