@@ -180,10 +180,11 @@ minus that of the same run without the fault):
   confident, the NIS gate rejects the first inconsistent instant (`gated`), the updates of the
   instants within the filter memory before it are undone (`rolled_back`) and those after it
   skipped (`skipped_after_gate`): half or no thrust for 3 s at 30 s changed the final (60 s)
-  errors by less than 0.3 % mass and 0.3 mm, no thrust for 3 s at 9 s by less than 1 % and
-  1.2 cm. A fault the gate cannot see is absorbed as a wrong cargo: half thrust for 3 s at 9 s
-  (estimate still wide) gave 8-10 % extra mass error at 18 s, 1.5-2.4 % at 60 s; 80 % thrust for
-  10 s at 30 s, 2.3-3.2 % and 1-2 cm at 60 s.
+  errors by less than 0.3 % mass and 0.5 mm; no thrust for 3 s at 9 s by less than 0.5 % and
+  3 mm at 18 s. A fault the gate cannot see is absorbed as a wrong cargo: half thrust for 3 s at
+  9 s (estimate still wide) gave the robot's own estimator 6.7 % extra mass error and 5 cm at
+  18 s, 0.6 % and 9 mm at 60 s; 80 % thrust for 10 s at 30 s, 2.7-3.8 % and 1.5-2.6 cm at 60 s
+  (measured with the scripted controller, nominal noise, seed 0).
 
 ## Release
 
