@@ -22,13 +22,15 @@ How it matches filterpy 2.0, step by step:
   they share one matrix product with the cross-covariance; the gain, innovation and posterior are
   filterpy's (K = P_xz S^-1, x += K y, P -= K S K^T), computed through the Cholesky factor of S.
 
-Why it is fast (predict + update_linear for n = 10, m = 6 takes about 35 us on the 2-core
-development machine, a third of it in `log_cholesky_to_params`; filterpy's stock filter about
-10 times longer, see scripts/benchmark_performance.py): one vectorised hx call and no Python loop
-over sigma points, no Cholesky in ``predict``, LAPACK potrf/trtrs called directly (numpy's and
-scipy's wrappers cost 3 to 4 times more at this size), ``np.dot`` rather than ``@`` (less
-per-call overhead on tiny matrices). Per-call overhead, not arithmetic, is what costs here; run
-with OPENBLAS_NUM_THREADS=1, as BLAS threads only slow matrices this small.
+Why it is fast (predict + update_linear of `InertialParamUKF`, n = 10, m = 6, takes about 20 to 40
+us on the 2-core development machine; filterpy's stock filter with the same per-point measurement
+function about 10 times longer, see scripts/benchmark_performance.py): one vectorised hx call and
+no Python loop over sigma points, no Cholesky in ``predict``, LAPACK potrf/trtrs called directly
+(numpy's and scipy's wrappers cost 3 to 4 times more at this size), ``np.dot`` rather than ``@``
+(less per-call overhead on tiny matrices). Per-call overhead, not arithmetic, is what costs here;
+run with OPENBLAS_NUM_THREADS=1, as BLAS threads only slow matrices this small (on a busy machine a
+thread hand-off can cost milliseconds: measured 8 ms instead of 20 us per update with two threads
+while other processes ran; the scripts and the tests set it).
 
 Robustness, beyond filterpy: inputs are shape-checked (ValueError naming the expected shape); an
 update with NaN or inf in z, R or the hx output is skipped and counted; S and the posterior P are
@@ -497,8 +499,8 @@ def constrained_mode(
     cov: np.ndarray,
     start: np.ndarray | None = None,
     gap: float = 1e-4,
-) -> np.ndarray:
-    """The physically consistent body of highest density under N(mean, cov).
+) -> tuple[np.ndarray, bool]:
+    """The physically consistent body of highest density under N(mean, cov): (pi, solved).
 
     Minimises the Mahalanobis distance 0.5 (pi - mean)^T cov^-1 (pi - mean) over bodies whose
     pseudo-inertia J(pi) is positive definite. J is linear in pi, so this is a convex problem (a
@@ -508,13 +510,33 @@ def constrained_mode(
     distance is 4 t for a 4 x 4 J), each step backtracked so that J stays positive definite. It
     starts from the eigenvalue-clipped pseudo-inertia of ``mean`` or from ``start`` (a consistent
     body, such as the previous mode of a filter whose state moved a little), whichever is nearer.
-    A consistent ``mean`` is its own mode (returned as a copy without iterating); the result is
-    always strictly
-    consistent.
+    A consistent ``mean`` is its own mode (returned as a copy without iterating). The result is
+    always strictly consistent: should the iteration break down numerically (a covariance that
+    is not positive definite, an overflow next to the boundary), it returns the last consistent
+    iterate, or the eigenvalue-clipped body, with ``solved`` False.
     """
     mean = np.asarray(mean, dtype=float)
     if _is_physical(mean):
-        return mean.copy()
+        return mean.copy(), True
+    clipped = _clipped_physical(mean)
+    try:
+        with np.errstate(over="raise", divide="raise", invalid="raise"):
+            pi = _barrier_mode(mean, cov, clipped, start, gap)
+    except (np.linalg.LinAlgError, FloatingPointError, ValueError):
+        pi = None
+    if pi is not None and _is_physical(pi):
+        return pi, True
+    return clipped, False
+
+
+def _barrier_mode(
+    mean: np.ndarray,
+    cov: np.ndarray,
+    clipped: np.ndarray,
+    start: np.ndarray | None,
+    gap: float,
+) -> np.ndarray:
+    """The interior-point iteration of `constrained_mode` (may raise on numerical trouble)."""
     lower = np.linalg.cholesky(cov)
     basis_l = np.einsum("kij,kl->lij", _PSEUDO_INERTIA_BASIS, lower)  # d J / d v_l
 
@@ -530,7 +552,7 @@ def constrained_mode(
         hess = np.einsum("lij,mji->lm", a, a)
         return 2.0 * float(np.log(np.diag(chol)).sum()), grad, hess
 
-    v = _solve_lower(lower, _clipped_physical(mean) - mean)
+    v = _solve_lower(lower, clipped - mean)
     t = 1.0
     if start is not None and _is_physical(start):
         v_start = _solve_lower(lower, np.asarray(start, dtype=float) - mean)
@@ -538,6 +560,8 @@ def constrained_mode(
             # Near the new mode already: start further down the central path.
             v, t = v_start, 1e-2
     terms = barrier_terms(mean + lower @ v)
+    if terms is None:
+        raise np.linalg.LinAlgError("the starting point is not strictly consistent")
     while True:
         for _ in range(50):
             logdet, grad_b, hess_b = terms
@@ -632,6 +656,7 @@ class InertialParamUKF(BatchedUKF):
         self._mode_x = np.full(N_INERTIAL_PARAMS, np.nan)
         self._mode_P = np.full((N_INERTIAL_PARAMS, N_INERTIAL_PARAMS), np.nan)
         self._mode = prior_params.copy()
+        self.n_mode_fallbacks = 0  # reports that fell back to the eigenvalue-clipped body
 
     def update_linear(
         self, z: np.ndarray, A: np.ndarray, b: np.ndarray, R: np.ndarray
@@ -642,7 +667,8 @@ class InertialParamUKF(BatchedUKF):
     def _refresh_mode(self) -> None:
         if np.array_equal(self.x, self._mode_x) and np.array_equal(self.P, self._mode_P):
             return
-        self._mode = constrained_mode(self.x, self.P, start=self._mode)
+        self._mode, solved = constrained_mode(self.x, self.P, start=self._mode)
+        self.n_mode_fallbacks += not solved
         self._mode_x = self.x.copy()
         self._mode_P = self.P.copy()
 

@@ -554,7 +554,10 @@ def test_reported_estimate_is_the_constrained_mode(seed):
         assert mahalanobis(nearby, bad, cov) >= d_mode * (1 - 1e-6)
     # Cached until the state changes.
     np.testing.assert_array_equal(ukf.params_mean(), mode)
-    np.testing.assert_array_equal(constrained_mode(bad, cov), mode)
+    again, solved = constrained_mode(bad, cov)
+    assert solved
+    np.testing.assert_array_equal(again, mode)
+    assert ukf.n_mode_fallbacks == 0
 
 
 def test_physical_estimate_propagates_the_posterior():
@@ -580,3 +583,15 @@ def test_inertial_filter_input_checks():
     ukf = InertialParamUKF(TRUE_PARAMS, np.eye(DIM_X), np.zeros((DIM_X, DIM_X)))
     with pytest.raises(ValueError, match=r"A must have shape \(6, 10\)"):
         ukf.update_linear(np.zeros(DIM_Z), np.zeros((DIM_Z, 9)), np.zeros(DIM_Z), np.eye(DIM_Z))
+
+
+def test_constrained_mode_falls_back_to_a_consistent_body():
+    """A covariance that is not positive definite cannot whiten the distance: the report falls
+    back to the eigenvalue-clipped body (consistent), says so, and nothing raises."""
+    bad = params_from_mass_com_inertia(2.0, np.zeros(3), np.diag([1.0, 1.0, 2.5]))
+    mode, solved = constrained_mode(bad, -np.eye(DIM_X))
+    assert not solved and is_physically_consistent(mode)
+    ukf = InertialParamUKF(TRUE_PARAMS, np.eye(DIM_X), np.zeros((DIM_X, DIM_X)))
+    ukf.x, ukf.P = bad, np.diag(np.r_[np.ones(9), 0.0])
+    assert is_physically_consistent(ukf.params_mean())
+    assert ukf.n_mode_fallbacks == 1
