@@ -133,8 +133,8 @@ its robot lets go: the linear momentum, kg m/s, and the angular momentum about t
 origin, kg m^2/s, world axes, that it carries away), `time_s`, `clipped_actions` (entries of
 this agent's action outside [-1, 1] this step),
 `wall_contacts`, `true_params` (the cargo's pi in this robot's grasp frame), with estimators on:
-`estimate`, `estimate_std`, `mass_rel_err`, `com_err_m`, `principal_rel_err` (list of 3,
-sorted principal moments), `estimator` (the estimator's counters, `CargoEstimator.counters`: updates,
+`estimate`, `estimate_std`, `mass_rel_err`, `com_err_m`, `principal_rel_err` (list of 3, sorted
+principal moments), `estimator` (the estimator's counters, `CargoEstimator.counters`: updates,
 rolled_back, skipped_missing, skipped_bad_reading, skipped_peer_tainted, skipped_after_gate,
 skipped_low_excitation, gated, mode_fallbacks (reports that fell back to the eigenvalue-clipped
 body), bad_readings, missing_imu, fixes, stale_messages, pending); `comm`
