@@ -383,6 +383,15 @@ def _checked_linear_hx(
     return linear_params_hx(A, b, to_params)
 
 
+def _checked_prior(prior_params: np.ndarray) -> np.ndarray:
+    prior_params = np.asarray(prior_params, dtype=float)
+    if prior_params.shape != (N_INERTIAL_PARAMS,):
+        raise ValueError(
+            f"prior_params must have shape ({N_INERTIAL_PARAMS},), got {prior_params.shape}"
+        )
+    return prior_params
+
+
 # Prior standard deviations for `LogCholeskyUKF` in log-Cholesky coordinates (alpha, d1..3, s12,
 # s23, s13, t1..3): mass within a factor ~e^(2*0.5) = 2.7, principal second moments within a
 # factor ~e^2, centre of mass within 0.15 m (what CargoEstimator used with it).
@@ -423,12 +432,7 @@ class LogCholeskyUKF(BatchedUKF):
         kappa: float = DEFAULT_KAPPA,
         gate_nis: float | None = None,
     ) -> None:
-        prior_params = np.asarray(prior_params, dtype=float)
-        if prior_params.shape != (N_INERTIAL_PARAMS,):
-            raise ValueError(
-                f"prior_params must have shape ({N_INERTIAL_PARAMS},), got {prior_params.shape}"
-            )
-        eta0 = params_to_log_cholesky(prior_params)
+        eta0 = params_to_log_cholesky(_checked_prior(prior_params))
         super().__init__(
             N_INERTIAL_PARAMS,
             dim_z,
@@ -638,11 +642,7 @@ class InertialParamUKF(BatchedUKF):
         kappa: float = DEFAULT_KAPPA,
         gate_nis: float | None = None,
     ) -> None:
-        prior_params = np.asarray(prior_params, dtype=float)
-        if prior_params.shape != (N_INERTIAL_PARAMS,):
-            raise ValueError(
-                f"prior_params must have shape ({N_INERTIAL_PARAMS},), got {prior_params.shape}"
-            )
+        prior_params = _checked_prior(prior_params)
         violation = physical_violation(prior_params)
         if violation is not None:
             raise ValueError(f"prior_params must be a physically consistent body: {violation}")
