@@ -303,7 +303,7 @@ from astrocargo.envs.world import (
     _mat_to_quat,
     _quat_to_mat,
 )
-from astrocargo.estimator.cargo_estimator import CargoEstimator
+from astrocargo.estimator.cargo_estimator import CargoEstimator, exp_so3
 from astrocargo.estimator.inertia import (
     check_physical,
     com_error_m,
@@ -359,16 +359,6 @@ def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.array(
         [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
     )
-
-
-def _exp(rotvec: np.ndarray) -> np.ndarray:
-    """Rotation matrix of a rotation vector."""
-    angle = float(np.linalg.norm(rotvec))
-    if angle < 1e-15:
-        return np.eye(3)
-    quat = np.empty(4)
-    mujoco.mju_axisAngle2Quat(quat, rotvec / angle, angle)
-    return _quat_to_mat(quat)
 
 
 def observation_layout(n_robots: int, observe_estimates: bool = True) -> dict[str, slice]:
@@ -447,8 +437,8 @@ class BaseNavigator:
             self._last_imu = (packet.gyro_imu, packet.accel_imu)
         gyro, accel = self._last_imu
         w = self.imu_rot @ gyro
-        rot_mid_imu = self.rot @ _exp(0.5 * dt * w) @ self.imu_rot
-        self.rot = self.rot @ _exp(dt * w)
+        rot_mid_imu = self.rot @ exp_so3(0.5 * dt * w) @ self.imu_rot
+        self.rot = self.rot @ exp_so3(dt * w)
         v_new = self.v_imu + dt * (rot_mid_imu @ accel)
         self.p_imu = self.p_imu + 0.5 * dt * (self.v_imu + v_new)
         self.v_imu = v_new
@@ -459,7 +449,7 @@ class BaseNavigator:
             return
         fix_rot = _quat_to_mat(packet.base_quat_world)
         gain_att = self.att_cov / (self.att_cov + self.att_var)
-        self.rot = self.rot @ _exp(gain_att * _rotvec(self.rot.T @ fix_rot))
+        self.rot = self.rot @ exp_so3(gain_att * _rotvec(self.rot.T @ fix_rot))
         self.att_cov *= 1.0 - gain_att
         innovation = packet.base_pos_world + self.rot @ self.imu_pos - self.p_imu
         gain = self.cov[:, 0] / (self.cov[0, 0] + self.pos_var)

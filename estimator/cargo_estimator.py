@@ -105,7 +105,7 @@ def quat_to_mat(quat: np.ndarray) -> np.ndarray:
     )
 
 
-def _exp_so3(rotvec: np.ndarray) -> np.ndarray:
+def exp_so3(rotvec: np.ndarray) -> np.ndarray:
     """Rotation matrix of a rotation vector (Rodrigues, in floats: called every step)."""
     x, y, z = float(rotvec[0]), float(rotvec[1]), float(rotvec[2])
     angle = math.sqrt(x * x + y * y + z * z)
@@ -438,7 +438,10 @@ class CargoEstimator:
         if stamp <= self.stamp:
             raise ValueError(f"stamps must increase: got {stamp} after {self.stamp}")
         self.stamp = int(stamp)
-        usable = [x is not None and bool(np.all(np.isfinite(x))) for x in readings]
+        # One check for the usual case (every reading present and finite), then per reading.
+        usable = [True] * 4
+        if missing or not np.isfinite(np.concatenate(readings)).all():
+            usable = [x is not None and bool(np.all(np.isfinite(x))) for x in readings]
         if not all(usable):
             if missing:
                 self.n_missing_imu += 1
@@ -494,7 +497,7 @@ class CargoEstimator:
             self.n_bad_readings += 1
         if self._rot_world_base is not None:
             w_base = self.robot.imu_rot @ gyro_imu
-            self._rot_world_base = self._rot_world_base @ _exp_so3(w_base * self.dt_s)
+            self._rot_world_base = self._rot_world_base @ exp_so3(w_base * self.dt_s)
         return False
 
     def _record_instant(self, stamp: int, q_raw: np.ndarray, fix: bool) -> WrenchMessage | None:
