@@ -18,7 +18,9 @@ import os
 import time
 from pathlib import Path
 
-import numpy as np
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # before numpy: see estimator/ukf.py
+
+import numpy as np  # noqa: E402
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 

@@ -6,7 +6,7 @@ Runs ``astrobee_cargo_v0`` for ``--duration`` simulated seconds (one episode, 62
 observation-driven cooperative controller (``ObservationController``, ``--cargo-model``
 "estimate": each robot uses its own live estimate; "truth": the true cargo). Every
 ``--check-every`` control steps it checks, for every robot's estimator, that the UKF covariance
-``ukf.P`` (log-Cholesky coordinates) and the parameter covariance ``params_cov()`` are exactly
+``ukf.P`` (standard parameters) and the parameter covariance ``params_cov()`` are exactly
 symmetric and positive definite (Cholesky), that the state, estimate, observations, rewards and
 ``state()`` are finite, and that the estimator's and the env's internal buffers (pending instants,
 peer messages, own fixes, rollback snapshots, the channel's queue, the env's last messages) stay
@@ -26,13 +26,16 @@ import argparse
 import gc
 import json
 import math
+import os
 import resource
 import sys
 import time
 import tracemalloc
 from pathlib import Path
 
-import numpy as np
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # before numpy: see estimator/ukf.py
+
+import numpy as np  # noqa: E402
 
 from astrocargo.agents.controllers import ObservationController
 from astrocargo.envs import astrobee_cargo_v0

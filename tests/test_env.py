@@ -28,6 +28,7 @@ from astrocargo.envs.cargo_transport import (
 from astrocargo.estimator.inertia import (
     com_error_m,
     mass_rel_error,
+    principal_rel_errors,
     transform_params,
 )
 from astrocargo.estimator.rne import grasp_pose, propagate
@@ -376,10 +377,13 @@ def _run_scripted(seconds: float, **kwargs):
 
 
 def test_two_robots_estimates_agree_in_the_cargo_frame():
-    """Ideal sensors, no latency: each robot's estimate, carried from its grasp frame back into
-    the cargo frame, agrees with the other's and with the truth (mass and centre of mass; the
-    yaw-only trajectory leaves some inertia directions unobservable)."""
-    env, obs, infos = _run_scripted(20.0, n_robots=2, noise="ideal", **CARGO)
+    """Ideal sensors, lossless channel, 60 s of figure8_tumble (every parameter observable):
+    each robot's estimate, carried from its grasp frame into the cargo frame, agrees with the
+    other's within the issue's tolerances, 0.1 % of mass, 0.5 mm of centre of mass and 0.5 % of
+    each principal moment (measured: 0.014 %, 0.30 mm, 0.27 %), and with the truth."""
+    env, obs, infos = _run_scripted(
+        60.0, n_robots=2, noise="ideal", trajectory="figure8_tumble", **CARGO
+    )
     sim = env.sim
     lay = observation_layout(2)
     in_cargo = []
@@ -391,26 +395,51 @@ def test_two_robots_estimates_agree_in_the_cargo_frame():
             transform_params(infos[agent]["true_params"], rot, pos), sim.true_params, atol=1e-12
         )
         in_cargo.append(transform_params(estimate, rot, pos))
-        assert infos[agent]["estimator"]["updates"] > 50
-        assert infos[agent]["mass_rel_err"] < 0.01 and infos[agent]["com_err_m"] < 0.01
-    assert mass_rel_error(in_cargo[0], in_cargo[1]) < 0.005
-    assert com_error_m(in_cargo[0], in_cargo[1]) < 0.005
-    assert com_error_m(in_cargo[0], sim.true_params) < 0.01
+        assert infos[agent]["estimator"]["updates"] > 300
+        assert infos[agent]["estimator"]["gated"] == 0
+    assert mass_rel_error(in_cargo[0], in_cargo[1]) < 0.001
+    assert com_error_m(in_cargo[0], in_cargo[1]) < 0.0005
+    assert np.all(principal_rel_errors(in_cargo[0], in_cargo[1]) < 0.005)
+    for estimate in in_cargo:
+        assert mass_rel_error(estimate, sim.true_params) < 0.001
+        assert com_error_m(estimate, sim.true_params) < 0.001
+        assert np.all(principal_rel_errors(estimate, sim.true_params) < 0.01)
+
+
+@pytest.fixture(scope="module")
+def lossless_tumble():
+    return _run_scripted(30.0, n_robots=2, noise="ideal", trajectory="figure8_tumble", **CARGO)
 
 
 @pytest.mark.parametrize(
     "comm", [{"comm_latency": 0.2}, {"comm_drop": 0.3}], ids=["latency_0.2s", "drop_30pc"]
 )
-def test_estimators_update_despite_latency_or_loss(comm):
-    env, obs, infos = _run_scripted(10.0, n_robots=2, noise="ideal", **comm, **CARGO)
+def test_estimators_converge_despite_latency_or_loss(comm, lossless_tumble):
+    """30 s of figure8_tumble, ideal sensors. A 0.2 s latency only delays each update by 13
+    periods (the estimators wait for the peer's message of the same instant: nothing skipped);
+    a 30 % drop costs the receiver each instant whose message was lost (skipped_missing), about
+    a third of them. Either way the estimates converge as without it: within 0.1 % mass, 0.5 mm
+    and 2 % of each principal moment of the truth (lossless: 0.02 %, 0.17 mm, 0.9 %; with
+    either: 0.024 %, 0.20 mm, 1.0 %)."""
+    env, obs, infos = _run_scripted(
+        30.0, n_robots=2, noise="ideal", trajectory="figure8_tumble", **comm, **CARGO
+    )
+    _, _, clean_infos = lossless_tumble
     lay = observation_layout(2)
     for agent in env.possible_agents:
         counters = infos[agent]["estimator"]
-        assert counters["updates"] > 0
+        clean_updates = clean_infos[agent]["estimator"]["updates"]
         assert obs[agent][lay["peer0_valid"]] == 1.0
         if "comm_drop" in comm:
-            assert counters["skipped_missing"] > 0
             assert infos[agent]["comm"]["dropped"] > 0
+            assert 0.15 * clean_updates < counters["skipped_missing"] < 0.45 * clean_updates
+            # Every instant is either used or counted as given up (a few still wait at the end).
+            assert counters["updates"] + counters["skipped_missing"] >= clean_updates - 6
         else:
+            assert counters["skipped_missing"] == 0
+            assert counters["updates"] >= clean_updates - 2
             age = obs[agent][lay["peer0_age"]][0]
             assert age >= 13 * 0.016 - 1e-12  # 0.2 s is 12.5 periods, rounded up
+        assert infos[agent]["mass_rel_err"] < 0.001
+        assert infos[agent]["com_err_m"] < 0.0005
+        assert np.all(np.asarray(infos[agent]["principal_rel_err"]) < 0.02)

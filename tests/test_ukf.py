@@ -16,7 +16,13 @@ from astrocargo.estimator.inertia import (
     params_from_mass_com_inertia,
     params_to_log_cholesky,
 )
-from astrocargo.estimator.ukf import BatchedUKF, InertialParamUKF, UpdateResult
+from astrocargo.estimator.ukf import (
+    BatchedUKF,
+    InertialParamUKF,
+    LogCholeskyUKF,
+    UpdateResult,
+    constrained_mode,
+)
 
 TOL = 1e-9
 DIM_X = 10
@@ -114,7 +120,7 @@ def test_matches_filterpy_stock_ukf_on_inertial_map(alpha, kappa, via_update_lin
     P0 = np.diag(np.full(DIM_X, 0.3**2))
     Q = np.diag(np.full(DIM_X, 1e-3**2))
     if via_update_linear:
-        ours = InertialParamUKF(WRONG_PRIOR, 0.3, 1e-3, alpha=alpha, beta=beta, kappa=kappa)
+        ours = LogCholeskyUKF(WRONG_PRIOR, 0.3, 1e-3, alpha=alpha, beta=beta, kappa=kappa)
         np.testing.assert_array_equal(ours.x, x0)
         np.testing.assert_allclose(ours.P, P0, rtol=1e-15)
         np.testing.assert_allclose(ours.Q, Q, rtol=1e-15)
@@ -176,7 +182,7 @@ def test_two_updates_after_one_predict_match_filterpy_with_redrawn_points():
 
 def test_measurement_moments_equal_filterpy_unscented_transform():
     rng = np.random.default_rng(7)
-    ukf = InertialParamUKF(WRONG_PRIOR, prior_std_eta=0.3, process_std_eta=1e-3)
+    ukf = LogCholeskyUKF(WRONG_PRIOR, prior_std_eta=0.3, process_std_eta=1e-3)
     A, b = random_measurement(rng)
     R = np.diag(rng.uniform(0.01, 0.05, DIM_Z))
     z = A @ TRUE_PARAMS + b
@@ -391,14 +397,14 @@ def test_posterior_is_symmetric_and_log_likelihood_finite():
     assert math.isfinite(ukf.log_likelihood)
 
 
-# --- inertial parameter filter ---------------------------------------------------------------
+# --- inertial parameter filter: log-Cholesky state ------------------------------------------
 
 
-def test_inertial_filter_converges_with_consistent_sigma_points():
+def test_log_cholesky_filter_converges_with_consistent_sigma_points():
     rng = np.random.default_rng(5)
     # Prior std in eta: alpha and d are logs (0.5 is a factor e^0.5), s and t are lengths in m.
     prior_std_eta = np.array([0.5, 0.5, 0.5, 0.5, 0.05, 0.05, 0.05, 0.1, 0.1, 0.1])
-    ukf = InertialParamUKF(WRONG_PRIOR, prior_std_eta=prior_std_eta, process_std_eta=1e-6)
+    ukf = LogCholeskyUKF(WRONG_PRIOR, prior_std_eta=prior_std_eta, process_std_eta=1e-6)
     np.testing.assert_allclose(ukf.params_mean(), WRONG_PRIOR, rtol=1e-12, atol=1e-14)
     # Noiseless z, but R stays well above zero: with R much tighter than the prior a single
     # unscented update of this nonlinear map overshoots and the filter can diverge.
@@ -428,8 +434,8 @@ def test_inertial_filter_converges_with_consistent_sigma_points():
     np.testing.assert_array_equal(cov, cov.T)
 
 
-def test_inertial_filter_reports_physical_units():
-    ukf = InertialParamUKF(TRUE_PARAMS, prior_std_eta=0.05, process_std_eta=0.0)
+def test_log_cholesky_filter_reports_physical_units():
+    ukf = LogCholeskyUKF(TRUE_PARAMS, prior_std_eta=0.05, process_std_eta=0.0)
     np.testing.assert_allclose(ukf.params_mean(), log_cholesky_to_params(ukf.x))
     cov = ukf.params_cov()
     assert cov.shape == (10, 10)
@@ -438,17 +444,154 @@ def test_inertial_filter_reports_physical_units():
     assert ukf.params_std()[0] == pytest.approx(0.1 * TRUE_MASS_KG, rel=0.05)
 
 
-def test_inertial_filter_input_checks():
+def test_log_cholesky_filter_input_checks():
     with pytest.raises(ValueError):
-        InertialParamUKF(
+        LogCholeskyUKF(
             params_from_mass_com_inertia(2.0, np.zeros(3), np.diag([1.0, 1.0, 2.5])),
             prior_std_eta=0.1,
             process_std_eta=0.0,
         )
     with pytest.raises(ValueError, match="prior_std_eta"):
-        InertialParamUKF(TRUE_PARAMS, prior_std_eta=0.0, process_std_eta=0.0)
-    ukf = InertialParamUKF(TRUE_PARAMS, prior_std_eta=0.1, process_std_eta=0.0)
+        LogCholeskyUKF(TRUE_PARAMS, prior_std_eta=0.0, process_std_eta=0.0)
+    ukf = LogCholeskyUKF(TRUE_PARAMS, prior_std_eta=0.1, process_std_eta=0.0)
     with pytest.raises(ValueError, match=r"A must have shape \(6, 10\)"):
         ukf.update_linear(np.zeros(DIM_Z), np.zeros((DIM_Z, 9)), np.zeros(DIM_Z), np.eye(DIM_Z))
     with pytest.raises(ValueError, match=r"b must have shape \(6,\)"):
         ukf.update_linear(np.zeros(DIM_Z), np.zeros((DIM_Z, 10)), np.zeros(5), np.eye(DIM_Z))
+
+
+# --- inertial parameter filter: standard-parameter state, constrained reports ----------------
+
+
+def random_spd(rng: np.random.Generator, n: int = DIM_X, scale: float = 1.0) -> np.ndarray:
+    G = rng.normal(size=(n, n))
+    return scale * (G @ G.T / n + 0.1 * np.eye(n))
+
+
+def test_inertial_filter_is_the_linear_kalman_filter():
+    rng = np.random.default_rng(11)
+    P0 = random_spd(rng, scale=0.05)
+    Q = np.diag(rng.uniform(1e-8, 1e-7, DIM_X))
+    ours = InertialParamUKF(WRONG_PRIOR, P0, Q)
+    x_ref, P_ref = WRONG_PRIOR.copy(), P0.copy()
+    for _ in range(50):
+        A, b = random_measurement(rng)
+        G = rng.normal(size=(DIM_Z, DIM_Z))
+        R = 0.01 * G @ G.T + 1e-3 * np.eye(DIM_Z)
+        z = A @ TRUE_PARAMS + b + rng.multivariate_normal(np.zeros(DIM_Z), R)
+        ours.predict()
+        assert ours.update_linear(z, A, b, R).accepted
+        x_ref, P_ref = linear_kalman_step(x_ref, P_ref, z - b, A, R, Q)
+        assert_state_close(ours.x, ours.P, x_ref, P_ref)
+    assert np.abs(ours.x - TRUE_PARAMS).max() < 0.05
+
+
+def test_inertial_filter_matches_filterpy_stock_ukf():
+    rng = np.random.default_rng(12)
+    P0 = random_spd(rng, scale=0.05)
+    Q = 1e-8 * np.eye(DIM_X)
+    ours = InertialParamUKF(WRONG_PRIOR, P0, Q)
+    stock = make_stock_ukf(WRONG_PRIOR, P0, Q, 0.5, 2.0, 0.0)
+    for _ in range(30):
+        A, b = random_measurement(rng)
+        R = np.diag(rng.uniform(0.01, 0.05, DIM_Z))
+        z = A @ TRUE_PARAMS + b + rng.normal(size=DIM_Z) * np.sqrt(np.diag(R))
+        ours.predict()
+        stock.predict()
+        assert ours.update_linear(z, A, b, R).accepted
+        stock.update(z, R=R, hx=lambda x, A=A, b=b: A @ x + b)
+        assert_state_close(ours.x, ours.P, stock.x, stock.P)
+
+
+def mahalanobis(pi, mean, cov):
+    d = pi - mean
+    return float(d @ np.linalg.solve(cov, d))
+
+
+def test_reported_estimate_is_the_state_when_consistent():
+    rng = np.random.default_rng(13)
+    ukf = InertialParamUKF(WRONG_PRIOR, random_spd(rng, scale=0.01), np.zeros((DIM_X, DIM_X)))
+    ukf.x = TRUE_PARAMS.copy()
+    np.testing.assert_array_equal(ukf.params_mean(), TRUE_PARAMS)
+    np.testing.assert_array_equal(ukf.params_cov(), ukf.P)
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1))
+def test_reported_estimate_is_the_constrained_mode(seed):
+    """An inconsistent state (negative principal moment, or triangle inequality broken) is
+    reported as the consistent body nearest in the posterior's metric: consistent, no farther
+    than the eigenvalue-clipped pseudo-inertia, and locally optimal (no small consistent move
+    gets closer)."""
+    rng = np.random.default_rng(seed)
+    inertia = np.diag(rng.uniform(0.01, 0.05, 3))
+    inertia[0, 0] = inertia[1, 1] + inertia[2, 2] + rng.uniform(0.001, 0.02)  # triangle broken
+    if rng.uniform() < 0.5:
+        inertia[2, 2] = -rng.uniform(0.001, 0.01)  # not positive definite
+    bad = params_from_mass_com_inertia(rng.uniform(1, 5), rng.normal(scale=0.1, size=3), inertia)
+    assert not is_physically_consistent(bad)
+    cov = random_spd(rng, scale=1e-3)
+    ukf = InertialParamUKF(WRONG_PRIOR, cov, np.zeros((DIM_X, DIM_X)))
+    ukf.x = bad
+    mode = ukf.params_mean()
+    assert is_physically_consistent(mode)
+    d_mode = mahalanobis(mode, bad, cov)
+    lam, vec = np.linalg.eigh(pseudo_inertia(bad))
+    clipped_j = (vec * np.maximum(lam, 1e-3 * lam[-1])) @ vec.T
+    clipped = np.concatenate(
+        (
+            [clipped_j[3, 3]],
+            clipped_j[:3, 3],
+            np.trace(clipped_j[:3, :3]) * np.ones(3) - np.diag(clipped_j[:3, :3]),
+            -clipped_j[[0, 0, 1], [1, 2, 2]],
+        )
+    )
+    assert is_physically_consistent(clipped)
+    assert d_mode <= mahalanobis(clipped, bad, cov) * (1 + 1e-9)
+    eta = params_to_log_cholesky(mode)
+    for _ in range(50):
+        nearby = log_cholesky_to_params(eta + 1e-3 * rng.normal(size=DIM_X))
+        assert mahalanobis(nearby, bad, cov) >= d_mode * (1 - 1e-6)
+    # Cached until the state changes.
+    np.testing.assert_array_equal(ukf.params_mean(), mode)
+    again, solved = constrained_mode(bad, cov)
+    assert solved
+    np.testing.assert_array_equal(again, mode)
+    assert ukf.n_mode_fallbacks == 0
+
+
+def test_physical_estimate_propagates_the_posterior():
+    rng = np.random.default_rng(14)
+    cov = random_spd(rng, scale=1e-6)
+    ukf = InertialParamUKF(TRUE_PARAMS, cov, np.zeros((DIM_X, DIM_X)))
+    mean, std = ukf.physical_estimate()
+    assert mean[0] == pytest.approx(TRUE_MASS_KG)
+    np.testing.assert_allclose(mean[1:4], TRUE_COM_M, rtol=1e-12)
+    assert std[0] == pytest.approx(np.sqrt(cov[0, 0]), rel=1e-6)
+    # Monte Carlo of the same (tight, so nearly linear) posterior.
+    samples = rng.multivariate_normal(TRUE_PARAMS, cov, size=20000)
+    com = samples[:, 1:4] / samples[:, :1]
+    np.testing.assert_allclose(std[1:4], com.std(axis=0), rtol=0.05)
+
+
+def test_inertial_filter_input_checks():
+    bad = params_from_mass_com_inertia(2.0, np.zeros(3), np.diag([1.0, 1.0, 2.5]))
+    with pytest.raises(ValueError, match="physically consistent"):
+        InertialParamUKF(bad, np.eye(DIM_X), np.zeros((DIM_X, DIM_X)))
+    with pytest.raises(ValueError, match="P0"):
+        InertialParamUKF(TRUE_PARAMS, -np.eye(DIM_X), np.zeros((DIM_X, DIM_X)))
+    ukf = InertialParamUKF(TRUE_PARAMS, np.eye(DIM_X), np.zeros((DIM_X, DIM_X)))
+    with pytest.raises(ValueError, match=r"A must have shape \(6, 10\)"):
+        ukf.update_linear(np.zeros(DIM_Z), np.zeros((DIM_Z, 9)), np.zeros(DIM_Z), np.eye(DIM_Z))
+
+
+def test_constrained_mode_falls_back_to_a_consistent_body():
+    """A covariance that is not positive definite cannot whiten the distance: the report falls
+    back to the eigenvalue-clipped body (consistent), says so, and nothing raises."""
+    bad = params_from_mass_com_inertia(2.0, np.zeros(3), np.diag([1.0, 1.0, 2.5]))
+    mode, solved = constrained_mode(bad, -np.eye(DIM_X))
+    assert not solved and is_physically_consistent(mode)
+    ukf = InertialParamUKF(TRUE_PARAMS, np.eye(DIM_X), np.zeros((DIM_X, DIM_X)))
+    ukf.x, ukf.P = bad, np.diag(np.r_[np.ones(9), 0.0])
+    assert is_physically_consistent(ukf.params_mean())
+    assert ukf.n_mode_fallbacks == 1
