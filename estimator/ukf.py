@@ -24,7 +24,7 @@ How it matches filterpy 2.0, step by step:
 
 Why it is fast (predict + update_linear of `InertialParamUKF`, n = 10, m = 6, takes about 20 to 40
 us on the 2-core development machine; filterpy's stock filter with the same per-point measurement
-function about 10 times longer, see scripts/benchmark_performance.py): one vectorised hx call and
+function 8 to 9 times longer, see scripts/benchmark_performance.py): one vectorised hx call and
 no Python loop over sigma points, no Cholesky in ``predict``, LAPACK potrf/trtrs called directly
 (numpy's and scipy's wrappers cost 3 to 4 times more at this size), ``np.dot`` rather than ``@``
 (less per-call overhead on tiny matrices). Per-call overhead, not arithmetic, is what costs here;
@@ -212,7 +212,7 @@ class BatchedUKF:
         # Rows [L cross_weights; -Wm]: times the hx outputs they give [P_xz; -z_pred] in one
         # product. The first n rows are refilled each update.
         self._rhs_weights = np.vstack((self._cross_weights, -self.Wm))
-        self._Wc_diagonal = np.diag(self.Wc)  # as filterpy's unscented_transform uses it
+
         self.gate_nis = gate_nis
 
         x0 = np.asarray(x0, dtype=float)
@@ -315,7 +315,7 @@ class BatchedUKF:
         np.dot(P_lower, self._cross_weights, out=self._rhs_weights[:n])
         rhs_T = np.dot(self._rhs_weights, sigmas_h)
         residuals_h = sigmas_h + rhs_T[n]
-        S = np.dot(residuals_h.T, np.dot(self._Wc_diagonal, residuals_h))
+        S = np.dot(residuals_h.T * self.Wc, residuals_h)
         S += R
         y = rhs_T[n]
         y += z
