@@ -333,9 +333,9 @@ MAX_COMM_LATENCY_S = 60.0  # far beyond the estimators' history (2 s): nothing t
 MAX_COMM_NOISE = (10.0, 1.0)  # force N, moment N m: 25 times the propulsion limits
 ROTATION_WEIGHT_M_PER_RAD = 0.5  # tracking term: metres of position error per radian
 RENDER_CAMERA_TRACK = "track"
-# Tracking camera: behind and above one robot's shoulder, framing the cargo and its robots
-# (same framing as scripts/render_scene.py's close-up).
-TRACK_DISTANCE_M, TRACK_AZIMUTH_DEG, TRACK_ELEVATION_DEG = 2.3, 120.0, -30.0
+# Tracking camera: looking down the aisle (+x) from 1.5 m behind the cargo and 0.55 m above it,
+# inside the module's 2.2 m square section (tests/test_env.py checks), framing cargo and robots.
+TRACK_DISTANCE_M, TRACK_AZIMUTH_DEG, TRACK_ELEVATION_DEG = 1.6, 0.0, -20.0
 VISIBLE_GEOM_GROUPS = (0, 1, 2, 3)  # visual and collision geoms; sites (4) off
 # Floors of the navigation filter's noise model, so the ideal profile stays well posed.
 NAV_STD_FLOOR = 1e-9

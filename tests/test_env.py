@@ -328,6 +328,22 @@ print(json.dumps({"shape": frame.shape, "dtype": str(frame.dtype), "std": float(
 """
 
 
+def test_track_camera_is_inside_the_module():
+    """The default render camera (MuJoCo free camera: it sits at lookat - distance * forward)
+    stays inside the aisle (2.2 x 2.2 x 6 m, assets/iss_module.xml) wherever the figure-eight
+    takes the cargo, so its frames show the cargo, not the outside of a wall."""
+    from astrocargo.envs import cargo_transport as ct
+
+    az, el = np.deg2rad(ct.TRACK_AZIMUTH_DEG), np.deg2rad(ct.TRACK_ELEVATION_DEG)
+    forward = np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+    half = np.array([3.0, 1.1, 1.1]) - 0.05  # inner half sizes, less a margin
+    env = astrobee_cargo_v0.parallel_env(n_robots=2)
+    trajectory = env.sim.trajectory
+    for t in np.arange(0.0, 120.0, 0.5):
+        camera = trajectory(t).pos - ct.TRACK_DISTANCE_M * forward
+        assert np.all(np.abs(camera) < half), (t, camera)
+
+
 def test_rgb_array_render():
     """In a fresh interpreter: the GL backend is chosen when mujoco is first imported, which
     another test module may already have done without MUJOCO_GL."""
