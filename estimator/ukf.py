@@ -368,11 +368,9 @@ class BatchedUKF:
 
 
 def _checked_linear_hx(
-    A: np.ndarray,
-    b: np.ndarray,
-    m: int,
-    to_params: Callable[[np.ndarray], np.ndarray] | None = None,
+    A: np.ndarray, b: np.ndarray, m: int, log_cholesky: bool
 ) -> Callable[[np.ndarray], np.ndarray]:
+    """`linear_params_hx` for a state in log-Cholesky coordinates or in pi, after shape checks."""
     A = np.asarray(A, dtype=float)
     b = np.asarray(b, dtype=float)
     if A.shape != (m, N_INERTIAL_PARAMS):
@@ -380,7 +378,10 @@ def _checked_linear_hx(
     if b.shape != (m,):
         raise ValueError(f"b must have shape ({m},), got {b.shape}")
     # A non-finite A or b makes the hx output non-finite, which `update` checks and counts.
-    return linear_params_hx(A, b, to_params)
+    A_T = A.T
+    if log_cholesky:
+        return lambda sigmas: np.dot(log_cholesky_to_params(sigmas), A_T) + b
+    return lambda sigmas: np.dot(sigmas, A_T) + b
 
 
 def _checked_prior(prior_params: np.ndarray) -> np.ndarray:
@@ -458,7 +459,7 @@ class LogCholeskyUKF(BatchedUKF):
         self, z: np.ndarray, A: np.ndarray, b: np.ndarray, R: np.ndarray
     ) -> UpdateResult:
         """Fuse z = A pi(eta) + b + v, v ~ N(0, R), with A (m, 10), b (m,), R (m, m)."""
-        return self.update(z, _checked_linear_hx(A, b, self.dim_z), R)
+        return self.update(z, _checked_linear_hx(A, b, self.dim_z, log_cholesky=True), R)
 
     def params_mean(self) -> np.ndarray:
         """Standard parameters pi(eta_mean) of the mean state.
@@ -666,7 +667,7 @@ class InertialParamUKF(BatchedUKF):
         self, z: np.ndarray, A: np.ndarray, b: np.ndarray, R: np.ndarray
     ) -> UpdateResult:
         """Fuse z = A pi + b + v, v ~ N(0, R), with A (m, 10), b (m,), R (m, m)."""
-        return self.update(z, _checked_linear_hx(A, b, self.dim_z, _identity), R)
+        return self.update(z, _checked_linear_hx(A, b, self.dim_z, log_cholesky=False), R)
 
     def _refresh_mode(self) -> None:
         if np.array_equal(self.x, self._mode_x) and np.array_equal(self.P, self._mode_P):
@@ -704,7 +705,3 @@ class InertialParamUKF(BatchedUKF):
         jac = (values[1:11] - values[11:21]).T / (2.0 * step)
         var = np.einsum("ij,jk,ik->i", jac, self.P, jac)
         return values[0], np.sqrt(np.maximum(var, 0.0))
-
-
-def _identity(x: np.ndarray) -> np.ndarray:
-    return x
