@@ -744,6 +744,7 @@ class CargoTransport:
             self.weights[term] = _check_finite_number(f"w_{term}", weight, allowed_w)
             if abs(self.weights[term]) > MAX_REWARD_WEIGHT:
                 raise ValueError(f"w_{term} must be {allowed_w}, got {weight}")
+        self._weight_column = np.array([[self.weights[t]] for t in REWARD_TERMS])
         self.shared_reward = _check_finite_number(
             "shared_reward", shared_reward, "a number in [0, 1]"
         )
@@ -1247,25 +1248,20 @@ class CargoTransport:
         self._log_std_sum = log_std
         if not np.all(np.isfinite(info)):
             info = np.zeros(n)
-        individual = {
-            "track": np.full(n, track),
-            "effort": effort,
-            "info": info,
-            "contact": -(robot_contacts + cargo_contacts).astype(float),
-        }
-        team = {
-            "track": track,
-            "effort": float(np.mean(effort[rows])),
-            "info": float(np.mean(info[rows])),
-            "contact": -float(robot_contacts.sum() + cargo_contacts),
-        }
+        # Rows in REWARD_TERMS order: (track, effort, info, contact) per robot and for the team.
+        individual = np.empty((len(REWARD_TERMS), n))
+        individual[0] = track
+        individual[1] = effort
+        individual[2] = info
+        individual[3] = -(robot_contacts + cargo_contacts)
+        team = individual[:, rows].mean(axis=1)
+        team[0] = track
+        team[3] = -float(robot_contacts.sum() + cargo_contacts)
         s = self.shared_reward
         mask = np.zeros(n)
         mask[rows] = 1.0
-        return {
-            t: mask * self.weights[t] * (s * team[t] + (1.0 - s) * individual[t])
-            for t in REWARD_TERMS
-        }
+        mixed = (self._weight_column * mask) * (s * team[:, None] + (1.0 - s) * individual)
+        return dict(zip(REWARD_TERMS, mixed, strict=True))
 
     def _get_infos(
         self,

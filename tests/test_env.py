@@ -22,6 +22,7 @@ from astrocargo.agents.controllers import CooperativeController
 from astrocargo.envs import astrobee_cargo_v0
 from astrocargo.envs.cargo_transport import (
     ARM_SPEED_RADPS,
+    ROTATION_WEIGHT_M_PER_RAD,
     AstrobeeCargoEnv,
     observation_layout,
 )
@@ -326,6 +327,30 @@ env.close()
 env.close()
 print(json.dumps({"shape": frame.shape, "dtype": str(frame.dtype), "std": float(frame.std())}))
 """
+
+
+@pytest.mark.parametrize("shared", [0.0, 0.5, 1.0])
+def test_reward_terms_mix_team_and_individual(shared):
+    """Each term is w * (s * team + (1 - s) * own): effort is minus the squared (clipped)
+    action, its team value the robots' mean; tracking is the same for all; the reward is the
+    sum of the terms (every one also in infos)."""
+    env = astrobee_cargo_v0.parallel_env(
+        n_robots=2, noise="ideal", shared_reward=shared, w_effort=0.5, w_track=2.0, w_info=0.0
+    )
+    env.reset(seed=0)
+    actions = {"astrobee_0": np.full(8, 0.1), "astrobee_1": np.r_[np.full(7, -0.2), 3.0]}
+    own = np.array([8 * 0.01, 7 * 0.04 + 1.0])  # the 3.0 is clipped to 1
+    _, rewards, _, _, infos = env.step(actions)
+    pos_err, angle_err = env.sim.tracking_error()
+    for i, agent in enumerate(env.possible_agents):
+        info = infos[agent]
+        effort = -0.5 * (shared * own.mean() + (1 - shared) * own[i])
+        assert info["reward_effort"] == pytest.approx(effort, rel=1e-12)
+        track = -2.0 * (pos_err + ROTATION_WEIGHT_M_PER_RAD * angle_err)
+        assert info["reward_track"] == pytest.approx(track, rel=1e-12)
+        assert info["reward_info"] == 0.0 and info["reward_contact"] == 0.0
+        terms = sum(info[f"reward_{t}"] for t in ("track", "effort", "info", "contact"))
+        assert rewards[agent] == pytest.approx(terms, rel=1e-12)
 
 
 def test_track_camera_is_inside_the_module():
