@@ -7,8 +7,8 @@ in the cargo's standard parameters pi). Then (reference/equations.md):
 - Fisher information F = sum_k A_k^T R_k^-1 A_k; any unbiased estimator has Cov(pi) >= F^-1,
   and with the filter's Gaussian prior P0 the Bayesian bound is (P0^-1 + F)^-1.
 - Weighted least squares pi = F^-1 sum_k A_k^T R_k^-1 (z_k - b_k) attains F^-1 when A_k is exact;
-  it need not be physically consistent, so ``project_physical`` maps it to the nearest body with a
-  positive definite pseudo-inertia (eigenvalues of J clipped).
+  it need not be physically consistent, so ``inertia.project_physical`` maps it to the nearest
+  body with a positive definite pseudo-inertia (eigenvalues of J clipped).
 - Bounds on derived quantities g(pi) (mass, centre of mass, principal moments) are G F^-1 G^T with
   G = dg/dpi (central differences); directions in the null space of F cannot be learned from the
   data at all, and ``unobservable_directions`` names them.
@@ -22,9 +22,7 @@ import numpy as np
 
 from .inertia import (
     mass_com_inertia_from_params,
-    params_to_pseudo_inertia,
     principal_moments,
-    pseudo_inertia_to_params,
 )
 
 PARAM_NAMES = ("m", "h_x", "h_y", "h_z", "I_xx", "I_yy", "I_zz", "I_xy", "I_xz", "I_yz")
@@ -61,15 +59,6 @@ def batch_wls(rec: Recording) -> tuple[np.ndarray, np.ndarray]:
     g = np.einsum("kji,kj->i", rec.A, r_inv_y)
     cov = np.linalg.pinv(fisher, rcond=1e-12, hermitian=True)
     return cov @ g, cov
-
-
-def project_physical(pi: np.ndarray, min_eig: float = 1e-9) -> np.ndarray:
-    """Nearest (Frobenius, in pseudo-inertia) physically consistent body: J's eigenvalues are
-    clipped at ``min_eig`` (scaled by the largest)."""
-    j = params_to_pseudo_inertia(np.asarray(pi, dtype=float))
-    lam, vec = np.linalg.eigh(j)
-    floor = min_eig * max(float(lam.max()), 1e-12)
-    return pseudo_inertia_to_params((vec * np.maximum(lam, floor)) @ vec.T)
 
 
 def derived_quantities(pi: np.ndarray) -> np.ndarray:

@@ -49,6 +49,7 @@ __all__ = [
     "skew",
     "transform_params",
     "vec_to_inertia",
+    "project_physical",
 ]
 
 # Row and column of each inertia 6-vector entry [xx, yy, zz, xy, xz, yz] in the 3x3 tensor, and
@@ -329,6 +330,15 @@ def physical_violation(pi: np.ndarray, tol: float = 0.0) -> str | None:
         f"{where}pseudo-inertia must be positive definite (eigenvalues greater than {tol}), "
         f"got smallest eigenvalue {j_min[index]:.6g}"
     )
+
+
+def project_physical(pi: np.ndarray, min_eig: float = 1e-9) -> np.ndarray:
+    """Nearest (Frobenius, in pseudo-inertia) physically consistent body: J's eigenvalues are
+    clipped at ``min_eig`` (scaled by the largest)."""
+    j = params_to_pseudo_inertia(np.asarray(pi, dtype=float))
+    lam, vec = np.linalg.eigh(j)
+    floor = min_eig * max(float(lam.max()), 1e-12)
+    return pseudo_inertia_to_params((vec * np.maximum(lam, floor)) @ vec.T)
 
 
 def check_physical(pi: np.ndarray, tol: float = 0.0) -> None:

@@ -66,7 +66,7 @@ from .inertia import (
     params_to_log_cholesky,
     params_to_pseudo_inertia,
     physical_violation,
-    pseudo_inertia_to_params,
+    project_physical,
 )
 
 __all__ = [
@@ -134,21 +134,20 @@ def _solve_lower(lower: np.ndarray, rhs: np.ndarray, transpose: bool = False) ->
 
 
 def linear_params_hx(
-    A: np.ndarray, b: np.ndarray, to_params: Callable[[np.ndarray], np.ndarray] | None = None
+    A: np.ndarray,
+    b: np.ndarray,
+    to_params: Callable[[np.ndarray], np.ndarray] | None = log_cholesky_to_params,
 ) -> Callable[[np.ndarray], np.ndarray]:
     """Batched measurement function of z = A pi(x) + b: sigma points (k, 10) -> (k, m).
 
-    A is (m, 10) and b (m,); pi(x) is ``to_params`` (default `log_cholesky_to_params`, the
-    state of `LogCholeskyUKF`; the identity for `InertialParamUKF`, whose state is pi).
+    A is (m, 10) and b (m,); pi(x) is ``to_params`` (`log_cholesky_to_params` for the state of
+    `LogCholeskyUKF`; None when the state is pi itself, as in `InertialParamUKF`).
     """
     A_T = np.asarray(A, dtype=float).T
     b = np.asarray(b, dtype=float)
-    to_params = log_cholesky_to_params if to_params is None else to_params
-
-    def hx_batch(sigmas: np.ndarray) -> np.ndarray:
-        return np.dot(to_params(sigmas), A_T) + b
-
-    return hx_batch
+    if to_params is None:
+        return lambda sigmas: np.dot(sigmas, A_T) + b
+    return lambda sigmas: np.dot(to_params(sigmas), A_T) + b
 
 
 class BatchedUKF:
@@ -378,10 +377,7 @@ def _checked_linear_hx(
     if b.shape != (m,):
         raise ValueError(f"b must have shape ({m},), got {b.shape}")
     # A non-finite A or b makes the hx output non-finite, which `update` checks and counts.
-    A_T = A.T
-    if log_cholesky:
-        return lambda sigmas: np.dot(log_cholesky_to_params(sigmas), A_T) + b
-    return lambda sigmas: np.dot(sigmas, A_T) + b
+    return linear_params_hx(A, b, log_cholesky_to_params if log_cholesky else None)
 
 
 def _checked_prior(prior_params: np.ndarray) -> np.ndarray:
@@ -489,13 +485,6 @@ def _is_physical(pi: np.ndarray) -> bool:
     return bool(np.all(np.isfinite(pi)))
 
 
-def _clipped_physical(pi: np.ndarray, floor: float = 1e-3) -> np.ndarray:
-    """pi with its pseudo-inertia's eigenvalues clipped at ``floor`` times the largest."""
-    lam, vec = np.linalg.eigh(params_to_pseudo_inertia(pi))
-    lam = np.maximum(lam, floor * max(float(lam[-1]), 1e-12))
-    return pseudo_inertia_to_params((vec * lam) @ vec.T)
-
-
 # J(pi) = sum_k pi_k E_k: the pseudo-inertia is linear in the standard parameters.
 _PSEUDO_INERTIA_BASIS = params_to_pseudo_inertia(np.eye(10))
 
@@ -524,7 +513,7 @@ def constrained_mode(
     mean = np.asarray(mean, dtype=float)
     if _is_physical(mean):
         return mean.copy(), True
-    clipped = _clipped_physical(mean)
+    clipped = project_physical(mean, min_eig=1e-3)
     try:
         with np.errstate(over="raise", divide="raise", invalid="raise"):
             pi = _barrier_mode(mean, cov, clipped, start, gap)

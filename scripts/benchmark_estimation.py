@@ -29,7 +29,6 @@ Ray worker dies runs again.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import os
 import sys
@@ -47,6 +46,9 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # the sibling scripts/ray_backend.py
+from ray_backend import import_ray, ray_connection  # noqa: E402
 
 # Default cargo: 5 kg, off-centre, full inertia tensor (cargo frame, about the centre of mass).
 CARGO_MASS = 5.0
@@ -185,16 +187,15 @@ def run_case(case: Case) -> dict:
         convergence_time,
         crlb,
         fisher_information,
-        project_physical,
         unrevealed_directions,
     )
-    from astrocargo.estimator.cargo_estimator import default_prior
     from astrocargo.estimator.inertia import (
         com_error_m,
         mass_com_inertia_from_params,
         mass_rel_error,
         principal_moments,
         principal_rel_errors,
+        project_physical,
     )
     from astrocargo.estimator.ukf import (
         LOG_CHOLESKY_PRIOR_STD,
@@ -249,7 +250,9 @@ def run_case(case: Case) -> dict:
         env.close()
         return result
     agents = {}
-    prior_std = type(sim.estimators[0])(sim.robots[0], 0, [], sim.dt_s).physical_estimate()[1][4:7]
+    # A fresh estimator of robot 0: the prior every filter starts from.
+    prior = type(sim.estimators[0])(sim.robots[0], 0, [], sim.dt_s)
+    prior_std = prior.physical_estimate()[1][4:7]
     for i, agent in enumerate(env.possible_agents):
         est = sim.estimators[i]
         truth = sim.true_params_grasp[i]
@@ -275,7 +278,7 @@ def run_case(case: Case) -> dict:
     # Baselines on robot 0's own measurements.
     est0 = sim.estimators[0]
     truth0 = sim.true_params_grasp[0]
-    prior_params0 = default_prior(sim.robots[0])
+    prior_params0 = prior.params_mean()
     rec = Recording.from_log(est0.log)
     wls, _ = batch_wls(rec)
     wls = project_physical(wls)
@@ -306,7 +309,6 @@ def run_case(case: Case) -> dict:
         "principal_rel_err": [float(x) for x in bound["std_principal"] / moments],
     }
     # What this trajectory cannot reveal: functionals with < 1 % of the prior's information.
-    prior = type(est0)(sim.robots[0], 0, [], sim.dt_s)
     unseen = unrevealed_directions(fisher_information(rec), prior.params_cov())
     touched = set()
     for u in unseen:
@@ -410,34 +412,6 @@ def _finished_on_ray(cases: list[Case], address: str | None) -> Iterator[tuple[C
             ready, pending = ray.wait(pending, num_returns=1)
             for ref in ready:
                 yield case_of.pop(ref), ray.get(ref)
-
-
-def import_ray():
-    """The ``ray`` module, or an error that says how to install it."""
-    try:
-        import ray
-    except ImportError as err:
-        raise ImportError(
-            "the Ray backend needs Ray: pip install 'astrocargo[ray]' (or pip install -e '.[ray]' "
-            "in a checkout)"
-        ) from err
-    return ray
-
-
-@contextlib.contextmanager
-def ray_connection(ray, address: str | None) -> Iterator[None]:
-    """Connect to the Ray cluster at ``address`` (None: start a local instance) for the block;
-    a connection this process already has is used and left open."""
-    if ray.is_initialized():
-        yield
-        return
-    # Workers on other nodes do not inherit this shell: pass the rendering backend along.
-    env_vars = {"MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
-    ray.init(address=address or "local", runtime_env={"env_vars": env_vars})
-    try:
-        yield
-    finally:
-        ray.shutdown()
 
 
 def _finish(case: Case, result: dict, out_dir: Path) -> dict:

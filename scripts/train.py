@@ -68,6 +68,9 @@ from astrocargo.envs.wrappers import (  # noqa: E402
     make_vec_env,
 )
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # the sibling scripts/ray_backend.py
+from ray_backend import import_ray, ray_connection  # noqa: E402
+
 ALGOS = {"ppo": PPO, "sac": SAC}
 VIEWS = ("shared", "central")
 BACKENDS = ("sb3", "rllib")
@@ -270,37 +273,6 @@ def _observation_filter(env: Any, spaces: Any, device: Any):
     return MeanStdFilter(multi_agent=True)
 
 
-def import_ray():
-    """The ``ray`` module, or an error that says how to install it."""
-    try:
-        import ray
-    except ImportError as err:
-        raise ImportError(
-            "--backend rllib needs Ray and RLlib: pip install 'astrocargo[ray]' (or pip install "
-            "-e '.[ray]' in a checkout)"
-        ) from err
-    return ray
-
-
-@contextlib.contextmanager
-def ray_connection(ray, address: str | None):
-    """Connect to the Ray cluster at ``address`` (None: start a local instance) for the block;
-    a connection this process already has is used and left open."""
-    if ray.is_initialized():
-        yield
-        return
-    # Env runners on other nodes do not inherit this shell: pass these settings along.
-    env_vars = {
-        "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl"),
-        "OPENBLAS_NUM_THREADS": os.environ["OPENBLAS_NUM_THREADS"],
-    }
-    ray.init(address=address or "local", runtime_env={"env_vars": env_vars})
-    try:
-        yield
-    finally:
-        ray.shutdown()
-
-
 def build_rllib_config(args: argparse.Namespace, seed: int, hyper: dict[str, Any]):
     """RLlib ``PPOConfig``: the wrapped env, one shared policy, ``--env-runners`` env runners."""
     from ray.rllib.algorithms.ppo import PPOConfig
@@ -329,7 +301,7 @@ def build_rllib_config(args: argparse.Namespace, seed: int, hyper: dict[str, Any
 def train_rllib(args: argparse.Namespace) -> Path:
     """Train PPO with RLlib until ``--timesteps`` robot samples; save a checkpoint, the
     configuration and per-iteration progress. Returns the run folder."""
-    ray = import_ray()
+    ray = import_ray("--backend rllib needs Ray and RLlib")
     from ray.tune.registry import register_env
 
     seed = args.seed if args.seed is not None else int(np.random.default_rng().integers(2**31))
@@ -494,7 +466,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.env_runners < 0:
             parser.error("--env-runners must be 0 (sample in this process) or more")
         try:
-            import_ray()
+            import_ray("--backend rllib needs Ray and RLlib")
         except ImportError as err:
             parser.error(str(err))
         train_rllib(args)
