@@ -1,9 +1,17 @@
 """The MuJoCo world: an ISS module, one cargo bag and N Astrobees holding it.
 
-The model is assembled with ``mujoco.MjSpec`` from the three MJCF files in ``assets/``: the module
-is the root, the cargo is attached at the module centre, and robot ``i`` is attached with the
-prefix ``astrobee_i/`` at the pose that makes its gripper's ``grasp`` site coincide with the
-cargo's ``grasp_i`` site while its arm is deployed (tilt -pi/2, pan 0).
+The model is assembled with ``mujoco.MjSpec`` from MJCF files in ``assets/``: the module is the
+root, the cargo bag is attached at the module centre, and robot ``i`` is attached with the prefix
+``astrobee_i/`` at the pose that makes its gripper's ``grasp`` site coincide with the cargo's
+``grasp_i`` site while its arm is deployed (tilt -pi/2, pan 0).
+
+Cargo bags (``CARGO_BAGS``): the half CTB of ``cargo.xml`` has four handrails, one per side face,
+and carries every team of up to four robots; the single CTB of ``cargo_single_ctb.xml`` has eight
+(two on each long face 0.44 m apart, one on each end face, one on top, one underneath) and
+carries teams of five to eight. ``World(n_robots)`` takes the smallest bag with a handrail per
+robot, or the one named by ``cargo_bag``; ``cargo_size_m`` and ``uniform_cargo_inertia`` describe
+the bag in use. Eight robots on the single CTB keep at least 0.086 m between any two of them and
+0.13 m from the aisle's walls along ``figure8_yaw`` (assets/README.md gives the figures).
 
 Grasp mechanism: a rigid grasp, built as the seed paper's tree rooted at the cargo. The cargo is
 the only free body; robot i's kinematic chain is re-rooted at its gripper, which is fixed to the
@@ -48,7 +56,28 @@ from astrocargo.estimator.inertia import (
 )
 from astrocargo.estimator.rne import LinkDescription, RobotDescription
 
-MAX_ROBOTS = 4  # the cargo has four grasp handrails
+
+@dataclass(frozen=True)
+class CargoBag:
+    """A cargo bag asset: its MJCF file in ``assets/`` and its handrails (sites ``grasp_0`` to
+    ``grasp_{n_handrails - 1}``; robot i holds handrail i)."""
+
+    name: str
+    file: str
+    n_handrails: int
+
+
+# Smallest first: World picks the first bag with a handrail per robot unless told which. The half
+# CTB stays the bag of every team of up to four (the README's results and benchmark figures were
+# made with it); the single CTB carries five to eight (assets/README.md: layouts and sources).
+CARGO_BAGS = (
+    CargoBag("half_ctb", "cargo.xml", 4),
+    CargoBag("single_ctb", "cargo_single_ctb.xml", 8),
+)
+MAX_WORLD_ROBOTS = max(bag.n_handrails for bag in CARGO_BAGS)  # World's limit
+# Handrails of the default (half-CTB) bag: the limit of the code that still sizes its cargo by
+# that bag (envs/cargo_transport.py's CARGO_BOX_M) rather than by World.cargo_size_m.
+MAX_ROBOTS = CARGO_BAGS[0].n_handrails
 MAX_TIMESTEP_S = 0.016  # RK4 is checked up to one step per 62.5 Hz control period
 ARM_DEPLOYED_RAD = (-np.pi / 2, 0.0)  # tilt, pan: arm straight aft (facts file section 5)
 THRUST_ACTUATORS = ("force_x", "force_y", "force_z", "torque_x", "torque_y", "torque_z")
@@ -171,12 +200,14 @@ class World:
     """An ISS module with one cargo held by ``n_robots`` Astrobees.
 
     Args:
-        n_robots: number of robots, 1 to ``MAX_ROBOTS``; robot i holds handrail i.
+        n_robots: number of robots, 1 to ``MAX_WORLD_ROBOTS``; robot i holds handrail i.
         timestep_s: physics step; ``None`` keeps the MJCF's 0.016 s.
         cargo_pos_m: initial position of the cargo centre in the module frame.
         holding: the robots (indices in 0..n_robots-1) that hold the cargo and are simulated;
             ``None``: all of them. ``robots`` lists their handles in increasing index (the
             handle's ``index`` is the robot's); the others are absent from the model.
+        cargo_bag: name of the bag in ``CARGO_BAGS``; ``None``: the smallest with a handrail per
+            robot (the half CTB for up to four robots, the single CTB for five to eight).
     """
 
     def __init__(
@@ -185,11 +216,15 @@ class World:
         timestep_s: float | None = None,
         cargo_pos_m: tuple[float, float, float] = (0.0, 0.0, 0.0),
         holding: tuple[int, ...] | list[int] | None = None,
+        cargo_bag: str | None = None,
     ) -> None:
         if isinstance(n_robots, bool) or not isinstance(n_robots, int | np.integer):
-            raise ValueError(f"n_robots must be an integer in 1..{MAX_ROBOTS}, got {n_robots!r}")
-        if not 1 <= n_robots <= MAX_ROBOTS:
-            raise ValueError(f"n_robots must be in 1..{MAX_ROBOTS}, got {n_robots}")
+            raise ValueError(
+                f"n_robots must be an integer in 1..{MAX_WORLD_ROBOTS}, got {n_robots!r}"
+            )
+        if not 1 <= n_robots <= MAX_WORLD_ROBOTS:
+            raise ValueError(f"n_robots must be in 1..{MAX_WORLD_ROBOTS}, got {n_robots}")
+        self.cargo_bag = _choose_bag(int(n_robots), cargo_bag)
         if timestep_s is not None and not (
             np.isfinite(timestep_s) and 0 < timestep_s <= MAX_TIMESTEP_S
         ):
@@ -217,6 +252,8 @@ class World:
         for h in self.robots:
             self.model.actuator_ctrllimited[list(h.thrust_actuators)] = 0
         self.cargo_body = self.model.body("cargo/bag").id
+        # The bag's outer size (x, y, z), m: its collision box.
+        self.cargo_size_m = 2.0 * self.model.geom_size[self.model.geom("cargo/bag").id].copy()
         self.cargo_qpos_adr = int(self.model.jnt_qposadr[self.model.body_jntadr[self.cargo_body]])
         self.cargo_qvel_adr = int(self.model.jnt_dofadr[self.model.body_jntadr[self.cargo_body]])
         self.wall_geoms = tuple(
@@ -245,8 +282,10 @@ class World:
     # ------------------------------------------------------------------ building
     def _build_spec(self, cargo_pos: np.ndarray) -> mujoco.MjSpec:
         spec = mujoco.MjSpec.from_file(str(ASSETS_DIR / "iss_module.xml"))
-        cargo = mujoco.MjSpec.from_file(str(ASSETS_DIR / "cargo.xml"))
-        cargo_grasp = self._site_poses(cargo.copy(), [f"grasp_{i}" for i in range(MAX_ROBOTS)])
+        cargo = mujoco.MjSpec.from_file(str(ASSETS_DIR / self.cargo_bag.file))
+        cargo_grasp = self._site_poses(
+            cargo.copy(), [f"grasp_{i}" for i in range(self.cargo_bag.n_handrails)]
+        )
         spec.attach(cargo, prefix="cargo/", frame=spec.worldbody.add_frame(pos=cargo_pos))
         bag = spec.body("cargo/bag")
         # set_cargo moves the inertial frame at run time: never compile the bag as a "simple"
@@ -338,13 +377,14 @@ class World:
 
     def without_robots(self, released: tuple[int, ...] | list[int]) -> World:
         """This world rebuilt without the robots ``released`` (they let go of the cargo): same
-        timestep and cargo; load the state with ``load_state``."""
+        timestep, bag and cargo; load the state with ``load_state``."""
         for i in released:
             self.handle(i)
         world = World(
             self.n_robots,
             cargo_pos_m=tuple(self.cargo_pos),
             holding=tuple(i for i in self.holding if i not in released),
+            cargo_bag=self.cargo_bag.name,
         )
         world.model.opt.timestep = self.model.opt.timestep
         b, nb = self.cargo_body, world.cargo_body
@@ -405,6 +445,12 @@ class World:
         return out
 
     # ------------------------------------------------------------------ cargo
+    def uniform_cargo_inertia(self, mass_kg: float) -> np.ndarray:
+        """Inertia (3, 3) about its centre of a uniform box of the bag's outer size and
+        ``mass_kg``: the cargo a user who gives no inertia gets, matching the bag."""
+        a, b, c = self.cargo_size_m**2
+        return mass_kg / 12.0 * np.diag([b + c, a + c, a + b])
+
     def cargo_params(self) -> np.ndarray:
         """True cargo parameters pi (10,) in the cargo frame (origin at the bag's centre)."""
         b = self.cargo_body
@@ -478,6 +524,21 @@ class World:
         if not 0 <= i < self.n_robots:
             raise ValueError(f"robot index must be in 0..{self.n_robots - 1}, got {i}")
         return self._robot_models[i]
+
+
+def _choose_bag(n_robots: int, name: str | None) -> CargoBag:
+    """The bag named ``name``, or the smallest with a handrail per robot."""
+    if name is None:
+        return next(bag for bag in CARGO_BAGS if bag.n_handrails >= n_robots)
+    bags = {bag.name: bag for bag in CARGO_BAGS}
+    if not isinstance(name, str) or name not in bags:
+        raise ValueError(f"cargo_bag must be None or one of {list(bags)}, got {name!r}")
+    if bags[name].n_handrails < n_robots:
+        raise ValueError(
+            f"cargo_bag {name!r} has {bags[name].n_handrails} handrails, fewer than n_robots "
+            f"= {n_robots}"
+        )
+    return bags[name]
 
 
 def _read_robot_model(m: mujoco.MjModel) -> RobotDescription:

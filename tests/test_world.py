@@ -1,6 +1,6 @@
 """Tests of astrocargo.envs.world: the MJCF assets, the robots' mass properties, conservation laws,
 the rigid grasp, ``World.set_cargo`` and the known robot model (``World.robot_model``) against
-MuJoCo.
+MuJoCo; the cargo bags and the clearances of teams of up to eight robots.
 
 Reference numbers come from shared/reference/astrobee-facts.md: section 1 (iss.config mass, CoM
 and inertia of the free-flyer) and section 5 (URDF masses of the perching-arm parts).
@@ -12,8 +12,9 @@ import mujoco
 import numpy as np
 import pytest
 
+from astrocargo.agents.trajectories import Trajectory
 from astrocargo.assets import ASSETS_DIR
-from astrocargo.envs.world import MAX_ROBOTS, World
+from astrocargo.envs.world import CARGO_BAGS, MAX_ROBOTS, MAX_WORLD_ROBOTS, World
 from astrocargo.estimator.inertia import (
     mass_com_inertia_from_params,
     params_from_mass_com_inertia,
@@ -129,18 +130,7 @@ def test_asset_compiles_and_steps_without_warnings(path) -> None:
 def test_world_steps_without_warnings_or_contacts(n_robots: int) -> None:
     world = World(n_robots)
     m = world.model
-    steps_per_control = 0.016 / m.opt.timestep  # 62.5 Hz control period
-    assert steps_per_control == pytest.approx(round(steps_per_control), abs=1e-9)
-    data = world.make_data()
-    assert data.ncon == 0  # nothing interpenetrates in the grasp configuration
-    qpos0 = data.qpos.copy()
-    # Zero thrust, servos holding the grasp: the world must stay exactly at rest.
-    for _ in range(20):
-        mujoco.mj_step(m, data, nstep=10)
-        assert data.ncon == 0
-    assert_healthy(data)
-    assert np.abs(data.qvel).max() < EXACT_TOL
-    assert np.abs(data.qpos - qpos0).max() < EXACT_TOL
+    data = at_rest_without_contacts(world)
     # Every control at zero (the tilt servos then swing the robots): still clean.
     world.reset_data(data)
     data.ctrl[:] = 0.0
@@ -150,8 +140,47 @@ def test_world_steps_without_warnings_or_contacts(n_robots: int) -> None:
     assert_healthy(data)
 
 
+@pytest.mark.parametrize("n_robots", range(MAX_ROBOTS + 1, MAX_WORLD_ROBOTS + 1))
+def test_large_team_steps_without_warnings_or_contacts(n_robots: int) -> None:
+    """Five to eight robots on the single CTB. With every control at zero the tilt servos swing
+    each robot 90 deg from its grasp pose and overshoot to +0.74 rad (up to four robots on the
+    half CTB: 0.58 rad at most), where, in teams of 5, 7 and 8, one robot's distal link touches
+    its own core by 2 mm: that contact is allowed, none between two robots, a robot and the
+    cargo, or anything and a wall. The environment never commands such a swing (arm targets
+    within 0.5 rad of the grasp pose, moving at most 0.12 rad/s)."""
+    world = World(n_robots)
+    m = world.model
+    data = at_rest_without_contacts(world)
+    world.reset_data(data)
+    data.ctrl[:] = 0.0
+    owner = {g: h.index for h in world.robots for g in h.robot_geoms}
+    for _ in range(20):
+        mujoco.mj_step(m, data, nstep=10)
+        for c in data.contact[: data.ncon]:
+            assert owner.get(c.geom1, -1) == owner.get(c.geom2, -2)  # one robot's own geoms
+    assert_healthy(data)
+
+
+def at_rest_without_contacts(world: World) -> mujoco.MjData:
+    """Zero thrust, servos holding the grasp: the world stays exactly at rest, without any
+    contact or warning, for 200 steps; returns its data."""
+    m = world.model
+    steps_per_control = 0.016 / m.opt.timestep  # 62.5 Hz control period
+    assert steps_per_control == pytest.approx(round(steps_per_control), abs=1e-9)
+    data = world.make_data()
+    assert data.ncon == 0  # nothing interpenetrates in the grasp configuration
+    qpos0 = data.qpos.copy()
+    for _ in range(20):
+        mujoco.mj_step(m, data, nstep=10)
+        assert data.ncon == 0
+    assert_healthy(data)
+    assert np.abs(data.qvel).max() < EXACT_TOL
+    assert np.abs(data.qpos - qpos0).max() < EXACT_TOL
+    return data
+
+
 # --------------------------------------------------------------------------- 2. arguments
-@pytest.mark.parametrize("n_robots", [0, 5, -1, 2.5, True, "2"])
+@pytest.mark.parametrize("n_robots", [0, MAX_WORLD_ROBOTS + 1, -1, 2.5, True, "2"])
 def test_world_rejects_bad_robot_count(n_robots) -> None:
     with pytest.raises(ValueError, match="n_robots"):
         World(n_robots)
@@ -165,7 +194,7 @@ def test_robot_model_rejects_bad_index() -> None:
 
 
 # --------------------------------------------------------------------------- 3. mass properties
-@pytest.mark.parametrize("n_robots", [1, MAX_ROBOTS])
+@pytest.mark.parametrize("n_robots", [1, MAX_ROBOTS, MAX_WORLD_ROBOTS])
 def test_robot_mass_matches_facts(n_robots: int) -> None:
     world = World(n_robots)
     m = world.model
@@ -185,7 +214,7 @@ def test_robot_mass_matches_facts(n_robots: int) -> None:
     )
 
 
-@pytest.mark.parametrize("n_robots", [1, MAX_ROBOTS])
+@pytest.mark.parametrize("n_robots", [1, MAX_ROBOTS, MAX_WORLD_ROBOTS])
 def test_base_body_inertial_unchanged_by_rerooting(n_robots: int) -> None:
     # In the world the base is a leaf of the tree rooted at the cargo, but its own inertial frame
     # must be that of astrobee.xml.
@@ -265,11 +294,26 @@ def test_momentum_conserved_while_tumbling(
     integrator, timestep, linear_tol: float, angular_tol: float
 ):
     world = World(2, timestep_s=timestep)
-    m = world.model
     if integrator is not None:
-        m.opt.integrator = integrator
+        world.model.opt.integrator = integrator
+    worst_linear, worst_angular = tumbling_momentum_drift(world)
+    assert worst_linear < linear_tol
+    assert worst_angular < angular_tol
+
+
+def test_momentum_conserved_with_eight_robots() -> None:
+    """Eight robots on the single CTB, default RK4: within the issue's bounds."""
+    worst_linear, worst_angular = tumbling_momentum_drift(World(MAX_WORLD_ROBOTS))
+    assert worst_linear < 1e-5
+    assert worst_angular < 1e-3
+
+
+def tumbling_momentum_drift(world: World) -> tuple[float, float]:
+    """Worst relative drift of linear and angular momentum over 60 s of free tumbling (arms held,
+    no thrust): the system CoM at the module's centre line, 0.6 m aft, drifting forward at
+    0.02 m/s, spinning at 0.3 rad/s about a skew axis."""
+    m = world.model
     data = world.make_data()
-    # System CoM at the module's centre line, 0.6 m aft, drifting forward at 0.02 m/s.
     target_com = np.array([-0.6, 0.0, 0.0])
     velocity = np.array([0.02, 0.0, 0.0])
     duration_s = 60.0
@@ -296,8 +340,7 @@ def test_momentum_conserved_while_tumbling(
         worst_linear = max(worst_linear, np.linalg.norm(p - p0) / np.linalg.norm(p0))
         worst_angular = max(worst_angular, np.linalg.norm(angmom - l0) / np.linalg.norm(l0))
     assert_healthy(data)
-    assert worst_linear < linear_tol
-    assert worst_angular < angular_tol
+    return worst_linear, worst_angular
 
 
 # --------------------------------------------------------------------------- 5. thrust
@@ -339,7 +382,7 @@ SLIP_TOL_M = 1e-3
 SLIP_ROT_TOL_RAD = np.deg2rad(0.5)
 
 
-@pytest.mark.parametrize("n_robots", [1, MAX_ROBOTS])
+@pytest.mark.parametrize("n_robots", [1, MAX_ROBOTS, MAX_WORLD_ROBOTS])
 def test_grasp_does_not_slip_under_full_actuation(n_robots: int) -> None:
     """30 s with every thrust channel at its limit and the arm servos swept through their range.
 
@@ -476,7 +519,7 @@ def test_set_cargo_rejects_bad_values(mass, com, inertia, message: str) -> None:
 
 
 # --------------------------------------------------------------------------- 8. kinematics
-@pytest.mark.parametrize("n_robots", [1, MAX_ROBOTS])
+@pytest.mark.parametrize("n_robots", [1, MAX_ROBOTS, MAX_WORLD_ROBOTS])
 def test_robot_model_kinematics_match_mujoco(n_robots: int) -> None:
     """Forward kinematics of robot_model(i) = MuJoCo's poses relative to the base body."""
     world = World(n_robots)
@@ -556,10 +599,32 @@ def test_release_rebuild_keeps_the_state_and_accounts_for_momentum(released) -> 
     """Rebuilt without the released robots, the world continues from the same poses and
     velocities of every remaining body; the momentum before equals the remaining bodies' after
     plus the released robots' (World.momentum), to rounding."""
-    world = World(3)
+    check_release(World(3), released)
+
+
+@pytest.mark.parametrize("released", [(7,), (0, 4, 6), tuple(range(7))], ids=str)
+def test_release_from_eight_robots_keeps_the_bag_and_the_state(released) -> None:
+    world = World(MAX_WORLD_ROBOTS)
+    rebuilt = check_release(world, released)
+    assert rebuilt.cargo_bag == world.cargo_bag
+    np.testing.assert_array_equal(rebuilt.cargo_size_m, world.cargo_size_m)
+
+
+def test_release_keeps_a_bag_chosen_by_name() -> None:
+    """Two robots on the single CTB stay on it after a release (their own default would be the
+    half CTB)."""
+    world = World(2, cargo_bag="single_ctb")
+    assert world.without_robots((0,)).cargo_bag.name == "single_ctb"
+    assert World(2).without_robots((0,)).cargo_bag.name == "half_ctb"
+
+
+def check_release(world: World, released: tuple[int, ...]) -> World:
+    """``world`` rebuilt without ``released`` from a moving state: same bodies' poses and
+    velocities, momentum accounted for (see the test above); returns the rebuilt world."""
+    n = world.n_robots
     data = _moving_state(world, 1)
     rebuilt = world.without_robots(released)
-    assert rebuilt.holding == tuple(i for i in range(3) if i not in released)
+    assert rebuilt.holding == tuple(i for i in range(n) if i not in released)
     assert [h.index for h in rebuilt.robots] == list(rebuilt.holding)
     assert rebuilt.model.opt.timestep == world.model.opt.timestep
     np.testing.assert_array_equal(rebuilt.cargo_params(), world.cargo_params())
@@ -588,6 +653,7 @@ def test_release_rebuild_keeps_the_state_and_accounts_for_momentum(released) -> 
     assert_healthy(new)
     with pytest.raises(ValueError, match="not in this world"):
         rebuilt.without_robots(released[:1])
+    return rebuilt
 
 
 def test_world_without_a_robot_is_the_world_of_the_others() -> None:
@@ -606,3 +672,157 @@ def test_world_without_a_robot_is_the_world_of_the_others() -> None:
     np.testing.assert_array_equal(data[0].qpos, data[1].qpos)
     np.testing.assert_array_equal(data[0].qvel, data[1].qvel)
     assert np.abs(data[0].qvel).max() > 0.01
+
+
+# --------------------------------------------------------------------------- 10. bags and teams
+HANDRAIL_LENGTH_M = 0.2235  # 8.5 in handrail (facts file section 6)
+HANDRAIL_STANDOFF_M = 0.0595  # bar centre off the face: mid-span of 0.039-0.080 m (facts section 6)
+PAN_RAMP_RAD = 0.4  # amplitude of the trajectories' pan ramp (agents/trajectories.py, _pan)
+CLEARANCE_M = 0.05  # least gap between two robots, or a robot's base and the cargo, along the ramp
+AISLE_MARGIN_M = 0.1  # least gap to the aisle's walls (and past their 0.08 m handrails)
+
+
+def _mat(quat: np.ndarray) -> np.ndarray:
+    mat = np.empty(9)
+    mujoco.mju_quat2Mat(mat, quat)
+    return mat.reshape(3, 3)
+
+
+def set_pan(world: World, data: mujoco.MjData, pan_rad: float) -> None:
+    """The grasp configuration with every robot's pan at ``pan_rad`` (the trajectories pan all
+    robots alike), after ``mj_forward``."""
+    world.reset_data(data)
+    for h in world.robots:
+        data.qpos[h.arm_qpos_adr[1]] = pan_rad
+    mujoco.mj_forward(world.model, data)
+
+
+def clearances_m(world: World, data: mujoco.MjData) -> tuple[float, float]:
+    """Least distance between colliding geoms of two different robots, and between a robot's
+    colliding geoms (arm links excluded: they hold the handrail) and the cargo's."""
+    m = world.model
+    fromto = np.zeros(6)
+
+    def colliding(g: int) -> bool:
+        return bool(m.geom_contype[g] or m.geom_conaffinity[g])
+
+    robot_geoms = [[g for g in h.robot_geoms if colliding(g)] for h in world.robots]
+    cargo_geoms = [g for g in range(m.ngeom) if m.geom_bodyid[g] == world.cargo_body]
+    between_robots = np.inf
+    for k, geoms in enumerate(robot_geoms):
+        for other in robot_geoms[k + 1 :]:
+            for g1 in geoms:
+                for g2 in other:
+                    d = mujoco.mj_geomDistance(m, data, g1, g2, 1.0, fromto)
+                    between_robots = min(between_robots, d)
+    to_cargo = np.inf
+    for h, geoms in zip(world.robots, robot_geoms, strict=True):
+        for g in geoms:
+            if m.geom_bodyid[g] not in h.link_bodies:
+                for c in cargo_geoms:
+                    to_cargo = min(to_cargo, mujoco.mj_geomDistance(m, data, g, c, 1.0, fromto))
+    return between_robots, to_cargo
+
+
+def reach_from_cargo_m(world: World, data: mujoco.MjData) -> tuple[float, float]:
+    """Largest horizontal and vertical distance from the cargo centre of a corner of any box of
+    the cargo or a robot (every moving geom is a box)."""
+    m = world.model
+    signs = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)])
+    centre = data.xpos[world.cargo_body]
+    horizontal = vertical = 0.0
+    for g in range(m.ngeom):
+        if m.geom_bodyid[g] == 0:
+            continue
+        assert m.geom_type[g] == mujoco.mjtGeom.mjGEOM_BOX
+        corners = data.geom_xpos[g] + (signs * m.geom_size[g]) @ data.geom_xmat[g].reshape(3, 3).T
+        rel = corners - centre
+        horizontal = max(horizontal, np.linalg.norm(rel[:, :2], axis=1).max())
+        vertical = max(vertical, np.abs(rel[:, 2]).max())
+    return horizontal, vertical
+
+
+@pytest.mark.parametrize("bag", CARGO_BAGS, ids=lambda bag: bag.name)
+def test_bag_handrails_are_on_its_faces(bag) -> None:
+    """One 8.5 in bar per grasp site, centred on it along the site's x, HANDRAIL_STANDOFF_M off a
+    face of the bag (site z along that face's normal) and within the face."""
+    model = mujoco.MjModel.from_xml_path(str(ASSETS_DIR / bag.file))
+    names = sorted(model.site(s).name for s in range(model.nsite))
+    assert names == sorted(f"grasp_{k}" for k in range(bag.n_handrails))
+    half = model.geom_size[model.geom("bag").id]
+    rails = [g for g in range(model.ngeom) if model.geom(g).name != "bag"]
+    assert len(rails) == bag.n_handrails
+    for k in range(bag.n_handrails):
+        s = model.site(f"grasp_{k}").id
+        pos, rot = model.site_pos[s], _mat(model.site_quat[s])
+        axis = int(np.argmax(np.abs(rot[:, 2])))
+        assert abs(rot[axis, 2]) == pytest.approx(1.0, abs=EXACT_TOL)
+        assert pos[axis] * rot[axis, 2] == pytest.approx(half[axis] + HANDRAIL_STANDOFF_M)
+        (rail,) = [g for g in rails if np.allclose(model.geom_pos[g], pos, atol=EXACT_TOL)]
+        rail_rot = _mat(model.geom_quat[rail])
+        bar_half = np.abs(rail_rot.T @ rot[:, 0]) @ model.geom_size[rail]
+        assert 2 * bar_half == pytest.approx(HANDRAIL_LENGTH_M, abs=EXACT_TOL)
+        ends = pos + np.outer((-bar_half, bar_half), rot[:, 0])
+        on_face = [a for a in range(3) if a != axis]
+        assert np.all(np.abs(ends[:, on_face]) <= half[on_face] + EXACT_TOL)
+
+
+@pytest.mark.parametrize("bag", CARGO_BAGS, ids=lambda bag: bag.name)
+def test_bag_default_inertia_is_its_uniform_box(bag) -> None:
+    world = World(1, cargo_bag=bag.name)
+    mass, com, inertia = mass_com_inertia_from_params(world.cargo_params())
+    np.testing.assert_array_equal(com, 0.0)
+    # The MJCF types the box formula to 4 or 5 significant digits.
+    np.testing.assert_allclose(inertia, world.uniform_cargo_inertia(mass), rtol=1e-4, atol=0)
+    size = 2 * mujoco.MjModel.from_xml_path(str(ASSETS_DIR / bag.file)).geom("bag").size
+    np.testing.assert_array_equal(world.cargo_size_m, size)
+
+
+def test_bag_choice() -> None:
+    """The smallest bag with a handrail per robot: the half CTB up to four robots (the layout of
+    every published result), the single CTB for five to eight; or the bag named."""
+    assert [bag.n_handrails for bag in CARGO_BAGS] == sorted(b.n_handrails for b in CARGO_BAGS)
+    assert MAX_WORLD_ROBOTS == CARGO_BAGS[-1].n_handrails == 8
+    for n in range(1, MAX_WORLD_ROBOTS + 1):
+        expected = "half_ctb" if n <= MAX_ROBOTS else "single_ctb"
+        assert World(n).cargo_bag.name == expected
+    assert World(3, cargo_bag="single_ctb").cargo_bag.name == "single_ctb"
+    with pytest.raises(ValueError, match="4 handrails"):
+        World(5, cargo_bag="half_ctb")
+    with pytest.raises(ValueError, match="cargo_bag must be None or one of"):
+        World(2, cargo_bag="double_ctb")
+    with pytest.raises(ValueError, match="cargo_bag must be None or one of"):
+        World(2, cargo_bag=["half_ctb"])
+
+
+@pytest.mark.parametrize("n_robots", range(2, MAX_WORLD_ROBOTS + 1))
+def test_robots_clear_of_each_other_and_the_cargo(n_robots: int) -> None:
+    """At the start and at every pan of the trajectories' ramp, no robot comes within
+    CLEARANCE_M of another robot or, but for its arm, of the cargo."""
+    world = World(n_robots)
+    data = world.make_data()
+    worst = np.inf, np.inf
+    for pan in np.linspace(-PAN_RAMP_RAD, PAN_RAMP_RAD, 9):
+        set_pan(world, data, pan)
+        assert data.ncon == 0
+        worst = np.minimum(worst, clearances_m(world, data))
+    assert worst[0] > CLEARANCE_M
+    assert worst[1] > CLEARANCE_M
+
+
+@pytest.mark.parametrize("n_robots", range(1, MAX_WORLD_ROBOTS + 1))
+def test_team_fits_the_aisle_along_figure8_yaw(n_robots: int) -> None:
+    """figure8_yaw turns the cargo about the vertical only and keeps its centre within the
+    figure-eight's amplitudes of the aisle's centre: cargo and robots, at any pan of the ramp, stay
+    AISLE_MARGIN_M clear of the walls at any yaw."""
+    world = World(n_robots)
+    data = world.make_data()
+    trajectory = Trajectory("figure8_yaw")
+    horizontal = vertical = 0.0
+    for pan in np.linspace(-PAN_RAMP_RAD, PAN_RAMP_RAD, 9):
+        set_pan(world, data, pan)
+        h, v = reach_from_cargo_m(world, data)
+        horizontal, vertical = max(horizontal, h), max(vertical, v)
+    amplitude = np.array([*trajectory.amp, 0.0])
+    reach = amplitude + np.array([horizontal, horizontal, vertical])
+    assert np.all(reach < MODULE_HALF_SIZE_M - AISLE_MARGIN_M)
