@@ -74,10 +74,7 @@ CARGO_BAGS = (
     CargoBag("half_ctb", "cargo.xml", 4),
     CargoBag("single_ctb", "cargo_single_ctb.xml", 8),
 )
-MAX_WORLD_ROBOTS = max(bag.n_handrails for bag in CARGO_BAGS)  # World's limit
-# Handrails of the default (half-CTB) bag: the limit of the code that still sizes its cargo by
-# that bag (envs/cargo_transport.py's CARGO_BOX_M) rather than by World.cargo_size_m.
-MAX_ROBOTS = CARGO_BAGS[0].n_handrails
+MAX_ROBOTS = max(bag.n_handrails for bag in CARGO_BAGS)  # a handrail per robot
 MAX_TIMESTEP_S = 0.016  # RK4 is checked up to one step per 62.5 Hz control period
 ARM_DEPLOYED_RAD = (-np.pi / 2, 0.0)  # tilt, pan: arm straight aft (facts file section 5)
 THRUST_ACTUATORS = ("force_x", "force_y", "force_z", "torque_x", "torque_y", "torque_z")
@@ -200,7 +197,7 @@ class World:
     """An ISS module with one cargo held by ``n_robots`` Astrobees.
 
     Args:
-        n_robots: number of robots, 1 to ``MAX_WORLD_ROBOTS``; robot i holds handrail i.
+        n_robots: number of robots, 1 to ``MAX_ROBOTS``; robot i holds handrail i.
         timestep_s: physics step; ``None`` keeps the MJCF's 0.016 s.
         cargo_pos_m: initial position of the cargo centre in the module frame.
         holding: the robots (indices in 0..n_robots-1) that hold the cargo and are simulated;
@@ -220,10 +217,10 @@ class World:
     ) -> None:
         if isinstance(n_robots, bool) or not isinstance(n_robots, int | np.integer):
             raise ValueError(
-                f"n_robots must be an integer in 1..{MAX_WORLD_ROBOTS}, got {n_robots!r}"
+                f"n_robots must be an integer in 1..{MAX_ROBOTS}, got {n_robots!r}"
             )
-        if not 1 <= n_robots <= MAX_WORLD_ROBOTS:
-            raise ValueError(f"n_robots must be in 1..{MAX_WORLD_ROBOTS}, got {n_robots}")
+        if not 1 <= n_robots <= MAX_ROBOTS:
+            raise ValueError(f"n_robots must be in 1..{MAX_ROBOTS}, got {n_robots}")
         self.cargo_bag = _choose_bag(int(n_robots), cargo_bag)
         if timestep_s is not None and not (
             np.isfinite(timestep_s) and 0 < timestep_s <= MAX_TIMESTEP_S

@@ -210,8 +210,6 @@ def _physics_step_times_ns(env) -> np.ndarray:
 
 def bench_env() -> dict[str, dict[str, float]]:
     """Microseconds per env step (median and mean) and real-time factors, per robot count."""
-    from astrocargo.envs.world import MAX_ROBOTS
-
     results: dict[str, dict[str, float]] = {}
     print(
         f"env: {ENV_STEPS} steps after {ENV_WARMUP_STEPS} warm-up steps, nominal noise, seed "
@@ -223,12 +221,6 @@ def bench_env() -> dict[str, dict[str, float]]:
         f"{'rtf':>7} {'mj_step us':>11} {'rtf':>8}"
     )
     for n in ENV_ROBOTS:
-        if n > MAX_ROBOTS:
-            print(
-                f"  {n:>2} n/a: World supports at most {MAX_ROBOTS} robots (the cargo bag has "
-                f"{MAX_ROBOTS} handrails)"
-            )
-            continue
         on, env = _env_step_times_ns(n, estimators=True)
         off, _ = _env_step_times_ns(n, estimators=False)
         physics = _physics_step_times_ns(env)

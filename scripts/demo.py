@@ -29,6 +29,7 @@ from tqdm import tqdm  # noqa: E402
 from astrocargo.agents.controllers import ObservationController  # noqa: E402
 from astrocargo.agents.trajectories import Trajectory  # noqa: E402
 from astrocargo.envs import astrobee_cargo_v0  # noqa: E402
+from astrocargo.envs.world import MAX_ROBOTS  # noqa: E402
 from astrocargo.estimator.baselines import convergence_time  # noqa: E402
 from astrocargo.estimator.inertia import (  # noqa: E402
     inertia_to_vec,
@@ -188,8 +189,8 @@ def main() -> None:
     parser.add_argument("--video", default=None, help="also write an animated GIF of this name")
     parser.add_argument("--video-every", type=int, default=8, help="control steps per frame")
     args = parser.parse_args()
-    if not 1 <= args.robots <= 4:
-        parser.error("--robots must be in 1..4")
+    if not 1 <= args.robots <= MAX_ROBOTS:
+        parser.error(f"--robots must be in 1..{MAX_ROBOTS}")
     if not args.duration > 0:
         parser.error("--duration must be positive")
     print(f"seed {args.seed}")

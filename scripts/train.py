@@ -62,6 +62,7 @@ from stable_baselines3.common.vec_env import (  # noqa: E402
     VecNormalize,
 )
 
+from astrocargo.envs.world import MAX_ROBOTS  # noqa: E402
 from astrocargo.envs.wrappers import (  # noqa: E402
     LEARNING_TASK,
     CentralizedCargoEnv,
@@ -409,7 +410,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--algo", choices=sorted(ALGOS), default="ppo")
     parser.add_argument("--view", choices=VIEWS, default="shared")
-    parser.add_argument("--robots", type=int, default=2, help="robots holding the cargo, 1..4")
+    parser.add_argument(
+        "--robots", type=int, default=2, help=f"robots holding the cargo, 1..{MAX_ROBOTS}"
+    )
     parser.add_argument("--timesteps", type=int, default=600_000, help="samples (see above)")
     parser.add_argument("--copies", type=int, default=2, help="environment copies")
     parser.add_argument(
@@ -458,8 +461,8 @@ def main(argv: list[str] | None = None) -> int:
     for name in ("timesteps", "copies", "max_cycles", "torch_threads"):
         if getattr(args, name) < 1:
             parser.error(f"--{name.replace('_', '-')} must be a positive integer")
-    if not 1 <= args.robots <= 4:
-        parser.error("--robots must be in 1..4")
+    if not 1 <= args.robots <= MAX_ROBOTS:
+        parser.error(f"--robots must be in 1..{MAX_ROBOTS}")
     if args.backend == "rllib":
         if args.algo != "ppo" or args.view != "shared":
             parser.error("--backend rllib trains PPO in the shared view only")

@@ -233,7 +233,7 @@ def test_stepping_after_the_end_raises():
 @pytest.mark.parametrize(
     ("kwargs", "match"),
     [
-        ({"n_robots": 5}, "n_robots"),
+        ({"n_robots": 9}, "n_robots"),
         ({"trajectory": "loop"}, "figure8_yaw"),
         ({"noise": "loud"}, "nominal"),
         ({"cargo_mass_kg": -1.0}, "cargo_mass_kg"),

@@ -471,7 +471,7 @@ def test_valid_arguments_pass_the_api_test(kwargs):
 
 # Each entry: argument name, a strategy of values the env must refuse.
 INVALID = {
-    "n_robots": st.one_of(st.integers(-3, 0), st.integers(5, 100), st.just(True), st.just(2.0)),
+    "n_robots": st.one_of(st.integers(-3, 0), st.integers(9, 100), st.just(True), st.just(2.0)),
     "trajectory": st.one_of(st.text(max_size=5), st.just(["hover"]), st.none()),
     "noise": st.one_of(st.text(max_size=5), st.just(["ideal"]), st.none()),
     "cargo_mass_kg": st.one_of(

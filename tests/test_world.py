@@ -14,12 +14,14 @@ import pytest
 
 from astrocargo.agents.trajectories import Trajectory
 from astrocargo.assets import ASSETS_DIR
-from astrocargo.envs.world import CARGO_BAGS, MAX_ROBOTS, MAX_WORLD_ROBOTS, World
+from astrocargo.envs.world import CARGO_BAGS, MAX_ROBOTS, World
 from astrocargo.estimator.inertia import (
     mass_com_inertia_from_params,
     params_from_mass_com_inertia,
 )
 from astrocargo.estimator.rne import propagate
+
+HALF_CTB_ROBOTS = CARGO_BAGS[0].n_handrails  # the default bag of teams of up to four
 
 # Facts file section 1 (iss.config): the free-flyer without payloads, in the body frame.
 BASE_MASS_KG = 9.583788668
@@ -126,7 +128,7 @@ def test_asset_compiles_and_steps_without_warnings(path) -> None:
     assert_healthy(data)
 
 
-@pytest.mark.parametrize("n_robots", range(1, MAX_ROBOTS + 1))
+@pytest.mark.parametrize("n_robots", range(1, HALF_CTB_ROBOTS + 1))
 def test_world_steps_without_warnings_or_contacts(n_robots: int) -> None:
     world = World(n_robots)
     m = world.model
@@ -140,7 +142,7 @@ def test_world_steps_without_warnings_or_contacts(n_robots: int) -> None:
     assert_healthy(data)
 
 
-@pytest.mark.parametrize("n_robots", range(MAX_ROBOTS + 1, MAX_WORLD_ROBOTS + 1))
+@pytest.mark.parametrize("n_robots", range(HALF_CTB_ROBOTS + 1, MAX_ROBOTS + 1))
 def test_large_team_steps_without_warnings_or_contacts(n_robots: int) -> None:
     """Five to eight robots on the single CTB. With every control at zero the tilt servos swing
     each robot 90 deg from its grasp pose and overshoot to +0.74 rad (up to four robots on the
@@ -180,7 +182,7 @@ def at_rest_without_contacts(world: World) -> mujoco.MjData:
 
 
 # --------------------------------------------------------------------------- 2. arguments
-@pytest.mark.parametrize("n_robots", [0, MAX_WORLD_ROBOTS + 1, -1, 2.5, True, "2"])
+@pytest.mark.parametrize("n_robots", [0, MAX_ROBOTS + 1, -1, 2.5, True, "2"])
 def test_world_rejects_bad_robot_count(n_robots) -> None:
     with pytest.raises(ValueError, match="n_robots"):
         World(n_robots)
@@ -194,7 +196,7 @@ def test_robot_model_rejects_bad_index() -> None:
 
 
 # --------------------------------------------------------------------------- 3. mass properties
-@pytest.mark.parametrize("n_robots", [1, MAX_ROBOTS, MAX_WORLD_ROBOTS])
+@pytest.mark.parametrize("n_robots", [1, HALF_CTB_ROBOTS, MAX_ROBOTS])
 def test_robot_mass_matches_facts(n_robots: int) -> None:
     world = World(n_robots)
     m = world.model
@@ -214,7 +216,7 @@ def test_robot_mass_matches_facts(n_robots: int) -> None:
     )
 
 
-@pytest.mark.parametrize("n_robots", [1, MAX_ROBOTS, MAX_WORLD_ROBOTS])
+@pytest.mark.parametrize("n_robots", [1, HALF_CTB_ROBOTS, MAX_ROBOTS])
 def test_base_body_inertial_unchanged_by_rerooting(n_robots: int) -> None:
     # In the world the base is a leaf of the tree rooted at the cargo, but its own inertial frame
     # must be that of astrobee.xml.
@@ -234,7 +236,7 @@ def test_base_body_inertial_unchanged_by_rerooting(n_robots: int) -> None:
 def test_no_rotor_passive_or_medium_terms() -> None:
     # The estimator's sub-body model has no rotor inertia, joint damping, friction or springs, and
     # the module is a microgravity vacuum; the momentum tests cannot see a small armature.
-    m = World(MAX_ROBOTS).model
+    m = World(HALF_CTB_ROBOTS).model
     for name in ("dof_armature", "dof_damping", "dof_frictionloss", "jnt_stiffness"):
         np.testing.assert_array_equal(getattr(m, name), 0.0, err_msg=name)
     np.testing.assert_array_equal(m.opt.gravity, 0.0)
@@ -303,7 +305,7 @@ def test_momentum_conserved_while_tumbling(
 
 def test_momentum_conserved_with_eight_robots() -> None:
     """Eight robots on the single CTB, default RK4: within the issue's bounds."""
-    worst_linear, worst_angular = tumbling_momentum_drift(World(MAX_WORLD_ROBOTS))
+    worst_linear, worst_angular = tumbling_momentum_drift(World(MAX_ROBOTS))
     assert worst_linear < 1e-5
     assert worst_angular < 1e-3
 
@@ -382,7 +384,7 @@ SLIP_TOL_M = 1e-3
 SLIP_ROT_TOL_RAD = np.deg2rad(0.5)
 
 
-@pytest.mark.parametrize("n_robots", [1, MAX_ROBOTS, MAX_WORLD_ROBOTS])
+@pytest.mark.parametrize("n_robots", [1, HALF_CTB_ROBOTS, MAX_ROBOTS])
 def test_grasp_does_not_slip_under_full_actuation(n_robots: int) -> None:
     """30 s with every thrust channel at its limit and the arm servos swept through their range.
 
@@ -519,7 +521,7 @@ def test_set_cargo_rejects_bad_values(mass, com, inertia, message: str) -> None:
 
 
 # --------------------------------------------------------------------------- 8. kinematics
-@pytest.mark.parametrize("n_robots", [1, MAX_ROBOTS, MAX_WORLD_ROBOTS])
+@pytest.mark.parametrize("n_robots", [1, HALF_CTB_ROBOTS, MAX_ROBOTS])
 def test_robot_model_kinematics_match_mujoco(n_robots: int) -> None:
     """Forward kinematics of robot_model(i) = MuJoCo's poses relative to the base body."""
     world = World(n_robots)
@@ -604,7 +606,7 @@ def test_release_rebuild_keeps_the_state_and_accounts_for_momentum(released) -> 
 
 @pytest.mark.parametrize("released", [(7,), (0, 4, 6), tuple(range(7))], ids=str)
 def test_release_from_eight_robots_keeps_the_bag_and_the_state(released) -> None:
-    world = World(MAX_WORLD_ROBOTS)
+    world = World(MAX_ROBOTS)
     rebuilt = check_release(world, released)
     assert rebuilt.cargo_bag == world.cargo_bag
     np.testing.assert_array_equal(rebuilt.cargo_size_m, world.cargo_size_m)
@@ -782,9 +784,9 @@ def test_bag_choice() -> None:
     """The smallest bag with a handrail per robot: the half CTB up to four robots (the layout of
     every published result), the single CTB for five to eight; or the bag named."""
     assert [bag.n_handrails for bag in CARGO_BAGS] == sorted(b.n_handrails for b in CARGO_BAGS)
-    assert MAX_WORLD_ROBOTS == CARGO_BAGS[-1].n_handrails == 8
-    for n in range(1, MAX_WORLD_ROBOTS + 1):
-        expected = "half_ctb" if n <= MAX_ROBOTS else "single_ctb"
+    assert MAX_ROBOTS == CARGO_BAGS[-1].n_handrails == 8
+    for n in range(1, MAX_ROBOTS + 1):
+        expected = "half_ctb" if n <= HALF_CTB_ROBOTS else "single_ctb"
         assert World(n).cargo_bag.name == expected
     assert World(3, cargo_bag="single_ctb").cargo_bag.name == "single_ctb"
     with pytest.raises(ValueError, match="4 handrails"):
@@ -795,7 +797,7 @@ def test_bag_choice() -> None:
         World(2, cargo_bag=["half_ctb"])
 
 
-@pytest.mark.parametrize("n_robots", range(2, MAX_WORLD_ROBOTS + 1))
+@pytest.mark.parametrize("n_robots", range(2, MAX_ROBOTS + 1))
 def test_robots_clear_of_each_other_and_the_cargo(n_robots: int) -> None:
     """At the start and at every pan of the trajectories' ramp, no robot comes within
     CLEARANCE_M of another robot or, but for its arm, of the cargo."""
@@ -810,7 +812,7 @@ def test_robots_clear_of_each_other_and_the_cargo(n_robots: int) -> None:
     assert worst[1] > CLEARANCE_M
 
 
-@pytest.mark.parametrize("n_robots", range(1, MAX_WORLD_ROBOTS + 1))
+@pytest.mark.parametrize("n_robots", range(1, MAX_ROBOTS + 1))
 def test_team_fits_the_aisle_along_figure8_yaw(n_robots: int) -> None:
     """figure8_yaw turns the cargo about the vertical only and keeps its centre within the
     figure-eight's amplitudes of the aisle's centre: cargo and robots, at any pan of the ramp, stay
