@@ -52,7 +52,9 @@ symmetric product W W^T (BLAS syrk), so 0.5 (P + P^T) would be a no-op.
 
 `InertialParamUKF` filters a rigid body's 10 standard inertial parameters pi, whose measurements
 (the wrench balance) are linear, and reports the physically consistent body of highest posterior
-density. `LogCholeskyUKF` filters in log-Cholesky coordinates eta instead, so that every sigma
+density (`constrained_mode`: about 110 us per call on states recorded from the environment,
+against about 600 us for the previous, plain implementation, kept as `_barrier_mode_reference`).
+`LogCholeskyUKF` filters in log-Cholesky coordinates eta instead, so that every sigma
 point is a realisable body (the design DESIGN.md recommends); it is kept as the measured reference
 for that choice: on recordings of a weakly exciting 90 s nominal tumble it ends with a normalised
 estimation error squared of 10^3 to 10^5 for 10 parameters, against about 11 for
@@ -68,10 +70,15 @@ from dataclasses import dataclass
 
 import numpy as np
 from filterpy.kalman import MerweScaledSigmaPoints, unscented_transform
+from scipy.linalg.blas import daxpy as _axpy
+from scipy.linalg.blas import dcopy as _copy
 from scipy.linalg.blas import ddot as _dot
 from scipy.linalg.blas import dgemm as _gemm
 from scipy.linalg.blas import dgemv as _gemv
+from scipy.linalg.blas import dsyrk as _syrk
+from scipy.linalg.lapack import dposv as _posv
 from scipy.linalg.lapack import dpotrf as _potrf
+from scipy.linalg.lapack import dtrtri as _trtri
 from scipy.linalg.lapack import dtrtrs as _trtrs
 
 from .inertia import (
@@ -723,16 +730,21 @@ class LogCholeskyUKF(BatchedUKF):
 
 
 def _is_physical(pi: np.ndarray) -> bool:
-    """Pseudo-inertia positive definite (the Cholesky is the cheapest test)."""
-    try:
-        np.linalg.cholesky(params_to_pseudo_inertia(pi))
-    except np.linalg.LinAlgError:
-        return False
-    return bool(np.all(np.isfinite(pi)))
+    """Pseudo-inertia positive definite (the Cholesky is the cheapest test); a ValueError (from
+    `params_to_pseudo_inertia`) if pi is not a finite (10,) array."""
+    pi = np.asarray(pi, dtype=float)
+    if pi.shape == (N_INERTIAL_PARAMS,) and math.isfinite(_dot(pi, pi)):
+        j = np.dot(pi, _PSEUDO_INERTIA_BASIS).reshape(4, 4)  # params_to_pseudo_inertia, unchecked
+    else:
+        j = params_to_pseudo_inertia(pi)
+    return _potrf(j, 1, 0)[1] == 0  # (a, lower, clean)
 
 
-# J(pi) = sum_k pi_k E_k: the pseudo-inertia is linear in the standard parameters.
-_PSEUDO_INERTIA_BASIS = params_to_pseudo_inertia(np.eye(10))
+# J(pi) = sum_k pi_k E_k: the pseudo-inertia is linear in the standard parameters (E_k flattened
+# to rows of 16).
+_PSEUDO_INERTIA_BASIS = params_to_pseudo_inertia(np.eye(10)).reshape(10, 16)
+_VEC_EYE4 = np.eye(4).ravel()  # tr(C) = C.ravel() @ _VEC_EYE4
+_EYE10_F = np.eye(10, order="F")
 
 
 def constrained_mode(
@@ -753,20 +765,31 @@ def constrained_mode(
     body, such as the previous mode of a filter whose state moved a little), whichever is nearer.
     A consistent ``mean`` is its own mode (returned as a copy without iterating). The result is
     always strictly consistent: should the iteration break down numerically (a covariance that
-    is not positive definite, an overflow next to the boundary), it returns the last consistent
-    iterate, or the eigenvalue-clipped body, with ``solved`` False.
+    is not positive definite, an overflow next to the boundary), it returns the eigenvalue-clipped
+    body with ``solved`` False.
+
+    Where the iterate stops depends on the path: Newton stops once its decrement is below
+    ``gap`` / 10, on states recorded from the environment 1e-6 relative (at most 2e-4) from the
+    exact minimiser of the last barrier problem. So the path is part of the result, and
+    `_barrier_mode` keeps the one of the plain computation (`_barrier_mode_reference`) step for
+    step, with fewer and cheaper calls: on 888 recorded states they agree to 5e-16 relative, at
+    about 110 us per call against 600 us.
     """
     mean = np.asarray(mean, dtype=float)
     if _is_physical(mean):
         return mean.copy(), True
     clipped = project_physical(mean, min_eig=1e-3)
-    try:
-        with np.errstate(over="raise", divide="raise", invalid="raise"):
-            pi = _barrier_mode(mean, cov, clipped, start, gap)
-    except (np.linalg.LinAlgError, FloatingPointError, ValueError):
-        pi = None
-    if pi is not None and _is_physical(pi):
-        return pi, True
+    # Should the fast iteration break down (or end on a body that J(pi), recomputed, finds just
+    # outside: it updates J incrementally, so next to a singular J rounding can decide), the
+    # plain one decides, as before.
+    for barrier_mode in (_barrier_mode, _barrier_mode_reference):
+        try:
+            with np.errstate(over="raise", divide="raise", invalid="raise"):
+                pi = barrier_mode(mean, cov, clipped, start, gap)
+        except (np.linalg.LinAlgError, FloatingPointError, ValueError):
+            continue
+        if _is_physical(pi):
+            return pi, True
     return clipped, False
 
 
@@ -777,9 +800,157 @@ def _barrier_mode(
     start: np.ndarray | None,
     gap: float,
 ) -> np.ndarray:
-    """The interior-point iteration of `constrained_mode` (may raise on numerical trouble)."""
+    """The interior-point iteration of `constrained_mode` (may raise on numerical trouble): the
+    steps of `_barrier_mode_reference`, computed with fewer and cheaper calls.
+
+    A call takes about 25 barrier evaluations and 20 Newton systems, each a handful of BLAS and
+    LAPACK calls on 4 x 4 and 10 x 10 matrices, so what costs is the number of calls and their
+    kind (scipy's wrappers of level-1 BLAS on vectors cost a tenth of an ``np.dot``):
+
+    - J is linear in v: J(v) = J(mean) + sum_l v_l B_l with B_l = sum_k L_kl E_k, so a trial
+      point's J is J(v) - s J(u) (u the Newton direction), one axpy (J(v) is updated the same
+      way; rounding can therefore make J(pi) of the result, recomputed, differ from it where J
+      is singular to working precision, which `constrained_mode` checks).
+    - log det J from the diagonal of its Cholesky factor (potrf), which also tests that J is
+      positive definite. A rejected trial costs only this.
+    - With M = L_J^-1 (trtri) and C_l = M B_l M^T, the barrier's gradient is tr(J^-1 B_l) =
+      tr(C_l) and its Hessian tr(J^-1 B_l J^-1 B_m) = vec(C_l) . vec(C_m). All ten C_l are two
+      gemms with the ten B_l stacked (``basis_rows``), laid out so that the second one's output,
+      reshaped, has the vec(C_l) as rows (``c_flat``). They do not depend on t: a new barrier
+      stage at the same point reuses them.
+    - The Newton system I + t C C^T (BLAS syrk) and its right-hand side v - t C vec(I) (gemv)
+      are solved by one LAPACK posv (by LU, as the plain computation, should rounding make the
+      Cholesky fail).
+    - |v - s u|^2 = |v|^2 - 2 s v.u + s^2 u.u from dot products, once per Newton step.
+    """
+    lower, info = _potrf(cov, 1, 1)
+    if info != 0 or not math.isfinite(_dot(lower.ravel(), lower.ravel())):
+        raise np.linalg.LinAlgError("cov is not positive definite and finite")
+    basis = np.dot(lower.T, _PSEUDO_INERTIA_BASIS)  # rows: B_l = d J / d v_l, flattened
+    basis_T = basis.T  # Fortran-ordered (16, 10), for gemv
+    # The B_l stacked, (40, 4) with rows (l, a): the gemm basis_rows M^T = [M B_0, ..., M B_9]^T
+    # is written, transposed, into m_basis (4, 40) = [M B_0, ..., M B_9]. Reshaped to (40, 4)
+    # that has rows (i, l) and columns a, so that M @ it^T has the entries (M B_l M^T)[i, j] =
+    # C_l[i, j] at [j, 10 i + l]: c_cat reshaped to (16, 10) has vec(C_l) as column l.
+    basis_rows = np.asfortranarray(basis.reshape(40, 4))
+    m_basis = np.empty((4, 40))
+    m_basis_T = m_basis.T
+    m_basis_rows_T = m_basis.reshape(40, 4).T
+    c_cat = np.empty((4, 40))
+    c_cat_T = c_cat.T
+    c_flat = c_cat.reshape(16, 10).T  # (10, 16), Fortran-ordered: row l is vec(C_l) permuted
+
+    v = _solve_lower(lower, clipped - mean)
+    t = 1.0
+    if start is not None and _is_physical(start):
+        v_start = _solve_lower(lower, np.asarray(start, dtype=float) - mean)
+        if _dot(v_start, v_start) < _dot(v, v):
+            # Near the new mode already: start further down the central path.
+            v, t = v_start, 1e-2
+    v = v.copy()  # updated in place
+    # J(v) and J(u) as flat vectors (C order; J is symmetric, so also its Fortran order).
+    j_v = np.dot(mean, _PSEUDO_INERTIA_BASIS)
+    _gemv(1.0, basis_T, v, 1.0, j_v, 0, 1, 0, 1, 0, 1)  # (alpha, a, x, beta, y, ..., overwrite_y)
+    j_u = np.empty(16)
+    # Work buffers, all written in place (the wrappers' last arguments): the Cholesky factor of a
+    # trial's J, then M = L_J^-1 of the accepted one; the Newton system, its right-hand side
+    # and its solution.
+    j_lower = np.empty((4, 4), order="F")
+    j_lower_flat = j_lower.T.ravel()
+    j_lower_diag = j_lower_flat[::5]
+    hess = np.empty((10, 10), order="F")
+    grad = np.empty(10)
+    direction = np.empty(10)
+    potrf, trtri, gemm, syrk, gemv, posv = _potrf, _trtri, _gemm, _syrk, _gemv, _posv
+    dot, axpy, copy, log, isfinite = _dot, _axpy, _copy, math.log, math.isfinite
+    eye10, vec_eye4 = _EYE10_F, _VEC_EYE4
+
+    copy(j_v, j_lower_flat)
+    if potrf(j_lower, 1, 1, 1)[1] != 0:  # (a, lower, clean, overwrite_a)
+        raise np.linalg.LinAlgError("the starting point is not strictly consistent")
+    log_det = _log_det(j_lower)
+    v_sq = dot(v, v)
+    c_current = False  # whether c_cat holds the C_l of the current v (they do not depend on t)
+    while True:
+        for _ in range(50):
+            if not c_current:
+                if trtri(j_lower, 1, 0, 1)[1] != 0:  # M = L_J^-1 in place: (c, lower, unit, ow)
+                    raise np.linalg.LinAlgError("singular pseudo-inertia factor")
+                # gemm (alpha, a, b, beta, c, trans_a, trans_b, overwrite_c), each product
+                # written in place as its transpose.
+                gemm(1.0, basis_rows, j_lower, 0.0, m_basis_T, 0, 1, 1)
+                gemm(1.0, m_basis_rows_T, j_lower, 0.0, c_cat_T, 1, 1, 1)
+                c_current = True
+            # I + t C C^T, lower triangle: syrk (alpha, a, beta, c, trans, lower, overwrite_c).
+            hess[...] = eye10
+            syrk(t, c_flat, 1.0, hess, 0, 1, 1)
+            # v - t C vec(I), the gradient of the barrier problem: gemv (alpha, a, x, beta, y).
+            copy(v, grad)
+            gemv(-t, c_flat, vec_eye4, 1.0, grad, 0, 1, 0, 1, 0, 1)
+            # H^-1 grad (the step is minus that): posv (a, b, lower, overwrite_a, overwrite_b).
+            copy(grad, direction)
+            if posv(hess, direction, 1, 1, 1)[2] != 0:
+                # Positive definite in exact arithmetic, but rounding can break the Cholesky
+                # when J is nearly singular: solve by LU, as np.linalg.solve (which raises if
+                # the system is singular).
+                hess_full = np.dot(c_flat, c_flat.T)
+                hess_full *= t
+                hess_full += np.eye(10)
+                direction[...] = np.linalg.solve(hess_full, grad)
+            decrement = dot(grad, direction)  # twice the predicted decrease
+            if not isfinite(decrement):
+                raise FloatingPointError("non-finite Newton decrement")
+            if decrement < 0.1 * gap:
+                break
+            value = 0.5 * v_sq - t * log_det
+            gemv(1.0, basis_T, direction, 0.0, j_u, 0, 1, 0, 1, 0, 1)
+            v_dir = dot(v, direction)
+            dir_sq = dot(direction, direction)
+            scale = 1.0
+            while scale > 1e-12:
+                copy(j_v, j_lower_flat)
+                axpy(j_u, j_lower_flat, 16, -scale)  # J(v - scale u)
+                if potrf(j_lower, 1, 1, 1)[1] == 0:
+                    # log det J = 2 sum log diag(L_J): the log of the product unless far from 1.
+                    d0, d1, d2, d3 = j_lower_diag.tolist()
+                    diag = d0 * d1 * d2 * d3
+                    if 1e-280 < diag < 1e280:
+                        trial_log_det = 2.0 * log(diag)
+                    else:
+                        trial_log_det = _log_det(j_lower)
+                    trial_sq = v_sq - 2.0 * scale * v_dir + scale * scale * dir_sq
+                    if 0.5 * trial_sq - t * trial_log_det <= value - 0.25 * scale * decrement:
+                        break
+                scale *= 0.5
+            else:
+                # No acceptable step (v stays): its factor is needed again.
+                copy(j_v, j_lower_flat)
+                potrf(j_lower, 1, 1, 1)
+                c_current = False
+                break
+            axpy(direction, v, 10, -scale)
+            axpy(j_u, j_v, 16, -scale)  # as for the trial, so J(v) is its J
+            v_sq, log_det = trial_sq, trial_log_det
+            c_current = False
+        if 4.0 * t <= gap:
+            break
+        t = max(0.02 * t, 0.25 * gap)
+    return mean + np.dot(lower, v)
+
+
+def _barrier_mode_reference(
+    mean: np.ndarray,
+    cov: np.ndarray,
+    clipped: np.ndarray,
+    start: np.ndarray | None,
+    gap: float,
+) -> np.ndarray:
+    """`_barrier_mode` computed plainly: J from pi, its inverse, einsums, np.linalg.solve (about
+    five times slower). `constrained_mode` falls back on it when `_barrier_mode` breaks down, and
+    the tests hold the two to each other."""
     lower = np.linalg.cholesky(cov)
-    basis_l = np.einsum("kij,kl->lij", _PSEUDO_INERTIA_BASIS, lower)  # d J / d v_l
+    basis = _PSEUDO_INERTIA_BASIS.reshape(10, 4, 4)
+    basis_l = np.einsum("kij,kl->lij", basis, lower)  # d J / d v_l
 
     def barrier_terms(pi: np.ndarray) -> tuple[float, np.ndarray, np.ndarray] | None:
         """log det J, its gradient and (minus) Hessian in v; None where J is not definite."""
@@ -828,6 +999,15 @@ def _barrier_mode(
             break
         t = max(0.02 * t, 0.25 * gap)
     return mean + lower @ v
+
+
+def _log_det(lower: np.ndarray) -> float:
+    """log det J = 2 sum log diag(L) from the (4, 4) Cholesky factor L of J; a
+    FloatingPointError if not finite (a NaN passes OpenBLAS's potrf)."""
+    log_det = 2.0 * sum(math.log(lower.item(k)) for k in (0, 5, 10, 15))
+    if not math.isfinite(log_det):
+        raise FloatingPointError("non-finite log det J")
+    return log_det
 
 
 class InertialParamUKF(BatchedUKF):

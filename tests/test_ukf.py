@@ -12,10 +12,12 @@ from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 from scipy.stats import chi2, multivariate_normal
 
+from astrocargo.estimator import ukf as ukf_module
 from astrocargo.estimator.inertia import (
     log_cholesky_to_params,
     params_from_mass_com_inertia,
     params_to_log_cholesky,
+    project_physical,
 )
 from astrocargo.estimator.ukf import (
     BatchedUKF,
@@ -691,3 +693,49 @@ def test_linear_params_hx_maps_one_point_or_many():
     points = rng.normal(size=(21, DIM_X))
     np.testing.assert_allclose(hx(points), points @ A.T + b, rtol=1e-14)
     np.testing.assert_allclose(hx(points[3]), A @ points[3] + b, rtol=1e-14)
+
+
+def inconsistent_body(rng: np.random.Generator) -> np.ndarray:
+    inertia = np.diag(rng.uniform(0.01, 0.05, 3))
+    inertia[0, 0] = inertia[1, 1] + inertia[2, 2] + rng.uniform(0.001, 0.02)
+    if rng.uniform() < 0.5:
+        inertia[2, 2] = -rng.uniform(0.001, 0.01)
+    return params_from_mass_com_inertia(rng.uniform(1, 5), rng.normal(scale=0.1, size=3), inertia)
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), with_start=st.booleans())
+def test_constrained_mode_follows_its_plain_computation(seed, with_start):
+    """The interior-point iteration keeps its path step for step (where it stops depends on the
+    path, some 1e-6 relative from the exact minimiser of the last barrier problem): the fast
+    iteration (J updated in place, closed-form barrier derivatives, LAPACK) and the plain one
+    (J from pi, its inverse, einsums, np.linalg.solve) return the same body to rounding."""
+    rng = np.random.default_rng(seed)
+    bad = inconsistent_body(rng)
+    cov = random_spd(rng, scale=10 ** rng.uniform(-5, -1))
+    start = TRUE_PARAMS if with_start else None
+    clipped = project_physical(bad, min_eig=1e-3)
+    with np.errstate(over="raise", divide="raise", invalid="raise"):
+        fast = ukf_module._barrier_mode(bad, cov, clipped, start, 1e-4)
+        plain = ukf_module._barrier_mode_reference(bad, cov, clipped, start, 1e-4)
+    np.testing.assert_allclose(fast, plain, rtol=TOL, atol=TOL * np.abs(plain).max())
+    mode, solved = constrained_mode(bad, cov, start=start)
+    assert solved
+    np.testing.assert_array_equal(mode, fast)
+
+
+def test_constrained_mode_falls_back_on_the_plain_iteration(monkeypatch):
+    """Should the fast iteration break down, the plain one decides."""
+    rng = np.random.default_rng(22)
+    bad = inconsistent_body(rng)
+    cov = random_spd(rng, scale=1e-3)
+    expected, solved = constrained_mode(bad, cov)
+    assert solved
+
+    def broken(*args):
+        raise np.linalg.LinAlgError("broken on purpose")
+
+    monkeypatch.setattr(ukf_module, "_barrier_mode", broken)
+    mode, solved = constrained_mode(bad, cov)
+    assert solved
+    np.testing.assert_allclose(mode, expected, rtol=TOL, atol=TOL * np.abs(expected).max())
