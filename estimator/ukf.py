@@ -18,19 +18,30 @@ How it matches filterpy 2.0, step by step:
   uses those. ``update`` here draws them from the current (x, P) at update time, which is the same
   after a predict and is also correct when several updates follow one predict (filterpy would
   reuse stale points there).
-- z_pred and S are filterpy's `unscented_transform(sigmas_h, Wm, Wc, R)`, written out so that
-  they share one matrix product with the cross-covariance; the gain, innovation and posterior are
-  filterpy's (K = P_xz S^-1, x += K y, P -= K S K^T), computed through the Cholesky factor of S.
+- z_pred, S and P_xz are filterpy's `unscented_transform(sigmas_h, Wm, Wc, R)` and its
+  cross-covariance, and the gain, innovation and posterior are filterpy's (K = P_xz S^-1, x += K
+  y, P -= K S K^T), in exact arithmetic. They are computed from the differences Z_i - Z_0 of the
+  hx outputs (exact to rounding however large Z is against its spread), and the gain through one
+  Cholesky factorisation of a joint matrix of S, P_xz and y (`BatchedUKF._init_update_buffers`
+  spells it out); to rounding the results are filterpy's, and as accurate (on random problems
+  their errors against an extended-precision reference are distributed as those of the previous
+  implementation, which formed the terms one at a time). An update that fails any check is sorted
+  out step by step in that previous form (`BatchedUKF._update_checked`), and the tests hold the
+  two paths to each other.
 
-Why it is fast (predict + update_linear of `InertialParamUKF`, n = 10, m = 6, takes about 20 to 40
-us on the 2-core development machine; filterpy's stock filter with the same per-point measurement
-function 8 to 9 times longer, see scripts/benchmark_performance.py): one vectorised hx call and
-no Python loop over sigma points, no Cholesky in ``predict``, LAPACK potrf/trtrs called directly
-(numpy's and scipy's wrappers cost 3 to 4 times more at this size), ``np.dot`` rather than ``@``
-(less per-call overhead on tiny matrices). Per-call overhead, not arithmetic, is what costs here;
-run with OPENBLAS_NUM_THREADS=1, as BLAS threads only slow matrices this small (on a busy machine a
-thread hand-off can cost milliseconds: measured 8 ms instead of 20 us per update with two threads
-while other processes ran; the scripts and the tests set it).
+Why it is fast: predict + update_linear of `InertialParamUKF` (n = 10, m = 6) takes about 12 us in
+a tight loop on the 2-core development machine and 14.7 to 14.9 us in
+``scripts/benchmark_performance.py --only estimator`` (which interleaves it with filterpy's stock
+filter given the same per-point measurement function: 157 to 158 us, 10.5 to 10.7 times longer;
+in the same three runs the previous implementation of this module, commit fe1c87d, took 19.3 us,
+the stock filter 8.2 times longer). One vectorised hx call and no Python loop over sigma points, no
+Cholesky in ``predict``, and about twenty calls into BLAS and LAPACK through scipy's wrappers with
+positional arguments and in-place outputs: at this size per-call overhead, not arithmetic, is what
+costs, about 0.1 us for a level-1 BLAS call on a vector and 0.2 to 0.5 us for a small gemm or
+potrf, against 0.4 to 1 us for an ``np.dot`` or a numpy operation on a strided or broadcast
+operand. Run with OPENBLAS_NUM_THREADS=1, as BLAS threads only slow matrices this small (on a busy
+machine a thread hand-off can cost milliseconds: measured 8 ms instead of 20 us per update with
+two threads while other processes ran; the scripts and the tests set it).
 
 Robustness, beyond filterpy: inputs are shape-checked (ValueError naming the expected shape); an
 update with NaN or inf in z, R or the hx output is skipped and counted; S and the posterior P are
@@ -41,7 +52,9 @@ symmetric product W W^T (BLAS syrk), so 0.5 (P + P^T) would be a no-op.
 
 `InertialParamUKF` filters a rigid body's 10 standard inertial parameters pi, whose measurements
 (the wrench balance) are linear, and reports the physically consistent body of highest posterior
-density. `LogCholeskyUKF` filters in log-Cholesky coordinates eta instead, so that every sigma
+density (`constrained_mode`: about 110 us per call on states recorded from the environment,
+against about 600 us for the previous, plain implementation, kept as `_barrier_mode_reference`).
+`LogCholeskyUKF` filters in log-Cholesky coordinates eta instead, so that every sigma
 point is a realisable body (the design DESIGN.md recommends); it is kept as the measured reference
 for that choice: on recordings of a weakly exciting 90 s nominal tumble it ends with a normalised
 estimation error squared of 10^3 to 10^5 for 10 parameters, against about 11 for
@@ -57,7 +70,15 @@ from dataclasses import dataclass
 
 import numpy as np
 from filterpy.kalman import MerweScaledSigmaPoints, unscented_transform
+from scipy.linalg.blas import daxpy as _axpy
+from scipy.linalg.blas import dcopy as _copy
+from scipy.linalg.blas import ddot as _dot
+from scipy.linalg.blas import dgemm as _gemm
+from scipy.linalg.blas import dgemv as _gemv
+from scipy.linalg.blas import dsyrk as _syrk
+from scipy.linalg.lapack import dposv as _posv
 from scipy.linalg.lapack import dpotrf as _potrf
+from scipy.linalg.lapack import dtrtri as _trtri
 from scipy.linalg.lapack import dtrtrs as _trtrs
 
 from .inertia import (
@@ -88,6 +109,11 @@ DEFAULT_BETA = 2.0
 DEFAULT_KAPPA = 0.0
 
 N_INERTIAL_PARAMS = 10
+
+# Diagonal of the trailing block of the joint matrix factored in `BatchedUKF.update`: large enough
+# to keep those pivots positive for any sensible K and NIS (a failure there only sends the update
+# down the step-by-step path), small enough that no product of its factor underflows.
+_TRAILING_PIVOT = 1e100
 
 
 @dataclass(frozen=True)
@@ -143,11 +169,28 @@ def linear_params_hx(
     A is (m, 10) and b (m,); pi(x) is ``to_params`` (`log_cholesky_to_params` for the state of
     `LogCholeskyUKF`; None when the state is pi itself, as in `InertialParamUKF`).
     """
-    A_T = np.asarray(A, dtype=float).T
-    b = np.asarray(b, dtype=float)
-    if to_params is None:
-        return lambda sigmas: np.dot(sigmas, A_T) + b
-    return lambda sigmas: np.dot(to_params(sigmas), A_T) + b
+    return _linear_hx(np.asarray(A, dtype=float), np.asarray(b, dtype=float), to_params)
+
+
+def _linear_hx(
+    A: np.ndarray, b: np.ndarray, to_params: Callable[[np.ndarray], np.ndarray] | None
+) -> Callable[[np.ndarray], np.ndarray]:
+    """`linear_params_hx` for float arrays A (m, 10) and b (m,)."""
+    A_T = A.T
+    m = len(b)
+
+    def hx_batch(sigmas: np.ndarray) -> np.ndarray:
+        params = sigmas if to_params is None else to_params(sigmas)
+        if params.ndim != 2:
+            return np.dot(params, A_T) + b
+        # [A pi_1 + b, ...]^T in one BLAS gemm (beta = 1 on copies of b), written in place
+        # through the transposed view: half the cost of np.dot(params, A.T) + b at this size.
+        out = np.empty((len(params), m))
+        out[...] = b
+        _gemm(1.0, A_T, params.T, 1.0, out.T, 1, 0, 1)
+        return out
+
+    return hx_batch
 
 
 class BatchedUKF:
@@ -208,9 +251,7 @@ class BatchedUKF:
         # sqrt(n + lambda) L columns share the weight Wc_1, so z_pred cancels and
         # P_xz = L (cross_weights @ Z) with cross_weights = Wc_1 sqrt(n + lambda) [0, 1, -1].
         self._cross_weights = (float(self.Wc[1]) * self._sigma_offsets).T.copy()
-        # Rows [L cross_weights; -Wm]: times the hx outputs they give [P_xz; -z_pred] in one
-        # product. The first n rows are refilled each update.
-        self._rhs_weights = np.vstack((self._cross_weights, -self.Wm))
+        self._init_update_buffers()
 
         self.gate_nis = gate_nis
 
@@ -233,12 +274,112 @@ class BatchedUKF:
         self.nis = math.nan
         self._S_lower = np.eye(self.dim_z)
         self._W_T = np.zeros((self.dim_z, self.dim_x))  # L_S^-1 P_zx, so that K = W L_S^-1
+        self._factors: np.ndarray | None = None  # the joint factor of a fast-path update
         self.sigmas = np.zeros((self.n_sigma, self.dim_x))
         self.sigmas_h = np.zeros((self.n_sigma, self.dim_z))
         self.n_updates = 0
         self.n_skipped_nonfinite = 0
         self.n_gated = 0
         self.n_rejected_not_pd = 0
+
+    def _init_update_buffers(self) -> None:
+        """Constant matrices and work buffers of `update`.
+
+        At n = 10, m = 6 a numpy, BLAS or LAPACK call costs 0.1 to 1 us of overhead and next to
+        nothing in arithmetic, so an update is laid out as few calls as possible (and as the
+        cheapest kinds of call, see the module docstring):
+
+        1. L = chol(P), LAPACK potrf in place in ``_x_L`` = [x, L]; sigma points
+           [1, offsets] @ [x, L]^T, one BLAS gemm.
+        2. Z = hx(sigma points). One gemm of a constant matrix with Z gives, as rows of
+           ``_stack``: E = sqrt(n + lambda) (Z_(1+r) - Z_(1+n+r)) (r < n, so that P_xz =
+           Wc_1 L E), the differences D_i = Z_i - Z_0 (i = 1..2n), their sum s, -z_pred and
+           (gamma / Wc_1) s. With G_i = Z_i - z_pred = D_i - Wm_1 s (D_0 = 0) the covariance of
+           the residuals is sum_i Wc_i G_i G_i^T = Wc_1 sum_i D_i D_i^T + gamma s s^T, gamma =
+           Wm_1^2 sum_i Wc_i - 2 Wc_1 Wm_1. The differences are exact to rounding, however
+           large Z is against its spread (residuals taken from a weighted mean, as filterpy
+           does, lose about eps |Z| each); s s^T carries the rest, which is small (it vanishes
+           for a linear hx). R and z are copied into ``_stack`` too, so that one dot product of
+           ``_stack`` with itself tests R, z and Z for NaN and inf.
+        3. One gemm Wc_1 ``_picks`` @ ``_stack`` gives the first m columns [S; P_xz; y^T] of
+           the joint matrix [[S, ., .], [P_xz, c I, .], [y^T, 0, c]] (only its lower triangle
+           is read; c I is a constant that keeps the trailing pivots positive).
+        4. One Cholesky factorisation (potrf) of the joint matrix holds L_S, W = P_xz L_S^-T
+           and w^T = (L_S^-1 y)^T: what a Cholesky of S and a triangular solve would give, in
+           one call. It fails if S is not positive definite.
+        5. K S K^T = W W^T (BLAS syrk, exactly symmetric), K y = W w and the NIS w.w. The
+           posterior P - W W^T is Cholesky-checked (potrf) as it is kept.
+        """
+        n, m, k = self.dim_x, self.dim_z, self.n_sigma
+        wc1, wm1 = float(self.Wc[1]), float(self.Wm[1])
+        gamma = wm1**2 * float(self.Wc.sum()) - 2.0 * wc1 * wm1
+        sigma_scale = float(self._sigma_offsets[1, 0])
+        differences = np.hstack((-np.ones((2 * n, 1)), np.eye(2 * n)))  # D_i = Z_i - Z_0
+        sums = differences.sum(axis=0, keepdims=True)  # s = sum_i D_i
+        # Rows of `_stack` (each m wide), the contraction index of step 3:
+        #   [0, m) R | m z | m + 1 zero | E (n) | D (2n) | (gamma / Wc_1) s | -z_pred || s
+        # Those from E on are the gemm of step 2; the last one is not part of the contraction.
+        e0 = m + 2
+        d0 = e0 + n
+        s0 = d0 + 2 * n
+        n_left = s0 + 2
+        self._from_h_T = np.vstack(
+            (
+                sigma_scale * (np.eye(k)[1 : n + 1] - np.eye(k)[n + 1 :]),
+                differences,
+                (gamma / wc1) * sums,
+                -self.Wm[None, :],
+                sums,
+            )
+        ).T
+        self._stack = np.zeros((n_left + 1, m))
+        self._stack_flat = self._stack.ravel()
+        self._stack_R = self._stack[:m]
+        self._stack_z = self._stack[m]
+        self._stack_from_h_T = self._stack[e0:].T
+        self._stack_left_T = self._stack[:n_left].T
+        self._stack_D_T = self._stack[d0:s0].T
+        self._stack_s = self._stack[n_left]
+        # `_picks` (m + n + 1, n_left): row j of the gemm of step 3 (times Wc_1) takes
+        #   j < m:          e_j / Wc_1 on R, D^T_j on D, s_j on (gamma / Wc_1) s   -> S_j
+        #   m <= j < m + n: [x, L]_(j-m) on [zero, E]                              -> P_xz
+        #   m + n:          1 / Wc_1 on z and on -z_pred                           -> y
+        self._picks = np.zeros((m + n + 1, n_left))
+        self._picks[:m, :m] = np.eye(m) / wc1
+        self._picks[m + n, m] = 1.0 / wc1
+        self._picks[m + n, s0 + 1] = 1.0 / wc1
+        self._picks_T = self._picks.T
+        self._picks_x_L = self._picks[m : m + n, m + 1 : d0]
+        self._picks_D_T = self._picks[:m, d0:s0]
+        self._picks_s = self._picks[:m, s0]
+        self._wc1 = wc1
+        # [x, L] (n, n + 1), Fortran-ordered: potrf factors P in place in its last n columns.
+        self._x_L = np.zeros((n, n + 1), order="F")
+        self._x_L_x = self._x_L[:, 0]
+        self._x_L_L = self._x_L[:, 1:]
+        self._ones_offsets_T = np.hstack((np.ones((k, 1)), self._sigma_offsets)).T
+        self._joint_template = np.zeros((m + n + 1, m + n + 1), order="F")
+        self._joint_template[range(m, m + n + 1), range(m, m + n + 1)] = _TRAILING_PIVOT
+        # What `update` reads, in one tuple (one attribute lookup instead of twenty).
+        self._update_buffers = (
+            self._x_L,
+            self._x_L_L,
+            self._x_L_x,
+            self._ones_offsets_T,
+            self._from_h_T,
+            self._stack_from_h_T,
+            self._stack_R,
+            self._stack_z,
+            self._stack_flat,
+            self._picks_x_L,
+            self._picks_D_T,
+            self._stack_D_T,
+            self._picks_s,
+            self._stack_s,
+            self._joint_template,
+            self._picks_T,
+            self._stack_left_T,
+        )
 
     def _checked_Q(self, Q: np.ndarray) -> np.ndarray:
         Q = _as_square_matrix(Q, self.dim_x, "Q")
@@ -247,15 +388,26 @@ class BatchedUKF:
         # A symmetric Q keeps P exactly symmetric through predict.
         return 0.5 * (Q + Q.T)
 
+    def _factor_P(self) -> int:
+        """L = chol(P) into ``_x_L`` (LAPACK potrf in place); info != 0 if P is not positive
+        definite."""
+        self._x_L_L[...] = self.P
+        return _potrf(self._x_L_L, 1, 1, 1)[1]  # (a, lower, clean, overwrite_a)
+
+    def _sigmas_from_factor(self) -> np.ndarray:
+        """Sigma points x + offsets @ L^T = [1, offsets] @ [x, L]^T, one BLAS gemm, from the L
+        that `_factor_P` left in ``_x_L`` (`update` does the very same)."""
+        self._x_L_x[...] = self.x
+        return _gemm(1.0, self._x_L, self._ones_offsets_T).T
+
     def sigma_points(self) -> np.ndarray:
         """Merwe sigma points of the current (x, P), shape (2n + 1, n), filterpy's ordering.
 
         Raises np.linalg.LinAlgError if P is not positive definite.
         """
-        lower, info = _cholesky_lower(self.P)
-        if info != 0:
+        if self._factor_P() != 0:
             raise np.linalg.LinAlgError("P is not positive definite")
-        return self.x + np.dot(self._sigma_offsets, lower.T)
+        return self._sigmas_from_factor()
 
     def predict(self, Q: np.ndarray | None = None) -> None:
         """Propagate through x_{k+1} = x_k + w: x is unchanged, P grows by Q (or by `self.Q`).
@@ -263,8 +415,7 @@ class BatchedUKF:
         This is the unscented transform of the identity map in closed form (see the module
         docstring).
         """
-        Q = self.Q if Q is None else self._checked_Q(Q)
-        self.P = self.P + Q
+        self.P = self.P + (self.Q if Q is None else self._checked_Q(Q))
 
     def update(
         self,
@@ -285,18 +436,111 @@ class BatchedUKF:
         z = np.asarray(z, dtype=float)
         if z.shape != (m,):
             raise ValueError(f"z must have shape ({m},), got {z.shape}")
-        R = _as_square_matrix(R, m, "R")
+        R = np.asarray(R, dtype=float)
+        if R.shape != (m, m):
+            raise ValueError(f"R must have shape ({m}, {m}), got {R.shape}")
+
+        # The steps of `_init_update_buffers`, written out (a method call costs here). Any
+        # failure (non-finite input, a Cholesky that fails, a non-finite NIS) hands the update
+        # to `_update_checked`, which sorts it out one check at a time.
+        (
+            x_L,
+            x_L_L,
+            x_L_x,
+            ones_offsets_T,
+            from_h_T,
+            stack_from_h_T,
+            stack_R,
+            stack_z,
+            stack_flat,
+            picks_x_L,
+            picks_D_T,
+            stack_D_T,
+            picks_s,
+            stack_s,
+            joint_template,
+            picks_T,
+            stack_left_T,
+        ) = self._update_buffers
+        P = self.P
+        x_L_L[...] = P
+        if _potrf(x_L_L, 1, 1, 1)[1] != 0:  # (a, lower, clean, overwrite_a)
+            return self._update_checked(z, hx_batch, R)
+        x_L_x[...] = self.x
+        sigmas = _gemm(1.0, x_L, ones_offsets_T).T
+        sigmas_h = np.asarray(hx_batch(sigmas), dtype=float)
+        if sigmas_h.shape != (self.n_sigma, m):
+            return self._update_checked(z, hx_batch, R, sigmas, sigmas_h)
+        # gemm arguments: (alpha, a, b, beta, c, trans_a, trans_b, overwrite_c), positional as
+        # f2py parses keywords slowly; c is a Fortran-ordered view of the buffer, so written in
+        # place. Unlike np.dot, scipy's BLAS wrappers do not warn about an inf in Z.
+        _gemm(1.0, sigmas_h.T, from_h_T, 0.0, stack_from_h_T, 0, 0, 1)
+        stack_R[...] = R
+        stack_z[...] = z
+        if not (math.isfinite(_dot(stack_flat, stack_flat)) or np.isfinite(stack_flat).all()):
+            return self._update_checked(z, hx_batch, R, sigmas, sigmas_h)
+        picks_x_L[...] = x_L
+        picks_D_T[...] = stack_D_T
+        picks_s[...] = stack_s
+        n = self.dim_x
+        joint = joint_template.copy("F")
+        _gemm(self._wc1, picks_T, stack_left_T, 0.0, joint[:, :m], 1, 1, 1)
+        factor = joint.copy("F")
+        if _potrf(factor, 1, 1, 1)[1] != 0:  # in place (joint keeps S and y)
+            return self._update_checked(z, hx_batch, R, sigmas, sigmas_h)
+        W = factor[m : m + n, :m]
+        # w = factor[m + n, :m]: m entries from m + n on, m + n + 1 apart in Fortran order. The
+        # BLAS wrappers take such strides (ddot (x, y, n, offx, incx, offy, incy)).
+        factor_flat = factor.T.ravel()
+        d = m + n + 1
+        nis = _dot(factor_flat, factor_flat, m, m + n, d, m + n, d)
+        if not math.isfinite(nis):
+            return self._update_checked(z, hx_batch, R, sigmas, sigmas_h)
+        self.sigmas = sigmas
+        self.sigmas_h = sigmas_h
+        self.y = joint[m + n, :m]
+        self.S = joint[:m, :m]
+        self.nis = nis
+        self._factors = factor
+        if self.gate_nis is not None and nis > self.gate_nis:
+            self.n_gated += 1
+            return UpdateResult(False, "gated", nis)
+        # K S K^T = W W^T (BLAS syrk through np.dot: exactly symmetric, so P stays so) and
+        # K y = W w (gemv (alpha, a, x, beta, y): x + W w in a new array).
+        P_post = P - np.dot(W, W.T)
+        if _potrf(P_post.T, 1, 0)[1] != 0:  # (P_post.T: the same matrix, Fortran-ordered)
+            self.n_rejected_not_pd += 1
+            return UpdateResult(False, "not-positive-definite", nis)
+        self.P = P_post
+        # (alpha, a, x, beta, y, offx, incx): x + W w in a new array.
+        self.x = _gemv(1.0, W, factor_flat, 1.0, self.x, m + n, d)
+        self.n_updates += 1
+        return UpdateResult(True, "ok", nis)
+
+    def _update_checked(
+        self,
+        z: np.ndarray,
+        hx_batch: Callable[[np.ndarray], np.ndarray],
+        R: np.ndarray,
+        sigmas: np.ndarray | None = None,
+        sigmas_h: np.ndarray | None = None,
+    ) -> UpdateResult:
+        """`update` one check at a time (z and R are shape-checked float arrays): the path of
+        every update that fails somewhere, and the reference for the fast path. Given the sigma
+        points and their hx outputs (from the same x and P) it does not call hx again."""
+        m = self.dim_z
         # z is checked through the NIS: NaN or inf in z makes y, hence the NIS, non-finite.
         if not _all_finite(R):
             self.n_skipped_nonfinite += 1
             return UpdateResult(False, "non-finite", math.nan)
 
-        P_lower, info = _cholesky_lower(self.P)
-        if info != 0:
+        if self._factor_P() != 0:
             self.n_rejected_not_pd += 1
             return UpdateResult(False, "not-positive-definite", math.nan)
-        sigmas = self.x + np.dot(self._sigma_offsets, P_lower.T)
-        sigmas_h = np.asarray(hx_batch(sigmas), dtype=float)
+        P_lower = self._x_L_L
+        if sigmas_h is None:
+            sigmas = self._sigmas_from_factor()
+            sigmas_h = np.asarray(hx_batch(sigmas), dtype=float)
         if sigmas_h.shape != (self.n_sigma, m):
             raise ValueError(
                 f"hx_batch must return shape ({self.n_sigma}, {m}) for sigma points of shape "
@@ -309,10 +553,10 @@ class BatchedUKF:
             return UpdateResult(False, "non-finite", math.nan)
 
         n = self.dim_x
-        # rhs_T = [P_xz; -z_pred] (see __init__). S is filterpy's unscented_transform(sigmas_h,
-        # Wm, Wc, R) written out, sharing z_pred with the cross-covariance.
-        np.dot(P_lower, self._cross_weights, out=self._rhs_weights[:n])
-        rhs_T = np.dot(self._rhs_weights, sigmas_h)
+        # rhs_T = [P_xz; -z_pred] = [L cross_weights; -Wm] Z. S is filterpy's
+        # unscented_transform(sigmas_h, Wm, Wc, R) written out, sharing z_pred with the
+        # cross-covariance.
+        rhs_T = np.dot(np.vstack((np.dot(P_lower, self._cross_weights), -self.Wm)), sigmas_h)
         residuals_h = sigmas_h + rhs_T[n]
         S = np.dot(residuals_h.T * self.Wc, residuals_h)
         S += R
@@ -329,6 +573,7 @@ class BatchedUKF:
         W_T, w = whitened[:, :n], whitened[:, n]
         nis = float(np.dot(w, w))
         self.y, self.S, self.nis, self._S_lower, self._W_T = y, S, nis, S_lower, W_T
+        self._factors = None
         if not math.isfinite(nis):
             if _all_finite(z):
                 self.n_rejected_not_pd += 1
@@ -352,17 +597,25 @@ class BatchedUKF:
         self.n_updates += 1
         return UpdateResult(True, "ok", nis)
 
+    def _last_factors(self) -> tuple[np.ndarray, np.ndarray]:
+        """L_S and W^T = L_S^-1 P_zx of the last update that computed an innovation."""
+        if self._factors is None:
+            return self._S_lower, self._W_T
+        m = self.dim_z
+        return self._factors[:m, :m], self._factors[m : m + self.dim_x, :m].T
+
     @property
     def K(self) -> np.ndarray:
         """Kalman gain P_xz S^-1 (n, m) of the last update that computed an innovation."""
-        return _solve_lower(self._S_lower, self._W_T, transpose=True).T
+        S_lower, W_T = self._last_factors()
+        return _solve_lower(S_lower, W_T, transpose=True).T
 
     @property
     def log_likelihood(self) -> float:
         """Gaussian log-likelihood of the last innovation y under N(0, S)."""
         if not math.isfinite(self.nis):
             return -math.inf
-        log_det_S = 2.0 * float(np.log(np.diag(self._S_lower)).sum())
+        log_det_S = 2.0 * float(np.log(np.diag(self._last_factors()[0])).sum())
         return -0.5 * (self.nis + log_det_S + self.dim_z * math.log(2.0 * math.pi))
 
 
@@ -377,7 +630,7 @@ def _checked_linear_hx(
     if b.shape != (m,):
         raise ValueError(f"b must have shape ({m},), got {b.shape}")
     # A non-finite A or b makes the hx output non-finite, which `update` checks and counts.
-    return linear_params_hx(A, b, log_cholesky_to_params if log_cholesky else None)
+    return _linear_hx(A, b, log_cholesky_to_params if log_cholesky else None)
 
 
 def _checked_prior(prior_params: np.ndarray) -> np.ndarray:
@@ -455,7 +708,7 @@ class LogCholeskyUKF(BatchedUKF):
         self, z: np.ndarray, A: np.ndarray, b: np.ndarray, R: np.ndarray
     ) -> UpdateResult:
         """Fuse z = A pi(eta) + b + v, v ~ N(0, R), with A (m, 10), b (m,), R (m, m)."""
-        return self.update(z, _checked_linear_hx(A, b, self.dim_z, log_cholesky=True), R)
+        return self.update(z, _checked_linear_hx(A, b, self.dim_z, True), R)
 
     def params_mean(self) -> np.ndarray:
         """Standard parameters pi(eta_mean) of the mean state.
@@ -477,16 +730,21 @@ class LogCholeskyUKF(BatchedUKF):
 
 
 def _is_physical(pi: np.ndarray) -> bool:
-    """Pseudo-inertia positive definite (the Cholesky is the cheapest test)."""
-    try:
-        np.linalg.cholesky(params_to_pseudo_inertia(pi))
-    except np.linalg.LinAlgError:
-        return False
-    return bool(np.all(np.isfinite(pi)))
+    """Pseudo-inertia positive definite (the Cholesky is the cheapest test); a ValueError (from
+    `params_to_pseudo_inertia`) if pi is not a finite (10,) array."""
+    pi = np.asarray(pi, dtype=float)
+    if pi.shape == (N_INERTIAL_PARAMS,) and math.isfinite(_dot(pi, pi)):
+        j = np.dot(pi, _PSEUDO_INERTIA_BASIS).reshape(4, 4)  # params_to_pseudo_inertia, unchecked
+    else:
+        j = params_to_pseudo_inertia(pi)
+    return _potrf(j, 1, 0)[1] == 0  # (a, lower, clean)
 
 
-# J(pi) = sum_k pi_k E_k: the pseudo-inertia is linear in the standard parameters.
-_PSEUDO_INERTIA_BASIS = params_to_pseudo_inertia(np.eye(10))
+# J(pi) = sum_k pi_k E_k: the pseudo-inertia is linear in the standard parameters (E_k flattened
+# to rows of 16).
+_PSEUDO_INERTIA_BASIS = params_to_pseudo_inertia(np.eye(10)).reshape(10, 16)
+_VEC_EYE4 = np.eye(4).ravel()  # tr(C) = C.ravel() @ _VEC_EYE4
+_EYE10_F = np.eye(10, order="F")
 
 
 def constrained_mode(
@@ -507,20 +765,31 @@ def constrained_mode(
     body, such as the previous mode of a filter whose state moved a little), whichever is nearer.
     A consistent ``mean`` is its own mode (returned as a copy without iterating). The result is
     always strictly consistent: should the iteration break down numerically (a covariance that
-    is not positive definite, an overflow next to the boundary), it returns the last consistent
-    iterate, or the eigenvalue-clipped body, with ``solved`` False.
+    is not positive definite, an overflow next to the boundary), it returns the eigenvalue-clipped
+    body with ``solved`` False.
+
+    Where the iterate stops depends on the path: Newton stops once its decrement is below
+    ``gap`` / 10, on states recorded from the environment 1e-6 relative (at most 2e-4) from the
+    exact minimiser of the last barrier problem. So the path is part of the result, and
+    `_barrier_mode` keeps the one of the plain computation (`_barrier_mode_reference`) step for
+    step, with fewer and cheaper calls: on 888 recorded states they agree to 5e-16 relative, at
+    about 110 us per call against 600 us.
     """
     mean = np.asarray(mean, dtype=float)
     if _is_physical(mean):
         return mean.copy(), True
     clipped = project_physical(mean, min_eig=1e-3)
-    try:
-        with np.errstate(over="raise", divide="raise", invalid="raise"):
-            pi = _barrier_mode(mean, cov, clipped, start, gap)
-    except (np.linalg.LinAlgError, FloatingPointError, ValueError):
-        pi = None
-    if pi is not None and _is_physical(pi):
-        return pi, True
+    # Should the fast iteration break down (or end on a body that J(pi), recomputed, finds just
+    # outside: it updates J incrementally, so next to a singular J rounding can decide), the
+    # plain one decides, as before.
+    for barrier_mode in (_barrier_mode, _barrier_mode_reference):
+        try:
+            with np.errstate(over="raise", divide="raise", invalid="raise"):
+                pi = barrier_mode(mean, cov, clipped, start, gap)
+        except (np.linalg.LinAlgError, FloatingPointError, ValueError):
+            continue
+        if _is_physical(pi):
+            return pi, True
     return clipped, False
 
 
@@ -531,9 +800,157 @@ def _barrier_mode(
     start: np.ndarray | None,
     gap: float,
 ) -> np.ndarray:
-    """The interior-point iteration of `constrained_mode` (may raise on numerical trouble)."""
+    """The interior-point iteration of `constrained_mode` (may raise on numerical trouble): the
+    steps of `_barrier_mode_reference`, computed with fewer and cheaper calls.
+
+    A call takes about 25 barrier evaluations and 20 Newton systems, each a handful of BLAS and
+    LAPACK calls on 4 x 4 and 10 x 10 matrices, so what costs is the number of calls and their
+    kind (scipy's wrappers of level-1 BLAS on vectors cost a tenth of an ``np.dot``):
+
+    - J is linear in v: J(v) = J(mean) + sum_l v_l B_l with B_l = sum_k L_kl E_k, so a trial
+      point's J is J(v) - s J(u) (u the Newton direction), one axpy (J(v) is updated the same
+      way; rounding can therefore make J(pi) of the result, recomputed, differ from it where J
+      is singular to working precision, which `constrained_mode` checks).
+    - log det J from the diagonal of its Cholesky factor (potrf), which also tests that J is
+      positive definite. A rejected trial costs only this.
+    - With M = L_J^-1 (trtri) and C_l = M B_l M^T, the barrier's gradient is tr(J^-1 B_l) =
+      tr(C_l) and its Hessian tr(J^-1 B_l J^-1 B_m) = vec(C_l) . vec(C_m). All ten C_l are two
+      gemms with the ten B_l stacked (``basis_rows``), laid out so that the second one's output,
+      reshaped, has the vec(C_l) as rows (``c_flat``). They do not depend on t: a new barrier
+      stage at the same point reuses them.
+    - The Newton system I + t C C^T (BLAS syrk) and its right-hand side v - t C vec(I) (gemv)
+      are solved by one LAPACK posv (by LU, as the plain computation, should rounding make the
+      Cholesky fail).
+    - |v - s u|^2 = |v|^2 - 2 s v.u + s^2 u.u from dot products, once per Newton step.
+    """
+    lower, info = _potrf(cov, 1, 1)
+    if info != 0 or not math.isfinite(_dot(lower.ravel(), lower.ravel())):
+        raise np.linalg.LinAlgError("cov is not positive definite and finite")
+    basis = np.dot(lower.T, _PSEUDO_INERTIA_BASIS)  # rows: B_l = d J / d v_l, flattened
+    basis_T = basis.T  # Fortran-ordered (16, 10), for gemv
+    # The B_l stacked, (40, 4) with rows (l, a): the gemm basis_rows M^T = [M B_0, ..., M B_9]^T
+    # is written, transposed, into m_basis (4, 40) = [M B_0, ..., M B_9]. Reshaped to (40, 4)
+    # that has rows (i, l) and columns a, so that M @ it^T has the entries (M B_l M^T)[i, j] =
+    # C_l[i, j] at [j, 10 i + l]: c_cat reshaped to (16, 10) has vec(C_l) as column l.
+    basis_rows = np.asfortranarray(basis.reshape(40, 4))
+    m_basis = np.empty((4, 40))
+    m_basis_T = m_basis.T
+    m_basis_rows_T = m_basis.reshape(40, 4).T
+    c_cat = np.empty((4, 40))
+    c_cat_T = c_cat.T
+    c_flat = c_cat.reshape(16, 10).T  # (10, 16), Fortran-ordered: row l is vec(C_l) permuted
+
+    v = _solve_lower(lower, clipped - mean)
+    t = 1.0
+    if start is not None and _is_physical(start):
+        v_start = _solve_lower(lower, np.asarray(start, dtype=float) - mean)
+        if _dot(v_start, v_start) < _dot(v, v):
+            # Near the new mode already: start further down the central path.
+            v, t = v_start, 1e-2
+    v = v.copy()  # updated in place
+    # J(v) and J(u) as flat vectors (C order; J is symmetric, so also its Fortran order).
+    j_v = np.dot(mean, _PSEUDO_INERTIA_BASIS)
+    _gemv(1.0, basis_T, v, 1.0, j_v, 0, 1, 0, 1, 0, 1)  # (alpha, a, x, beta, y, ..., overwrite_y)
+    j_u = np.empty(16)
+    # Work buffers, all written in place (the wrappers' last arguments): the Cholesky factor of a
+    # trial's J, then M = L_J^-1 of the accepted one; the Newton system, its right-hand side
+    # and its solution.
+    j_lower = np.empty((4, 4), order="F")
+    j_lower_flat = j_lower.T.ravel()
+    j_lower_diag = j_lower_flat[::5]
+    hess = np.empty((10, 10), order="F")
+    grad = np.empty(10)
+    direction = np.empty(10)
+    potrf, trtri, gemm, syrk, gemv, posv = _potrf, _trtri, _gemm, _syrk, _gemv, _posv
+    dot, axpy, copy, log, isfinite = _dot, _axpy, _copy, math.log, math.isfinite
+    eye10, vec_eye4 = _EYE10_F, _VEC_EYE4
+
+    copy(j_v, j_lower_flat)
+    if potrf(j_lower, 1, 1, 1)[1] != 0:  # (a, lower, clean, overwrite_a)
+        raise np.linalg.LinAlgError("the starting point is not strictly consistent")
+    log_det = _log_det(j_lower)
+    v_sq = dot(v, v)
+    c_current = False  # whether c_cat holds the C_l of the current v (they do not depend on t)
+    while True:
+        for _ in range(50):
+            if not c_current:
+                if trtri(j_lower, 1, 0, 1)[1] != 0:  # M = L_J^-1 in place: (c, lower, unit, ow)
+                    raise np.linalg.LinAlgError("singular pseudo-inertia factor")
+                # gemm (alpha, a, b, beta, c, trans_a, trans_b, overwrite_c), each product
+                # written in place as its transpose.
+                gemm(1.0, basis_rows, j_lower, 0.0, m_basis_T, 0, 1, 1)
+                gemm(1.0, m_basis_rows_T, j_lower, 0.0, c_cat_T, 1, 1, 1)
+                c_current = True
+            # I + t C C^T, lower triangle: syrk (alpha, a, beta, c, trans, lower, overwrite_c).
+            hess[...] = eye10
+            syrk(t, c_flat, 1.0, hess, 0, 1, 1)
+            # v - t C vec(I), the gradient of the barrier problem: gemv (alpha, a, x, beta, y).
+            copy(v, grad)
+            gemv(-t, c_flat, vec_eye4, 1.0, grad, 0, 1, 0, 1, 0, 1)
+            # H^-1 grad (the step is minus that): posv (a, b, lower, overwrite_a, overwrite_b).
+            copy(grad, direction)
+            if posv(hess, direction, 1, 1, 1)[2] != 0:
+                # Positive definite in exact arithmetic, but rounding can break the Cholesky
+                # when J is nearly singular: solve by LU, as np.linalg.solve (which raises if
+                # the system is singular).
+                hess_full = np.dot(c_flat, c_flat.T)
+                hess_full *= t
+                hess_full += np.eye(10)
+                direction[...] = np.linalg.solve(hess_full, grad)
+            decrement = dot(grad, direction)  # twice the predicted decrease
+            if not isfinite(decrement):
+                raise FloatingPointError("non-finite Newton decrement")
+            if decrement < 0.1 * gap:
+                break
+            value = 0.5 * v_sq - t * log_det
+            gemv(1.0, basis_T, direction, 0.0, j_u, 0, 1, 0, 1, 0, 1)
+            v_dir = dot(v, direction)
+            dir_sq = dot(direction, direction)
+            scale = 1.0
+            while scale > 1e-12:
+                copy(j_v, j_lower_flat)
+                axpy(j_u, j_lower_flat, 16, -scale)  # J(v - scale u)
+                if potrf(j_lower, 1, 1, 1)[1] == 0:
+                    # log det J = 2 sum log diag(L_J): the log of the product unless far from 1.
+                    d0, d1, d2, d3 = j_lower_diag.tolist()
+                    diag = d0 * d1 * d2 * d3
+                    if 1e-280 < diag < 1e280:
+                        trial_log_det = 2.0 * log(diag)
+                    else:
+                        trial_log_det = _log_det(j_lower)
+                    trial_sq = v_sq - 2.0 * scale * v_dir + scale * scale * dir_sq
+                    if 0.5 * trial_sq - t * trial_log_det <= value - 0.25 * scale * decrement:
+                        break
+                scale *= 0.5
+            else:
+                # No acceptable step (v stays): its factor is needed again.
+                copy(j_v, j_lower_flat)
+                potrf(j_lower, 1, 1, 1)
+                c_current = False
+                break
+            axpy(direction, v, 10, -scale)
+            axpy(j_u, j_v, 16, -scale)  # as for the trial, so J(v) is its J
+            v_sq, log_det = trial_sq, trial_log_det
+            c_current = False
+        if 4.0 * t <= gap:
+            break
+        t = max(0.02 * t, 0.25 * gap)
+    return mean + np.dot(lower, v)
+
+
+def _barrier_mode_reference(
+    mean: np.ndarray,
+    cov: np.ndarray,
+    clipped: np.ndarray,
+    start: np.ndarray | None,
+    gap: float,
+) -> np.ndarray:
+    """`_barrier_mode` computed plainly: J from pi, its inverse, einsums, np.linalg.solve (about
+    five times slower). `constrained_mode` falls back on it when `_barrier_mode` breaks down, and
+    the tests hold the two to each other."""
     lower = np.linalg.cholesky(cov)
-    basis_l = np.einsum("kij,kl->lij", _PSEUDO_INERTIA_BASIS, lower)  # d J / d v_l
+    basis = _PSEUDO_INERTIA_BASIS.reshape(10, 4, 4)
+    basis_l = np.einsum("kij,kl->lij", basis, lower)  # d J / d v_l
 
     def barrier_terms(pi: np.ndarray) -> tuple[float, np.ndarray, np.ndarray] | None:
         """log det J, its gradient and (minus) Hessian in v; None where J is not definite."""
@@ -582,6 +999,15 @@ def _barrier_mode(
             break
         t = max(0.02 * t, 0.25 * gap)
     return mean + lower @ v
+
+
+def _log_det(lower: np.ndarray) -> float:
+    """log det J = 2 sum log diag(L) from the (4, 4) Cholesky factor L of J; a
+    FloatingPointError if not finite (a NaN passes OpenBLAS's potrf)."""
+    log_det = 2.0 * sum(math.log(lower.item(k)) for k in (0, 5, 10, 15))
+    if not math.isfinite(log_det):
+        raise FloatingPointError("non-finite log det J")
+    return log_det
 
 
 class InertialParamUKF(BatchedUKF):
@@ -656,7 +1082,7 @@ class InertialParamUKF(BatchedUKF):
         self, z: np.ndarray, A: np.ndarray, b: np.ndarray, R: np.ndarray
     ) -> UpdateResult:
         """Fuse z = A pi + b + v, v ~ N(0, R), with A (m, 10), b (m,), R (m, m)."""
-        return self.update(z, _checked_linear_hx(A, b, self.dim_z, log_cholesky=False), R)
+        return self.update(z, _checked_linear_hx(A, b, self.dim_z, False), R)
 
     def _refresh_mode(self) -> None:
         if np.array_equal(self.x, self._mode_x) and np.array_equal(self.P, self._mode_P):

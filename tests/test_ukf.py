@@ -2,6 +2,7 @@
 robustness (non-finite inputs, shapes, gating, positive definiteness) and the inertial filter."""
 
 import math
+import warnings
 
 import numpy as np
 import pytest
@@ -11,10 +12,12 @@ from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 from scipy.stats import chi2, multivariate_normal
 
+from astrocargo.estimator import ukf as ukf_module
 from astrocargo.estimator.inertia import (
     log_cholesky_to_params,
     params_from_mass_com_inertia,
     params_to_log_cholesky,
+    project_physical,
 )
 from astrocargo.estimator.ukf import (
     BatchedUKF,
@@ -22,6 +25,7 @@ from astrocargo.estimator.ukf import (
     LogCholeskyUKF,
     UpdateResult,
     constrained_mode,
+    linear_params_hx,
 )
 
 TOL = 1e-9
@@ -313,6 +317,31 @@ def test_non_finite_input_skips_update(bad_input, bad_value):
     assert_spd(ukf.P)
 
 
+@pytest.mark.parametrize("bad_input", ["z", "R", "hx"])
+def test_inf_input_is_skipped_without_warnings(bad_input):
+    # A skipped update is not an error: no RuntimeWarning (inf times the zeros of the update's
+    # constant matrices would give one through np.dot), so also none under warnings-as-errors.
+    ukf, hx_batch, R = linear_filter()
+    z = np.ones(DIM_Z)
+    if bad_input == "z":
+        z[0] = np.inf
+    elif bad_input == "R":
+        R = R.copy()
+        R[0, 0] = np.inf
+    else:
+        good_hx = hx_batch
+
+        def hx_batch(sigmas):
+            out = good_hx(sigmas)
+            out[3, 1] = -np.inf
+            return out
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        result = ukf.update(z, hx_batch, R)
+    assert result.reason == "non-finite" and ukf.n_skipped_nonfinite == 1
+
+
 def test_wrong_shapes_raise_value_error():
     ukf, hx_batch, R = linear_filter()
     with pytest.raises(ValueError, match=r"z must have shape \(6,\)"):
@@ -595,3 +624,118 @@ def test_constrained_mode_falls_back_to_a_consistent_body():
     ukf.x, ukf.P = bad, np.diag(np.r_[np.ones(9), 0.0])
     assert is_physically_consistent(ukf.params_mean())
     assert ukf.n_mode_fallbacks == 1
+
+
+# --- fast paths against their plain references -----------------------------------------------
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    dims=st.sampled_from([(10, 6), (3, 2), (1, 1), (2, 5)]),
+    alpha_kappa=st.sampled_from([(0.5, 0.0), (1.0, 0.0), (0.8, 1.0), (0.3, 2.0)]),
+    beta=st.sampled_from([2.0, 0.0]),
+)
+def test_update_matches_its_step_by_step_path(seed, dims, alpha_kappa, beta):
+    """`update` takes S, P_xz, the gain and the NIS from one Cholesky factorisation of a joint
+    matrix; `BatchedUKF._update_checked` (which also sorts out every update that fails) forms
+    them one at a time, as filterpy does. From the same state they agree to rounding, and on
+    every outcome: accepted, non-finite input, gated, S not positive definite."""
+    rng = np.random.default_rng(seed)
+    n, m = dims
+    alpha, kappa = alpha_kappa
+    P0 = random_spd(rng, n)
+    x0 = rng.normal(scale=3.0, size=n)
+    kwargs = dict(alpha=alpha, beta=beta, kappa=kappa, gate_nis=chi2.ppf(0.999, m))
+    fast = BatchedUKF(n, m, x0, P0, 1e-3 * np.eye(n), **kwargs)
+    plain = BatchedUKF(n, m, x0, P0, 1e-3 * np.eye(n), **kwargs)
+    reasons = set()
+    for _ in range(15):
+        H = rng.normal(size=(m, n))
+
+        def hx_batch(sigmas, H=H):  # mildly nonlinear
+            return sigmas @ H.T + 0.3 * np.sin(sigmas[:, :1])
+
+        G = rng.normal(size=(m, m))
+        R = 0.05 * G @ G.T + 1e-2 * np.eye(m)
+        z = hx_batch(fast.x[None])[0] + np.linalg.cholesky(R) @ rng.normal(size=m)
+        case = rng.integers(8)
+        if case == 0:
+            z[rng.integers(m)] = rng.choice([np.nan, np.inf])
+        elif case == 1:
+            R[rng.integers(m), rng.integers(m)] = np.nan
+        elif case == 2:
+            z = z + 1e3
+        elif case == 3:
+            R = -R
+        plain.x, plain.P = fast.x.copy(), fast.P.copy()
+        result = fast.update(z, hx_batch, R)
+        expected = plain._update_checked(z, hx_batch, R)
+        reasons.add(expected.reason)
+        assert (result.accepted, result.reason) == (expected.accepted, expected.reason)
+        for counter in ("n_updates", "n_skipped_nonfinite", "n_gated", "n_rejected_not_pd"):
+            assert getattr(fast, counter) == getattr(plain, counter)
+        assert_state_close(fast.x, fast.P, plain.x, plain.P)
+        np.testing.assert_array_equal(fast.P, fast.P.T)
+        if math.isfinite(expected.nis):
+            assert result.nis == pytest.approx(expected.nis, rel=TOL)
+            for ours, ref in [(fast.y, plain.y), (fast.S, plain.S), (fast.K, plain.K)]:
+                np.testing.assert_allclose(ours, ref, rtol=TOL, atol=TOL * np.abs(ref).max())
+            assert fast.log_likelihood == pytest.approx(plain.log_likelihood, rel=TOL)
+        np.testing.assert_array_equal(fast.sigmas, plain.sigmas)
+    assert "ok" in reasons
+
+
+def test_linear_params_hx_maps_one_point_or_many():
+    rng = np.random.default_rng(21)
+    A, b = random_measurement(rng)
+    hx = linear_params_hx(A, b, None)
+    points = rng.normal(size=(21, DIM_X))
+    np.testing.assert_allclose(hx(points), points @ A.T + b, rtol=1e-14)
+    np.testing.assert_allclose(hx(points[3]), A @ points[3] + b, rtol=1e-14)
+
+
+def inconsistent_body(rng: np.random.Generator) -> np.ndarray:
+    inertia = np.diag(rng.uniform(0.01, 0.05, 3))
+    inertia[0, 0] = inertia[1, 1] + inertia[2, 2] + rng.uniform(0.001, 0.02)
+    if rng.uniform() < 0.5:
+        inertia[2, 2] = -rng.uniform(0.001, 0.01)
+    return params_from_mass_com_inertia(rng.uniform(1, 5), rng.normal(scale=0.1, size=3), inertia)
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), with_start=st.booleans())
+def test_constrained_mode_follows_its_plain_computation(seed, with_start):
+    """The interior-point iteration keeps its path step for step (where it stops depends on the
+    path, some 1e-6 relative from the exact minimiser of the last barrier problem): the fast
+    iteration (J updated in place, closed-form barrier derivatives, LAPACK) and the plain one
+    (J from pi, its inverse, einsums, np.linalg.solve) return the same body to rounding."""
+    rng = np.random.default_rng(seed)
+    bad = inconsistent_body(rng)
+    cov = random_spd(rng, scale=10 ** rng.uniform(-5, -1))
+    start = TRUE_PARAMS if with_start else None
+    clipped = project_physical(bad, min_eig=1e-3)
+    with np.errstate(over="raise", divide="raise", invalid="raise"):
+        fast = ukf_module._barrier_mode(bad, cov, clipped, start, 1e-4)
+        plain = ukf_module._barrier_mode_reference(bad, cov, clipped, start, 1e-4)
+    np.testing.assert_allclose(fast, plain, rtol=TOL, atol=TOL * np.abs(plain).max())
+    mode, solved = constrained_mode(bad, cov, start=start)
+    assert solved
+    np.testing.assert_array_equal(mode, fast)
+
+
+def test_constrained_mode_falls_back_on_the_plain_iteration(monkeypatch):
+    """Should the fast iteration break down, the plain one decides."""
+    rng = np.random.default_rng(22)
+    bad = inconsistent_body(rng)
+    cov = random_spd(rng, scale=1e-3)
+    expected, solved = constrained_mode(bad, cov)
+    assert solved
+
+    def broken(*args):
+        raise np.linalg.LinAlgError("broken on purpose")
+
+    monkeypatch.setattr(ukf_module, "_barrier_mode", broken)
+    mode, solved = constrained_mode(bad, cov)
+    assert solved
+    np.testing.assert_allclose(mode, expected, rtol=TOL, atol=TOL * np.abs(expected).max())
