@@ -312,7 +312,7 @@ from astrocargo.estimator.inertia import (
     principal_rel_errors,
     vec_to_inertia,
 )
-from astrocargo.estimator.rne import RobotDescription, grasp_pose
+from astrocargo.estimator.rne import RobotDescription, cross, grasp_pose
 
 ACTION_DIM = 8
 ARM_OFFSET_RAD = 0.5  # reach of the arm actions around the deployed pose
@@ -352,13 +352,6 @@ def _rotvec(rot: np.ndarray) -> np.ndarray:
     vec = np.empty(3)
     mujoco.mju_quat2Vel(vec, _mat_to_quat(rot), 1.0)
     return vec
-
-
-def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """a x b for two 3-vectors (np.cross costs ~15 us on small arrays)."""
-    return np.array(
-        [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
-    )
 
 
 def observation_layout(n_robots: int, observe_estimates: bool = True) -> dict[str, slice]:
@@ -463,7 +456,7 @@ class BaseNavigator:
 
     @property
     def base_vel(self) -> np.ndarray:
-        return self.v_imu - self.rot @ _cross(self.w_base, self.imu_pos)
+        return self.v_imu - self.rot @ cross(self.w_base, self.imu_pos)
 
 
 # --------------------------------------------------------------------------- physics + estimation
@@ -1175,7 +1168,7 @@ class CargoTransport:
         rot_ch, pos_ch = self.handrail_pose[i]
         rot = ref.rot @ rot_ch @ grasp_rot.T
         pos = ref.pos + ref.rot @ pos_ch - rot @ grasp_pos
-        vel = ref.vel + _cross(ref.w, pos - ref.pos)
+        vel = ref.vel + cross(ref.w, pos - ref.pos)
         return rot, pos, vel
 
     def _get_obs(self, robots: tuple[int, ...]) -> np.ndarray:

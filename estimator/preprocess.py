@@ -25,14 +25,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.linalg import expm
 
-from .rne import Kinematics, RobotDescription, propagate, wrench_transform
-
-
-def _cross3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    # np.cross costs ~15 us on 3-vectors; this is the same product.
-    a0, a1, a2 = a.tolist()
-    b0, b1, b2 = b.tolist()
-    return np.array((a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0))
+from .rne import Kinematics, RobotDescription, cross, propagate, wrench_transform
 
 
 class StateVariableFilter:
@@ -127,8 +120,8 @@ class Preprocessor:
         """Filtered (w, wd, acc of B's origin, q, qd, qdd), base frame."""
         s, r = self._slices, self.robot.imu_pos
         w, wd = self._y[s["gyro"]], self._yd[s["gyro"]]
-        w_r = _cross3(w, r)
-        acc_origin = self._y[s["accel"]] - _cross3(wd, r) - _cross3(w, w_r)
+        w_r = cross(w, r)
+        acc_origin = self._y[s["accel"]] - cross(wd, r) - cross(w, w_r)
         q = s["q"]
         return w, wd, acc_origin, self._y[q], self._yd[q], self._ydd[q]
 

@@ -100,8 +100,13 @@ class Kinematics:
     grasp_wd: np.ndarray  # (..., 3)
 
 
-def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    # np.cross on small arrays is slow; this is the same product, written out.
+def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a x b over the last axis of two arrays (..., 3): np.cross, written out (np.cross costs
+    ~10 us on small arrays; this is the same product, on Python floats for two 3-vectors)."""
+    if a.ndim == 1 and b.ndim == 1:
+        a0, a1, a2 = a.tolist()
+        b0, b1, b2 = b.tolist()
+        return np.array((a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0))
     return np.stack(
         (
             a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1],
@@ -163,11 +168,11 @@ def propagate(
         rots.append(rot)
         poss.append(poss[p] + r)
         ws.append(ws[p] + w_rel)
-        wds.append(wds[p] + qdd[..., jk, None] * z + _cross(ws[p], w_rel))
-        accs.append(accs[p] + _cross(wds[p], r) + _cross(ws[p], _cross(ws[p], r)))
+        wds.append(wds[p] + qdd[..., jk, None] * z + cross(ws[p], w_rel))
+        accs.append(accs[p] + cross(wds[p], r) + cross(ws[p], cross(ws[p], r)))
     g = robot.grasp_link
     r_g = _rmv(rots[g], robot.grasp_pos)
-    grasp_acc = accs[g] + _cross(wds[g], r_g) + _cross(ws[g], _cross(ws[g], r_g))
+    grasp_acc = accs[g] + cross(wds[g], r_g) + cross(ws[g], cross(ws[g], r_g))
     return Kinematics(
         rot=np.stack(rots, axis=-3),
         pos=np.stack(poss, axis=-2),
@@ -202,10 +207,10 @@ def grasp_pose(robot: RobotDescription, q: np.ndarray) -> tuple[np.ndarray, np.n
     rots = [((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))]
     poss = [(0.0, 0.0, 0.0)]
     for k, (parent, r0, pos, _axis, kk, *_rest) in enumerate(links[1:], start=1):
-        rots.append(_m_m(_m_m(rots[parent], r0), _rodrigues(kk, qs[k - 1])))
-        poss.append(_v_add(poss[parent], _m_v(rots[parent], pos)))
+        rots.append(m_m(m_m(rots[parent], r0), _rodrigues(kk, qs[k - 1])))
+        poss.append(v_add(poss[parent], m_v(rots[parent], pos)))
     rot_g = rots[g]
-    return np.array(_m_m(rot_g, grot)), np.array(_v_add(poss[g], _m_v(rot_g, gpos)))
+    return np.array(m_m(rot_g, grot)), np.array(v_add(poss[g], m_v(rot_g, gpos)))
 
 
 def link_momentum_rate(robot: RobotDescription, kin: Kinematics) -> np.ndarray:
@@ -216,9 +221,9 @@ def link_momentum_rate(robot: RobotDescription, kin: Kinematics) -> np.ndarray:
     inertia_local = np.stack([link.inertia_com for link in robot.links])
     c = np.einsum("...kij,kj->...ki", kin.rot, com_local)
     inertia = kin.rot @ inertia_local @ np.swapaxes(kin.rot, -1, -2)
-    rdd = kin.acc + _cross(kin.wd, c) + _cross(kin.w, _cross(kin.w, c))
+    rdd = kin.acc + cross(kin.wd, c) + cross(kin.w, cross(kin.w, c))
     f = mass[:, None] * rdd
-    n = _rmv(inertia, kin.wd) + _cross(kin.w, _rmv(inertia, kin.w)) + _cross(kin.pos + c, f)
+    n = _rmv(inertia, kin.wd) + cross(kin.w, _rmv(inertia, kin.w)) + cross(kin.pos + c, f)
     return np.concatenate((f.sum(axis=-2), n.sum(axis=-2)), axis=-1)
 
 
@@ -294,20 +299,21 @@ def thrust_wrench(robot: RobotDescription, command: np.ndarray) -> np.ndarray:
 # Fast path for one sample. The estimator evaluates the balance of one instant tens of times per
 # second per robot; numpy's per-call overhead on 3-vectors made that 240 us. The same equations
 # as ``propagate`` / ``link_momentum_rate`` / ``body_regressor`` written on Python floats; tests
-# hold it equal to them to 1e-12.
-def _v_add(a, b):
+# hold it equal to them to 1e-12. The helpers (3-vectors and 3x3 matrices as tuples of floats,
+# m_v(m, v) = m v, mt_v(m, v) = m^T v, m_m(a, b) = a b) also serve the env and the trajectories.
+def v_add(a, b):
     return (a[0] + b[0], a[1] + b[1], a[2] + b[2])
 
 
-def _v_sub(a, b):
+def v_sub(a, b):
     return (a[0] - b[0], a[1] - b[1], a[2] - b[2])
 
 
-def _v_scale(s, a):
+def v_scale(s, a):
     return (s * a[0], s * a[1], s * a[2])
 
 
-def _v_cross(a, b):
+def v_cross(a, b):
     return (
         a[1] * b[2] - a[2] * b[1],
         a[2] * b[0] - a[0] * b[2],
@@ -315,7 +321,7 @@ def _v_cross(a, b):
     )
 
 
-def _m_v(m, v):
+def m_v(m, v):
     return (
         m[0][0] * v[0] + m[0][1] * v[1] + m[0][2] * v[2],
         m[1][0] * v[0] + m[1][1] * v[1] + m[1][2] * v[2],
@@ -323,7 +329,7 @@ def _m_v(m, v):
     )
 
 
-def _mt_v(m, v):
+def mt_v(m, v):
     return (
         m[0][0] * v[0] + m[1][0] * v[1] + m[2][0] * v[2],
         m[0][1] * v[0] + m[1][1] * v[1] + m[2][1] * v[2],
@@ -331,7 +337,7 @@ def _mt_v(m, v):
     )
 
 
-def _m_m(a, b):
+def m_m(a, b):
     (a00, a01, a02), (a10, a11, a12), (a20, a21, a22) = a
     (b00, b01, b02), (b10, b11, b12), (b20, b21, b22) = b
     return (
@@ -432,44 +438,44 @@ def balance_in_grasp_frame(
             j = k - 1
             rq = _rodrigues(kk, qs[j])
             rp = rots[parent]
-            rot = _m_m(_m_m(rp, r0), rq)
-            r = _m_v(rp, pos)
-            z = _m_v(rot, axis)
-            w_rel = _v_scale(qds[j], z)
+            rot = m_m(m_m(rp, r0), rq)
+            r = m_v(rp, pos)
+            z = m_v(rot, axis)
+            w_rel = v_scale(qds[j], z)
             wp, wdp = ws[parent], wds[parent]
             rots.append(rot)
-            poss.append(_v_add(poss[parent], r))
-            ws.append(_v_add(wp, w_rel))
-            wds.append(_v_add(_v_add(wdp, _v_scale(qdds[j], z)), _v_cross(wp, w_rel)))
+            poss.append(v_add(poss[parent], r))
+            ws.append(v_add(wp, w_rel))
+            wds.append(v_add(v_add(wdp, v_scale(qdds[j], z)), v_cross(wp, w_rel)))
             accs.append(
-                _v_add(_v_add(accs[parent], _v_cross(wdp, r)), _v_cross(wp, _v_cross(wp, r)))
+                v_add(v_add(accs[parent], v_cross(wdp, r)), v_cross(wp, v_cross(wp, r)))
             )
         rot, w, wd = rots[k], ws[k], wds[k]
-        cvec = _m_v(rot, com)
-        rdd = _v_add(_v_add(accs[k], _v_cross(wd, cvec)), _v_cross(w, _v_cross(w, cvec)))
-        f = _v_scale(mass, rdd)
-        w_l, wd_l = _mt_v(rot, w), _mt_v(rot, wd)
-        n_l = _v_add(_m_v(inertia, wd_l), _v_cross(w_l, _m_v(inertia, w_l)))
-        n = _v_add(_m_v(rot, n_l), _v_cross(_v_add(poss[k], cvec), f))
-        f_sum = _v_add(f_sum, f)
-        n_sum = _v_add(n_sum, n)
+        cvec = m_v(rot, com)
+        rdd = v_add(v_add(accs[k], v_cross(wd, cvec)), v_cross(w, v_cross(w, cvec)))
+        f = v_scale(mass, rdd)
+        w_l, wd_l = mt_v(rot, w), mt_v(rot, wd)
+        n_l = v_add(m_v(inertia, wd_l), v_cross(w_l, m_v(inertia, w_l)))
+        n = v_add(m_v(rot, n_l), v_cross(v_add(poss[k], cvec), f))
+        f_sum = v_add(f_sum, f)
+        n_sum = v_add(n_sum, n)
     # Grasp frame.
     rg = rots[g]
-    r_g = _m_v(rg, gpos)
-    rot_g = _m_m(rg, grot)
-    p_g = _v_add(poss[g], r_g)
+    r_g = m_v(rg, gpos)
+    rot_g = m_m(rg, grot)
+    p_g = v_add(poss[g], r_g)
     wg, wdg = ws[g], wds[g]
-    acc_g = _v_add(_v_add(accs[g], _v_cross(wdg, r_g)), _v_cross(wg, _v_cross(wg, r_g)))
+    acc_g = v_add(v_add(accs[g], v_cross(wdg, r_g)), v_cross(wg, v_cross(wg, r_g)))
 
     def to_grasp(wrench):
         f3 = (wrench[0], wrench[1], wrench[2])
         n3 = (wrench[3], wrench[4], wrench[5])
-        return _mt_v(rot_g, f3) + _mt_v(rot_g, _v_sub(n3, _v_cross(p_g, f3)))
+        return mt_v(rot_g, f3) + mt_v(rot_g, v_sub(n3, v_cross(p_g, f3)))
 
     thrust = tuple(float(x) for x in thrust_base)
     thrust_g = np.array(to_grasp(thrust))
     links_g = np.array(to_grasp(f_sum + n_sum))
-    a, wv, wdv = _mt_v(rot_g, acc_g), _mt_v(rot_g, wg), _mt_v(rot_g, wdg)
+    a, wv, wdv = mt_v(rot_g, acc_g), mt_v(rot_g, wg), mt_v(rot_g, wdg)
     return (
         thrust_g,
         links_g,
