@@ -312,7 +312,7 @@ from astrocargo.estimator.inertia import (
     principal_rel_errors,
     vec_to_inertia,
 )
-from astrocargo.estimator.rne import RobotDescription, cross, grasp_pose
+from astrocargo.estimator.rne import RobotDescription, cross, grasp_pose, norm3, v_scale
 
 ACTION_DIM = 8
 ARM_OFFSET_RAD = 0.5  # reach of the arm actions around the deployed pose
@@ -341,6 +341,10 @@ VISIBLE_GEOM_GROUPS = (0, 1, 2, 3)  # visual and collision geoms; sites (4) off
 NAV_STD_FLOOR = 1e-9
 LOG_STD_FLOOR = 1e-12
 REWARD_TERMS = ("track", "effort", "info", "contact")
+REWARD_KEYS = tuple(f"reward_{t}" for t in REWARD_TERMS)  # their names in infos
+# Observation blocks of the cargo reference, in base axes (see observation_layout).
+REFERENCE_BLOCKS = ("ref_pos_rel", "ref_vel", "ref_acc", "ref_ang_vel", "ref_ang_acc")
+_NO_WRENCH = np.zeros(6)  # a peer slot before its first message
 TERMINATION_REASONS = ("wall_contact", "non_finite", "released")  # "released": one agent
 
 
@@ -430,8 +434,9 @@ class BaseNavigator:
             self._last_imu = (packet.gyro_imu, packet.accel_imu)
         gyro, accel = self._last_imu
         w = self.imu_rot @ gyro
-        rot_mid_imu = self.rot @ exp_so3(0.5 * dt * w) @ self.imu_rot
-        self.rot = self.rot @ exp_so3(dt * w)
+        w_list = w.tolist()
+        rot_mid_imu = self.rot @ exp_so3(v_scale(0.5 * dt, w_list)) @ self.imu_rot
+        self.rot = self.rot @ exp_so3(v_scale(dt, w_list))
         v_new = self.v_imu + dt * (rot_mid_imu @ accel)
         self.p_imu = self.p_imu + 0.5 * dt * (self.v_imu + v_new)
         self.v_imu = v_new
@@ -756,6 +761,8 @@ class CargoTransport:
         self.robots = [self.world.robot_model(i) for i in range(self.n_robots)]
         self.thrust_limits = np.array([r.thrust_limit for r in self.robots])
         self.joint_ranges = np.array([r.joint_range for r in self.robots])
+        self._joint_low, self._joint_high = self.joint_ranges[..., 0], self.joint_ranges[..., 1]
+        self._arm_deployed = np.asarray(ARM_DEPLOYED_RAD)
         self._bind_world(self._full_world, self._full_data)
         # Robot i's handrail (its grasp site on the cargo) in the cargo frame: known geometry.
         self.handrail_pose = [
@@ -772,9 +779,11 @@ class CargoTransport:
             ]
             for i in range(self.n_robots)
         ]
-        # Contiguous blocks filled by one product each in _get_obs.
-        self._base_err_slice = slice(lay["base_pos_err"].start, lay["base_vel_err"].stop)
-        self._ref_slice = slice(lay["ref_pos_rel"].start, lay["ref_ang_acc"].stop)
+        # The blocks that are vectors rotated into the base frame, filled by one product in
+        # _get_obs: base errors, reference (position, rates), each peer slot's wrench.
+        rotated = ["base_pos_err", "base_vel_err", *REFERENCE_BLOCKS]
+        rotated += [f"peer{p}_wrench" for p in range(self.n_robots - 1)]
+        self._rotated_cols = np.concatenate([np.arange(lay[n].start, lay[n].stop) for n in rotated])
         self.obs_dim = self.obs_layout["all"].stop
         full = self._full_world.model
         self.state_dim = 1 + full.nq + full.nv + 13 * (full.nbody - 1)
@@ -950,13 +959,16 @@ class CargoTransport:
             )
         acting = self.holding  # the robots of this step, those letting go at its end included
         rows = list(acting)
-        bad = ~np.all(np.isfinite(actions[rows]), axis=1)
-        if np.any(bad):
-            raise ValueError(f"actions of robot {rows[int(np.argmax(bad))]} are not all finite")
+        acting_actions = actions[rows]
+        finite_rows = np.isfinite(acting_actions).all(axis=1)
+        if not finite_rows.all():
+            raise ValueError(
+                f"actions of robot {rows[int(np.argmin(finite_rows))]} are not all finite"
+            )
         clipped = np.zeros_like(actions)
-        clipped[rows] = np.clip(actions[rows], -1.0, 1.0)
+        clipped[rows] = acting_clipped = np.clip(acting_actions, -1.0, 1.0)
         n_clipped = np.zeros(self.n_robots, dtype=int)
-        n_clipped[rows] = np.sum(clipped[rows] != actions[rows], axis=1)
+        n_clipped[rows] = (acting_clipped != acting_actions).sum(axis=1)
         self.step_count += 1
         k = self.step_count
 
@@ -972,11 +984,13 @@ class CargoTransport:
 
         robot_contacts, cargo_contacts = self._wall_contacts()
         # A release due with a non-finite state does not happen: the episode ends (non_finite).
-        released = tuple(i for i in acting if finite and self.release_steps.get(i) == k)
+        released = ()
+        if self.release_steps and finite:
+            released = tuple(i for i in acting if self.release_steps.get(i) == k)
         if released:
             self._release(released)
         obs = self._get_obs(acting)
-        if not np.all(np.isfinite(obs)):
+        if not np.isfinite(obs).all():
             finite = False
             obs = np.nan_to_num(obs, nan=0.0, posinf=0.0, neginf=0.0)
         reason = None
@@ -1020,12 +1034,12 @@ class CargoTransport:
         the cargo, start the period. Returns the thrust commands (n_robots, 6) each robot knows
         it sent (zeros for those that have let go)."""
         commands = clipped[:, :6] * self.thrust_limits
-        wanted = np.asarray(ARM_DEPLOYED_RAD) + ARM_OFFSET_RAD * clipped[:, 6:]
+        wanted = self._arm_deployed + ARM_OFFSET_RAD * clipped[:, 6:]
         max_move = ARM_SPEED_RADPS * self.dt_s
         self.arm_targets = np.clip(
             self.arm_targets + np.clip(wanted - self.arm_targets, -max_move, max_move),
-            self.joint_ranges[..., 0],
-            self.joint_ranges[..., 1],
+            self._joint_low,
+            self._joint_high,
         )
         rows = list(self.holding)
         delivered = np.zeros_like(commands)
@@ -1035,7 +1049,8 @@ class CargoTransport:
             if fault.robot in self.holding:
                 delivered[fault.robot] *= fault.scale
                 weakened.add(fault.robot)
-        self.fault_counts["propulsion_steps"][list(weakened)] += 1
+        if weakened:
+            self.fault_counts["propulsion_steps"][list(weakened)] += 1
         self.data.ctrl[self._thrust_ctrl] = delivered[rows]
         self.data.ctrl[self._arm_ctrl] = self.arm_targets[rows]
         self.sensors.begin_period(self.data)
@@ -1044,7 +1059,7 @@ class CargoTransport:
     def _physics_finite(self) -> bool:
         d = self.data
         unstable = d.warning[mujoco.mjtWarning.mjWARN_BADQACC].number > 0
-        return bool(np.all(np.isfinite(d.qpos)) and np.all(np.isfinite(d.qvel)) and not unstable)
+        return bool(np.isfinite(d.qpos).all() and np.isfinite(d.qvel).all() and not unstable)
 
     def _read_sensors(self, k: int) -> list[SensorPacket]:
         """Every robot's packet (None for a robot that has let go), with the faults of step ``k``
@@ -1072,17 +1087,23 @@ class CargoTransport:
 
     def _active_faults(self, kind: str, k: int) -> list[Fault]:
         """The faults of ``kind`` active at control step ``k``."""
+        if not self._fault_windows:
+            return []
         return [f for f, first, end in self._fault_windows if f.kind == kind and first <= k < end]
 
-    def _fault_info(self, i: int) -> dict[str, Any]:
-        """Robot i's injected-fault counters (episode totals) and the kinds active now."""
-        info: dict[str, Any] = {k: int(v[i]) for k, v in self.fault_counts.items()}
-        info.update({f"messages_{k}": int(v[i]) for k, v in self.channel.fault_stats.items()})
+    def _fault_infos(self) -> list[dict[str, Any]]:
+        """Every robot's injected-fault counters (episode totals) and the kinds active now."""
+        counts = {k: v.tolist() for k, v in self.fault_counts.items()}
+        counts.update({f"messages_{k}": v.tolist() for k, v in self.channel.fault_stats.items()})
+        active: list[list[str]] = [[] for _ in range(self.n_robots)]
         k = self.step_count
-        info["active"] = [
-            f.kind for f, first, end in self._fault_windows if f.robot == i and first <= k < end
+        for f, first, end in self._fault_windows:
+            if first <= k < end:
+                active[f.robot].append(f.kind)
+        return [
+            {**{name: c[i] for name, c in counts.items()}, "active": active[i]}
+            for i in range(self.n_robots)
         ]
-        return info
 
     def _update_estimators(self, packets: list[SensorPacket], commands: np.ndarray, k: int) -> None:
         """Each estimator ingests its own packet and command; messages go through the channel;
@@ -1178,30 +1199,34 @@ class CargoTransport:
         lay = self.obs_layout
         obs = np.zeros((self.n_robots, self.obs_dim))
         step_count, dt = self.step_count, self.dt_s
+        ref_rates = (ref.vel, ref.acc, ref.w, ref.wd)
         for i in robots:
             nav, packet = self.navigators[i], self.packets[i]
             o = obs[i]
             rot = nav.rot
             rot_ref, pos_ref, vel_ref = self._base_reference(i, ref, packet.joint_pos_rad)
             base_pos = nav.base_pos
-            # Rows v @ R are (R^T v)^T: several vectors into the base frame in one product.
-            o[self._base_err_slice] = (
-                np.stack((base_pos - pos_ref, nav.base_vel - vel_ref)) @ rot
-            ).ravel()
+            latest = self.peer_msgs[i]
+            msgs = [latest.get(j) for j, *_ in self._peer_slots[i]]
+            wrenches = [_NO_WRENCH if msg is None else msg.wrench_world for msg in msgs]
+            # In the order of _rotated_cols. Rows v @ R are (R^T v)^T: every vector into the
+            # base frame in one product.
+            vectors = np.concatenate(
+                (base_pos - pos_ref, nav.base_vel - vel_ref, ref.pos - base_pos, *ref_rates)
+                + tuple(wrenches)
+            )
+            o[self._rotated_cols] = (vectors.reshape(-1, 3) @ rot).ravel()
             o[lay["base_att_err"]] = _rotvec(rot_ref.T @ rot)
             o[lay["base_ang_vel"]] = nav.w_base
             o[lay["joint_pos"]] = packet.joint_pos_rad
             o[lay["joint_target"]] = self.arm_targets[i]
-            o[self._ref_slice] = (
-                np.stack((ref.pos - base_pos, ref.vel, ref.acc, ref.w, ref.wd)) @ rot
-            ).ravel()
             o[lay["ref_pan"]] = (ref.pan, ref.pan_rate)
-            latest = self.peer_msgs[i]
-            for j, wrench_slice, age_index, valid_index in self._peer_slots[i]:
-                msg = latest.get(j)
+            for msg, (_, wrench_slice, age_index, valid_index) in zip(
+                msgs, self._peer_slots[i], strict=True
+            ):
                 if msg is None:
+                    o[wrench_slice] = 0.0  # exactly zero: no message yet
                     continue
-                o[wrench_slice] = (msg.wrench_world.reshape(2, 3) @ rot).ravel()
                 o[age_index] = (step_count - msg.stamp) * dt
                 o[valid_index] = 1.0
             if self.observe_estimates:
@@ -1215,8 +1240,7 @@ class CargoTransport:
         b = self.world.cargo_body
         ref = self.reference()
         rot = self.data.xmat[b].reshape(3, 3)
-        pos_err = float(np.linalg.norm(self.data.xpos[b] - ref.pos))
-        return pos_err, float(np.linalg.norm(_rotvec(ref.rot.T @ rot)))
+        return norm3(self.data.xpos[b] - ref.pos), norm3(_rotvec(ref.rot.T @ rot))
 
     def _get_rewards(
         self,
@@ -1235,11 +1259,11 @@ class CargoTransport:
             track = -(pos_err + ROTATION_WEIGHT_M_PER_RAD * angle_err)
         else:
             track = 0.0
-        effort = -np.sum(clipped**2, axis=1)
+        effort = -(clipped**2).sum(axis=1)
         log_std = self._estimate_log_std_sums()
         info = self._log_std_sum - log_std
         self._log_std_sum = log_std
-        if not np.all(np.isfinite(info)):
+        if not np.isfinite(info).all():
             info = np.zeros(n)
         # Rows in REWARD_TERMS order: (track, effort, info, contact) per robot and for the team.
         individual = np.empty((len(REWARD_TERMS), n))
@@ -1247,7 +1271,7 @@ class CargoTransport:
         individual[1] = effort
         individual[2] = info
         individual[3] = -(robot_contacts + cargo_contacts)
-        team = individual[:, rows].mean(axis=1)
+        team = individual[:, rows].sum(axis=1) / len(rows)  # the mean, without its overhead
         team[0] = track
         team[3] = -float(robot_contacts.sum() + cargo_contacts)
         s = self.shared_reward
@@ -1268,20 +1292,24 @@ class CargoTransport:
         """Infos of ``robots`` (None for the others); ``released``: those letting go now."""
         infos: list[dict[str, Any] | None] = [None] * self.n_robots
         comm = dict(self.channel.stats)
+        rewards = [terms[t].tolist() for t in REWARD_TERMS]
+        n_clipped, wall_contacts = n_clipped.tolist(), wall_contacts.tolist()
+        faults = self._fault_infos()
+        time_s = float(self.data.time)
         for i in robots:
-            info: dict[str, Any] = {f"reward_{t}": float(terms[t][i]) for t in REWARD_TERMS}
+            info: dict[str, Any] = {key: r[i] for key, r in zip(REWARD_KEYS, rewards, strict=True)}
             if i in released:
                 info["released_momentum"] = self.released_momentum[i].copy()
             info.update(
                 termination_reason=reason or ("released" if i in released else None),
                 releases=len(self.released_at_s),
                 holding=list(self.holding),
-                time_s=float(self.data.time),
-                clipped_actions=int(n_clipped[i]),
-                wall_contacts=int(wall_contacts[i]),
+                time_s=time_s,
+                clipped_actions=n_clipped[i],
+                wall_contacts=wall_contacts[i],
                 true_params=self.true_params_grasp[i].copy(),
                 comm=comm,
-                faults=self._fault_info(i),
+                faults=faults[i],
             )
             if self.estimators:
                 info.update(

@@ -105,9 +105,10 @@ def quat_to_mat(quat: np.ndarray) -> np.ndarray:
     )
 
 
-def exp_so3(rotvec: np.ndarray) -> np.ndarray:
-    """Rotation matrix of a rotation vector (Rodrigues, in floats: called every step)."""
-    x, y, z = float(rotvec[0]), float(rotvec[1]), float(rotvec[2])
+def exp_so3(rotvec: np.ndarray | tuple[float, float, float]) -> np.ndarray:
+    """Rotation matrix of a rotation vector, an array or 3 floats (Rodrigues, in floats: called
+    every step)."""
+    x, y, z = (float(c) for c in rotvec)
     angle = math.sqrt(x * x + y * y + z * z)
     if angle < 1e-12:
         return np.eye(3)

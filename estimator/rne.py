@@ -117,6 +117,12 @@ def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     )
 
 
+def norm3(v: np.ndarray) -> float:
+    """|v| of one 3-vector: np.linalg.norm's value (the same sum of squares), on floats."""
+    x, y, z = v.tolist()
+    return math.sqrt(x * x + y * y + z * z)
+
+
 def _axis_rotation(axis: np.ndarray, angle: np.ndarray) -> np.ndarray:
     """Rodrigues rotation about a fixed unit ``axis`` (3,) by ``angle`` (...,) -> (..., 3, 3)."""
     k = skew(axis)
@@ -447,9 +453,7 @@ def balance_in_grasp_frame(
             poss.append(v_add(poss[parent], r))
             ws.append(v_add(wp, w_rel))
             wds.append(v_add(v_add(wdp, v_scale(qdds[j], z)), v_cross(wp, w_rel)))
-            accs.append(
-                v_add(v_add(accs[parent], v_cross(wdp, r)), v_cross(wp, v_cross(wp, r)))
-            )
+            accs.append(v_add(v_add(accs[parent], v_cross(wdp, r)), v_cross(wp, v_cross(wp, r))))
         rot, w, wd = rots[k], ws[k], wds[k]
         cvec = m_v(rot, com)
         rdd = v_add(v_add(accs[k], v_cross(wd, cvec)), v_cross(w, v_cross(w, cvec)))
