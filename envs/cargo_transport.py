@@ -1142,13 +1142,16 @@ class CargoTransport:
         self._log_std_now = np.array(
             [np.sum(np.log(np.maximum(s, LOG_STD_FLOOR))) for s in self.est_std]
         )
+        # Every robot's errors in one call per kind (the same values robot by robot).
+        means, truths = np.array(self.est_mean), np.array(self.true_params_grasp)
         self.est_errors = [
-            {
-                "mass_rel_err": float(mass_rel_error(mean, truth)),
-                "com_err_m": float(com_error_m(mean, truth)),
-                "principal_rel_err": principal_rel_errors(mean, truth).tolist(),
-            }
-            for mean, truth in zip(self.est_mean, self.true_params_grasp, strict=True)
+            {"mass_rel_err": mass, "com_err_m": com, "principal_rel_err": principal}
+            for mass, com, principal in zip(
+                mass_rel_error(means, truths).tolist(),
+                com_error_m(means, truths).tolist(),
+                principal_rel_errors(means, truths).tolist(),
+                strict=True,
+            )
         ]
 
     def _estimate_log_std_sums(self) -> np.ndarray:

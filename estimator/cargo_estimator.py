@@ -81,6 +81,8 @@ from .rne import (
     balance_in_grasp_frame,
     grasp_from_base,
     grasp_pose,
+    norm3,
+    v_scale,
     wrench_transform,
 )
 from .ukf import InertialParamUKF
@@ -311,6 +313,12 @@ class CargoEstimator:
         self.warmup_steps = int(np.ceil(warmup_s / dt_s))
         self.history_steps = int(np.ceil(history_s / dt_s))
         self.regressor_every = int(regressor_every)
+        self._reading_shapes = (
+            ("accel_imu", (3,)),
+            ("gyro_imu", (3,)),
+            ("joint_pos_rad", (robot.n_joints,)),
+            ("thrust_command", (6,)),
+        )
         self.pre = Preprocessor(robot, dt_s, kinematics_cutoff_hz)
         # Slow filter over [thrust 6, links 6, Y 60], grasp frame.
         self.balance_filter = StateVariableFilter(72, dt_s * regressor_every, cutoff_hz)
@@ -338,6 +346,9 @@ class CargoEstimator:
         self.actuation_noise = np.asarray(actuation_noise, dtype=float)
         if self.actuation_noise.shape != (4,) or np.any(self.actuation_noise < 0):
             raise ValueError("actuation_noise must be 4 non-negative numbers")
+        # Per axis of the thrust command: std = abs + rel * |command|.
+        self._actuation_abs = np.repeat(self.actuation_noise[[0, 2]], 3)
+        self._actuation_rel = np.repeat(self.actuation_noise[[1, 3]], 3)
         self._act_cov_sum = np.zeros((6, 6))
         self._act_cov_n = 0
         self._thrust_to_base = wrench_transform(robot.thrust_rot, robot.thrust_pos)
@@ -428,12 +439,7 @@ class CargoEstimator:
             None if x is None else np.asarray(x, dtype=float)
             for x in (accel_imu, gyro_imu, joint_pos_rad, thrust_command)
         ]
-        for name, x, shape in zip(
-            ("accel_imu", "gyro_imu", "joint_pos_rad", "thrust_command"),
-            readings,
-            ((3,), (3,), (self.robot.n_joints,), (6,)),
-            strict=True,
-        ):
+        for (name, shape), x in zip(self._reading_shapes, readings, strict=True):
             if x is not None and x.shape != shape:
                 raise ValueError(f"{name} must have shape {shape}, got {x.shape}")
         if stamp <= self.stamp:
@@ -472,13 +478,10 @@ class CargoEstimator:
         )
         # Per-step covariance of the actuation noise, carried into the grasp frame.
         to_grasp = grasp_from_base(rot_bg, pos_bg) @ self._thrust_to_base
-        fa, fr, ta, tr = self.actuation_noise
-        std = np.concatenate(
-            (fa + fr * np.abs(thrust_command[:3]), ta + tr * np.abs(thrust_command[3:]))
-        )
+        std = self._actuation_abs + self._actuation_rel * np.abs(thrust_command)
         self._act_cov_sum += (to_grasp * std**2) @ to_grasp.T
         self._act_cov_n += 1
-        self._grasp_lever = float(np.linalg.norm(pos_bg))
+        self._grasp_lever = norm3(pos_bg)
         self._balance, _, _ = self.balance_filter.step(
             np.concatenate((thrust_g, links_g, regressor.ravel()))
         )
@@ -498,7 +501,9 @@ class CargoEstimator:
             self.n_bad_readings += 1
         if self._rot_world_base is not None:
             w_base = self.robot.imu_rot @ gyro_imu
-            self._rot_world_base = self._rot_world_base @ exp_so3(w_base * self.dt_s)
+            self._rot_world_base = self._rot_world_base @ exp_so3(
+                v_scale(self.dt_s, w_base.tolist())
+            )
         return False
 
     def _record_instant(self, stamp: int, q_raw: np.ndarray, fix: bool) -> WrenchMessage | None:

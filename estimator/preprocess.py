@@ -25,7 +25,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.linalg import expm
 
-from .rne import Kinematics, RobotDescription, cross, propagate, wrench_transform
+from .rne import Kinematics, RobotDescription, propagate, v_cross, v_sub, wrench_transform
 
 
 class StateVariableFilter:
@@ -54,6 +54,7 @@ class StateVariableFilter:
         self.ad = e[:3, :3]
         self.b_value = e[:3, 3]  # weight of u_k
         self.b_slope = e[:3, 4] / dt_s  # weight of (u_k+1 - u_k)
+        self._b_value_col, self._b_slope_col = self.b_value[:, None], self.b_slope[:, None]
         self.n_channels = int(n_channels)
         self.delay_s = 3.0 / w
         self.state = np.zeros((3, self.n_channels))
@@ -70,8 +71,8 @@ class StateVariableFilter:
         else:
             self.state = (
                 self.ad @ self.state
-                + self.b_value[:, None] * self.u_prev
-                + self.b_slope[:, None] * (u - self.u_prev)
+                + self._b_value_col * self.u_prev
+                + self._b_slope_col * (u - self.u_prev)
             )
         self.u_prev = u.copy()
         return self.state[0], self.state[1], self.state[2]
@@ -96,6 +97,8 @@ class Preprocessor:
             "q": slice(6, 6 + nj),
             "thrust": slice(6 + nj, 12 + nj),
         }
+        self._gyro, self._accel, self._q, self._thrust = self._slices.values()
+        self._imu_pos = tuple(robot.imu_pos.tolist())
         self.filter = StateVariableFilter(12 + nj, dt_s, cutoff_hz)
         self._thrust_to_base = wrench_transform(robot.thrust_rot, robot.thrust_pos)
         self._u = np.zeros(12 + nj)
@@ -108,28 +111,28 @@ class Preprocessor:
         joint_pos_rad: np.ndarray,
         thrust_command: np.ndarray,
     ) -> None:
-        s, rot = self._slices, self.robot.imu_rot
+        rot = self.robot.imu_rot
         u = self._u
-        u[s["gyro"]] = rot @ gyro_imu
-        u[s["accel"]] = rot @ accel_imu
-        u[s["q"]] = joint_pos_rad
-        u[s["thrust"]] = self._thrust_to_base @ thrust_command
+        u[self._gyro] = rot @ gyro_imu
+        u[self._accel] = rot @ accel_imu
+        u[self._q] = joint_pos_rad
+        u[self._thrust] = self._thrust_to_base @ thrust_command
         self._y, self._yd, self._ydd = self.filter.step(u)
 
     def base_and_joint_motion(self) -> tuple[np.ndarray, ...]:
         """Filtered (w, wd, acc of B's origin, q, qd, qdd), base frame."""
-        s, r = self._slices, self.robot.imu_pos
-        w, wd = self._y[s["gyro"]], self._yd[s["gyro"]]
-        w_r = cross(w, r)
-        acc_origin = self._y[s["accel"]] - cross(wd, r) - cross(w, w_r)
-        q = s["q"]
-        return w, wd, acc_origin, self._y[q], self._yd[q], self._ydd[q]
+        w, wd = self._y[self._gyro], self._yd[self._gyro]
+        w_f, r = w.tolist(), self._imu_pos
+        acc_imu = self._y[self._accel].tolist()
+        acc_origin = v_sub(v_sub(acc_imu, v_cross(wd.tolist(), r)), v_cross(w_f, v_cross(w_f, r)))
+        q = self._q
+        return w, wd, np.array(acc_origin), self._y[q], self._yd[q], self._ydd[q]
 
     def kinematics(self) -> Kinematics:
         return propagate(self.robot, *self.base_and_joint_motion())
 
     def thrust(self) -> np.ndarray:
-        return self._y[self._slices["thrust"]].copy()
+        return self._y[self._thrust].copy()
 
     @property
     def delay_s(self) -> float:

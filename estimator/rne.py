@@ -209,7 +209,7 @@ def grasp_pose(robot: RobotDescription, q: np.ndarray) -> tuple[np.ndarray, np.n
     on Python floats (called per robot per step by the env and the controller); the same forward
     kinematics as ``link_poses`` and ``propagate`` (tests hold them equal)."""
     links, g, grot, gpos = _fast_constants(robot)
-    qs = [float(x) for x in q]
+    qs = np.asarray(q, dtype=float).tolist()
     rots = [((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))]
     poss = [(0.0, 0.0, 0.0)]
     for k, (parent, r0, pos, _axis, kk, *_rest) in enumerate(links[1:], start=1):
@@ -276,7 +276,7 @@ def grasp_from_base(rot: np.ndarray, pos: np.ndarray) -> np.ndarray:
     """Inverse of ``wrench_transform(rot, pos)``: wrench in B (about B's origin) -> frame G whose
     pose in B is (rot, pos), moments about G's origin: f_G = R^T f, n_G = R^T (n - pos x f)."""
     rot_t = np.asarray(rot, dtype=float).T
-    px, py, pz = (float(x) for x in pos)
+    px, py, pz = np.asarray(pos, dtype=float).tolist()
     t = np.zeros((6, 6))
     t[:3, :3] = rot_t
     t[3:, 3:] = rot_t
@@ -324,6 +324,20 @@ def v_cross(a, b):
         a[1] * b[2] - a[2] * b[1],
         a[2] * b[0] - a[0] * b[2],
         a[0] * b[1] - a[1] * b[0],
+    )
+
+
+def point_acc(acc, w, wd, r):
+    """acc + wd x r + w x (w x r): the acceleration of the point r of a rigid body whose origin
+    accelerates at acc (the sums and products of v_add and v_cross, in one call)."""
+    r0, r1, r2 = r
+    w0, w1, w2 = w
+    d0, d1, d2 = wd
+    c0, c1, c2 = w1 * r2 - w2 * r1, w2 * r0 - w0 * r2, w0 * r1 - w1 * r0  # w x r
+    return (
+        acc[0] + (d1 * r2 - d2 * r1) + (w1 * c2 - w2 * c1),
+        acc[1] + (d2 * r0 - d0 * r2) + (w2 * c0 - w0 * c2),
+        acc[2] + (d0 * r1 - d1 * r0) + (w0 * c1 - w1 * c0),
     )
 
 
@@ -430,12 +444,11 @@ def balance_in_grasp_frame(
     thrust_G = links_G + Y pi_G - (peers' wrenches in G). Single sample; same equations as
     ``propagate``, ``link_momentum_rate`` and ``body_regressor``."""
     links, g, grot, gpos = _fast_constants(robot)
-    w0 = tuple(float(x) for x in w_base)
     rots = [((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))]
     poss = [(0.0, 0.0, 0.0)]
-    ws = [w0]
-    wds = [tuple(float(x) for x in wd_base)]
-    accs = [tuple(float(x) for x in acc_base)]
+    ws = [w_base.tolist()]
+    wds = [wd_base.tolist()]
+    accs = [acc_base.tolist()]
     qs, qds, qdds = q.tolist(), qd.tolist(), qdd.tolist()
     f_sum = (0.0, 0.0, 0.0)
     n_sum = (0.0, 0.0, 0.0)
@@ -453,11 +466,10 @@ def balance_in_grasp_frame(
             poss.append(v_add(poss[parent], r))
             ws.append(v_add(wp, w_rel))
             wds.append(v_add(v_add(wdp, v_scale(qdds[j], z)), v_cross(wp, w_rel)))
-            accs.append(v_add(v_add(accs[parent], v_cross(wdp, r)), v_cross(wp, v_cross(wp, r))))
+            accs.append(point_acc(accs[parent], wp, wdp, r))
         rot, w, wd = rots[k], ws[k], wds[k]
         cvec = m_v(rot, com)
-        rdd = v_add(v_add(accs[k], v_cross(wd, cvec)), v_cross(w, v_cross(w, cvec)))
-        f = v_scale(mass, rdd)
+        f = v_scale(mass, point_acc(accs[k], w, wd, cvec))
         w_l, wd_l = mt_v(rot, w), mt_v(rot, wd)
         n_l = v_add(m_v(inertia, wd_l), v_cross(w_l, m_v(inertia, w_l)))
         n = v_add(m_v(rot, n_l), v_cross(v_add(poss[k], cvec), f))
@@ -469,15 +481,14 @@ def balance_in_grasp_frame(
     rot_g = m_m(rg, grot)
     p_g = v_add(poss[g], r_g)
     wg, wdg = ws[g], wds[g]
-    acc_g = v_add(v_add(accs[g], v_cross(wdg, r_g)), v_cross(wg, v_cross(wg, r_g)))
+    acc_g = point_acc(accs[g], wg, wdg, r_g)
 
     def to_grasp(wrench):
         f3 = (wrench[0], wrench[1], wrench[2])
         n3 = (wrench[3], wrench[4], wrench[5])
         return mt_v(rot_g, f3) + mt_v(rot_g, v_sub(n3, v_cross(p_g, f3)))
 
-    thrust = tuple(float(x) for x in thrust_base)
-    thrust_g = np.array(to_grasp(thrust))
+    thrust_g = np.array(to_grasp(thrust_base.tolist()))
     links_g = np.array(to_grasp(f_sum + n_sum))
     a, wv, wdv = mt_v(rot_g, acc_g), mt_v(rot_g, wg), mt_v(rot_g, wdg)
     return (
@@ -490,33 +501,32 @@ def balance_in_grasp_frame(
 
 
 def _body_regressor_one(a, w, wd) -> np.ndarray:
-    """``body_regressor`` for one sample on Python floats."""
+    """``body_regressor`` for one sample on Python floats: its matrix products written out,
+    the terms that are products with zero dropped from their sums (the sums keep their order)."""
+    a0, a1, a2 = a
     w0, w1, w2 = w
     d0, d1, d2 = wd
-    # skew(wd) + skew(w)^2
-    sw2 = (
-        (-(w1 * w1 + w2 * w2), w0 * w1, w0 * w2),
-        (w0 * w1, -(w0 * w0 + w2 * w2), w1 * w2),
-        (w0 * w2, w1 * w2, -(w0 * w0 + w1 * w1)),
-    )
-    m_h = (
-        (sw2[0][0], -d2 + sw2[0][1], d1 + sw2[0][2]),
-        (d2 + sw2[1][0], sw2[1][1], -d0 + sw2[1][2]),
-        (-d1 + sw2[2][0], d0 + sw2[2][1], sw2[2][2]),
-    )
-    # L(wd) + skew(w) L(w), L(v) = [[v0,0,0,v1,v2,0],[0,v1,0,v0,0,v2],[0,0,v2,0,v0,v1]]
-    lw = ((w0, 0.0, 0.0, w1, w2, 0.0), (0.0, w1, 0.0, w0, 0.0, w2), (0.0, 0.0, w2, 0.0, w0, w1))
-    sk = ((0.0, -w2, w1), (w2, 0.0, -w0), (-w1, w0, 0.0))
-    lwd = ((d0, 0.0, 0.0, d1, d2, 0.0), (0.0, d1, 0.0, d0, 0.0, d2), (0.0, 0.0, d2, 0.0, d0, d1))
-    a0, a1, a2 = a
-    rows = []
-    for i in range(3):
-        rows.append((a[i],) + m_h[i] + (0.0,) * 6)
-    ska = ((0.0, a2, -a1), (-a2, 0.0, a0), (a1, -a0, 0.0))  # -skew(a)
-    for i in range(3):
-        inert = tuple(
-            lwd[i][j] + sk[i][0] * lw[0][j] + sk[i][1] * lw[1][j] + sk[i][2] * lw[2][j]
-            for j in range(6)
+    # skew(w)^2: diagonal, then the symmetric off-diagonal entries.
+    s00, s11, s22 = -(w1 * w1 + w2 * w2), -(w0 * w0 + w2 * w2), -(w0 * w0 + w1 * w1)
+    s01, s02, s12 = w0 * w1, w0 * w2, w1 * w2
+    # Columns [m, h (3), I_xx, I_yy, I_zz, I_xy, I_xz, I_yz]; force rows: a, skew(wd) + skew(w)^2;
+    # moment rows: -skew(a), L(wd) + skew(w) L(w) with I v = L(v) [I_xx .. I_yz].
+    return np.array(
+        (
+            (a0, s00, -d2 + s01, d1 + s02, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0),
+            (a1, d2 + s01, s11, -d0 + s12, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0),
+            (a2, -d1 + s02, d0 + s12, s22, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0),
+            (
+                0.0, 0.0, a2, -a1,
+                d0, (-w2) * w1, w1 * w2, d1 + (-w2) * w0, d2 + w1 * w0, (-w2) * w2 + w1 * w1,
+            ),
+            (
+                0.0, -a2, 0.0, a0,
+                w2 * w0, d1, (-w0) * w2, d0 + w2 * w1, w2 * w2 + (-w0) * w0, d2 + (-w0) * w1,
+            ),
+            (
+                0.0, a1, -a0, 0.0,
+                (-w1) * w0, w0 * w1, d2, (-w1) * w1 + w0 * w0, d0 + (-w1) * w2, d1 + w0 * w2,
+            ),
         )
-        rows.append((0.0,) + ska[i] + inert)
-    return np.array(rows)
+    )  # fmt: skip
