@@ -358,6 +358,14 @@ def _rotvec(rot: np.ndarray) -> np.ndarray:
     return vec
 
 
+def _mean(values: list[float], indices: tuple[int, ...]) -> float:
+    """Mean of ``values`` at ``indices``, summed in order as numpy's mean of a few values."""
+    total = -0.0
+    for i in indices:
+        total += values[i]
+    return total / len(indices)
+
+
 def observation_layout(n_robots: int, observe_estimates: bool = True) -> dict[str, slice]:
     """Index slices of each observation block (see the module docstring's table)."""
     sizes = [
@@ -742,7 +750,7 @@ class CargoTransport:
             self.weights[term] = _check_finite_number(f"w_{term}", weight, allowed_w)
             if abs(self.weights[term]) > MAX_REWARD_WEIGHT:
                 raise ValueError(f"w_{term} must be {allowed_w}, got {weight}")
-        self._weight_column = np.array([[self.weights[t]] for t in REWARD_TERMS])
+        self._weights = [self.weights[t] for t in REWARD_TERMS]
         self.shared_reward = _check_finite_number(
             "shared_reward", shared_reward, "a number in [0, 1]"
         )
@@ -1042,16 +1050,15 @@ class CargoTransport:
             self._joint_high,
         )
         rows = list(self.holding)
-        delivered = np.zeros_like(commands)
-        delivered[rows] = self.sensors.actuate(commands[rows])
+        delivered = self.sensors.actuate(commands[rows])  # row k: robot rows[k]
         weakened = set()
         for fault in self._active_faults("propulsion", self.step_count):
             if fault.robot in self.holding:
-                delivered[fault.robot] *= fault.scale
+                delivered[rows.index(fault.robot)] *= fault.scale
                 weakened.add(fault.robot)
         if weakened:
             self.fault_counts["propulsion_steps"][list(weakened)] += 1
-        self.data.ctrl[self._thrust_ctrl] = delivered[rows]
+        self.data.ctrl[self._thrust_ctrl] = delivered
         self.data.ctrl[self._arm_ctrl] = self.arm_targets[rows]
         self.sensors.begin_period(self.data)
         return commands
@@ -1256,7 +1263,6 @@ class CargoTransport:
         """Every reward term per robot, weighted and mixed (team vs individual); the team of
         this step is ``robots`` (the others' rows zeros)."""
         n = self.n_robots
-        rows = list(robots)
         if finite:
             pos_err, angle_err = self.tracking_error()
             track = -(pos_err + ROTATION_WEIGHT_M_PER_RAD * angle_err)
@@ -1268,20 +1274,23 @@ class CargoTransport:
         self._log_std_sum = log_std
         if not np.isfinite(info).all():
             info = np.zeros(n)
-        # Rows in REWARD_TERMS order: (track, effort, info, contact) per robot and for the team.
-        individual = np.empty((len(REWARD_TERMS), n))
-        individual[0] = track
-        individual[1] = effort
-        individual[2] = info
-        individual[3] = -(robot_contacts + cargo_contacts)
-        team = individual[:, rows].sum(axis=1) / len(rows)  # the mean, without its overhead
+        # Rows in REWARD_TERMS order: (track, effort, info, contact) per robot and for the team,
+        # on floats (a few numbers: numpy's per-call overhead would dominate).
+        contact = -(robot_contacts + cargo_contacts)
+        individual = [[float(track)] * n, effort.tolist(), info.tolist(), contact.tolist()]
+        team = [_mean(values, robots) for values in individual]
         team[0] = track
         team[3] = -float(robot_contacts.sum() + cargo_contacts)
         s = self.shared_reward
-        mask = np.zeros(n)
-        mask[rows] = 1.0
-        mixed = (self._weight_column * mask) * (s * team[:, None] + (1.0 - s) * individual)
-        return dict(zip(REWARD_TERMS, mixed, strict=True))
+        mask = [1.0 if i in robots else 0.0 for i in range(n)]
+        mixed = [
+            [
+                (weight * m) * (s * team_term + (1.0 - s) * x)
+                for m, x in zip(mask, term, strict=True)
+            ]
+            for weight, team_term, term in zip(self._weights, team, individual, strict=True)
+        ]
+        return dict(zip(REWARD_TERMS, np.array(mixed), strict=True))
 
     def _get_infos(
         self,

@@ -320,11 +320,9 @@ def v_scale(s, a):
 
 
 def v_cross(a, b):
-    return (
-        a[1] * b[2] - a[2] * b[1],
-        a[2] * b[0] - a[0] * b[2],
-        a[0] * b[1] - a[1] * b[0],
-    )
+    a0, a1, a2 = a
+    b0, b1, b2 = b
+    return (a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0)
 
 
 def point_acc(acc, w, wd, r):
@@ -342,18 +340,38 @@ def point_acc(acc, w, wd, r):
 
 
 def m_v(m, v):
+    (m00, m01, m02), (m10, m11, m12), (m20, m21, m22) = m
+    v0, v1, v2 = v
     return (
-        m[0][0] * v[0] + m[0][1] * v[1] + m[0][2] * v[2],
-        m[1][0] * v[0] + m[1][1] * v[1] + m[1][2] * v[2],
-        m[2][0] * v[0] + m[2][1] * v[1] + m[2][2] * v[2],
+        m00 * v0 + m01 * v1 + m02 * v2,
+        m10 * v0 + m11 * v1 + m12 * v2,
+        m20 * v0 + m21 * v1 + m22 * v2,
     )
 
 
 def mt_v(m, v):
+    (m00, m01, m02), (m10, m11, m12), (m20, m21, m22) = m
+    v0, v1, v2 = v
     return (
-        m[0][0] * v[0] + m[1][0] * v[1] + m[2][0] * v[2],
-        m[0][1] * v[0] + m[1][1] * v[1] + m[2][1] * v[2],
-        m[0][2] * v[0] + m[1][2] * v[1] + m[2][2] * v[2],
+        m00 * v0 + m10 * v1 + m20 * v2,
+        m01 * v0 + m11 * v1 + m21 * v2,
+        m02 * v0 + m12 * v1 + m22 * v2,
+    )
+
+
+def _euler_moment(inertia, w, wd):
+    """I wd + w x (I w): a rigid body's rate of angular momentum about its centre of mass, all
+    in one frame (v_add, m_v and v_cross in one call)."""
+    (i00, i01, i02), (i10, i11, i12), (i20, i21, i22) = inertia
+    w0, w1, w2 = w
+    d0, d1, d2 = wd
+    h0 = i00 * w0 + i01 * w1 + i02 * w2
+    h1 = i10 * w0 + i11 * w1 + i12 * w2
+    h2 = i20 * w0 + i21 * w1 + i22 * w2
+    return (
+        (i00 * d0 + i01 * d1 + i02 * d2) + (w1 * h2 - w2 * h1),
+        (i10 * d0 + i11 * d1 + i12 * d2) + (w2 * h0 - w0 * h2),
+        (i20 * d0 + i21 * d1 + i22 * d2) + (w0 * h1 - w1 * h0),
     )
 
 
@@ -471,7 +489,7 @@ def balance_in_grasp_frame(
         cvec = m_v(rot, com)
         f = v_scale(mass, point_acc(accs[k], w, wd, cvec))
         w_l, wd_l = mt_v(rot, w), mt_v(rot, wd)
-        n_l = v_add(m_v(inertia, wd_l), v_cross(w_l, m_v(inertia, w_l)))
+        n_l = _euler_moment(inertia, w_l, wd_l)
         n = v_add(m_v(rot, n_l), v_cross(v_add(poss[k], cvec), f))
         f_sum = v_add(f_sum, f)
         n_sum = v_add(n_sum, n)
