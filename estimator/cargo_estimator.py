@@ -359,6 +359,7 @@ class CargoEstimator:
         if peer_noise.shape != (2,) or np.any(peer_noise < 0):
             raise ValueError("peer_noise_std must be 2 non-negative numbers")
         self._peer_noise_cov = np.diag(np.repeat(peer_noise**2, 3))
+        self._peer_noise = bool(np.any(peer_noise > 0))  # else its covariance adds zeros
         self.min_excitation_snr = float(min_excitation_snr)
         loc = np.asarray(localization_noise, dtype=float)
         if loc.shape != (2,) or np.any(loc < 0):
@@ -380,6 +381,10 @@ class CargoEstimator:
         self._acc_noise = sensor_noise[0] * gains[0]
         self._ang_acc_noise = sensor_noise[1] * gains[1]
         self._joint_acc_noise = sensor_noise[2] * gains[2]
+        # The grasp's angular accelerations carry the joints' (doubly differentiated encoders).
+        self._grasp_ang_acc_noise = np.hypot(
+            self._ang_acc_noise, np.sqrt(robot.n_joints) * self._joint_acc_noise
+        )
         self._correlated = correlated
         self._robot_mass = robot.total_mass
         self._robot_inertia = sum(
@@ -607,7 +612,8 @@ class CargoEstimator:
                     wrench = t @ m.wrench_grasp
                     peers += wrench
                     cov += t @ m.wrench_cov_grasp @ t.T
-                    peer_noise += t @ self._peer_noise_cov @ t.T
+                    if self._peer_noise:
+                        peer_noise += t @ self._peer_noise_cov @ t.T
                     if rel.known is None:
                         peer_noise += self._relative_pose_cov(wrench, rel.count)
                 meas_cov = self.meas_cov + cov / self.update_every + self._sensor_cov() + peer_noise
@@ -655,14 +661,12 @@ class CargoEstimator:
         """Does the filtered motion of this instant stand above the noise of its measurement?"""
         acc = regressor[:3, 0]
         # The force rows' h-columns are skew(wd) + skew(w)^2: wd is their antisymmetric part.
-        m_h = regressor[:3, 1:4]
-        wd = 0.5 * np.array([m_h[2, 1] - m_h[1, 2], m_h[0, 2] - m_h[2, 0], m_h[1, 0] - m_h[0, 1]])
-        # The grasp's accelerations carry the joints' (doubly differentiated encoders) too.
-        nj = self.robot.n_joints
-        ang_noise = np.hypot(self._ang_acc_noise, np.sqrt(nj) * self._joint_acc_noise)
+        (_, h01, h02), (h10, _, h12), (h20, h21, _) = regressor[:3, 1:4].tolist()
+        wd = (0.5 * (h21 - h12), 0.5 * (h02 - h20), 0.5 * (h10 - h01))
+        ang_noise = self._grasp_ang_acc_noise
         lin_noise = np.hypot(self._acc_noise, self._grasp_lever * ang_noise)
-        snr_lin = np.linalg.norm(acc) / max(lin_noise, 1e-300)
-        snr_ang = np.linalg.norm(wd) / max(ang_noise, 1e-300)
+        snr_lin = norm3(acc) / max(lin_noise, 1e-300)
+        snr_ang = norm3(wd) / max(ang_noise, 1e-300)
         return max(snr_lin, snr_ang) >= self.min_excitation_snr
 
     def _relative_pose_cov(self, wrench: np.ndarray, n_fixes: int) -> np.ndarray:
@@ -681,7 +685,7 @@ class CargoEstimator:
         L the base-to-grasp lever and J the inertia about the grasp."""
         pi = self.ukf.params_mean()
         m_c = pi[0]
-        com = np.linalg.norm(pi[1:4]) / m_c
+        com = norm3(pi[1:4]) / m_c
         lever = self._grasp_lever
         total = self._robot_mass + m_c
         inertia = self._robot_inertia + self._robot_mass * lever**2 + float(pi[4:7].max())

@@ -117,9 +117,10 @@ def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     )
 
 
-def norm3(v: np.ndarray) -> float:
-    """|v| of one 3-vector: np.linalg.norm's value (the same sum of squares), on floats."""
-    x, y, z = v.tolist()
+def norm3(v: np.ndarray | tuple[float, float, float]) -> float:
+    """|v| of one 3-vector (array or floats): np.linalg.norm's value (the same sum of squares),
+    on floats."""
+    x, y, z = v.tolist() if isinstance(v, np.ndarray) else v
     return math.sqrt(x * x + y * y + z * z)
 
 
