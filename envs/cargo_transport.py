@@ -303,7 +303,7 @@ from astrocargo.envs.world import (
     _mat_to_quat,
     _quat_to_mat,
 )
-from astrocargo.estimator.cargo_estimator import CargoEstimator, exp_so3
+from astrocargo.estimator.cargo_estimator import CargoEstimator, exp_so3_rows
 from astrocargo.estimator.inertia import (
     check_physical,
     com_error_m,
@@ -312,7 +312,20 @@ from astrocargo.estimator.inertia import (
     principal_rel_errors,
     vec_to_inertia,
 )
-from astrocargo.estimator.rne import RobotDescription, cross, grasp_pose, norm3, v_scale
+from astrocargo.estimator.rne import (
+    RobotDescription,
+    grasp_pose_rows,
+    m_m,
+    m_mt,
+    m_v,
+    mt_m,
+    mt_v,
+    norm3,
+    v_add,
+    v_cross,
+    v_scale,
+    v_sub,
+)
 
 ACTION_DIM = 8
 ARM_OFFSET_RAD = 0.5  # reach of the arm actions around the deployed pose
@@ -342,13 +355,16 @@ NAV_STD_FLOOR = 1e-9
 LOG_STD_FLOOR = 1e-12
 REWARD_TERMS = ("track", "effort", "info", "contact")
 REWARD_KEYS = tuple(f"reward_{t}" for t in REWARD_TERMS)  # their names in infos
-# Observation blocks of the cargo reference, in base axes (see observation_layout).
-REFERENCE_BLOCKS = ("ref_pos_rel", "ref_vel", "ref_acc", "ref_ang_vel", "ref_ang_acc")
-_NO_WRENCH = np.zeros(6)  # a peer slot before its first message
+_EMPTY_PEER_SLOT = (0.0,) * 8  # a peer slot before its first message: wrench, age, valid
 TERMINATION_REASONS = ("wall_contact", "non_finite", "released")  # "released": one agent
 
 
 # --------------------------------------------------------------------------- small helpers
+
+
+def _rows(mat: np.ndarray) -> tuple:
+    """A 3x3 array as a tuple of row tuples (for rne's float helpers)."""
+    return tuple(map(tuple, mat.tolist()))
 
 
 def _rotvec(rot: np.ndarray) -> np.ndarray:
@@ -405,33 +421,38 @@ class BaseNavigator:
     (exact for ideal readings: that mean is the change of the IMU point's velocity over the
     period). At a fix it blends in the fixed attitude and position with Kalman gains built from
     the noise profile the robot knows (isotropic, so one 2x2 covariance serves all three axes).
+
+    The state is kept on Python floats (3-vectors and the rows of 3x3 matrices as tuples, with
+    rne's helpers): a few 3x3 products per step, which numpy's per-call overhead would dominate.
     """
 
     def __init__(self, robot: RobotDescription, dt_s: float, profile: NoiseProfile) -> None:
         self.imu_rot = robot.imu_rot
         self.imu_pos = robot.imu_pos
+        self._imu_rot, self._imu_pos = _rows(robot.imu_rot), tuple(robot.imu_pos.tolist())
         self.dt_s = float(dt_s)
         acc_var = max(profile.accel_std, NAV_STD_FLOOR) ** 2
         self.pos_var = max(profile.position_std_m, NAV_STD_FLOOR) ** 2
         self.att_var = max(profile.attitude_std_rad, NAV_STD_FLOOR) ** 2
         self.gyro_step_var = (max(profile.gyro_std, NAV_STD_FLOOR) * dt_s) ** 2
         dt = self.dt_s
-        self._f = np.array([[1.0, dt], [0.0, 1.0]])
-        self._q = acc_var * np.array([[dt**4 / 4, dt**3 / 2], [dt**3 / 2, dt**2]])
+        # Position-velocity model x' = F x + noise, F = [[1, dt], [0, 1]], noise covariance
+        # acc_var [[dt^4 / 4, dt^3 / 2], [dt^3 / 2, dt^2]] (q00, q01, q11).
+        self._q = (acc_var * (dt**4 / 4), acc_var * (dt**3 / 2), acc_var * dt**2)
 
     def reset(self, packet: SensorPacket) -> None:
         """Start at rest at the packet's localization fix."""
         if packet.base_pos_world is None or packet.base_quat_world is None:
             raise ValueError("the navigator starts from a packet with a localization fix")
-        self.rot = _quat_to_mat(packet.base_quat_world)
+        self._rot = _rows(_quat_to_mat(packet.base_quat_world))
         if packet.gyro_imu is None or packet.accel_imu is None:
-            self._last_imu = (np.zeros(3), np.zeros(3))  # at rest
+            self._last_imu = ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0))  # at rest
         else:
-            self._last_imu = (packet.gyro_imu, packet.accel_imu)
-        self.w_base = self.imu_rot @ self._last_imu[0]
-        self.p_imu = packet.base_pos_world + self.rot @ self.imu_pos
-        self.v_imu = np.zeros(3)
-        self.cov = np.diag([self.pos_var, NAV_STD_FLOOR**2])
+            self._last_imu = (packet.gyro_imu.tolist(), packet.accel_imu.tolist())
+        self._w = m_v(self._imu_rot, self._last_imu[0])
+        self._p = v_add(packet.base_pos_world.tolist(), m_v(self._rot, self._imu_pos))
+        self._v = (0.0, 0.0, 0.0)
+        self._cov = (self.pos_var, 0.0, 0.0, NAV_STD_FLOOR**2)  # c00, c01, c10, c11
         self.att_cov = self.att_var
 
     def update(self, packet: SensorPacket) -> None:
@@ -439,37 +460,58 @@ class BaseNavigator:
         the frame is missing); blend in its fix."""
         dt = self.dt_s
         if packet.gyro_imu is not None and packet.accel_imu is not None:
-            self._last_imu = (packet.gyro_imu, packet.accel_imu)
+            self._last_imu = (packet.gyro_imu.tolist(), packet.accel_imu.tolist())
         gyro, accel = self._last_imu
-        w = self.imu_rot @ gyro
-        w_list = w.tolist()
-        rot_mid_imu = self.rot @ exp_so3(v_scale(0.5 * dt, w_list)) @ self.imu_rot
-        self.rot = self.rot @ exp_so3(v_scale(dt, w_list))
-        v_new = self.v_imu + dt * (rot_mid_imu @ accel)
-        self.p_imu = self.p_imu + 0.5 * dt * (self.v_imu + v_new)
-        self.v_imu = v_new
-        self.w_base = w
-        self.cov = self._f @ self.cov @ self._f.T + self._q
+        w = m_v(self._imu_rot, gyro)
+        rot_mid_imu = m_m(m_m(self._rot, exp_so3_rows(v_scale(0.5 * dt, w))), self._imu_rot)
+        self._rot = m_m(self._rot, exp_so3_rows(v_scale(dt, w)))
+        v_new = v_add(self._v, v_scale(dt, m_v(rot_mid_imu, accel)))
+        self._p = v_add(self._p, v_scale(0.5 * dt, v_add(self._v, v_new)))
+        self._v = v_new
+        self._w = w
+        # cov <- F cov F^T + Q
+        c00, c01, c10, c11 = self._cov
+        q00, q01, q11 = self._q
+        a00, a01 = c00 + dt * c10, c01 + dt * c11  # first row of F cov
+        self._cov = (a00 + a01 * dt + q00, a01 + q01, c10 + c11 * dt + q01, c11 + q11)
         self.att_cov += self.gyro_step_var
         if packet.base_pos_world is None or packet.base_quat_world is None:
             return
-        fix_rot = _quat_to_mat(packet.base_quat_world)
+        fix_rot = _rows(_quat_to_mat(packet.base_quat_world))
         gain_att = self.att_cov / (self.att_cov + self.att_var)
-        self.rot = self.rot @ exp_so3(gain_att * _rotvec(self.rot.T @ fix_rot))
+        error = _rotvec(mt_m(self._rot, fix_rot)).tolist()
+        self._rot = m_m(self._rot, exp_so3_rows(v_scale(gain_att, error)))
         self.att_cov *= 1.0 - gain_att
-        innovation = packet.base_pos_world + self.rot @ self.imu_pos - self.p_imu
-        gain = self.cov[:, 0] / (self.cov[0, 0] + self.pos_var)
-        self.p_imu = self.p_imu + gain[0] * innovation
-        self.v_imu = self.v_imu + gain[1] * innovation
-        self.cov = self.cov - np.outer(gain, self.cov[0])
+        fixed_imu = v_add(packet.base_pos_world.tolist(), m_v(self._rot, self._imu_pos))
+        innovation = v_sub(fixed_imu, self._p)
+        c00, c01, c10, c11 = self._cov
+        gain_p, gain_v = c00 / (c00 + self.pos_var), c10 / (c00 + self.pos_var)
+        self._p = v_add(self._p, v_scale(gain_p, innovation))
+        self._v = v_add(self._v, v_scale(gain_v, innovation))
+        self._cov = (c00 - gain_p * c00, c01 - gain_p * c01, c10 - gain_v * c00, c11 - gain_v * c01)
+
+    def state_rows(self) -> tuple[tuple, tuple, tuple, tuple]:
+        """Base attitude (rows), position, velocity and angular velocity (base frame), floats."""
+        rot, w, imu = self._rot, self._w, self._imu_pos
+        base_pos = v_sub(self._p, m_v(rot, imu))
+        base_vel = v_sub(self._v, m_v(rot, v_cross(w, imu)))
+        return rot, base_pos, base_vel, w
+
+    @property
+    def rot(self) -> np.ndarray:
+        return np.array(self._rot)
+
+    @property
+    def w_base(self) -> np.ndarray:
+        return np.array(self._w)
 
     @property
     def base_pos(self) -> np.ndarray:
-        return self.p_imu - self.rot @ self.imu_pos
+        return np.array(self.state_rows()[1])
 
     @property
     def base_vel(self) -> np.ndarray:
-        return self.v_imu - self.rot @ cross(self.w_base, self.imu_pos)
+        return np.array(self.state_rows()[2])
 
 
 # --------------------------------------------------------------------------- physics + estimation
@@ -641,6 +683,16 @@ def _parse_release_at(release_at: Any, n_robots: int, dt_s: float) -> dict[int, 
     return steps
 
 
+class _ReferenceRows:
+    """A ``Reference`` on floats (rows of its rotation, its vectors as lists)."""
+
+    def __init__(self, ref: Reference) -> None:
+        self.rot = _rows(ref.rot)
+        self.pos, self.vel, self.acc = ref.pos.tolist(), ref.vel.tolist(), ref.acc.tolist()
+        self.w, self.wd = ref.w.tolist(), ref.wd.tolist()
+        self.pan, self.pan_rate = ref.pan, ref.pan_rate
+
+
 class CargoTransport:
     """The world, sensors, channel, estimators and the robots' own navigation, with no
     multi-agent API: ``reset(rng)`` then ``step(actions)`` with an (n_robots, 8) array.
@@ -777,21 +829,12 @@ class CargoTransport:
             (_quat_to_mat(self.model.site_quat[site]), self.model.site_pos[site].copy())
             for site in self.world.handrail_sites
         ]
+        self._handrail_rows = [(_rows(rot), tuple(pos.tolist())) for rot, pos in self.handrail_pose]
         self.obs_layout = observation_layout(self.n_robots, self.observe_estimates)
-        lay = self.obs_layout
-        # Per robot: (peer, wrench slice, age index, valid index) of each peer slot.
+        # Per robot: the peer in each of its peer slots (increasing index, skipping itself).
         self._peer_slots = [
-            [
-                (j, lay[f"peer{p}_wrench"], lay[f"peer{p}_age"].start, lay[f"peer{p}_valid"].start)
-                for p, j in enumerate(k for k in range(self.n_robots) if k != i)
-            ]
-            for i in range(self.n_robots)
+            [j for j in range(self.n_robots) if j != i] for i in range(self.n_robots)
         ]
-        # The blocks that are vectors rotated into the base frame, filled by one product in
-        # _get_obs: base errors, reference (position, rates), each peer slot's wrench.
-        rotated = ["base_pos_err", "base_vel_err", *REFERENCE_BLOCKS]
-        rotated += [f"peer{p}_wrench" for p in range(self.n_robots - 1)]
-        self._rotated_cols = np.concatenate([np.arange(lay[n].start, lay[n].stop) for n in rotated])
         self.obs_dim = self.obs_layout["all"].stop
         full = self._full_world.model
         self.state_dim = 1 + full.nq + full.nv + 13 * (full.nbody - 1)
@@ -1191,57 +1234,58 @@ class CargoTransport:
         return self._ref_cache[1]
 
     def _base_reference(
-        self, i: int, ref: Reference, joint_pos: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        self, i: int, ref: _ReferenceRows, joint_pos: list[float]
+    ) -> tuple[tuple, tuple, tuple]:
         """Robot i's base pose and velocity if the cargo were on its reference, grasp rigid at
-        the arm angles ``joint_pos``: rotation, position, velocity (world)."""
-        grasp_rot, grasp_pos = grasp_pose(self.robots[i], joint_pos)
-        rot_ch, pos_ch = self.handrail_pose[i]
-        rot = ref.rot @ rot_ch @ grasp_rot.T
-        pos = ref.pos + ref.rot @ pos_ch - rot @ grasp_pos
-        vel = ref.vel + cross(ref.w, pos - ref.pos)
+        the arm angles ``joint_pos``: rotation (rows), position, velocity (world), floats."""
+        grasp_rot, grasp_pos = grasp_pose_rows(self.robots[i], joint_pos)
+        rot_ch, pos_ch = self._handrail_rows[i]
+        rot = m_mt(m_m(ref.rot, rot_ch), grasp_rot)
+        pos = v_sub(v_add(ref.pos, m_v(ref.rot, pos_ch)), m_v(rot, grasp_pos))
+        vel = v_add(ref.vel, v_cross(ref.w, v_sub(pos, ref.pos)))
         return rot, pos, vel
 
     def _get_obs(self, robots: tuple[int, ...]) -> np.ndarray:
         """Observations of ``robots`` (the others' rows zeros). A peer that has let go of the
-        cargo has its slot zeroed: its messages are forgotten (``_release``)."""
-        ref = self.reference()
-        lay = self.obs_layout
+        cargo has its slot zeroed: its messages are forgotten (``_release``).
+
+        Each row is assembled on floats in the order of ``observation_layout``."""
+        ref = _ReferenceRows(self.reference())
         obs = np.zeros((self.n_robots, self.obs_dim))
         step_count, dt = self.step_count, self.dt_s
-        ref_rates = (ref.vel, ref.acc, ref.w, ref.wd)
         for i in robots:
-            nav, packet = self.navigators[i], self.packets[i]
-            o = obs[i]
-            rot = nav.rot
-            rot_ref, pos_ref, vel_ref = self._base_reference(i, ref, packet.joint_pos_rad)
-            base_pos = nav.base_pos
+            rot, base_pos, base_vel, w = self.navigators[i].state_rows()
+            joint_pos = self.packets[i].joint_pos_rad.tolist()
+            rot_ref, pos_ref, vel_ref = self._base_reference(i, ref, joint_pos)
+            row = [
+                *mt_v(rot, v_sub(base_pos, pos_ref)),
+                *mt_v(rot, v_sub(base_vel, vel_ref)),
+                *_rotvec(mt_m(rot_ref, rot)).tolist(),
+                *w,
+                *joint_pos,
+                *self.arm_targets[i].tolist(),
+                *mt_v(rot, v_sub(ref.pos, base_pos)),
+                *mt_v(rot, ref.vel),
+                *mt_v(rot, ref.acc),
+                *mt_v(rot, ref.w),
+                *mt_v(rot, ref.wd),
+                ref.pan,
+                ref.pan_rate,
+            ]
             latest = self.peer_msgs[i]
-            msgs = [latest.get(j) for j, *_ in self._peer_slots[i]]
-            wrenches = [_NO_WRENCH if msg is None else msg.wrench_world for msg in msgs]
-            # In the order of _rotated_cols. Rows v @ R are (R^T v)^T: every vector into the
-            # base frame in one product.
-            vectors = np.concatenate(
-                (base_pos - pos_ref, nav.base_vel - vel_ref, ref.pos - base_pos, *ref_rates)
-                + tuple(wrenches)
-            )
-            o[self._rotated_cols] = (vectors.reshape(-1, 3) @ rot).ravel()
-            o[lay["base_att_err"]] = _rotvec(rot_ref.T @ rot)
-            o[lay["base_ang_vel"]] = nav.w_base
-            o[lay["joint_pos"]] = packet.joint_pos_rad
-            o[lay["joint_target"]] = self.arm_targets[i]
-            o[lay["ref_pan"]] = (ref.pan, ref.pan_rate)
-            for msg, (_, wrench_slice, age_index, valid_index) in zip(
-                msgs, self._peer_slots[i], strict=True
-            ):
+            for j in self._peer_slots[i]:
+                msg = latest.get(j)
                 if msg is None:
-                    o[wrench_slice] = 0.0  # exactly zero: no message yet
+                    row += _EMPTY_PEER_SLOT
                     continue
-                o[age_index] = (step_count - msg.stamp) * dt
-                o[valid_index] = 1.0
+                wrench = msg.wrench_world.tolist()
+                row += mt_v(rot, wrench[:3])
+                row += mt_v(rot, wrench[3:])
+                row += ((step_count - msg.stamp) * dt, 1.0)
             if self.observe_estimates:
-                o[lay["estimate_mean"]] = self.est_mean[i]
-                o[lay["estimate_std"]] = self.est_std[i]
+                row += self.est_mean[i].tolist()
+                row += self.est_std[i].tolist()
+            obs[i] = row
         return obs
 
     # ------------------------------------------------------------------ rewards, infos

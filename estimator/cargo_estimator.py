@@ -81,6 +81,8 @@ from .rne import (
     balance_in_grasp_frame,
     grasp_from_base,
     grasp_pose,
+    m_m,
+    m_v,
     norm3,
     v_scale,
     wrench_transform,
@@ -108,20 +110,22 @@ def quat_to_mat(quat: np.ndarray) -> np.ndarray:
 
 
 def exp_so3(rotvec: np.ndarray | tuple[float, float, float]) -> np.ndarray:
-    """Rotation matrix of a rotation vector, an array or 3 floats (Rodrigues, in floats: called
-    every step)."""
+    """Rotation matrix of a rotation vector, an array or 3 floats (Rodrigues)."""
+    return np.array(exp_so3_rows(rotvec))
+
+
+def exp_so3_rows(rotvec: np.ndarray | tuple[float, float, float]) -> tuple:
+    """``exp_so3`` as rows of floats (for rne's float helpers: called every step)."""
     x, y, z = (float(c) for c in rotvec)
     angle = math.sqrt(x * x + y * y + z * z)
     if angle < 1e-12:
-        return np.eye(3)
+        return ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
     x, y, z = x / angle, y / angle, z / angle
     s, c1 = math.sin(angle), 1.0 - math.cos(angle)
-    return np.array(
-        [
-            [1.0 - c1 * (y * y + z * z), c1 * x * y - s * z, c1 * x * z + s * y],
-            [c1 * x * y + s * z, 1.0 - c1 * (x * x + z * z), c1 * y * z - s * x],
-            [c1 * x * z - s * y, c1 * y * z + s * x, 1.0 - c1 * (x * x + y * y)],
-        ]
+    return (
+        (1.0 - c1 * (y * y + z * z), c1 * x * y - s * z, c1 * x * z + s * y),
+        (c1 * x * y + s * z, 1.0 - c1 * (x * x + z * z), c1 * y * z - s * x),
+        (c1 * x * z - s * y, c1 * y * z + s * x, 1.0 - c1 * (x * x + y * y)),
     )
 
 
@@ -320,6 +324,7 @@ class CargoEstimator:
             ("thrust_command", (6,)),
         )
         self.pre = Preprocessor(robot, dt_s, kinematics_cutoff_hz)
+        self._imu_rot = tuple(map(tuple, robot.imu_rot.tolist()))
         # Slow filter over [thrust 6, links 6, Y 60], grasp frame.
         self.balance_filter = StateVariableFilter(72, dt_s * regressor_every, cutoff_hz)
         # Memory of the filters: one delay (rollback after a gate) and four (taint).
@@ -392,7 +397,7 @@ class CargoEstimator:
         )
         self._grasp_lever = 0.0
         self.n_skipped_low_excitation = 0
-        self._rot_world_base: np.ndarray | None = None
+        self._rot_world_base: tuple | None = None  # rows of floats (rne's helpers)
         self._pos_world_base: np.ndarray | None = None
         self._last_input: tuple[np.ndarray, ...] | None = None
         self._tainted_until = -1
@@ -499,16 +504,15 @@ class CargoEstimator:
             if quat.shape != (4,) or pos.shape != (3,):
                 raise ValueError("base_pos_world must be (3,) and base_quat_world (4,)")
             if np.all(np.isfinite(quat)) and np.all(np.isfinite(pos)) and np.linalg.norm(quat) > 0:
-                self._rot_world_base = quat_to_mat(quat)
+                self._rot_world_base = tuple(map(tuple, quat_to_mat(quat).tolist()))
                 self._pos_world_base = pos.copy()
                 self.n_fixes += 1
                 return True
             self.n_bad_readings += 1
         if self._rot_world_base is not None:
-            w_base = self.robot.imu_rot @ gyro_imu
-            self._rot_world_base = self._rot_world_base @ exp_so3(
-                v_scale(self.dt_s, w_base.tolist())
-            )
+            w_base = m_v(self._imu_rot, gyro_imu.tolist())
+            step = exp_so3_rows(v_scale(self.dt_s, w_base))
+            self._rot_world_base = m_m(self._rot_world_base, step)
         return False
 
     def _record_instant(self, stamp: int, q_raw: np.ndarray, fix: bool) -> WrenchMessage | None:
@@ -531,8 +535,9 @@ class CargoEstimator:
         # The grasp pose for the relative-grasp average uses the current encoders, not the
         # filtered (delayed) angles, so that it matches the fix in time.
         rot_bg, pos_bg = self.robot_grasp_pose(q_raw)
-        rot_wg = self._rot_world_base @ rot_bg
-        pos_wg = self._pos_world_base + self._rot_world_base @ pos_bg
+        rot_wb = np.array(self._rot_world_base)
+        rot_wg = rot_wb @ rot_bg
+        pos_wg = self._pos_world_base + rot_wb @ pos_bg
         if fix:
             self._own_fix[stamp] = (rot_wg, pos_wg)
             for p in self.peers:

@@ -209,15 +209,20 @@ def grasp_pose(robot: RobotDescription, q: np.ndarray) -> tuple[np.ndarray, np.n
     """Grasp frame in the base frame at joint angles ``q`` (rotation, position). Single sample,
     on Python floats (called per robot per step by the env and the controller); the same forward
     kinematics as ``link_poses`` and ``propagate`` (tests hold them equal)."""
+    rot, pos = grasp_pose_rows(robot, np.asarray(q, dtype=float).tolist())
+    return np.array(rot), np.array(pos)
+
+
+def grasp_pose_rows(robot: RobotDescription, qs: list[float]) -> tuple[tuple, tuple]:
+    """``grasp_pose`` as tuples of floats (3x3 rows, 3-vector) for the float helpers below."""
     links, g, grot, gpos = _fast_constants(robot)
-    qs = np.asarray(q, dtype=float).tolist()
     rots = [((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))]
     poss = [(0.0, 0.0, 0.0)]
     for k, (parent, r0, pos, _axis, kk, *_rest) in enumerate(links[1:], start=1):
         rots.append(m_m(m_m(rots[parent], r0), _rodrigues(kk, qs[k - 1])))
         poss.append(v_add(poss[parent], m_v(rots[parent], pos)))
     rot_g = rots[g]
-    return np.array(m_m(rot_g, grot)), np.array(v_add(poss[g], m_v(rot_g, gpos)))
+    return m_m(rot_g, grot), v_add(poss[g], m_v(rot_g, gpos))
 
 
 def link_momentum_rate(robot: RobotDescription, kin: Kinematics) -> np.ndarray:
@@ -307,7 +312,8 @@ def thrust_wrench(robot: RobotDescription, command: np.ndarray) -> np.ndarray:
 # second per robot; numpy's per-call overhead on 3-vectors made that 240 us. The same equations
 # as ``propagate`` / ``link_momentum_rate`` / ``body_regressor`` written on Python floats; tests
 # hold it equal to them to 1e-12. The helpers (3-vectors and 3x3 matrices as tuples of floats,
-# m_v(m, v) = m v, mt_v(m, v) = m^T v, m_m(a, b) = a b) also serve the env and the trajectories.
+# m_v(m, v) = m v, mt_v(m, v) = m^T v, m_m(a, b) = a b, mt_m(a, b) = a^T b, m_mt(a, b) = a b^T)
+# also serve the env, the estimator's attitude and the trajectories.
 def v_add(a, b):
     return (a[0] + b[0], a[1] + b[1], a[2] + b[2])
 
@@ -396,6 +402,19 @@ def m_m(a, b):
             a20 * b02 + a21 * b12 + a22 * b22,
         ),
     )
+
+
+def mt_m(a, b):
+    return m_m(transpose(a), b)
+
+
+def m_mt(a, b):
+    return m_m(a, transpose(b))
+
+
+def transpose(m):
+    (m00, m01, m02), (m10, m11, m12), (m20, m21, m22) = m
+    return ((m00, m10, m20), (m01, m11, m21), (m02, m12, m22))
 
 
 def _rodrigues(kk, angle: float):
