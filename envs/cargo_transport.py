@@ -1011,13 +1011,14 @@ class CargoTransport:
         acting = self.holding  # the robots of this step, those letting go at its end included
         rows = list(acting)
         acting_actions = actions[rows]
-        finite_rows = np.isfinite(acting_actions).all(axis=1)
-        if not finite_rows.all():
+        if not np.isfinite(acting_actions).all():
+            finite_rows = np.isfinite(acting_actions).all(axis=1)
             raise ValueError(
                 f"actions of robot {rows[int(np.argmin(finite_rows))]} are not all finite"
             )
+        acting_clipped = np.clip(acting_actions, -1.0, 1.0)
         clipped = np.zeros_like(actions)
-        clipped[rows] = acting_clipped = np.clip(acting_actions, -1.0, 1.0)
+        clipped[rows] = acting_clipped
         n_clipped = np.zeros(self.n_robots, dtype=int)
         n_clipped[rows] = (acting_clipped != acting_actions).sum(axis=1)
         self.step_count += 1
@@ -1049,8 +1050,7 @@ class CargoTransport:
             reason = "non_finite"
         elif robot_contacts.sum() + cargo_contacts > 0:
             reason = "wall_contact"
-        terms = self._get_rewards(clipped, robot_contacts, cargo_contacts, finite, acting)
-        rewards = sum(terms.values())
+        terms, rewards = self._get_rewards(clipped, robot_contacts, cargo_contacts, finite, acting)
         infos = self._get_infos(
             terms, n_clipped, robot_contacts + cargo_contacts, reason, acting, released
         )
@@ -1303,9 +1303,9 @@ class CargoTransport:
         cargo_contacts: int,
         finite: bool,
         robots: tuple[int, ...],
-    ) -> dict[str, np.ndarray]:
-        """Every reward term per robot, weighted and mixed (team vs individual); the team of
-        this step is ``robots`` (the others' rows zeros)."""
+    ) -> tuple[dict[str, np.ndarray], np.ndarray]:
+        """Every reward term per robot, weighted and mixed (team vs individual), and their sum
+        per robot; the team of this step is ``robots`` (the others' rows zeros)."""
         n = self.n_robots
         if finite:
             pos_err, angle_err = self.tracking_error()
@@ -1334,7 +1334,8 @@ class CargoTransport:
             ]
             for weight, team_term, term in zip(self._weights, team, individual, strict=True)
         ]
-        return dict(zip(REWARD_TERMS, np.array(mixed), strict=True))
+        rewards = [sum(values) for values in zip(*mixed, strict=True)]  # 0 + track + ... + contact
+        return dict(zip(REWARD_TERMS, np.array(mixed), strict=True)), np.array(rewards)
 
     def _get_infos(
         self,

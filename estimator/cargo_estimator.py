@@ -404,6 +404,7 @@ class CargoEstimator:
         self._pending: dict[int, _Instant] = {}
         self._own_fix: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self._peer_msgs: dict[tuple[int, int], WrenchMessage] = {}
+        self._oldest_peer_msg = math.inf  # a lower bound of the stamps in _peer_msgs
         self._relative: dict[int, _RelativeGrasp] = {p: _RelativeGrasp() for p in self.peers}
         for p, (rot, pos) in (relative_grasps or {}).items():
             if p not in self._relative:
@@ -571,6 +572,7 @@ class CargoEstimator:
             self.n_stale_messages += 1
             return
         self._peer_msgs[(message.sender, message.stamp)] = message
+        self._oldest_peer_msg = min(self._oldest_peer_msg, message.stamp)
         own = self._own_fix.get(message.stamp)
         if message.fix and own is not None:
             self._accumulate_relative(message.sender, message)
@@ -638,12 +640,18 @@ class CargoEstimator:
             elif stamp < self.stamp - self.history_steps:
                 del self._pending[stamp]
                 self.n_skipped_missing += 1
-        horizon = self.stamp - self.history_steps
-        for key in [k for k in self._peer_msgs if k[1] < horizon]:
-            del self._peer_msgs[key]
-        for key in [k for k in self._own_fix if k < horizon]:
-            del self._own_fix[key]
+        self._forget_before(self.stamp - self.history_steps)
         return done
+
+    def _forget_before(self, horizon: int) -> None:
+        """Drop the peers' messages and own fixes of stamps before ``horizon``."""
+        if self._oldest_peer_msg < horizon:
+            for key in [k for k in self._peer_msgs if k[1] < horizon]:
+                del self._peer_msgs[key]
+            self._oldest_peer_msg = min((k[1] for k in self._peer_msgs), default=math.inf)
+        # Own fixes are stored in increasing stamp order.
+        while self._own_fix and next(iter(self._own_fix)) < horizon:
+            del self._own_fix[next(iter(self._own_fix))]
 
     def _roll_back(self, gated_stamp: int) -> int:
         """Undo the updates of the instants within the filters' memory before ``gated_stamp``;

@@ -405,16 +405,47 @@ def m_m(a, b):
 
 
 def mt_m(a, b):
-    return m_m(transpose(a), b)
+    (a00, a01, a02), (a10, a11, a12), (a20, a21, a22) = a
+    (b00, b01, b02), (b10, b11, b12), (b20, b21, b22) = b
+    return (
+        (
+            a00 * b00 + a10 * b10 + a20 * b20,
+            a00 * b01 + a10 * b11 + a20 * b21,
+            a00 * b02 + a10 * b12 + a20 * b22,
+        ),
+        (
+            a01 * b00 + a11 * b10 + a21 * b20,
+            a01 * b01 + a11 * b11 + a21 * b21,
+            a01 * b02 + a11 * b12 + a21 * b22,
+        ),
+        (
+            a02 * b00 + a12 * b10 + a22 * b20,
+            a02 * b01 + a12 * b11 + a22 * b21,
+            a02 * b02 + a12 * b12 + a22 * b22,
+        ),
+    )
 
 
 def m_mt(a, b):
-    return m_m(a, transpose(b))
-
-
-def transpose(m):
-    (m00, m01, m02), (m10, m11, m12), (m20, m21, m22) = m
-    return ((m00, m10, m20), (m01, m11, m21), (m02, m12, m22))
+    (a00, a01, a02), (a10, a11, a12), (a20, a21, a22) = a
+    (b00, b01, b02), (b10, b11, b12), (b20, b21, b22) = b
+    return (
+        (
+            a00 * b00 + a01 * b01 + a02 * b02,
+            a00 * b10 + a01 * b11 + a02 * b12,
+            a00 * b20 + a01 * b21 + a02 * b22,
+        ),
+        (
+            a10 * b00 + a11 * b01 + a12 * b02,
+            a10 * b10 + a11 * b11 + a12 * b12,
+            a10 * b20 + a11 * b21 + a12 * b22,
+        ),
+        (
+            a20 * b00 + a21 * b01 + a22 * b02,
+            a20 * b10 + a21 * b11 + a22 * b12,
+            a20 * b20 + a21 * b21 + a22 * b22,
+        ),
+    )
 
 
 def _rodrigues(kk, angle: float):
