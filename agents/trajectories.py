@@ -132,6 +132,7 @@ class Trajectory:
         # Figure-eight x = A sin(wt), y = B sin(2wt): peak accelerations A w^2 and 4 B w^2.
         self.amp = np.array([0.7, 0.15])
         self.omega = 0.11 * (FAST_FACTOR if self.fast else 1.0)
+        self._figure8 = ((float(self.amp[0]), 1.0), (float(self.amp[1]), 2.0))  # (A, 1), (B, 2)
         self.ramp_s = 15.0  # smooth start of every motion
         # (amplitude rad, angular frequency rad/s) of the oscillations (TUMBLE, TUMBLE_YAW).
         self._tumble = [
@@ -148,7 +149,7 @@ class Trajectory:
             # motion starts at rest without a burst of acceleration.
             w = self.omega
             th, thd, thdd = w * self._ramp_integral(t, 0.0, self.ramp_s), w * s, w * ds
-            for axis, (amp, k) in enumerate(((float(self.amp[0]), 1.0), (float(self.amp[1]), 2.0))):
+            for axis, (amp, k) in enumerate(self._figure8):
                 sn, cs = math.sin(k * th), math.cos(k * th)
                 pos[axis] += amp * sn
                 vel[axis] = amp * k * thd * cs

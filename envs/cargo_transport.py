@@ -286,7 +286,7 @@ from gymnasium import spaces
 from pettingzoo import ParallelEnv
 
 from astrocargo.agents.trajectories import Reference, Trajectory
-from astrocargo.envs.comms import CommChannel
+from astrocargo.envs.comms import FAULT_STATS, CommChannel
 from astrocargo.envs.sensors import (
     NOISE_PROFILES,
     NoiseProfile,
@@ -564,6 +564,7 @@ FAULT_KINDS: dict[str, tuple[str, ...]] = {  # kind -> its own optional fields
 }
 # infos[agent]["faults"]: counted by the env, and by the channel (copies, comms.FAULT_STATS).
 FAULT_COUNTERS = ("imu_frames_missing", "fixes_missing", "propulsion_steps")
+_NO_FAULT_COUNTS = dict.fromkeys(FAULT_COUNTERS + tuple(f"messages_{k}" for k in FAULT_STATS), 0)
 
 
 @dataclass(frozen=True)
@@ -843,7 +844,7 @@ class CargoTransport:
             self._make_estimators()
         self.step_count = 0
         self._ready = False
-        self._ref_cache: tuple[float, Reference] | None = None
+        self._ref_cache: tuple[float, Reference, _ReferenceRows] | None = None
 
     # ------------------------------------------------------------------ arguments
     def _set_cargo_args(self, mass_kg: Any, com_m: Any, inertia: Any) -> None:
@@ -1146,6 +1147,8 @@ class CargoTransport:
 
     def _fault_infos(self) -> list[dict[str, Any]]:
         """Every robot's injected-fault counters (episode totals) and the kinds active now."""
+        if not self._fault_windows:  # none injected: every counter stays 0
+            return [{**_NO_FAULT_COUNTS, "active": []} for _ in range(self.n_robots)]
         counts = {k: v.tolist() for k, v in self.fault_counts.items()}
         counts.update({f"messages_{k}": v.tolist() for k, v in self.channel.fault_stats.items()})
         active: list[list[str]] = [[] for _ in range(self.n_robots)]
@@ -1231,10 +1234,15 @@ class CargoTransport:
     # ------------------------------------------------------------------ observations
     def reference(self) -> Reference:
         """The cargo reference at the current time (evaluated once per time)."""
+        return self._reference_at_time()[0]
+
+    def _reference_at_time(self) -> tuple[Reference, _ReferenceRows]:
+        """The reference at the current time and its float form, evaluated once per time."""
         t = float(self.data.time)
         if self._ref_cache is None or self._ref_cache[0] != t:
-            self._ref_cache = (t, self.trajectory(t))
-        return self._ref_cache[1]
+            ref = self.trajectory(t)
+            self._ref_cache = (t, ref, _ReferenceRows(ref))
+        return self._ref_cache[1:]
 
     def _base_reference(
         self, i: int, ref: _ReferenceRows, joint_pos: list[float]
@@ -1253,7 +1261,7 @@ class CargoTransport:
         cargo has its slot zeroed: its messages are forgotten (``_release``).
 
         Each row is assembled on floats in the order of ``observation_layout``."""
-        ref = _ReferenceRows(self.reference())
+        ref = self._reference_at_time()[1]
         obs = np.zeros((self.n_robots, self.obs_dim))
         step_count, dt = self.step_count, self.dt_s
         for i in robots:
@@ -1295,9 +1303,10 @@ class CargoTransport:
     def tracking_error(self) -> tuple[float, float]:
         """True cargo frame position error (m) and rotation angle error (rad)."""
         b = self.world.cargo_body
-        ref = self.reference()
-        rot = self.data.xmat[b].reshape(3, 3)
-        return norm3(self.data.xpos[b] - ref.pos), norm3(_rotvec(ref.rot.T @ rot))
+        ref = self._reference_at_time()[1]
+        rot = _rows(self.data.xmat[b].reshape(3, 3))
+        pos_err = norm3(v_sub(self.data.xpos[b].tolist(), ref.pos))
+        return pos_err, norm3(_rotvec(mt_m(ref.rot, rot)))
 
     def _get_rewards(
         self,

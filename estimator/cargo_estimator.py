@@ -116,7 +116,7 @@ def exp_so3(rotvec: np.ndarray | tuple[float, float, float]) -> np.ndarray:
 
 def exp_so3_rows(rotvec: np.ndarray | tuple[float, float, float]) -> tuple:
     """``exp_so3`` as rows of floats (for rne's float helpers: called every step)."""
-    x, y, z = (float(c) for c in rotvec)
+    x, y, z = map(float, rotvec)
     angle = math.sqrt(x * x + y * y + z * z)
     if angle < 1e-12:
         return ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
