@@ -985,7 +985,7 @@ class CargoTransport:
         self._log_std_sum = self._estimate_log_std_sums()
         everyone = self.holding
         obs = self._get_obs(everyone)
-        zero_terms = {t: np.zeros(self.n_robots) for t in REWARD_TERMS}
+        zero_terms = {t: [0.0] * self.n_robots for t in REWARD_TERMS}
         none = np.zeros(self.n_robots, dtype=int)
         infos = self._get_infos(zero_terms, none, none, None, everyone, ())
         return obs, infos
@@ -1315,7 +1315,7 @@ class CargoTransport:
         cargo_contacts: int,
         finite: bool,
         robots: tuple[int, ...],
-    ) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    ) -> tuple[dict[str, list[float]], np.ndarray]:
         """Every reward term per robot, weighted and mixed (team vs individual), and their sum
         per robot; the team of this step is ``robots`` (the others' rows zeros)."""
         n = self.n_robots
@@ -1348,11 +1348,11 @@ class CargoTransport:
             for weight, team_term, term in zip(self._weights, team, individual, strict=True)
         ]
         rewards = [sum(values) for values in zip(*mixed, strict=True)]  # 0 + track + ... + contact
-        return dict(zip(REWARD_TERMS, np.array(mixed), strict=True)), np.array(rewards)
+        return dict(zip(REWARD_TERMS, mixed, strict=True)), np.array(rewards)
 
     def _get_infos(
         self,
-        terms: dict[str, np.ndarray],
+        terms: dict[str, list[float]],
         n_clipped: np.ndarray,
         wall_contacts: np.ndarray,
         reason: str | None,
@@ -1362,7 +1362,7 @@ class CargoTransport:
         """Infos of ``robots`` (None for the others); ``released``: those letting go now."""
         infos: list[dict[str, Any] | None] = [None] * self.n_robots
         comm = dict(self.channel.stats)
-        rewards = [terms[t].tolist() for t in REWARD_TERMS]
+        rewards = [terms[t] for t in REWARD_TERMS]
         n_clipped, wall_contacts = n_clipped.tolist(), wall_contacts.tolist()
         faults = self._fault_infos()
         time_s = float(self.data.time)

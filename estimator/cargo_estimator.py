@@ -78,7 +78,7 @@ from .inertia import (
 from .preprocess import Preprocessor, StateVariableFilter
 from .rne import (
     RobotDescription,
-    balance_in_grasp_frame,
+    balance_rows,
     grasp_from_base,
     grasp_pose,
     m_m,
@@ -484,8 +484,8 @@ class CargoEstimator:
         return self._record_instant(stamp, q, fix)
 
     def _filter_balance(self, thrust_command: np.ndarray) -> None:
-        thrust_g, links_g, regressor, rot_bg, pos_bg = balance_in_grasp_frame(
-            self.robot, *self.pre.base_and_joint_motion(), self.pre.thrust()
+        values, rot_bg, pos_bg = balance_rows(
+            self.robot, *self.pre.base_and_joint_motion_rows(), self.pre.thrust().tolist()
         )
         # Per-step covariance of the actuation noise, carried into the grasp frame.
         to_grasp = grasp_from_base(rot_bg, pos_bg) @ self._thrust_to_base
@@ -493,9 +493,8 @@ class CargoEstimator:
         self._act_cov_sum += (to_grasp * std**2) @ to_grasp.T
         self._act_cov_n += 1
         self._grasp_lever = norm3(pos_bg)
-        self._balance, _, _ = self.balance_filter.step(
-            np.concatenate((thrust_g, links_g, regressor.ravel()))
-        )
+        # [thrust_G (6), links_G (6), Y (60, row by row)].
+        self._balance, _, _ = self.balance_filter.step(np.array(values))
 
     def _update_attitude(self, gyro_imu, base_pos_world, base_quat_world) -> bool:
         """Attitude from the last fix, propagated with the gyro between fixes."""

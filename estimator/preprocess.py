@@ -121,12 +121,16 @@ class Preprocessor:
 
     def base_and_joint_motion(self) -> tuple[np.ndarray, ...]:
         """Filtered (w, wd, acc of B's origin, q, qd, qdd), base frame."""
-        w, wd = self._y[self._gyro], self._yd[self._gyro]
-        w_f, r = w.tolist(), self._imu_pos
+        return tuple(np.array(x) for x in self.base_and_joint_motion_rows())
+
+    def base_and_joint_motion_rows(self) -> tuple[list[float], ...]:
+        """``base_and_joint_motion`` as lists of floats."""
+        w, wd = self._y[self._gyro].tolist(), self._yd[self._gyro].tolist()
+        r = self._imu_pos
         acc_imu = self._y[self._accel].tolist()
-        acc_origin = v_sub(v_sub(acc_imu, v_cross(wd.tolist(), r)), v_cross(w_f, v_cross(w_f, r)))
+        acc_origin = v_sub(v_sub(acc_imu, v_cross(wd, r)), v_cross(w, v_cross(w, r)))
         q = self._q
-        return w, wd, np.array(acc_origin), self._y[q], self._yd[q], self._ydd[q]
+        return w, wd, acc_origin, self._y[q].tolist(), self._yd[q].tolist(), self._ydd[q].tolist()
 
     def kinematics(self) -> Kinematics:
         return propagate(self.robot, *self.base_and_joint_motion())

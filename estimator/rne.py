@@ -219,8 +219,9 @@ def grasp_pose_rows(robot: RobotDescription, qs: list[float]) -> tuple[tuple, tu
     rots = [((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))]
     poss = [(0.0, 0.0, 0.0)]
     for k, (parent, r0, pos, _axis, kk, *_rest) in enumerate(links[1:], start=1):
-        rots.append(m_m(m_m(rots[parent], r0), _rodrigues(kk, qs[k - 1])))
-        poss.append(v_add(poss[parent], m_v(rots[parent], pos)))
+        rot_0, r = _joint_frame(rots, parent, r0, pos)
+        rots.append(m_m(rot_0, _rodrigues(kk, qs[k - 1])))
+        poss.append(v_add(poss[parent], r))
     rot_g = rots[g]
     return m_m(rot_g, grot), v_add(poss[g], m_v(rot_g, gpos))
 
@@ -460,6 +461,16 @@ def _rodrigues(kk, angle: float):
     )
 
 
+def _joint_frame(rots, parent, rot_in_parent, pos_in_parent):
+    """A link's frame at q = 0 and its origin relative to its parent's, in B axes: R_p R_pk0 and
+    R_p p_pk (for a child of the base, R_p = I: the products are skipped, their values are the
+    same)."""
+    if parent == 0:
+        return rot_in_parent, pos_in_parent
+    rot_p = rots[parent]
+    return m_m(rot_p, rot_in_parent), m_v(rot_p, pos_in_parent)
+
+
 _FAST_CACHE: dict[int, tuple] = {}
 
 
@@ -512,22 +523,35 @@ def balance_in_grasp_frame(
     the grasp frame's rotation (3, 3) and position (3,) in B), so that
     thrust_G = links_G + Y pi_G - (peers' wrenches in G). Single sample; same equations as
     ``propagate``, ``link_momentum_rate`` and ``body_regressor``."""
+    inputs = (w_base, wd_base, acc_base, q, qd, qdd, thrust_base)
+    values, rot_g, p_g = balance_rows(robot, *(np.asarray(x, dtype=float).tolist() for x in inputs))
+    return (
+        np.array(values[0:6]),
+        np.array(values[6:12]),
+        np.array(values[12:72]).reshape(6, 10),
+        np.array(rot_g),
+        np.array(p_g),
+    )
+
+
+def balance_rows(robot: RobotDescription, w_base, wd_base, acc_base, q, qd, qdd, thrust_base):
+    """``balance_in_grasp_frame`` on lists of floats: (thrust_G, links_G, Y row by row) as one
+    tuple of 72 floats, the grasp frame's rotation (rows) and position (the estimator filters
+    the 72 values as one vector)."""
     links, g, grot, gpos = _fast_constants(robot)
     rots = [((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))]
     poss = [(0.0, 0.0, 0.0)]
-    ws = [w_base.tolist()]
-    wds = [wd_base.tolist()]
-    accs = [acc_base.tolist()]
-    qs, qds, qdds = q.tolist(), qd.tolist(), qdd.tolist()
+    ws = [w_base]
+    wds = [wd_base]
+    accs = [acc_base]
+    qs, qds, qdds = q, qd, qdd
     f_sum = (0.0, 0.0, 0.0)
     n_sum = (0.0, 0.0, 0.0)
     for k, (parent, r0, pos, axis, kk, mass, com, inertia) in enumerate(links):
         if k:
             j = k - 1
-            rq = _rodrigues(kk, qs[j])
-            rp = rots[parent]
-            rot = m_m(m_m(rp, r0), rq)
-            r = m_v(rp, pos)
+            rot_0, r = _joint_frame(rots, parent, r0, pos)
+            rot = m_m(rot_0, _rodrigues(kk, qs[j]))
             z = m_v(rot, axis)
             w_rel = v_scale(qds[j], z)
             wp, wdp = ws[parent], wds[parent]
@@ -557,21 +581,15 @@ def balance_in_grasp_frame(
         n3 = (wrench[3], wrench[4], wrench[5])
         return mt_v(rot_g, f3) + mt_v(rot_g, v_sub(n3, v_cross(p_g, f3)))
 
-    thrust_g = np.array(to_grasp(thrust_base.tolist()))
-    links_g = np.array(to_grasp(f_sum + n_sum))
     a, wv, wdv = mt_v(rot_g, acc_g), mt_v(rot_g, wg), mt_v(rot_g, wdg)
-    return (
-        thrust_g,
-        links_g,
-        _body_regressor_one(a, wv, wdv),
-        np.array(rot_g),
-        np.array(p_g),
-    )
+    values = to_grasp(thrust_base) + to_grasp(f_sum + n_sum) + _body_regressor_values(a, wv, wdv)
+    return values, rot_g, p_g
 
 
-def _body_regressor_one(a, w, wd) -> np.ndarray:
-    """``body_regressor`` for one sample on Python floats: its matrix products written out,
-    the terms that are products with zero dropped from their sums (the sums keep their order)."""
+def _body_regressor_values(a, w, wd) -> tuple:
+    """``body_regressor`` for one sample on Python floats, its 60 values row by row: its matrix
+    products written out, the terms that are products with zero dropped from their sums (the
+    sums keep their order)."""
     a0, a1, a2 = a
     w0, w1, w2 = w
     d0, d1, d2 = wd
@@ -580,22 +598,14 @@ def _body_regressor_one(a, w, wd) -> np.ndarray:
     s01, s02, s12 = w0 * w1, w0 * w2, w1 * w2
     # Columns [m, h (3), I_xx, I_yy, I_zz, I_xy, I_xz, I_yz]; force rows: a, skew(wd) + skew(w)^2;
     # moment rows: -skew(a), L(wd) + skew(w) L(w) with I v = L(v) [I_xx .. I_yz].
-    return np.array(
-        (
-            (a0, s00, -d2 + s01, d1 + s02, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0),
-            (a1, d2 + s01, s11, -d0 + s12, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0),
-            (a2, -d1 + s02, d0 + s12, s22, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0),
-            (
-                0.0, 0.0, a2, -a1,
-                d0, (-w2) * w1, w1 * w2, d1 + (-w2) * w0, d2 + w1 * w0, (-w2) * w2 + w1 * w1,
-            ),
-            (
-                0.0, -a2, 0.0, a0,
-                w2 * w0, d1, (-w0) * w2, d0 + w2 * w1, w2 * w2 + (-w0) * w0, d2 + (-w0) * w1,
-            ),
-            (
-                0.0, a1, -a0, 0.0,
-                (-w1) * w0, w0 * w1, d2, (-w1) * w1 + w0 * w0, d0 + (-w1) * w2, d1 + w0 * w2,
-            ),
-        )
+    return (
+        a0, s00, -d2 + s01, d1 + s02, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0,
+        a1, d2 + s01, s11, -d0 + s12, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0,
+        a2, -d1 + s02, d0 + s12, s22, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0,
+        0.0, 0.0, a2, -a1,
+        d0, (-w2) * w1, w1 * w2, d1 + (-w2) * w0, d2 + w1 * w0, (-w2) * w2 + w1 * w1,
+        0.0, -a2, 0.0, a0,
+        w2 * w0, d1, (-w0) * w2, d0 + w2 * w1, w2 * w2 + (-w0) * w0, d2 + (-w0) * w1,
+        0.0, a1, -a0, 0.0,
+        (-w1) * w0, w0 * w1, d2, (-w1) * w1 + w0 * w0, d0 + (-w1) * w2, d1 + w0 * w2,
     )  # fmt: skip
