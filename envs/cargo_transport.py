@@ -374,6 +374,12 @@ def _rotvec(rot: np.ndarray) -> np.ndarray:
     return vec
 
 
+def _arm_target(current: float, wanted: float, max_move: float, low: float, high: float) -> float:
+    """The next servo target: ``wanted`` approached by at most ``max_move``, within the joint
+    range [low, high] (np.clip's min-then-max, on floats)."""
+    return min(max(current + min(max(wanted - current, -max_move), max_move), low), high)
+
+
 def _mean(values: list[float], indices: tuple[int, ...]) -> float:
     """Mean of ``values`` at ``indices``, summed in order as numpy's mean of a few values."""
     total = -0.0
@@ -822,8 +828,6 @@ class CargoTransport:
         self.robots = [self.world.robot_model(i) for i in range(self.n_robots)]
         self.thrust_limits = np.array([r.thrust_limit for r in self.robots])
         self.joint_ranges = np.array([r.joint_range for r in self.robots])
-        self._joint_low, self._joint_high = self.joint_ranges[..., 0], self.joint_ranges[..., 1]
-        self._arm_deployed = np.asarray(ARM_DEPLOYED_RAD)
         self._bind_world(self._full_world, self._full_data)
         # Robot i's handrail (its grasp site on the cargo) in the cargo frame: known geometry.
         self.handrail_pose = [
@@ -1089,12 +1093,23 @@ class CargoTransport:
         the cargo, start the period. Returns the thrust commands (n_robots, 6) each robot knows
         it sent (zeros for those that have let go)."""
         commands = clipped[:, :6] * self.thrust_limits
-        wanted = self._arm_deployed + ARM_OFFSET_RAD * clipped[:, 6:]
+        # The servo targets, joint by joint on floats (four numbers: numpy's overhead dominates).
         max_move = ARM_SPEED_RADPS * self.dt_s
-        # np.clip, with its bounds (min then max), without its per-call overhead.
-        move = np.minimum(np.maximum(wanted - self.arm_targets, -max_move), max_move)
-        self.arm_targets = np.minimum(
-            np.maximum(self.arm_targets + move, self._joint_low), self._joint_high
+        self.arm_targets = np.array(
+            [
+                [
+                    _arm_target(current, deployed + ARM_OFFSET_RAD * action, max_move, low, high)
+                    for action, current, deployed, (low, high) in zip(
+                        actions, currents, ARM_DEPLOYED_RAD, ranges, strict=True
+                    )
+                ]
+                for actions, currents, ranges in zip(
+                    clipped[:, 6:].tolist(),
+                    self.arm_targets.tolist(),
+                    self.joint_ranges.tolist(),
+                    strict=True,
+                )
+            ]
         )
         rows = self._rows
         delivered = self.sensors.actuate(commands[rows])  # row k: robot holding[k]
