@@ -367,11 +367,12 @@ def _rows(mat: np.ndarray) -> tuple:
     return tuple(map(tuple, mat.tolist()))
 
 
-def _rotvec(rot: np.ndarray) -> np.ndarray:
-    """Rotation vector (axis * angle, angle in [0, pi]) of a rotation matrix."""
-    vec = np.empty(3)
-    mujoco.mju_quat2Vel(vec, _mat_to_quat(rot), 1.0)
-    return vec
+def _rotvec(rot: tuple) -> list[float]:
+    """Rotation vector (axis * angle, angle in [0, pi]) of a rotation matrix given by its rows."""
+    quat, vec = np.empty(4), np.empty(3)
+    mujoco.mju_mat2Quat(quat, np.array(rot[0] + rot[1] + rot[2]))
+    mujoco.mju_quat2Vel(vec, quat, 1.0)
+    return vec.tolist()
 
 
 def _arm_target(current: float, wanted: float, max_move: float, low: float, high: float) -> float:
@@ -485,7 +486,7 @@ class BaseNavigator:
             return
         fix_rot = _rows(_quat_to_mat(packet.base_quat_world))
         gain_att = self.att_cov / (self.att_cov + self.att_var)
-        error = _rotvec(mt_m(self._rot, fix_rot)).tolist()
+        error = _rotvec(mt_m(self._rot, fix_rot))
         self._rot = m_m(self._rot, exp_so3_rows(v_scale(gain_att, error)))
         self.att_cov *= 1.0 - gain_att
         fixed_imu = v_add(packet.base_pos_world.tolist(), m_v(self._rot, self._imu_pos))
@@ -1210,9 +1211,7 @@ class CargoTransport:
             return
         self.est_mean = [est.params_mean() for est in self.estimators]
         self.est_std = [est.params_std() for est in self.estimators]
-        self._log_std_now = np.array(
-            [np.sum(np.log(np.maximum(s, LOG_STD_FLOOR))) for s in self.est_std]
-        )
+        self._log_std_now = np.log(np.maximum(np.array(self.est_std), LOG_STD_FLOOR)).sum(axis=1)
         # Every robot's errors in one call per kind (the same values robot by robot).
         means, truths = np.array(self.est_mean), np.array(self.true_params_grasp)
         self.est_errors = [
@@ -1286,7 +1285,7 @@ class CargoTransport:
             row = [
                 *mt_v(rot, v_sub(base_pos, pos_ref)),
                 *mt_v(rot, v_sub(base_vel, vel_ref)),
-                *_rotvec(mt_m(rot_ref, rot)).tolist(),
+                *_rotvec(mt_m(rot_ref, rot)),
                 *w,
                 *joint_pos,
                 *self.arm_targets[i].tolist(),
