@@ -107,9 +107,9 @@ def _perturb_quat(quat: np.ndarray, rotvec: np.ndarray) -> np.ndarray:
     return out
 
 
-def _rotvec_quat(rotvec: np.ndarray) -> np.ndarray:
+def _rotvec_quat(rotvec: tuple[float, float, float]) -> np.ndarray:
     """Quaternion of a rotation vector: ``mju_axisAngle2Quat`` of its axis and angle, on floats."""
-    x, y, z = rotvec.tolist()
+    x, y, z = rotvec
     angle = math.sqrt(x * x + y * y + z * z)
     if angle == 0:
         return np.array([1.0, 0.0, 0.0, 0.0])
@@ -174,14 +174,15 @@ class SensorSuite:
         dt = t1 - t0
         if dt <= 0:
             raise ValueError("read() needs begin_period() at the start of the period")
-        rel = np.swapaxes(r0, -1, -2) @ r1
+        rel = (np.swapaxes(r0, -1, -2) @ r1).reshape(-1, 9)
         rotvec = np.zeros((len(rel), 3))
         half = np.zeros((len(rel), 9))
         quat = np.zeros(4)
-        for k in range(len(rel)):
-            mujoco.mju_mat2Quat(quat, rel[k].reshape(9))
-            mujoco.mju_quat2Vel(rotvec[k], quat, 1.0)
-            mujoco.mju_quat2Mat(half[k], _rotvec_quat(0.5 * rotvec[k]))
+        for rel_k, rotvec_k, half_k in zip(rel, rotvec, half, strict=True):
+            mujoco.mju_mat2Quat(quat, rel_k)
+            mujoco.mju_quat2Vel(rotvec_k, quat, 1.0)
+            x, y, z = rotvec_k.tolist()
+            mujoco.mju_quat2Mat(half_k, _rotvec_quat((0.5 * x, 0.5 * y, 0.5 * z)))
         r_mid = r0 @ half.reshape(-1, 3, 3)
         # Rows v @ R are (R^T v)^T: each robot's velocity change into its mid-period frame.
         accel = (v1 - v0)[:, None, :] @ r_mid
