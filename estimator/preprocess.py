@@ -54,27 +54,34 @@ class StateVariableFilter:
         self.ad = e[:3, :3]
         self.b_value = e[:3, 3]  # weight of u_k
         self.b_slope = e[:3, 4] / dt_s  # weight of (u_k+1 - u_k)
-        self._b_value_col, self._b_slope_col = self.b_value[:, None], self.b_slope[:, None]
+        # One product per step: state_k+1 = [Ad | b_value - b_slope | b_slope] [state_k; u_k; u_k+1]
+        # (numpy's per-call overhead on a few small arrays would dominate the separate terms).
+        self._step_matrix = np.column_stack((self.ad, self.b_value - self.b_slope, self.b_slope))
         self.n_channels = int(n_channels)
         self.delay_s = 3.0 / w
+        self._stacked = np.zeros((5, self.n_channels))  # [state (3 rows); u_prev; u]
         self.state = np.zeros((3, self.n_channels))
-        self.u_prev = np.zeros(self.n_channels)
         self.started = False
+
+    @property
+    def u_prev(self) -> np.ndarray:
+        """The previous input sample."""
+        return self._stacked[3].copy()
 
     def step(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         u = np.asarray(u, dtype=float)
         if u.shape != (self.n_channels,):
             raise ValueError(f"filter input must have shape ({self.n_channels},), got {u.shape}")
+        stacked = self._stacked
         if not self.started:
             self.state[0] = u
+            stacked[0] = u
             self.started = True
         else:
-            self.state = (
-                self.ad @ self.state
-                + self._b_value_col * self.u_prev
-                + self._b_slope_col * (u - self.u_prev)
-            )
-        self.u_prev = u.copy()
+            stacked[4] = u
+            self.state = self._step_matrix @ stacked
+            stacked[:3] = self.state
+        stacked[3] = u
         return self.state[0], self.state[1], self.state[2]
 
 
