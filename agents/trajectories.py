@@ -30,7 +30,9 @@ base around the cargo, which its controller must follow. All robots use the same
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -59,13 +61,40 @@ class Reference:
     pan_rate: float
 
 
-def _rot(axis: int, angle: float) -> np.ndarray:
+class ReferenceValues(NamedTuple):
+    """A ``Reference`` on Python floats: vectors as 3 floats, the rotation as its rows (for
+    code on the float helpers of ``estimator.rne``; one evaluation per control step)."""
+
+    pos: Sequence[float]
+    vel: Sequence[float]
+    acc: Sequence[float]
+    rot: Sequence[Sequence[float]]
+    w: Sequence[float]
+    wd: Sequence[float]
+    pan: float
+    pan_rate: float
+
+    def to_reference(self) -> Reference:
+        return Reference(
+            np.array(self.pos),
+            np.array(self.vel),
+            np.array(self.acc),
+            np.array(self.rot),
+            np.array(self.w),
+            np.array(self.wd),
+            self.pan,
+            self.pan_rate,
+        )
+
+
+def _rot(axis: int, angle: float) -> list[list[float]]:
+    """Rows of the rotation by ``angle`` about axis ``axis`` (0, 1, 2: x, y, z)."""
     c, s = math.cos(angle), math.sin(angle)
     i, j = [(1, 2), (2, 0), (0, 1)][axis]
     r = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]
     r[i][i] = r[j][j] = c
     r[i][j], r[j][i] = -s, s
-    return np.array(r)
+    return r
 
 
 def _smoothstep(t: float, t0: float, duration: float) -> tuple[float, float, float]:
@@ -141,6 +170,10 @@ class Trajectory:
         self._tumble_yaw = (float(np.deg2rad(self.TUMBLE_YAW[0])), 2 * np.pi / self.TUMBLE_YAW[1])
 
     def __call__(self, t: float) -> Reference:
+        return self.values(t).to_reference()
+
+    def values(self, t: float) -> ReferenceValues:
+        """The reference at ``t`` on Python floats (the same numbers as ``self(t)``)."""
         ramp = _smoothstep(t, 0.0, self.ramp_s)
         s, ds, _ = ramp
         pos, vel, acc = self.center.tolist(), [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]
@@ -163,8 +196,8 @@ class Trajectory:
             (roll, roll_d, roll_dd), (pitch, pitch_d, pitch_dd) = (
                 _oscillation(t, ramp, a, om) for a, om in self._tumble
             )
-            rot_zx = rot @ _rot(0, roll)
-            rot = rot_zx @ _rot(1, pitch)
+            rot_zx = np.array(rot) @ np.array(_rot(0, roll))
+            rot = (rot_zx @ np.array(_rot(1, pitch))).tolist()
             # Angular velocity and acceleration in world axes of R = Rz(yaw) Rx(roll) Ry(pitch).
             ez = (0.0, 0.0, 1.0)
             ex = (math.cos(yaw), math.sin(yaw), 0.0)
@@ -177,16 +210,7 @@ class Trajectory:
                 (yaw_acc, ez), (roll_dd, ex), (roll_d, dex), (pitch_dd, ey), (pitch_d, dey)
             )
         pan, pan_rate = self._pan(t, ramp)
-        return Reference(
-            np.array(pos),
-            np.array(vel),
-            np.array(acc),
-            rot,
-            np.array(w_world),
-            np.array(wd_world),
-            pan,
-            pan_rate,
-        )
+        return ReferenceValues(pos, vel, acc, rot, w_world, wd_world, pan, pan_rate)
 
     @staticmethod
     def _ramp_integral(t: float, t0: float, duration: float) -> float:

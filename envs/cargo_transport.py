@@ -285,7 +285,7 @@ import numpy as np
 from gymnasium import spaces
 from pettingzoo import ParallelEnv
 
-from astrocargo.agents.trajectories import Reference, Trajectory
+from astrocargo.agents.trajectories import Reference, ReferenceValues, Trajectory
 from astrocargo.envs.comms import FAULT_STATS, CommChannel
 from astrocargo.envs.sensors import (
     NOISE_PROFILES,
@@ -691,16 +691,6 @@ def _parse_release_at(release_at: Any, n_robots: int, dt_s: float) -> dict[int, 
     return steps
 
 
-class _ReferenceRows:
-    """A ``Reference`` on floats (rows of its rotation, its vectors as lists)."""
-
-    def __init__(self, ref: Reference) -> None:
-        self.rot = _rows(ref.rot)
-        self.pos, self.vel, self.acc = ref.pos.tolist(), ref.vel.tolist(), ref.acc.tolist()
-        self.w, self.wd = ref.w.tolist(), ref.wd.tolist()
-        self.pan, self.pan_rate = ref.pan, ref.pan_rate
-
-
 class CargoTransport:
     """The world, sensors, channel, estimators and the robots' own navigation, with no
     multi-agent API: ``reset(rng)`` then ``step(actions)`` with an (n_robots, 8) array.
@@ -849,7 +839,7 @@ class CargoTransport:
             self._make_estimators()
         self.step_count = 0
         self._ready = False
-        self._ref_cache: tuple[float, Reference, _ReferenceRows] | None = None
+        self._ref_cache: list | None = None
 
     # ------------------------------------------------------------------ arguments
     def _set_cargo_args(self, mass_kg: Any, com_m: Any, inertia: Any) -> None:
@@ -1248,18 +1238,24 @@ class CargoTransport:
     # ------------------------------------------------------------------ observations
     def reference(self) -> Reference:
         """The cargo reference at the current time (evaluated once per time)."""
-        return self._reference_at_time()[0]
+        cache = self._reference_cache()
+        if cache[2] is None:
+            cache[2] = cache[1].to_reference()
+        return cache[2]
 
-    def _reference_at_time(self) -> tuple[Reference, _ReferenceRows]:
-        """The reference at the current time and its float form, evaluated once per time."""
+    def _reference_values(self) -> ReferenceValues:
+        """The reference at the current time on floats (evaluated once per time)."""
+        return self._reference_cache()[1]
+
+    def _reference_cache(self) -> list:
+        """[time, its ReferenceValues, its Reference once asked for]."""
         t = float(self.data.time)
         if self._ref_cache is None or self._ref_cache[0] != t:
-            ref = self.trajectory(t)
-            self._ref_cache = (t, ref, _ReferenceRows(ref))
-        return self._ref_cache[1:]
+            self._ref_cache = [t, self.trajectory.values(t), None]
+        return self._ref_cache
 
     def _base_reference(
-        self, i: int, ref: _ReferenceRows, joint_pos: list[float]
+        self, i: int, ref: ReferenceValues, joint_pos: list[float]
     ) -> tuple[tuple, tuple, tuple]:
         """Robot i's base pose and velocity if the cargo were on its reference, grasp rigid at
         the arm angles ``joint_pos``: rotation (rows), position, velocity (world), floats."""
@@ -1275,7 +1271,7 @@ class CargoTransport:
         cargo has its slot zeroed: its messages are forgotten (``_release``).
 
         Each row is assembled on floats in the order of ``observation_layout``."""
-        ref = self._reference_at_time()[1]
+        ref = self._reference_values()
         obs = np.zeros((self.n_robots, self.obs_dim))
         step_count, dt = self.step_count, self.dt_s
         for i in robots:
@@ -1317,7 +1313,7 @@ class CargoTransport:
     def tracking_error(self) -> tuple[float, float]:
         """True cargo frame position error (m) and rotation angle error (rad)."""
         b = self.world.cargo_body
-        ref = self._reference_at_time()[1]
+        ref = self._reference_values()
         rot = _rows(self.data.xmat[b].reshape(3, 3))
         pos_err = norm3(v_sub(self.data.xpos[b].tolist(), ref.pos))
         return pos_err, norm3(_rotvec(mt_m(ref.rot, rot)))
