@@ -215,12 +215,12 @@ def grasp_pose(robot: RobotDescription, q: np.ndarray) -> tuple[np.ndarray, np.n
 
 def grasp_pose_rows(robot: RobotDescription, qs: list[float]) -> tuple[tuple, tuple]:
     """``grasp_pose`` as tuples of floats (3x3 rows, 3-vector) for the float helpers below."""
-    links, g, grot, gpos = _fast_constants(robot)
+    _, g, grot, gpos, joints = _fast_constants(robot)
     rots = [((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))]
     poss = [(0.0, 0.0, 0.0)]
-    for k, (parent, r0, pos, _axis, kk, *_rest) in enumerate(links[1:], start=1):
+    for k, (parent, r0, pos, kk) in enumerate(joints):
         rot_0, r = _joint_frame(rots, parent, r0, pos)
-        rots.append(m_m(rot_0, _rodrigues(kk, qs[k - 1])))
+        rots.append(m_m(rot_0, _rodrigues(kk, qs[k])))
         poss.append(v_add(poss[parent], r))
     rot_g = rots[g]
     return m_m(rot_g, grot), v_add(poss[g], m_v(rot_g, gpos))
@@ -503,6 +503,8 @@ def _fast_constants(robot: RobotDescription) -> tuple:
         robot.grasp_link,
         tuple(map(tuple, np.asarray(robot.grasp_rot, float).tolist())),
         tuple(float(x) for x in robot.grasp_pos),
+        # The joints' links only, what forward kinematics needs: (parent, R_pk0, p_pk, (K, K^2)).
+        tuple((parent, r0, pos, kk) for parent, r0, pos, _, kk, *_ in links[1:]),
     )
     _FAST_CACHE[key] = (robot, const)
     return const
@@ -538,7 +540,7 @@ def balance_rows(robot: RobotDescription, w_base, wd_base, acc_base, q, qd, qdd,
     """``balance_in_grasp_frame`` on lists of floats: (thrust_G, links_G, Y row by row) as one
     tuple of 72 floats, the grasp frame's rotation (rows) and position (the estimator filters
     the 72 values as one vector)."""
-    links, g, grot, gpos = _fast_constants(robot)
+    links, g, grot, gpos, _ = _fast_constants(robot)
     rots = [((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))]
     poss = [(0.0, 0.0, 0.0)]
     ws = [w_base]
