@@ -695,12 +695,11 @@ class CargoEstimator:
         current estimate (scalar per block, magnitudes only): force M sigma_a + m_c L sigma_qdd,
         moment J sigma_wd + M L sigma_a + m_c |c| L sigma_qdd, with M the robot-plus-cargo mass,
         L the base-to-grasp lever and J the inertia about the grasp."""
-        pi = self.ukf.params_mean()
-        m_c = pi[0]
-        com = norm3(pi[1:4]) / m_c
+        m_c, h_x, h_y, h_z, i_xx, i_yy, i_zz = self.ukf.params_mean()[:7].tolist()
+        com = norm3((h_x, h_y, h_z)) / m_c
         lever = self._grasp_lever
         total = self._robot_mass + m_c
-        inertia = self._robot_inertia + self._robot_mass * lever**2 + float(pi[4:7].max())
+        inertia = self._robot_inertia + self._robot_mass * lever**2 + max(i_xx, i_yy, i_zz)
         force = (total * self._acc_noise) ** 2 + (m_c * lever * self._joint_acc_noise) ** 2
         moment = (
             (inertia * self._ang_acc_noise) ** 2
