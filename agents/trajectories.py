@@ -113,8 +113,8 @@ def _smoothstep(t: float, t0: float, duration: float) -> tuple[float, float, flo
 def _oscillation(
     t: float, ramp: tuple[float, float, float], amp: float, omega: float
 ) -> tuple[float, float, float]:
-    """amp sin(omega t) faded in by the smoothstep ``ramp`` (value, rate, second derivative):
-    value, rate and second derivative."""
+    """amp sin(omega t) faded in by the smoothstep ``ramp`` (its value, rate and second
+    derivative at t): the product's value, rate and second derivative."""
     s, ds, dds = ramp
     sn, cs = math.sin(omega * t), math.cos(omega * t)
     return (
@@ -134,9 +134,8 @@ def _combine(*terms: tuple[float, tuple[float, float, float]]) -> tuple[float, f
 
 
 class Trajectory:
-    """A named reference. ``Trajectory(name, fast=False)(t)`` -> ``Reference``.
-
-    Evaluated on Python floats (once per control step by the env), arrays built at the end.
+    """A named reference. ``Trajectory(name, fast=False)(t)`` -> ``Reference``;
+    ``values(t)``: the same on Python floats (what the env evaluates once per control step).
     """
 
     NAMES = ("figure8_yaw", "figure8_tumble", "hover")

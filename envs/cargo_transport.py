@@ -314,6 +314,7 @@ from astrocargo.estimator.inertia import (
 )
 from astrocargo.estimator.rne import (
     RobotDescription,
+    as_rows,
     grasp_pose_rows,
     m_m,
     m_mt,
@@ -360,11 +361,6 @@ TERMINATION_REASONS = ("wall_contact", "non_finite", "released")  # "released": 
 
 
 # --------------------------------------------------------------------------- small helpers
-
-
-def _rows(mat: np.ndarray) -> tuple:
-    """A 3x3 array as a tuple of row tuples (for rne's float helpers)."""
-    return tuple(map(tuple, mat.tolist()))
 
 
 def _rotvec(rot: tuple) -> list[float]:
@@ -436,7 +432,7 @@ class BaseNavigator:
     def __init__(self, robot: RobotDescription, dt_s: float, profile: NoiseProfile) -> None:
         self.imu_rot = robot.imu_rot
         self.imu_pos = robot.imu_pos
-        self._imu_rot, self._imu_pos = _rows(robot.imu_rot), tuple(robot.imu_pos.tolist())
+        self._imu_rot, self._imu_pos = as_rows(robot.imu_rot), tuple(robot.imu_pos.tolist())
         self.dt_s = float(dt_s)
         acc_var = max(profile.accel_std, NAV_STD_FLOOR) ** 2
         self.pos_var = max(profile.position_std_m, NAV_STD_FLOOR) ** 2
@@ -451,7 +447,7 @@ class BaseNavigator:
         """Start at rest at the packet's localization fix."""
         if packet.base_pos_world is None or packet.base_quat_world is None:
             raise ValueError("the navigator starts from a packet with a localization fix")
-        self._rot = _rows(_quat_to_mat(packet.base_quat_world))
+        self._rot = as_rows(_quat_to_mat(packet.base_quat_world))
         if packet.gyro_imu is None or packet.accel_imu is None:
             self._last_imu = ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0))  # at rest
         else:
@@ -484,7 +480,7 @@ class BaseNavigator:
         self.att_cov += self.gyro_step_var
         if packet.base_pos_world is None or packet.base_quat_world is None:
             return
-        fix_rot = _rows(_quat_to_mat(packet.base_quat_world))
+        fix_rot = as_rows(_quat_to_mat(packet.base_quat_world))
         gain_att = self.att_cov / (self.att_cov + self.att_var)
         error = _rotvec(mt_m(self._rot, fix_rot))
         self._rot = m_m(self._rot, exp_so3_rows(v_scale(gain_att, error)))
@@ -825,7 +821,9 @@ class CargoTransport:
             (_quat_to_mat(self.model.site_quat[site]), self.model.site_pos[site].copy())
             for site in self.world.handrail_sites
         ]
-        self._handrail_rows = [(_rows(rot), tuple(pos.tolist())) for rot, pos in self.handrail_pose]
+        self._handrail_rows = [
+            (as_rows(rot), tuple(pos.tolist())) for rot, pos in self.handrail_pose
+        ]
         self.obs_layout = observation_layout(self.n_robots, self.observe_estimates)
         # Per robot: the peer in each of its peer slots (increasing index, skipping itself).
         self._peer_slots = [
@@ -1314,7 +1312,7 @@ class CargoTransport:
         """True cargo frame position error (m) and rotation angle error (rad)."""
         b = self.world.cargo_body
         ref = self._reference_values()
-        rot = _rows(self.data.xmat[b].reshape(3, 3))
+        rot = as_rows(self.data.xmat[b].reshape(3, 3))
         pos_err = norm3(v_sub(self.data.xpos[b].tolist(), ref.pos))
         return pos_err, norm3(_rotvec(mt_m(ref.rot, rot)))
 

@@ -78,6 +78,7 @@ from .inertia import (
 from .preprocess import Preprocessor, StateVariableFilter
 from .rne import (
     RobotDescription,
+    as_rows,
     balance_rows,
     grasp_from_base,
     grasp_pose,
@@ -324,7 +325,7 @@ class CargoEstimator:
             ("thrust_command", (6,)),
         )
         self.pre = Preprocessor(robot, dt_s, kinematics_cutoff_hz)
-        self._imu_rot = tuple(map(tuple, robot.imu_rot.tolist()))
+        self._imu_rot = as_rows(robot.imu_rot)
         # Slow filter over [thrust 6, links 6, Y 60], grasp frame.
         self.balance_filter = StateVariableFilter(72, dt_s * regressor_every, cutoff_hz)
         # Memory of the filters: one delay (rollback after a gate) and four (taint).
@@ -504,7 +505,7 @@ class CargoEstimator:
             if quat.shape != (4,) or pos.shape != (3,):
                 raise ValueError("base_pos_world must be (3,) and base_quat_world (4,)")
             if np.all(np.isfinite(quat)) and np.all(np.isfinite(pos)) and np.linalg.norm(quat) > 0:
-                self._rot_world_base = tuple(map(tuple, quat_to_mat(quat).tolist()))
+                self._rot_world_base = as_rows(quat_to_mat(quat))
                 self._pos_world_base = pos.copy()
                 self.n_fixes += 1
                 return True

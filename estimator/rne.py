@@ -312,9 +312,16 @@ def thrust_wrench(robot: RobotDescription, command: np.ndarray) -> np.ndarray:
 # Fast path for one sample. The estimator evaluates the balance of one instant tens of times per
 # second per robot; numpy's per-call overhead on 3-vectors made that 240 us. The same equations
 # as ``propagate`` / ``link_momentum_rate`` / ``body_regressor`` written on Python floats; tests
-# hold it equal to them to 1e-12. The helpers (3-vectors and 3x3 matrices as tuples of floats,
-# m_v(m, v) = m v, mt_v(m, v) = m^T v, m_m(a, b) = a b, mt_m(a, b) = a^T b, m_mt(a, b) = a b^T)
-# also serve the env, the estimator's attitude and the trajectories.
+# hold it equal to them to 1e-12. The helpers work on 3-vectors and 3x3 matrices (rows) as tuples
+# of floats (as_rows makes them from arrays): m_v(m, v) = m v, mt_v(m, v) = m^T v, m_m(a, b) =
+# a b, mt_m(a, b) = a^T b, m_mt(a, b) = a b^T. They also serve the env's navigation and
+# observations, the estimator's attitude and the trajectories. Their products round as written
+# (left to right, no fused multiply-add), unlike numpy's BLAS products of the same matrices.
+def as_rows(mat) -> tuple:
+    """A 3x3 matrix (array or nested sequences) as a tuple of row tuples of floats."""
+    return tuple(map(tuple, np.asarray(mat, dtype=float).tolist()))
+
+
 def v_add(a, b):
     return (a[0] + b[0], a[1] + b[1], a[2] + b[2])
 
@@ -485,23 +492,23 @@ def _fast_constants(robot: RobotDescription) -> tuple:
         k = None
         if axis is not None:
             kx = skew(np.asarray(axis))
-            k = (tuple(map(tuple, kx.tolist())), tuple(map(tuple, (kx @ kx).tolist())))
+            k = (as_rows(kx), as_rows(kx @ kx))
         links.append(
             (
                 link.parent,
-                tuple(map(tuple, np.asarray(link.rot_in_parent, float).tolist())),
+                as_rows(link.rot_in_parent),
                 tuple(float(x) for x in link.pos_in_parent),
                 axis,
                 k,
                 float(link.mass),
                 tuple(float(x) for x in link.com),
-                tuple(map(tuple, np.asarray(link.inertia_com, float).tolist())),
+                as_rows(link.inertia_com),
             )
         )
     const = (
         tuple(links),
         robot.grasp_link,
-        tuple(map(tuple, np.asarray(robot.grasp_rot, float).tolist())),
+        as_rows(robot.grasp_rot),
         tuple(float(x) for x in robot.grasp_pos),
         # The joints' links only, what forward kinematics needs: (parent, R_pk0, p_pk, (K, K^2)).
         tuple((parent, r0, pos, kk) for parent, r0, pos, _, kk, *_ in links[1:]),
