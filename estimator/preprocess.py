@@ -108,7 +108,15 @@ class Preprocessor:
         self._imu_pos = tuple(robot.imu_pos.tolist())
         self.filter = StateVariableFilter(12 + nj, dt_s, cutoff_hz)
         self._thrust_to_base = wrench_transform(robot.thrust_rot, robot.thrust_pos)
-        self._u = np.zeros(12 + nj)
+        # The filter's input from [gyro; accel; q; thrust command] in one product: the IMU
+        # rotation twice, the identity, the thrust site's wrench transform, block-diagonal.
+        self._to_input = np.zeros((12 + nj, 12 + nj))
+        for block, rows in zip(
+            (robot.imu_rot, robot.imu_rot, np.eye(nj), self._thrust_to_base),
+            self._slices.values(),
+            strict=True,
+        ):
+            self._to_input[rows, rows] = block
         self._y = self._yd = self._ydd = np.zeros(12 + nj)
 
     def step(
@@ -118,13 +126,8 @@ class Preprocessor:
         joint_pos_rad: np.ndarray,
         thrust_command: np.ndarray,
     ) -> None:
-        rot = self.robot.imu_rot
-        u = self._u
-        u[self._gyro] = rot @ gyro_imu
-        u[self._accel] = rot @ accel_imu
-        u[self._q] = joint_pos_rad
-        u[self._thrust] = self._thrust_to_base @ thrust_command
-        self._y, self._yd, self._ydd = self.filter.step(u)
+        raw = np.concatenate((gyro_imu, accel_imu, joint_pos_rad, thrust_command))
+        self._y, self._yd, self._ydd = self.filter.step(self._to_input @ raw)
 
     def base_and_joint_motion(self) -> tuple[np.ndarray, ...]:
         """Filtered (w, wd, acc of B's origin, q, qd, qdd), base frame."""
