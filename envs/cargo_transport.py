@@ -356,6 +356,7 @@ NAV_STD_FLOOR = 1e-9
 LOG_STD_FLOOR = 1e-12
 REWARD_TERMS = ("track", "effort", "info", "contact")
 REWARD_KEYS = tuple(f"reward_{t}" for t in REWARD_TERMS)  # their names in infos
+_BAD_QACC = int(mujoco.mjtWarning.mjWARN_BADQACC)
 _EMPTY_PEER_SLOT = (0.0,) * 8  # a peer slot before its first message: wrench, age, valid
 TERMINATION_REASONS = ("wall_contact", "non_finite", "released")  # "released": one agent
 
@@ -918,6 +919,9 @@ class CargoTransport:
         """Simulate ``world`` (with its state in ``data``): the robots it holds act, and the
         indices into its model are refreshed."""
         self.world, self.model, self.data = world, world.model, data
+        # Views of the data's arrays used every step (each property access builds a new one).
+        self._qpos, self._qvel, self._ctrl = data.qpos, data.qvel, data.ctrl
+        self._xpos, self._xmat, self._warnings = data.xpos, data.xmat, data.warning.number
         self.holding = world.holding
         # Index of the holding robots' rows in per-robot arrays: a slice (no copy) for all.
         everyone = len(self.holding) == self.n_robots
@@ -1109,15 +1113,16 @@ class CargoTransport:
                 weakened.add(fault.robot)
         if weakened:
             self.fault_counts["propulsion_steps"][list(weakened)] += 1
-        self.data.ctrl[self._thrust_ctrl] = delivered
-        self.data.ctrl[self._arm_ctrl] = self.arm_targets[rows]
+        self._ctrl[self._thrust_ctrl] = delivered
+        self._ctrl[self._arm_ctrl] = self.arm_targets[rows]
         self.sensors.begin_period(self.data)
         return commands
 
     def _physics_finite(self) -> bool:
-        d = self.data
-        unstable = d.warning[mujoco.mjtWarning.mjWARN_BADQACC].number > 0
-        return bool(np.isfinite(d.qpos).all() and np.isfinite(d.qvel).all() and not unstable)
+        unstable = self._warnings[_BAD_QACC] > 0
+        return bool(
+            np.isfinite(self._qpos).all() and np.isfinite(self._qvel).all() and not unstable
+        )
 
     def _read_sensors(self, k: int) -> list[SensorPacket]:
         """Every robot's packet (None for a robot that has let go), with the faults of step ``k``
@@ -1312,8 +1317,8 @@ class CargoTransport:
         """True cargo frame position error (m) and rotation angle error (rad)."""
         b = self.world.cargo_body
         ref = self._reference_values()
-        rot = as_rows(self.data.xmat[b].reshape(3, 3))
-        pos_err = norm3(v_sub(self.data.xpos[b].tolist(), ref.pos))
+        rot = as_rows(self._xmat[b].reshape(3, 3))
+        pos_err = norm3(v_sub(self._xpos[b].tolist(), ref.pos))
         return pos_err, norm3(_rotvec(mt_m(ref.rot, rot)))
 
     def _get_rewards(

@@ -117,6 +117,8 @@ def _rotvec_quat(rotvec: tuple[float, float, float]) -> np.ndarray:
     return np.array((math.cos(angle * 0.5), x / angle * s, y / angle * s, z / angle * s))
 
 
+_SITE = mujoco.mjtObj.mjOBJ_SITE
+
 # Noise draws per robot and reading, in the order they are drawn: (name, size).
 _NOISE_DRAWS = (("accel", 3), ("gyro", 3), ("joints", 2))
 _FIX_DRAWS = (("position", 3), ("attitude", 3))
@@ -156,10 +158,9 @@ class SensorSuite:
         """Every robot's IMU site: linear velocity (n, 3) in world axes, rotation (n, 3, 3) in
         the world, and the time."""
         vel = np.empty((len(self._imu_sites), 6))
-        for k, site in enumerate(self._imu_sites.tolist()):
-            mujoco.mj_objectVelocity(
-                self.world.model, data, mujoco.mjtObj.mjOBJ_SITE, site, vel[k], 0
-            )
+        model = self.world.model
+        for vel_k, site in zip(vel, self._imu_sites.tolist(), strict=True):
+            mujoco.mj_objectVelocity(model, data, _SITE, site, vel_k, 0)
         rot = data.site_xmat[self._imu_sites].reshape(-1, 3, 3)
         return vel[:, 3:], rot, float(data.time)
 
