@@ -457,9 +457,11 @@ class CargoEstimator:
         if stamp <= self.stamp:
             raise ValueError(f"stamps must increase: got {stamp} after {self.stamp}")
         self.stamp = int(stamp)
-        # One check for the usual case (every reading present and finite), then per reading.
+        # One check for the usual case (every reading present and finite), then per reading;
+        # the readings in one vector serve the pre-filter too.
         usable = [True] * 4
-        if missing or not np.isfinite(np.concatenate(readings)).all():
+        raw = None if missing else self.pre.raw_input(*readings)
+        if raw is None or not np.isfinite(raw).all():
             usable = [x is not None and bool(np.all(np.isfinite(x))) for x in readings]
         if not all(usable):
             if missing:
@@ -474,9 +476,10 @@ class CargoEstimator:
                 x if ok else last
                 for x, ok, last in zip(readings, usable, self._last_input, strict=True)
             ]
+            raw = self.pre.raw_input(*readings)
         self._last_input = tuple(readings)
         accel, gyro, q, thrust = readings
-        self.pre.step(accel, gyro, q, thrust)
+        self.pre.step_raw(raw)
         fix = self._update_attitude(gyro, base_pos_world, base_quat_world)
         if stamp % self.regressor_every == 0:
             self._filter_balance(thrust)

@@ -126,7 +126,20 @@ class Preprocessor:
         joint_pos_rad: np.ndarray,
         thrust_command: np.ndarray,
     ) -> None:
-        raw = np.concatenate((gyro_imu, accel_imu, joint_pos_rad, thrust_command))
+        self.step_raw(self.raw_input(accel_imu, gyro_imu, joint_pos_rad, thrust_command))
+
+    @staticmethod
+    def raw_input(
+        accel_imu: np.ndarray,
+        gyro_imu: np.ndarray,
+        joint_pos_rad: np.ndarray,
+        thrust_command: np.ndarray,
+    ) -> np.ndarray:
+        """The readings of one step as one vector [gyro; accel; q; thrust] (``step_raw``)."""
+        return np.concatenate((gyro_imu, accel_imu, joint_pos_rad, thrust_command))
+
+    def step_raw(self, raw: np.ndarray) -> None:
+        """``step`` with the readings already in one vector (``raw_input``)."""
         self._y, self._yd, self._ydd = self.filter.step(self._to_input @ raw)
 
     def base_and_joint_motion(self) -> tuple[np.ndarray, ...]:
