@@ -29,9 +29,14 @@ base around the cargo, which its controller must follow. All robots use the same
 
 from __future__ import annotations
 
+import math
+from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
+
+from astrocargo.estimator.rne import v_add, v_cross, v_scale
 
 NOMINAL_SPEED_MPS = 0.2
 NOMINAL_ACCEL_MPS2 = 0.0175
@@ -56,12 +61,39 @@ class Reference:
     pan_rate: float
 
 
-def _rot(axis: int, angle: float) -> np.ndarray:
-    c, s = np.cos(angle), np.sin(angle)
+class ReferenceValues(NamedTuple):
+    """A ``Reference`` on Python floats: vectors as 3 floats, the rotation as its rows (for
+    code on the float helpers of ``estimator.rne``; one evaluation per control step)."""
+
+    pos: Sequence[float]
+    vel: Sequence[float]
+    acc: Sequence[float]
+    rot: Sequence[Sequence[float]]
+    w: Sequence[float]
+    wd: Sequence[float]
+    pan: float
+    pan_rate: float
+
+    def to_reference(self) -> Reference:
+        return Reference(
+            np.array(self.pos),
+            np.array(self.vel),
+            np.array(self.acc),
+            np.array(self.rot),
+            np.array(self.w),
+            np.array(self.wd),
+            self.pan,
+            self.pan_rate,
+        )
+
+
+def _rot(axis: int, angle: float) -> list[list[float]]:
+    """Rows of the rotation by ``angle`` about axis ``axis`` (0, 1, 2: x, y, z)."""
+    c, s = math.cos(angle), math.sin(angle)
     i, j = [(1, 2), (2, 0), (0, 1)][axis]
-    r = np.eye(3)
-    r[i, i] = r[j, j] = c
-    r[i, j], r[j, i] = -s, s
+    r = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]
+    r[i][i] = r[j][j] = c
+    r[i][j], r[j][i] = -s, s
     return r
 
 
@@ -78,8 +110,33 @@ def _smoothstep(t: float, t0: float, duration: float) -> tuple[float, float, flo
     return s, ds, dds
 
 
+def _oscillation(
+    t: float, ramp: tuple[float, float, float], amp: float, omega: float
+) -> tuple[float, float, float]:
+    """amp sin(omega t) faded in by the smoothstep ``ramp`` (its value, rate and second
+    derivative at t): the product's value, rate and second derivative."""
+    s, ds, dds = ramp
+    sn, cs = math.sin(omega * t), math.cos(omega * t)
+    return (
+        s * amp * sn,
+        ds * amp * sn + s * amp * omega * cs,
+        dds * amp * sn + 2 * ds * amp * omega * cs - s * amp * omega * omega * sn,
+    )
+
+
+def _combine(*terms: tuple[float, tuple[float, float, float]]) -> tuple[float, float, float]:
+    """sum_k c_k v_k of 3-vectors given as (c_k, v_k), added left to right (as numpy would)."""
+    (c, v), *rest = terms
+    out = v_scale(c, v)
+    for c, v in rest:
+        out = v_add(out, v_scale(c, v))
+    return out
+
+
 class Trajectory:
-    """A named reference. ``Trajectory(name, fast=False)(t)`` -> ``Reference``."""
+    """A named reference. ``Trajectory(name, fast=False)(t)`` -> ``Reference``;
+    ``values(t)``: the same on Python floats (what the env evaluates once per control step).
+    """
 
     NAMES = ("figure8_yaw", "figure8_tumble", "hover")
     # figure8_tumble's (amplitude deg, period s) of roll (about x) then pitch (about y), and of
@@ -103,53 +160,56 @@ class Trajectory:
         # Figure-eight x = A sin(wt), y = B sin(2wt): peak accelerations A w^2 and 4 B w^2.
         self.amp = np.array([0.7, 0.15])
         self.omega = 0.11 * (FAST_FACTOR if self.fast else 1.0)
+        self._figure8 = ((float(self.amp[0]), 1.0), (float(self.amp[1]), 2.0))  # (A, 1), (B, 2)
         self.ramp_s = 15.0  # smooth start of every motion
+        # (amplitude rad, angular frequency rad/s) of the oscillations (TUMBLE, TUMBLE_YAW).
+        self._tumble = [
+            (float(np.deg2rad(amp_deg)), 2 * np.pi / period) for amp_deg, period in self.TUMBLE
+        ]
+        self._tumble_yaw = (float(np.deg2rad(self.TUMBLE_YAW[0])), 2 * np.pi / self.TUMBLE_YAW[1])
 
     def __call__(self, t: float) -> Reference:
-        s, ds, dds = _smoothstep(t, 0.0, self.ramp_s)
-        pos, vel, acc = self.center.copy(), np.zeros(3), np.zeros(3)
+        return self.values(t).to_reference()
+
+    def values(self, t: float) -> ReferenceValues:
+        """The reference at ``t`` on Python floats (the same numbers as ``self(t)``)."""
+        ramp = _smoothstep(t, 0.0, self.ramp_s)
+        s, ds, _ = ramp
+        pos, vel, acc = self.center.tolist(), [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]
         if self.name != "hover":
             # Time warp: the figure-eight's phase rate rises smoothly from 0 to omega, so the
             # motion starts at rest without a burst of acceleration.
             w = self.omega
             th, thd, thdd = w * self._ramp_integral(t, 0.0, self.ramp_s), w * s, w * ds
-            for axis, (amp, k) in enumerate(((self.amp[0], 1.0), (self.amp[1], 2.0))):
-                pos[axis] += amp * np.sin(k * th)
-                vel[axis] = amp * k * thd * np.cos(k * th)
-                acc[axis] = amp * k * (thdd * np.cos(k * th) - k * thd**2 * np.sin(k * th))
-        yaw, yaw_rate, yaw_acc = self._yaw(t)
+            for axis, (amp, k) in enumerate(self._figure8):
+                sn, cs = math.sin(k * th), math.cos(k * th)
+                pos[axis] += amp * sn
+                vel[axis] = amp * k * thd * cs
+                acc[axis] = amp * k * (thdd * cs - k * thd**2 * sn)
+        yaw, yaw_rate, yaw_acc = self._yaw(t, ramp)
         rot = _rot(2, yaw)
-        w_world = np.array([0.0, 0.0, yaw_rate])
-        wd_world = np.array([0.0, 0.0, yaw_acc])
+        w_world = (0.0, 0.0, yaw_rate)
+        wd_world = (0.0, 0.0, yaw_acc)
         if self.name == "figure8_tumble":
             # Body-fixed roll (x) then pitch (y) oscillations after the yaw: R = Rz Rx Ry.
-            angles = []
-            for amp_deg, period in self.TUMBLE:
-                a = np.deg2rad(amp_deg)
-                om = 2 * np.pi / period
-                angles.append(
-                    (
-                        s * a * np.sin(om * t),
-                        ds * a * np.sin(om * t) + s * a * om * np.cos(om * t),
-                        dds * a * np.sin(om * t)
-                        + 2 * ds * a * om * np.cos(om * t)
-                        - s * a * om * om * np.sin(om * t),
-                    )
-                )
-            (roll, roll_d, roll_dd), (pitch, pitch_d, pitch_dd) = angles
-            rx, ry = _rot(0, roll), _rot(1, pitch)
-            rot = rot @ rx @ ry
+            (roll, roll_d, roll_dd), (pitch, pitch_d, pitch_dd) = (
+                _oscillation(t, ramp, a, om) for a, om in self._tumble
+            )
+            rot_zx = np.array(rot) @ np.array(_rot(0, roll))
+            rot = (rot_zx @ np.array(_rot(1, pitch))).tolist()
             # Angular velocity and acceleration in world axes of R = Rz(yaw) Rx(roll) Ry(pitch).
-            ez = np.array([0.0, 0.0, 1.0])
-            ex = _rot(2, yaw)[:, 0]
-            ey = (_rot(2, yaw) @ rx)[:, 1]
-            w_world = yaw_rate * ez + roll_d * ex + pitch_d * ey
+            ez = (0.0, 0.0, 1.0)
+            ex = (math.cos(yaw), math.sin(yaw), 0.0)
+            ey = tuple(rot_zx[:, 1].tolist())
+            w_world = _combine((yaw_rate, ez), (roll_d, ex), (pitch_d, ey))
             # d/dt ex = w_z x ex; d/dt ey = (yaw_rate ez + roll_d ex) x ey.
-            dex = np.cross(yaw_rate * ez, ex)
-            dey = np.cross(yaw_rate * ez + roll_d * ex, ey)
-            wd_world = yaw_acc * ez + roll_dd * ex + roll_d * dex + pitch_dd * ey + pitch_d * dey
-        pan, pan_rate = self._pan(t)
-        return Reference(pos, vel, acc, rot, w_world, wd_world, pan, pan_rate)
+            dex = v_cross(v_scale(yaw_rate, ez), ex)
+            dey = v_cross(_combine((yaw_rate, ez), (roll_d, ex)), ey)
+            wd_world = _combine(
+                (yaw_acc, ez), (roll_dd, ex), (roll_d, dex), (pitch_dd, ey), (pitch_d, dey)
+            )
+        pan, pan_rate = self._pan(t, ramp)
+        return ReferenceValues(pos, vel, acc, rot, w_world, wd_world, pan, pan_rate)
 
     @staticmethod
     def _ramp_integral(t: float, t0: float, duration: float) -> float:
@@ -157,12 +217,13 @@ class Trajectory:
         x = min(max((t - t0) / duration, 0.0), 1.0)
         return duration * (x**4 * (2.5 - 3 * x + x * x)) + max(t - t0 - duration, 0.0)
 
-    def _yaw(self, t: float) -> tuple[float, float, float]:
+    def _yaw(self, t: float, ramp: tuple[float, float, float]) -> tuple[float, float, float]:
+        """Yaw angle, rate and acceleration; ``ramp`` is the smoothstep of the start at t."""
         if self.name == "hover":
             return 0.0, 0.0, 0.0
         rate = 0.05
         # Base ramp: yaw rate rises smoothly to `rate` over the first ramp_s seconds.
-        s, ds, dds = _smoothstep(t, 0.0, self.ramp_s)
+        s, ds, _ = ramp
         yaw = rate * self._ramp_integral(t, 0.0, self.ramp_s)
         yaw_rate, yaw_acc = rate * s, rate * ds
         # Sudden turn at 40 s: the rate doubles for 10 s (smooth 5 s edges).
@@ -172,15 +233,15 @@ class Trajectory:
             yaw_rate += sign * rate * s2
             yaw_acc += sign * rate * ds2
         if self.name == "figure8_tumble" and self.TUMBLE_YAW[0] > 0:
-            a, om = np.deg2rad(self.TUMBLE_YAW[0]), 2 * np.pi / self.TUMBLE_YAW[1]
-            sn, cs = np.sin(om * t), np.cos(om * t)
-            yaw += s * a * sn
-            yaw_rate += ds * a * sn + s * a * om * cs
-            yaw_acc += dds * a * sn + 2 * ds * a * om * cs - s * a * om * om * sn
+            osc, osc_rate, osc_acc = _oscillation(t, ramp, *self._tumble_yaw)
+            yaw += osc
+            yaw_rate += osc_rate
+            yaw_acc += osc_acc
         return yaw, yaw_rate, yaw_acc
 
-    def _pan(self, t: float) -> tuple[float, float]:
-        """Pan ramp: a triangle wave of +-0.4 rad at 0.02 rad/s, smoothed at the start."""
+    def _pan(self, t: float, ramp: tuple[float, float, float]) -> tuple[float, float]:
+        """Pan ramp: a triangle wave of +-0.4 rad at 0.02 rad/s, smoothed at the start
+        (``ramp``: the smoothstep of the start at t)."""
         if not self.pan_ramp:
             return 0.0, 0.0
         rate, amp = 0.02, 0.4
@@ -192,5 +253,5 @@ class Trajectory:
             pan, d = amp - rate * (phase - amp / rate), -rate
         else:
             pan, d = -amp + rate * (phase - 3 * amp / rate), rate
-        s, ds, _ = _smoothstep(t, 0.0, self.ramp_s)
+        s, ds, _ = ramp
         return s * pan, ds * pan + s * d

@@ -285,8 +285,8 @@ import numpy as np
 from gymnasium import spaces
 from pettingzoo import ParallelEnv
 
-from astrocargo.agents.trajectories import Reference, Trajectory
-from astrocargo.envs.comms import CommChannel
+from astrocargo.agents.trajectories import Reference, ReferenceValues, Trajectory
+from astrocargo.envs.comms import FAULT_STATS, CommChannel
 from astrocargo.envs.sensors import (
     NOISE_PROFILES,
     NoiseProfile,
@@ -303,7 +303,7 @@ from astrocargo.envs.world import (
     _mat_to_quat,
     _quat_to_mat,
 )
-from astrocargo.estimator.cargo_estimator import CargoEstimator, exp_so3
+from astrocargo.estimator.cargo_estimator import CargoEstimator, exp_so3_rows
 from astrocargo.estimator.inertia import (
     check_physical,
     com_error_m,
@@ -312,7 +312,21 @@ from astrocargo.estimator.inertia import (
     principal_rel_errors,
     vec_to_inertia,
 )
-from astrocargo.estimator.rne import RobotDescription, grasp_pose
+from astrocargo.estimator.rne import (
+    RobotDescription,
+    as_rows,
+    grasp_pose_rows,
+    m_m,
+    m_mt,
+    m_v,
+    mt_m,
+    mt_v,
+    norm3,
+    v_add,
+    v_cross,
+    v_scale,
+    v_sub,
+)
 
 ACTION_DIM = 8
 ARM_OFFSET_RAD = 0.5  # reach of the arm actions around the deployed pose
@@ -341,24 +355,35 @@ VISIBLE_GEOM_GROUPS = (0, 1, 2, 3)  # visual and collision geoms; sites (4) off
 NAV_STD_FLOOR = 1e-9
 LOG_STD_FLOOR = 1e-12
 REWARD_TERMS = ("track", "effort", "info", "contact")
+REWARD_KEYS = tuple(f"reward_{t}" for t in REWARD_TERMS)  # their names in infos
+_BAD_QACC = int(mujoco.mjtWarning.mjWARN_BADQACC)
+_EMPTY_PEER_SLOT = (0.0,) * 8  # a peer slot before its first message: wrench, age, valid
 TERMINATION_REASONS = ("wall_contact", "non_finite", "released")  # "released": one agent
 
 
 # --------------------------------------------------------------------------- small helpers
 
 
-def _rotvec(rot: np.ndarray) -> np.ndarray:
-    """Rotation vector (axis * angle, angle in [0, pi]) of a rotation matrix."""
-    vec = np.empty(3)
-    mujoco.mju_quat2Vel(vec, _mat_to_quat(rot), 1.0)
-    return vec
+def _rotvec(rot: tuple) -> list[float]:
+    """Rotation vector (axis * angle, angle in [0, pi]) of a rotation matrix given by its rows."""
+    quat, vec = np.empty(4), np.empty(3)
+    mujoco.mju_mat2Quat(quat, np.array(rot[0] + rot[1] + rot[2]))
+    mujoco.mju_quat2Vel(vec, quat, 1.0)
+    return vec.tolist()
 
 
-def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """a x b for two 3-vectors (np.cross costs ~15 us on small arrays)."""
-    return np.array(
-        [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
-    )
+def _arm_target(current: float, wanted: float, max_move: float, low: float, high: float) -> float:
+    """The next servo target: ``wanted`` approached by at most ``max_move``, within the joint
+    range [low, high] (np.clip's min-then-max, on floats)."""
+    return min(max(current + min(max(wanted - current, -max_move), max_move), low), high)
+
+
+def _mean(values: list[float], indices: tuple[int, ...]) -> float:
+    """Mean of ``values`` at ``indices``, summed in order as numpy's mean of a few values."""
+    total = -0.0
+    for i in indices:
+        total += values[i]
+    return total / len(indices)
 
 
 def observation_layout(n_robots: int, observe_estimates: bool = True) -> dict[str, slice]:
@@ -400,33 +425,38 @@ class BaseNavigator:
     (exact for ideal readings: that mean is the change of the IMU point's velocity over the
     period). At a fix it blends in the fixed attitude and position with Kalman gains built from
     the noise profile the robot knows (isotropic, so one 2x2 covariance serves all three axes).
+
+    The state is kept on Python floats (3-vectors and the rows of 3x3 matrices as tuples, with
+    rne's helpers): a few 3x3 products per step, which numpy's per-call overhead would dominate.
     """
 
     def __init__(self, robot: RobotDescription, dt_s: float, profile: NoiseProfile) -> None:
         self.imu_rot = robot.imu_rot
         self.imu_pos = robot.imu_pos
+        self._imu_rot, self._imu_pos = as_rows(robot.imu_rot), tuple(robot.imu_pos.tolist())
         self.dt_s = float(dt_s)
         acc_var = max(profile.accel_std, NAV_STD_FLOOR) ** 2
         self.pos_var = max(profile.position_std_m, NAV_STD_FLOOR) ** 2
         self.att_var = max(profile.attitude_std_rad, NAV_STD_FLOOR) ** 2
         self.gyro_step_var = (max(profile.gyro_std, NAV_STD_FLOOR) * dt_s) ** 2
         dt = self.dt_s
-        self._f = np.array([[1.0, dt], [0.0, 1.0]])
-        self._q = acc_var * np.array([[dt**4 / 4, dt**3 / 2], [dt**3 / 2, dt**2]])
+        # Position-velocity model x' = F x + noise, F = [[1, dt], [0, 1]], noise covariance
+        # acc_var [[dt^4 / 4, dt^3 / 2], [dt^3 / 2, dt^2]] (q00, q01, q11).
+        self._q = (acc_var * (dt**4 / 4), acc_var * (dt**3 / 2), acc_var * dt**2)
 
     def reset(self, packet: SensorPacket) -> None:
         """Start at rest at the packet's localization fix."""
         if packet.base_pos_world is None or packet.base_quat_world is None:
             raise ValueError("the navigator starts from a packet with a localization fix")
-        self.rot = _quat_to_mat(packet.base_quat_world)
+        self._rot = as_rows(_quat_to_mat(packet.base_quat_world))
         if packet.gyro_imu is None or packet.accel_imu is None:
-            self._last_imu = (np.zeros(3), np.zeros(3))  # at rest
+            self._last_imu = ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0))  # at rest
         else:
-            self._last_imu = (packet.gyro_imu, packet.accel_imu)
-        self.w_base = self.imu_rot @ self._last_imu[0]
-        self.p_imu = packet.base_pos_world + self.rot @ self.imu_pos
-        self.v_imu = np.zeros(3)
-        self.cov = np.diag([self.pos_var, NAV_STD_FLOOR**2])
+            self._last_imu = (packet.gyro_imu.tolist(), packet.accel_imu.tolist())
+        self._w = m_v(self._imu_rot, self._last_imu[0])
+        self._p = v_add(packet.base_pos_world.tolist(), m_v(self._rot, self._imu_pos))
+        self._v = (0.0, 0.0, 0.0)
+        self._cov = (self.pos_var, 0.0, 0.0, NAV_STD_FLOOR**2)  # c00, c01, c10, c11
         self.att_cov = self.att_var
 
     def update(self, packet: SensorPacket) -> None:
@@ -434,36 +464,58 @@ class BaseNavigator:
         the frame is missing); blend in its fix."""
         dt = self.dt_s
         if packet.gyro_imu is not None and packet.accel_imu is not None:
-            self._last_imu = (packet.gyro_imu, packet.accel_imu)
+            self._last_imu = (packet.gyro_imu.tolist(), packet.accel_imu.tolist())
         gyro, accel = self._last_imu
-        w = self.imu_rot @ gyro
-        rot_mid_imu = self.rot @ exp_so3(0.5 * dt * w) @ self.imu_rot
-        self.rot = self.rot @ exp_so3(dt * w)
-        v_new = self.v_imu + dt * (rot_mid_imu @ accel)
-        self.p_imu = self.p_imu + 0.5 * dt * (self.v_imu + v_new)
-        self.v_imu = v_new
-        self.w_base = w
-        self.cov = self._f @ self.cov @ self._f.T + self._q
+        w = m_v(self._imu_rot, gyro)
+        rot_mid_imu = m_m(m_m(self._rot, exp_so3_rows(v_scale(0.5 * dt, w))), self._imu_rot)
+        self._rot = m_m(self._rot, exp_so3_rows(v_scale(dt, w)))
+        v_new = v_add(self._v, v_scale(dt, m_v(rot_mid_imu, accel)))
+        self._p = v_add(self._p, v_scale(0.5 * dt, v_add(self._v, v_new)))
+        self._v = v_new
+        self._w = w
+        # cov <- F cov F^T + Q
+        c00, c01, c10, c11 = self._cov
+        q00, q01, q11 = self._q
+        a00, a01 = c00 + dt * c10, c01 + dt * c11  # first row of F cov
+        self._cov = (a00 + a01 * dt + q00, a01 + q01, c10 + c11 * dt + q01, c11 + q11)
         self.att_cov += self.gyro_step_var
         if packet.base_pos_world is None or packet.base_quat_world is None:
             return
-        fix_rot = _quat_to_mat(packet.base_quat_world)
+        fix_rot = as_rows(_quat_to_mat(packet.base_quat_world))
         gain_att = self.att_cov / (self.att_cov + self.att_var)
-        self.rot = self.rot @ exp_so3(gain_att * _rotvec(self.rot.T @ fix_rot))
+        error = _rotvec(mt_m(self._rot, fix_rot))
+        self._rot = m_m(self._rot, exp_so3_rows(v_scale(gain_att, error)))
         self.att_cov *= 1.0 - gain_att
-        innovation = packet.base_pos_world + self.rot @ self.imu_pos - self.p_imu
-        gain = self.cov[:, 0] / (self.cov[0, 0] + self.pos_var)
-        self.p_imu = self.p_imu + gain[0] * innovation
-        self.v_imu = self.v_imu + gain[1] * innovation
-        self.cov = self.cov - np.outer(gain, self.cov[0])
+        fixed_imu = v_add(packet.base_pos_world.tolist(), m_v(self._rot, self._imu_pos))
+        innovation = v_sub(fixed_imu, self._p)
+        c00, c01, c10, c11 = self._cov
+        gain_p, gain_v = c00 / (c00 + self.pos_var), c10 / (c00 + self.pos_var)
+        self._p = v_add(self._p, v_scale(gain_p, innovation))
+        self._v = v_add(self._v, v_scale(gain_v, innovation))
+        self._cov = (c00 - gain_p * c00, c01 - gain_p * c01, c10 - gain_v * c00, c11 - gain_v * c01)
+
+    def state_rows(self) -> tuple[tuple, tuple, tuple, tuple]:
+        """Base attitude (rows), position, velocity and angular velocity (base frame), floats."""
+        rot, w, imu = self._rot, self._w, self._imu_pos
+        base_pos = v_sub(self._p, m_v(rot, imu))
+        base_vel = v_sub(self._v, m_v(rot, v_cross(w, imu)))
+        return rot, base_pos, base_vel, w
+
+    @property
+    def rot(self) -> np.ndarray:
+        return np.array(self._rot)
+
+    @property
+    def w_base(self) -> np.ndarray:
+        return np.array(self._w)
 
     @property
     def base_pos(self) -> np.ndarray:
-        return self.p_imu - self.rot @ self.imu_pos
+        return np.array(self.state_rows()[1])
 
     @property
     def base_vel(self) -> np.ndarray:
-        return self.v_imu - self.rot @ _cross(self.w_base, self.imu_pos)
+        return np.array(self.state_rows()[2])
 
 
 # --------------------------------------------------------------------------- physics + estimation
@@ -516,6 +568,7 @@ FAULT_KINDS: dict[str, tuple[str, ...]] = {  # kind -> its own optional fields
 }
 # infos[agent]["faults"]: counted by the env, and by the channel (copies, comms.FAULT_STATS).
 FAULT_COUNTERS = ("imu_frames_missing", "fixes_missing", "propulsion_steps")
+_NO_FAULT_COUNTS = dict.fromkeys(FAULT_COUNTERS + tuple(f"messages_{k}" for k in FAULT_STATS), 0)
 
 
 @dataclass(frozen=True)
@@ -744,7 +797,7 @@ class CargoTransport:
             self.weights[term] = _check_finite_number(f"w_{term}", weight, allowed_w)
             if abs(self.weights[term]) > MAX_REWARD_WEIGHT:
                 raise ValueError(f"w_{term} must be {allowed_w}, got {weight}")
-        self._weight_column = np.array([[self.weights[t]] for t in REWARD_TERMS])
+        self._weights = [self.weights[t] for t in REWARD_TERMS]
         self.shared_reward = _check_finite_number(
             "shared_reward", shared_reward, "a number in [0, 1]"
         )
@@ -769,19 +822,14 @@ class CargoTransport:
             (_quat_to_mat(self.model.site_quat[site]), self.model.site_pos[site].copy())
             for site in self.world.handrail_sites
         ]
-        self.obs_layout = observation_layout(self.n_robots, self.observe_estimates)
-        lay = self.obs_layout
-        # Per robot: (peer, wrench slice, age index, valid index) of each peer slot.
-        self._peer_slots = [
-            [
-                (j, lay[f"peer{p}_wrench"], lay[f"peer{p}_age"].start, lay[f"peer{p}_valid"].start)
-                for p, j in enumerate(k for k in range(self.n_robots) if k != i)
-            ]
-            for i in range(self.n_robots)
+        self._handrail_rows = [
+            (as_rows(rot), tuple(pos.tolist())) for rot, pos in self.handrail_pose
         ]
-        # Contiguous blocks filled by one product each in _get_obs.
-        self._base_err_slice = slice(lay["base_pos_err"].start, lay["base_vel_err"].stop)
-        self._ref_slice = slice(lay["ref_pos_rel"].start, lay["ref_ang_acc"].stop)
+        self.obs_layout = observation_layout(self.n_robots, self.observe_estimates)
+        # Per robot: the peer in each of its peer slots (increasing index, skipping itself).
+        self._peer_slots = [
+            [j for j in range(self.n_robots) if j != i] for i in range(self.n_robots)
+        ]
         self.obs_dim = self.obs_layout["all"].stop
         full = self._full_world.model
         self.state_dim = 1 + full.nq + full.nv + 13 * (full.nbody - 1)
@@ -790,7 +838,7 @@ class CargoTransport:
             self._make_estimators()
         self.step_count = 0
         self._ready = False
-        self._ref_cache: tuple[float, Reference] | None = None
+        self._ref_cache: list | None = None
 
     # ------------------------------------------------------------------ arguments
     def _set_cargo_args(self, mass_kg: Any, com_m: Any, inertia: Any) -> None:
@@ -871,7 +919,13 @@ class CargoTransport:
         """Simulate ``world`` (with its state in ``data``): the robots it holds act, and the
         indices into its model are refreshed."""
         self.world, self.model, self.data = world, world.model, data
+        # Views of the data's arrays used every step (each property access builds a new one).
+        self._qpos, self._qvel, self._ctrl = data.qpos, data.qvel, data.ctrl
+        self._xpos, self._xmat, self._warnings = data.xpos, data.xmat, data.warning.number
         self.holding = world.holding
+        # Index of the holding robots' rows in per-robot arrays: a slice (no copy) for all.
+        everyone = len(self.holding) == self.n_robots
+        self._rows: slice | list[int] = slice(None) if everyone else list(self.holding)
         self._thrust_ctrl = np.array([h.thrust_actuators for h in world.robots], dtype=int)
         self._arm_ctrl = np.array([h.arm_actuators for h in world.robots], dtype=int)
         # Which robot (index), the cargo (n_robots) or the module (-1) each geom belongs to.
@@ -928,7 +982,7 @@ class CargoTransport:
         self._log_std_sum = self._estimate_log_std_sums()
         everyone = self.holding
         obs = self._get_obs(everyone)
-        zero_terms = {t: np.zeros(self.n_robots) for t in REWARD_TERMS}
+        zero_terms = {t: [0.0] * self.n_robots for t in REWARD_TERMS}
         none = np.zeros(self.n_robots, dtype=int)
         infos = self._get_infos(zero_terms, none, none, None, everyone, ())
         return obs, infos
@@ -956,14 +1010,18 @@ class CargoTransport:
                 f"actions must have shape {(self.n_robots, ACTION_DIM)}, got {actions.shape}"
             )
         acting = self.holding  # the robots of this step, those letting go at its end included
-        rows = list(acting)
-        bad = ~np.all(np.isfinite(actions[rows]), axis=1)
-        if np.any(bad):
-            raise ValueError(f"actions of robot {rows[int(np.argmax(bad))]} are not all finite")
+        rows = self._rows  # their rows: every row (a slice) or a list
+        acting_actions = actions[rows]
+        if not np.isfinite(acting_actions).all():
+            finite_rows = np.isfinite(acting_actions).all(axis=1)
+            raise ValueError(
+                f"actions of robot {acting[int(np.argmin(finite_rows))]} are not all finite"
+            )
+        acting_clipped = np.minimum(np.maximum(acting_actions, -1.0), 1.0)  # np.clip, faster
         clipped = np.zeros_like(actions)
-        clipped[rows] = np.clip(actions[rows], -1.0, 1.0)
+        clipped[rows] = acting_clipped
         n_clipped = np.zeros(self.n_robots, dtype=int)
-        n_clipped[rows] = np.sum(clipped[rows] != actions[rows], axis=1)
+        n_clipped[rows] = (acting_clipped != acting_actions).sum(axis=1)
         self.step_count += 1
         k = self.step_count
 
@@ -979,11 +1037,13 @@ class CargoTransport:
 
         robot_contacts, cargo_contacts = self._wall_contacts()
         # A release due with a non-finite state does not happen: the episode ends (non_finite).
-        released = tuple(i for i in acting if finite and self.release_steps.get(i) == k)
+        released = ()
+        if self.release_steps and finite:
+            released = tuple(i for i in acting if self.release_steps.get(i) == k)
         if released:
             self._release(released)
         obs = self._get_obs(acting)
-        if not np.all(np.isfinite(obs)):
+        if not np.isfinite(obs).all():
             finite = False
             obs = np.nan_to_num(obs, nan=0.0, posinf=0.0, neginf=0.0)
         reason = None
@@ -991,8 +1051,7 @@ class CargoTransport:
             reason = "non_finite"
         elif robot_contacts.sum() + cargo_contacts > 0:
             reason = "wall_contact"
-        terms = self._get_rewards(clipped, robot_contacts, cargo_contacts, finite, acting)
-        rewards = sum(terms.values())
+        terms, rewards = self._get_rewards(clipped, robot_contacts, cargo_contacts, finite, acting)
         infos = self._get_infos(
             terms, n_clipped, robot_contacts + cargo_contacts, reason, acting, released
         )
@@ -1027,31 +1086,43 @@ class CargoTransport:
         the cargo, start the period. Returns the thrust commands (n_robots, 6) each robot knows
         it sent (zeros for those that have let go)."""
         commands = clipped[:, :6] * self.thrust_limits
-        wanted = np.asarray(ARM_DEPLOYED_RAD) + ARM_OFFSET_RAD * clipped[:, 6:]
+        # The servo targets, joint by joint on floats (four numbers: numpy's overhead dominates).
         max_move = ARM_SPEED_RADPS * self.dt_s
-        self.arm_targets = np.clip(
-            self.arm_targets + np.clip(wanted - self.arm_targets, -max_move, max_move),
-            self.joint_ranges[..., 0],
-            self.joint_ranges[..., 1],
+        self.arm_targets = np.array(
+            [
+                [
+                    _arm_target(current, deployed + ARM_OFFSET_RAD * action, max_move, low, high)
+                    for action, current, deployed, (low, high) in zip(
+                        actions, currents, ARM_DEPLOYED_RAD, ranges, strict=True
+                    )
+                ]
+                for actions, currents, ranges in zip(
+                    clipped[:, 6:].tolist(),
+                    self.arm_targets.tolist(),
+                    self.joint_ranges.tolist(),
+                    strict=True,
+                )
+            ]
         )
-        rows = list(self.holding)
-        delivered = np.zeros_like(commands)
-        delivered[rows] = self.sensors.actuate(commands[rows])
+        rows = self._rows
+        delivered = self.sensors.actuate(commands[rows])  # row k: robot holding[k]
         weakened = set()
         for fault in self._active_faults("propulsion", self.step_count):
             if fault.robot in self.holding:
-                delivered[fault.robot] *= fault.scale
+                delivered[self.holding.index(fault.robot)] *= fault.scale
                 weakened.add(fault.robot)
-        self.fault_counts["propulsion_steps"][list(weakened)] += 1
-        self.data.ctrl[self._thrust_ctrl] = delivered[rows]
-        self.data.ctrl[self._arm_ctrl] = self.arm_targets[rows]
+        if weakened:
+            self.fault_counts["propulsion_steps"][list(weakened)] += 1
+        self._ctrl[self._thrust_ctrl] = delivered
+        self._ctrl[self._arm_ctrl] = self.arm_targets[rows]
         self.sensors.begin_period(self.data)
         return commands
 
     def _physics_finite(self) -> bool:
-        d = self.data
-        unstable = d.warning[mujoco.mjtWarning.mjWARN_BADQACC].number > 0
-        return bool(np.all(np.isfinite(d.qpos)) and np.all(np.isfinite(d.qvel)) and not unstable)
+        unstable = self._warnings[_BAD_QACC] > 0
+        return bool(
+            np.isfinite(self._qpos).all() and np.isfinite(self._qvel).all() and not unstable
+        )
 
     def _read_sensors(self, k: int) -> list[SensorPacket]:
         """Every robot's packet (None for a robot that has let go), with the faults of step ``k``
@@ -1079,17 +1150,25 @@ class CargoTransport:
 
     def _active_faults(self, kind: str, k: int) -> list[Fault]:
         """The faults of ``kind`` active at control step ``k``."""
+        if not self._fault_windows:
+            return []
         return [f for f, first, end in self._fault_windows if f.kind == kind and first <= k < end]
 
-    def _fault_info(self, i: int) -> dict[str, Any]:
-        """Robot i's injected-fault counters (episode totals) and the kinds active now."""
-        info: dict[str, Any] = {k: int(v[i]) for k, v in self.fault_counts.items()}
-        info.update({f"messages_{k}": int(v[i]) for k, v in self.channel.fault_stats.items()})
+    def _fault_infos(self) -> list[dict[str, Any]]:
+        """Every robot's injected-fault counters (episode totals) and the kinds active now."""
+        if not self._fault_windows:  # none injected: every counter stays 0
+            return [{**_NO_FAULT_COUNTS, "active": []} for _ in range(self.n_robots)]
+        counts = {k: v.tolist() for k, v in self.fault_counts.items()}
+        counts.update({f"messages_{k}": v.tolist() for k, v in self.channel.fault_stats.items()})
+        active: list[list[str]] = [[] for _ in range(self.n_robots)]
         k = self.step_count
-        info["active"] = [
-            f.kind for f, first, end in self._fault_windows if f.robot == i and first <= k < end
+        for f, first, end in self._fault_windows:
+            if first <= k < end:
+                active[f.robot].append(f.kind)
+        return [
+            {**{name: c[i] for name, c in counts.items()}, "active": active[i]}
+            for i in range(self.n_robots)
         ]
-        return info
 
     def _update_estimators(self, packets: list[SensorPacket], commands: np.ndarray, k: int) -> None:
         """Each estimator ingests its own packet and command; messages go through the channel;
@@ -1125,16 +1204,17 @@ class CargoTransport:
             return
         self.est_mean = [est.params_mean() for est in self.estimators]
         self.est_std = [est.params_std() for est in self.estimators]
-        self._log_std_now = np.array(
-            [np.sum(np.log(np.maximum(s, LOG_STD_FLOOR))) for s in self.est_std]
-        )
+        self._log_std_now = np.log(np.maximum(np.array(self.est_std), LOG_STD_FLOOR)).sum(axis=1)
+        # Every robot's errors in one call per kind (the same values robot by robot).
+        means, truths = np.array(self.est_mean), np.array(self.true_params_grasp)
         self.est_errors = [
-            {
-                "mass_rel_err": float(mass_rel_error(mean, truth)),
-                "com_err_m": float(com_error_m(mean, truth)),
-                "principal_rel_err": principal_rel_errors(mean, truth).tolist(),
-            }
-            for mean, truth in zip(self.est_mean, self.true_params_grasp, strict=True)
+            {"mass_rel_err": mass, "com_err_m": com, "principal_rel_err": principal}
+            for mass, com, principal in zip(
+                mass_rel_error(means, truths).tolist(),
+                com_error_m(means, truths).tolist(),
+                principal_rel_errors(means, truths).tolist(),
+                strict=True,
+            )
         ]
 
     def _estimate_log_std_sums(self) -> np.ndarray:
@@ -1161,69 +1241,85 @@ class CargoTransport:
     # ------------------------------------------------------------------ observations
     def reference(self) -> Reference:
         """The cargo reference at the current time (evaluated once per time)."""
+        cache = self._reference_cache()
+        if cache[2] is None:
+            cache[2] = cache[1].to_reference()
+        return cache[2]
+
+    def _reference_values(self) -> ReferenceValues:
+        """The reference at the current time on floats (evaluated once per time)."""
+        return self._reference_cache()[1]
+
+    def _reference_cache(self) -> list:
+        """[time, its ReferenceValues, its Reference once asked for]."""
         t = float(self.data.time)
         if self._ref_cache is None or self._ref_cache[0] != t:
-            self._ref_cache = (t, self.trajectory(t))
-        return self._ref_cache[1]
+            self._ref_cache = [t, self.trajectory.values(t), None]
+        return self._ref_cache
 
     def _base_reference(
-        self, i: int, ref: Reference, joint_pos: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        self, i: int, ref: ReferenceValues, joint_pos: list[float]
+    ) -> tuple[tuple, tuple, tuple]:
         """Robot i's base pose and velocity if the cargo were on its reference, grasp rigid at
-        the arm angles ``joint_pos``: rotation, position, velocity (world)."""
-        grasp_rot, grasp_pos = grasp_pose(self.robots[i], joint_pos)
-        rot_ch, pos_ch = self.handrail_pose[i]
-        rot = ref.rot @ rot_ch @ grasp_rot.T
-        pos = ref.pos + ref.rot @ pos_ch - rot @ grasp_pos
-        vel = ref.vel + _cross(ref.w, pos - ref.pos)
+        the arm angles ``joint_pos``: rotation (rows), position, velocity (world), floats."""
+        grasp_rot, grasp_pos = grasp_pose_rows(self.robots[i], joint_pos)
+        rot_ch, pos_ch = self._handrail_rows[i]
+        rot = m_mt(m_m(ref.rot, rot_ch), grasp_rot)
+        pos = v_sub(v_add(ref.pos, m_v(ref.rot, pos_ch)), m_v(rot, grasp_pos))
+        vel = v_add(ref.vel, v_cross(ref.w, v_sub(pos, ref.pos)))
         return rot, pos, vel
 
     def _get_obs(self, robots: tuple[int, ...]) -> np.ndarray:
         """Observations of ``robots`` (the others' rows zeros). A peer that has let go of the
-        cargo has its slot zeroed: its messages are forgotten (``_release``)."""
-        ref = self.reference()
-        lay = self.obs_layout
+        cargo has its slot zeroed: its messages are forgotten (``_release``).
+
+        Each row is assembled on floats in the order of ``observation_layout``."""
+        ref = self._reference_values()
         obs = np.zeros((self.n_robots, self.obs_dim))
         step_count, dt = self.step_count, self.dt_s
         for i in robots:
-            nav, packet = self.navigators[i], self.packets[i]
-            o = obs[i]
-            rot = nav.rot
-            rot_ref, pos_ref, vel_ref = self._base_reference(i, ref, packet.joint_pos_rad)
-            base_pos = nav.base_pos
-            # Rows v @ R are (R^T v)^T: several vectors into the base frame in one product.
-            o[self._base_err_slice] = (
-                np.stack((base_pos - pos_ref, nav.base_vel - vel_ref)) @ rot
-            ).ravel()
-            o[lay["base_att_err"]] = _rotvec(rot_ref.T @ rot)
-            o[lay["base_ang_vel"]] = nav.w_base
-            o[lay["joint_pos"]] = packet.joint_pos_rad
-            o[lay["joint_target"]] = self.arm_targets[i]
-            o[self._ref_slice] = (
-                np.stack((ref.pos - base_pos, ref.vel, ref.acc, ref.w, ref.wd)) @ rot
-            ).ravel()
-            o[lay["ref_pan"]] = (ref.pan, ref.pan_rate)
+            rot, base_pos, base_vel, w = self.navigators[i].state_rows()
+            joint_pos = self.packets[i].joint_pos_rad.tolist()
+            rot_ref, pos_ref, vel_ref = self._base_reference(i, ref, joint_pos)
+            row = [
+                *mt_v(rot, v_sub(base_pos, pos_ref)),
+                *mt_v(rot, v_sub(base_vel, vel_ref)),
+                *_rotvec(mt_m(rot_ref, rot)),
+                *w,
+                *joint_pos,
+                *self.arm_targets[i].tolist(),
+                *mt_v(rot, v_sub(ref.pos, base_pos)),
+                *mt_v(rot, ref.vel),
+                *mt_v(rot, ref.acc),
+                *mt_v(rot, ref.w),
+                *mt_v(rot, ref.wd),
+                ref.pan,
+                ref.pan_rate,
+            ]
             latest = self.peer_msgs[i]
-            for j, wrench_slice, age_index, valid_index in self._peer_slots[i]:
+            for j in self._peer_slots[i]:
                 msg = latest.get(j)
                 if msg is None:
+                    row += _EMPTY_PEER_SLOT
                     continue
-                o[wrench_slice] = (msg.wrench_world.reshape(2, 3) @ rot).ravel()
-                o[age_index] = (step_count - msg.stamp) * dt
-                o[valid_index] = 1.0
+                wrench = msg.wrench_world.tolist()
+                row += mt_v(rot, wrench[:3])
+                row += mt_v(rot, wrench[3:])
+                row += ((step_count - msg.stamp) * dt, 1.0)
             if self.observe_estimates:
-                o[lay["estimate_mean"]] = self.est_mean[i]
-                o[lay["estimate_std"]] = self.est_std[i]
+                row += self.est_mean[i].tolist()
+                row += self.est_std[i].tolist()
+            obs[i] = row
         return obs
 
     # ------------------------------------------------------------------ rewards, infos
     def tracking_error(self) -> tuple[float, float]:
         """True cargo frame position error (m) and rotation angle error (rad)."""
         b = self.world.cargo_body
-        ref = self.reference()
-        rot = self.data.xmat[b].reshape(3, 3)
-        pos_err = float(np.linalg.norm(self.data.xpos[b] - ref.pos))
-        return pos_err, float(np.linalg.norm(_rotvec(ref.rot.T @ rot)))
+        ref = self._reference_values()
+        rot = as_rows(self._xmat[b].reshape(3, 3))
+        pos_err = norm3(v_sub(self._xpos[b].tolist(), ref.pos))
+        return pos_err, norm3(_rotvec(mt_m(ref.rot, rot)))
 
     def _get_rewards(
         self,
@@ -1232,40 +1328,44 @@ class CargoTransport:
         cargo_contacts: int,
         finite: bool,
         robots: tuple[int, ...],
-    ) -> dict[str, np.ndarray]:
-        """Every reward term per robot, weighted and mixed (team vs individual); the team of
-        this step is ``robots`` (the others' rows zeros)."""
+    ) -> tuple[dict[str, list[float]], np.ndarray]:
+        """Every reward term per robot, weighted and mixed (team vs individual), and their sum
+        per robot; the team of this step is ``robots`` (the others' rows zeros)."""
         n = self.n_robots
-        rows = list(robots)
         if finite:
             pos_err, angle_err = self.tracking_error()
             track = -(pos_err + ROTATION_WEIGHT_M_PER_RAD * angle_err)
         else:
             track = 0.0
-        effort = -np.sum(clipped**2, axis=1)
+        effort = -(clipped**2).sum(axis=1)
         log_std = self._estimate_log_std_sums()
-        info = self._log_std_sum - log_std
+        info = (self._log_std_sum - log_std).tolist()
         self._log_std_sum = log_std
-        if not np.all(np.isfinite(info)):
-            info = np.zeros(n)
-        # Rows in REWARD_TERMS order: (track, effort, info, contact) per robot and for the team.
-        individual = np.empty((len(REWARD_TERMS), n))
-        individual[0] = track
-        individual[1] = effort
-        individual[2] = info
-        individual[3] = -(robot_contacts + cargo_contacts)
-        team = individual[:, rows].mean(axis=1)
+        if not all(map(math.isfinite, info)):
+            info = [0.0] * n
+        # Rows in REWARD_TERMS order: (track, effort, info, contact) per robot and for the team,
+        # on floats (a few numbers: numpy's per-call overhead would dominate).
+        robot_contacts = robot_contacts.tolist()
+        contact = [-(c + cargo_contacts) for c in robot_contacts]
+        individual = [[float(track)] * n, effort.tolist(), info, contact]
+        team = [_mean(values, robots) for values in individual]
         team[0] = track
-        team[3] = -float(robot_contacts.sum() + cargo_contacts)
+        team[3] = -float(sum(robot_contacts) + cargo_contacts)
         s = self.shared_reward
-        mask = np.zeros(n)
-        mask[rows] = 1.0
-        mixed = (self._weight_column * mask) * (s * team[:, None] + (1.0 - s) * individual)
-        return dict(zip(REWARD_TERMS, mixed, strict=True))
+        mask = [1.0 if i in robots else 0.0 for i in range(n)]
+        mixed = [
+            [
+                (weight * m) * (s * team_term + (1.0 - s) * x)
+                for m, x in zip(mask, term, strict=True)
+            ]
+            for weight, team_term, term in zip(self._weights, team, individual, strict=True)
+        ]
+        rewards = [sum(values) for values in zip(*mixed, strict=True)]  # 0 + track + ... + contact
+        return dict(zip(REWARD_TERMS, mixed, strict=True)), np.array(rewards)
 
     def _get_infos(
         self,
-        terms: dict[str, np.ndarray],
+        terms: dict[str, list[float]],
         n_clipped: np.ndarray,
         wall_contacts: np.ndarray,
         reason: str | None,
@@ -1275,20 +1375,24 @@ class CargoTransport:
         """Infos of ``robots`` (None for the others); ``released``: those letting go now."""
         infos: list[dict[str, Any] | None] = [None] * self.n_robots
         comm = dict(self.channel.stats)
+        rewards = [terms[t] for t in REWARD_TERMS]
+        n_clipped, wall_contacts = n_clipped.tolist(), wall_contacts.tolist()
+        faults = self._fault_infos()
+        time_s = float(self.data.time)
         for i in robots:
-            info: dict[str, Any] = {f"reward_{t}": float(terms[t][i]) for t in REWARD_TERMS}
+            info: dict[str, Any] = {key: r[i] for key, r in zip(REWARD_KEYS, rewards, strict=True)}
             if i in released:
                 info["released_momentum"] = self.released_momentum[i].copy()
             info.update(
                 termination_reason=reason or ("released" if i in released else None),
                 releases=len(self.released_at_s),
                 holding=list(self.holding),
-                time_s=float(self.data.time),
-                clipped_actions=int(n_clipped[i]),
-                wall_contacts=int(wall_contacts[i]),
+                time_s=time_s,
+                clipped_actions=n_clipped[i],
+                wall_contacts=wall_contacts[i],
                 true_params=self.true_params_grasp[i].copy(),
                 comm=comm,
-                faults=self._fault_info(i),
+                faults=faults[i],
             )
             if self.estimators:
                 info.update(
@@ -1499,7 +1603,8 @@ class AstrobeeCargoEnv(ParallelEnv):
         result = self.sim.step(self._action_array(actions))
         truncated = self.sim.step_count >= self.max_cycles
         released = {self.possible_agents[i] for i in result.released}
-        rewards = {a: float(result.rewards[self._index[a]]) for a in live}
+        reward_values = result.rewards.tolist()
+        rewards = {a: reward_values[self._index[a]] for a in live}
         terminations = {a: result.terminated or a in released for a in live}
         truncations = dict.fromkeys(live, truncated)
         obs = self._by_agent(result.observations, live)
@@ -1533,7 +1638,7 @@ class AstrobeeCargoEnv(ParallelEnv):
                 raise ValueError(
                     f"action of agent {agent!r} must have shape ({ACTION_DIM},), got {a.shape}"
                 )
-            if not np.all(np.isfinite(a)):
+            if not np.isfinite(a).all():
                 raise ValueError(f"action of agent {agent!r} is not finite: {a}")
             out[i] = a
         return out

@@ -124,6 +124,8 @@ class CommChannel:
         self.latency_steps = _periods(self.latency_s, self.dt_s)
         self.drop_prob = float(drop_prob)
         self.noise_std = noise
+        self._wrench_noise_std = np.repeat(noise, 3)  # per axis of [force; moment]
+        self._noisy = bool(np.any(noise > 0))
         self.rng = rng
         self._queue: dict[int, list[tuple[int, Any]]] = defaultdict(list)  # due step -> copies
         self.stats = {"sent": 0, "delivered": 0, "dropped": 0, "in_flight": 0}
@@ -233,14 +235,13 @@ class CommChannel:
 
     def _copy(self, message: Any) -> Any:
         """An independent copy of ``message`` with this copy's wrench noise added."""
-        changes = {
-            f.name: np.array(getattr(message, f.name), copy=True)
-            for f in dataclasses.fields(message)
-            if isinstance(getattr(message, f.name), np.ndarray)
-        }
-        if np.any(self.noise_std > 0):
-            std = np.repeat(self.noise_std, 3)
-            noise_grasp = std * self.rng.standard_normal(6)
+        changes = {}
+        for f in dataclasses.fields(message):
+            value = getattr(message, f.name)
+            if isinstance(value, np.ndarray):
+                changes[f.name] = np.array(value, copy=True)
+        if self._noisy:
+            noise_grasp = self._wrench_noise_std * self.rng.standard_normal(6)
             rot = np.asarray(message.grasp_rot_world, dtype=float)
             noise_world = np.concatenate((rot @ noise_grasp[:3], rot @ noise_grasp[3:]))
             for name, noise in zip(WRENCH_FIELDS, (noise_grasp, noise_world), strict=True):

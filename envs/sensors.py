@@ -25,6 +25,7 @@ section 4.2), encoders 1e-3 rad, actuation 0.005 N + 2 % of the command and 5e-4
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import mujoco
@@ -106,102 +107,116 @@ def _perturb_quat(quat: np.ndarray, rotvec: np.ndarray) -> np.ndarray:
     return out
 
 
-def _rotvec_quat(rotvec: np.ndarray) -> np.ndarray:
-    angle = np.linalg.norm(rotvec)
-    quat = np.array([1.0, 0.0, 0.0, 0.0])
-    if angle > 0:
-        mujoco.mju_axisAngle2Quat(quat, rotvec / angle, angle)
-    return quat
+def _rotvec_quat(rotvec: tuple[float, float, float]) -> np.ndarray:
+    """Quaternion of a rotation vector: ``mju_axisAngle2Quat`` of its axis and angle, on floats."""
+    x, y, z = rotvec
+    angle = math.sqrt(x * x + y * y + z * z)
+    if angle == 0:
+        return np.array([1.0, 0.0, 0.0, 0.0])
+    s = math.sin(angle * 0.5)
+    return np.array((math.cos(angle * 0.5), x / angle * s, y / angle * s, z / angle * s))
+
+
+_SITE = mujoco.mjtObj.mjOBJ_SITE
+
+# Noise draws per robot and reading, in the order they are drawn: (name, size).
+_NOISE_DRAWS = (("accel", 3), ("gyro", 3), ("joints", 2))
+_FIX_DRAWS = (("position", 3), ("attitude", 3))
 
 
 class SensorSuite:
-    """Reads every robot's sensors from ``data`` and adds the profile's noise."""
+    """Reads every robot's sensors from ``data`` and adds the profile's noise.
+
+    The robots' noise is drawn in one call, robot after robot in the order of ``_NOISE_DRAWS``
+    (then ``_FIX_DRAWS`` at a localization fix): the same stream of numbers as one draw per
+    reading.
+    """
 
     def __init__(self, world: World, profile: NoiseProfile, rng: np.random.Generator) -> None:
         self.world = world
         self.profile = profile
         self.rng = rng
-        self._start: list[tuple[np.ndarray, np.ndarray, float]] = []
+        robots = world.robots
+        self._imu_sites = np.array([h.imu_site for h in robots], dtype=int)
+        adr = [h.sensor_adr for h in robots]
+        self._joint_adr = np.array([[a["tilt_pos"], a["pan_pos"]] for a in adr], dtype=int)
+        self._pos_adr = np.array([a["base_pos"] + np.arange(3) for a in adr], dtype=int)
+        self._quat_adr = np.array([a["base_quat"] + np.arange(4) for a in adr], dtype=int)
+        p = profile
+        draws = _NOISE_DRAWS + _FIX_DRAWS
+        self._noise_std = np.repeat(
+            [p.accel_std, p.gyro_std, p.encoder_std_rad, p.position_std_m, p.attitude_std_rad],
+            [size for _, size in draws],
+        )
+        self._n_draws = sum(size for _, size in _NOISE_DRAWS)
+        self._n_draws_fix = sum(size for _, size in draws)
+        self._actuation_abs = np.repeat([p.force_std_n, p.torque_std_nm], 3)
+        self._actuation_rel = np.repeat([p.force_rel, p.torque_rel], 3)
+        self._start: tuple[np.ndarray, np.ndarray, float] | None = None
 
-    def _imu_state(self, data: mujoco.MjData) -> list[tuple[np.ndarray, np.ndarray, float]]:
-        out = []
-        vel = np.zeros(6)
-        for h in self.world.robots:
-            mujoco.mj_objectVelocity(
-                self.world.model, data, mujoco.mjtObj.mjOBJ_SITE, h.imu_site, vel, 0
-            )
-            rot = data.site_xmat[h.imu_site].reshape(3, 3).copy()
-            out.append((vel[3:].copy(), rot, float(data.time)))
-        return out
+    def _imu_state(self, data: mujoco.MjData) -> tuple[np.ndarray, np.ndarray, float]:
+        """Every robot's IMU site: linear velocity (n, 3) in world axes, rotation (n, 3, 3) in
+        the world, and the time."""
+        vel = np.empty((len(self._imu_sites), 6))
+        model = self.world.model
+        for vel_k, site in zip(vel, self._imu_sites.tolist(), strict=True):
+            mujoco.mj_objectVelocity(model, data, _SITE, site, vel_k, 0)
+        rot = data.site_xmat[self._imu_sites].reshape(-1, 3, 3)
+        return vel[:, 3:], rot, float(data.time)
 
     def begin_period(self, data: mujoco.MjData) -> None:
         """Mark the start of a control period (``data`` after ``mj_forward``)."""
         self._start = self._imu_state(data)
 
-    def _imu_means(self, data: mujoco.MjData) -> list[tuple[np.ndarray, np.ndarray]]:
-        """Mean specific force and angular rate over the period, IMU frame."""
-        out = []
-        for (v0, r0, t0), (v1, r1, t1) in zip(self._start, self._imu_state(data), strict=True):
-            dt = t1 - t0
-            if dt <= 0:
-                raise ValueError("read() needs begin_period() at the start of the period")
-            rel = np.zeros(4)
-            mujoco.mju_mat2Quat(rel, (r0.T @ r1).reshape(9))
-            rotvec = np.zeros(3)
-            mujoco.mju_quat2Vel(rotvec, rel, 1.0)
-            half = np.zeros(9)
-            mujoco.mju_quat2Mat(half, _rotvec_quat(0.5 * rotvec))
-            r_mid = r0 @ half.reshape(3, 3)
-            out.append((r_mid.T @ (v1 - v0) / dt, rotvec / dt))
-        return out
+    def _imu_means(self, data: mujoco.MjData) -> tuple[np.ndarray, np.ndarray]:
+        """Mean specific force and angular rate over the period, IMU frame, (n, 3) each."""
+        v0, r0, t0 = self._start
+        v1, r1, t1 = self._imu_state(data)
+        dt = t1 - t0
+        if dt <= 0:
+            raise ValueError("read() needs begin_period() at the start of the period")
+        rel = (np.swapaxes(r0, -1, -2) @ r1).reshape(-1, 9)
+        rotvec = np.zeros((len(rel), 3))
+        half = np.zeros((len(rel), 9))
+        quat = np.zeros(4)
+        for rel_k, rotvec_k, half_k in zip(rel, rotvec, half, strict=True):
+            mujoco.mju_mat2Quat(quat, rel_k)
+            mujoco.mju_quat2Vel(rotvec_k, quat, 1.0)
+            x, y, z = rotvec_k.tolist()
+            mujoco.mju_quat2Mat(half_k, _rotvec_quat((0.5 * x, 0.5 * y, 0.5 * z)))
+        r_mid = r0 @ half.reshape(-1, 3, 3)
+        # Rows v @ R are (R^T v)^T: each robot's velocity change into its mid-period frame.
+        accel = (v1 - v0)[:, None, :] @ r_mid
+        return accel[:, 0] / dt, rotvec / dt
 
     def read(self, data: mujoco.MjData, step: int) -> list[SensorPacket]:
         """Readings of all robots at the end of control period ``step`` (``data`` after
         ``mj_forward``, with ``begin_period`` called at the period's start)."""
         p = self.profile
         fix = step % p.localization_every == 0
-        if len(self._start) != len(self.world.robots):
+        if self._start is None or len(self._start[0]) != len(self.world.robots):
             raise ValueError("read() needs begin_period() at the start of the period")
-        packets = []
-        means = self._imu_means(data)
-        for h, (accel_mean, gyro_mean) in zip(self.world.robots, means, strict=True):
-            adr = h.sensor_adr
-            s = data.sensordata
-            accel = accel_mean + p.accel_std * self.rng.standard_normal(3)
-            gyro = gyro_mean + p.gyro_std * self.rng.standard_normal(3)
-            joints = np.array([s[adr["tilt_pos"]], s[adr["pan_pos"]]])
-            joints = joints + p.encoder_std_rad * self.rng.standard_normal(joints.shape)
-            pos = quat = None
-            if fix:
-                pos = s[
-                    adr["base_pos"] : adr["base_pos"] + 3
-                ] + p.position_std_m * self.rng.standard_normal(3)
-                quat = _perturb_quat(
-                    s[adr["base_quat"] : adr["base_quat"] + 4].copy(),
-                    p.attitude_std_rad * self.rng.standard_normal(3),
-                )
-            packets.append(
-                SensorPacket(
-                    time_s=float(data.time),
-                    accel_imu=accel,
-                    gyro_imu=gyro,
-                    joint_pos_rad=joints,
-                    base_pos_world=pos,
-                    base_quat_world=quat,
-                )
-            )
-        return packets
+        accel_mean, gyro_mean = self._imu_means(data)
+        n_draws = self._n_draws_fix if fix else self._n_draws
+        noise = self._noise_std[:n_draws] * self.rng.standard_normal((len(accel_mean), n_draws))
+        s = data.sensordata
+        accel = accel_mean + noise[:, 0:3]
+        gyro = gyro_mean + noise[:, 3:6]
+        joints = s[self._joint_adr] + noise[:, 6:8]
+        pos = quat = [None] * len(accel)
+        if fix:
+            pos = s[self._pos_adr] + noise[:, 8:11]
+            att = noise[:, 11:14]
+            quat = [_perturb_quat(q, a) for q, a in zip(s[self._quat_adr], att, strict=True)]
+        time_s = float(data.time)
+        return [
+            SensorPacket(time_s, *readings)
+            for readings in zip(accel, gyro, joints, pos, quat, strict=True)
+        ]
 
     def actuate(self, command: np.ndarray) -> np.ndarray:
         """The propulsion wrench actually delivered for a commanded one (..., 6): command plus
         absolute and command-proportional white noise (the robot knows only the command)."""
-        p = self.profile
         command = np.asarray(command, dtype=float)
-        std = np.concatenate(
-            (
-                p.force_std_n + p.force_rel * np.abs(command[..., :3]),
-                p.torque_std_nm + p.torque_rel * np.abs(command[..., 3:]),
-            ),
-            axis=-1,
-        )
+        std = self._actuation_abs + self._actuation_rel * np.abs(command)
         return command + std * self.rng.standard_normal(command.shape)

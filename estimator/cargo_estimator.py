@@ -78,9 +78,14 @@ from .inertia import (
 from .preprocess import Preprocessor, StateVariableFilter
 from .rne import (
     RobotDescription,
-    balance_in_grasp_frame,
+    as_rows,
+    balance_rows,
     grasp_from_base,
     grasp_pose,
+    m_m,
+    m_v,
+    norm3,
+    v_scale,
     wrench_transform,
 )
 from .ukf import InertialParamUKF
@@ -105,20 +110,23 @@ def quat_to_mat(quat: np.ndarray) -> np.ndarray:
     )
 
 
-def exp_so3(rotvec: np.ndarray) -> np.ndarray:
-    """Rotation matrix of a rotation vector (Rodrigues, in floats: called every step)."""
-    x, y, z = float(rotvec[0]), float(rotvec[1]), float(rotvec[2])
+def exp_so3(rotvec: np.ndarray | tuple[float, float, float]) -> np.ndarray:
+    """Rotation matrix of a rotation vector, an array or 3 floats (Rodrigues)."""
+    return np.array(exp_so3_rows(rotvec))
+
+
+def exp_so3_rows(rotvec: np.ndarray | tuple[float, float, float]) -> tuple:
+    """``exp_so3`` as rows of floats (for rne's float helpers: called every step)."""
+    x, y, z = map(float, rotvec)
     angle = math.sqrt(x * x + y * y + z * z)
     if angle < 1e-12:
-        return np.eye(3)
+        return ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
     x, y, z = x / angle, y / angle, z / angle
     s, c1 = math.sin(angle), 1.0 - math.cos(angle)
-    return np.array(
-        [
-            [1.0 - c1 * (y * y + z * z), c1 * x * y - s * z, c1 * x * z + s * y],
-            [c1 * x * y + s * z, 1.0 - c1 * (x * x + z * z), c1 * y * z - s * x],
-            [c1 * x * z - s * y, c1 * y * z + s * x, 1.0 - c1 * (x * x + y * y)],
-        ]
+    return (
+        (1.0 - c1 * (y * y + z * z), c1 * x * y - s * z, c1 * x * z + s * y),
+        (c1 * x * y + s * z, 1.0 - c1 * (x * x + z * z), c1 * y * z - s * x),
+        (c1 * x * z - s * y, c1 * y * z + s * x, 1.0 - c1 * (x * x + y * y)),
     )
 
 
@@ -310,7 +318,14 @@ class CargoEstimator:
         self.warmup_steps = int(np.ceil(warmup_s / dt_s))
         self.history_steps = int(np.ceil(history_s / dt_s))
         self.regressor_every = int(regressor_every)
+        self._reading_shapes = (
+            ("accel_imu", (3,)),
+            ("gyro_imu", (3,)),
+            ("joint_pos_rad", (robot.n_joints,)),
+            ("thrust_command", (6,)),
+        )
         self.pre = Preprocessor(robot, dt_s, kinematics_cutoff_hz)
+        self._imu_rot = as_rows(robot.imu_rot)
         # Slow filter over [thrust 6, links 6, Y 60], grasp frame.
         self.balance_filter = StateVariableFilter(72, dt_s * regressor_every, cutoff_hz)
         # Memory of the filters: one delay (rollback after a gate) and four (taint).
@@ -337,6 +352,9 @@ class CargoEstimator:
         self.actuation_noise = np.asarray(actuation_noise, dtype=float)
         if self.actuation_noise.shape != (4,) or np.any(self.actuation_noise < 0):
             raise ValueError("actuation_noise must be 4 non-negative numbers")
+        # Per axis of the thrust command: std = abs + rel * |command|.
+        self._actuation_abs = np.repeat(self.actuation_noise[[0, 2]], 3)
+        self._actuation_rel = np.repeat(self.actuation_noise[[1, 3]], 3)
         self._act_cov_sum = np.zeros((6, 6))
         self._act_cov_n = 0
         self._thrust_to_base = wrench_transform(robot.thrust_rot, robot.thrust_pos)
@@ -347,6 +365,7 @@ class CargoEstimator:
         if peer_noise.shape != (2,) or np.any(peer_noise < 0):
             raise ValueError("peer_noise_std must be 2 non-negative numbers")
         self._peer_noise_cov = np.diag(np.repeat(peer_noise**2, 3))
+        self._peer_noise = bool(np.any(peer_noise > 0))  # else its covariance adds zeros
         self.min_excitation_snr = float(min_excitation_snr)
         loc = np.asarray(localization_noise, dtype=float)
         if loc.shape != (2,) or np.any(loc < 0):
@@ -368,6 +387,10 @@ class CargoEstimator:
         self._acc_noise = sensor_noise[0] * gains[0]
         self._ang_acc_noise = sensor_noise[1] * gains[1]
         self._joint_acc_noise = sensor_noise[2] * gains[2]
+        # The grasp's angular accelerations carry the joints' (doubly differentiated encoders).
+        self._grasp_ang_acc_noise = np.hypot(
+            self._ang_acc_noise, np.sqrt(robot.n_joints) * self._joint_acc_noise
+        )
         self._correlated = correlated
         self._robot_mass = robot.total_mass
         self._robot_inertia = sum(
@@ -375,13 +398,14 @@ class CargoEstimator:
         )
         self._grasp_lever = 0.0
         self.n_skipped_low_excitation = 0
-        self._rot_world_base: np.ndarray | None = None
+        self._rot_world_base: tuple | None = None  # rows of floats (rne's helpers)
         self._pos_world_base: np.ndarray | None = None
         self._last_input: tuple[np.ndarray, ...] | None = None
         self._tainted_until = -1
         self._pending: dict[int, _Instant] = {}
         self._own_fix: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self._peer_msgs: dict[tuple[int, int], WrenchMessage] = {}
+        self._oldest_peer_msg = math.inf  # a lower bound of the stamps in _peer_msgs
         self._relative: dict[int, _RelativeGrasp] = {p: _RelativeGrasp() for p in self.peers}
         for p, (rot, pos) in (relative_grasps or {}).items():
             if p not in self._relative:
@@ -427,20 +451,17 @@ class CargoEstimator:
             None if x is None else np.asarray(x, dtype=float)
             for x in (accel_imu, gyro_imu, joint_pos_rad, thrust_command)
         ]
-        for name, x, shape in zip(
-            ("accel_imu", "gyro_imu", "joint_pos_rad", "thrust_command"),
-            readings,
-            ((3,), (3,), (self.robot.n_joints,), (6,)),
-            strict=True,
-        ):
+        for (name, shape), x in zip(self._reading_shapes, readings, strict=True):
             if x is not None and x.shape != shape:
                 raise ValueError(f"{name} must have shape {shape}, got {x.shape}")
         if stamp <= self.stamp:
             raise ValueError(f"stamps must increase: got {stamp} after {self.stamp}")
         self.stamp = int(stamp)
-        # One check for the usual case (every reading present and finite), then per reading.
+        # One check for the usual case (every reading present and finite), then per reading;
+        # the readings in one vector serve the pre-filter too.
         usable = [True] * 4
-        if missing or not np.isfinite(np.concatenate(readings)).all():
+        raw = None if missing else self.pre.raw_input(*readings)
+        if raw is None or not np.isfinite(raw).all():
             usable = [x is not None and bool(np.all(np.isfinite(x))) for x in readings]
         if not all(usable):
             if missing:
@@ -455,9 +476,10 @@ class CargoEstimator:
                 x if ok else last
                 for x, ok, last in zip(readings, usable, self._last_input, strict=True)
             ]
+            raw = self.pre.raw_input(*readings)
         self._last_input = tuple(readings)
         accel, gyro, q, thrust = readings
-        self.pre.step(accel, gyro, q, thrust)
+        self.pre.step_raw(raw)
         fix = self._update_attitude(gyro, base_pos_world, base_quat_world)
         if stamp % self.regressor_every == 0:
             self._filter_balance(thrust)
@@ -466,21 +488,17 @@ class CargoEstimator:
         return self._record_instant(stamp, q, fix)
 
     def _filter_balance(self, thrust_command: np.ndarray) -> None:
-        thrust_g, links_g, regressor, rot_bg, pos_bg = balance_in_grasp_frame(
-            self.robot, *self.pre.base_and_joint_motion(), self.pre.thrust()
+        values, rot_bg, pos_bg = balance_rows(
+            self.robot, *self.pre.base_and_joint_motion_rows(), self.pre.thrust().tolist()
         )
         # Per-step covariance of the actuation noise, carried into the grasp frame.
         to_grasp = grasp_from_base(rot_bg, pos_bg) @ self._thrust_to_base
-        fa, fr, ta, tr = self.actuation_noise
-        std = np.concatenate(
-            (fa + fr * np.abs(thrust_command[:3]), ta + tr * np.abs(thrust_command[3:]))
-        )
+        std = self._actuation_abs + self._actuation_rel * np.abs(thrust_command)
         self._act_cov_sum += (to_grasp * std**2) @ to_grasp.T
         self._act_cov_n += 1
-        self._grasp_lever = float(np.linalg.norm(pos_bg))
-        self._balance, _, _ = self.balance_filter.step(
-            np.concatenate((thrust_g, links_g, regressor.ravel()))
-        )
+        self._grasp_lever = norm3(pos_bg)
+        # [thrust_G (6), links_G (6), Y (60, row by row)].
+        self._balance, _, _ = self.balance_filter.step(np.array(values))
 
     def _update_attitude(self, gyro_imu, base_pos_world, base_quat_world) -> bool:
         """Attitude from the last fix, propagated with the gyro between fixes."""
@@ -490,14 +508,15 @@ class CargoEstimator:
             if quat.shape != (4,) or pos.shape != (3,):
                 raise ValueError("base_pos_world must be (3,) and base_quat_world (4,)")
             if np.all(np.isfinite(quat)) and np.all(np.isfinite(pos)) and np.linalg.norm(quat) > 0:
-                self._rot_world_base = quat_to_mat(quat)
+                self._rot_world_base = as_rows(quat_to_mat(quat))
                 self._pos_world_base = pos.copy()
                 self.n_fixes += 1
                 return True
             self.n_bad_readings += 1
         if self._rot_world_base is not None:
-            w_base = self.robot.imu_rot @ gyro_imu
-            self._rot_world_base = self._rot_world_base @ exp_so3(w_base * self.dt_s)
+            w_base = m_v(self._imu_rot, gyro_imu.tolist())
+            step = exp_so3_rows(v_scale(self.dt_s, w_base))
+            self._rot_world_base = m_m(self._rot_world_base, step)
         return False
 
     def _record_instant(self, stamp: int, q_raw: np.ndarray, fix: bool) -> WrenchMessage | None:
@@ -520,8 +539,9 @@ class CargoEstimator:
         # The grasp pose for the relative-grasp average uses the current encoders, not the
         # filtered (delayed) angles, so that it matches the fix in time.
         rot_bg, pos_bg = self.robot_grasp_pose(q_raw)
-        rot_wg = self._rot_world_base @ rot_bg
-        pos_wg = self._pos_world_base + self._rot_world_base @ pos_bg
+        rot_wb = np.array(self._rot_world_base)
+        rot_wg = rot_wb @ rot_bg
+        pos_wg = self._pos_world_base + rot_wb @ pos_bg
         if fix:
             self._own_fix[stamp] = (rot_wg, pos_wg)
             for p in self.peers:
@@ -555,6 +575,7 @@ class CargoEstimator:
             self.n_stale_messages += 1
             return
         self._peer_msgs[(message.sender, message.stamp)] = message
+        self._oldest_peer_msg = min(self._oldest_peer_msg, message.stamp)
         own = self._own_fix.get(message.stamp)
         if message.fix and own is not None:
             self._accumulate_relative(message.sender, message)
@@ -601,7 +622,8 @@ class CargoEstimator:
                     wrench = t @ m.wrench_grasp
                     peers += wrench
                     cov += t @ m.wrench_cov_grasp @ t.T
-                    peer_noise += t @ self._peer_noise_cov @ t.T
+                    if self._peer_noise:
+                        peer_noise += t @ self._peer_noise_cov @ t.T
                     if rel.known is None:
                         peer_noise += self._relative_pose_cov(wrench, rel.count)
                 meas_cov = self.meas_cov + cov / self.update_every + self._sensor_cov() + peer_noise
@@ -621,12 +643,18 @@ class CargoEstimator:
             elif stamp < self.stamp - self.history_steps:
                 del self._pending[stamp]
                 self.n_skipped_missing += 1
-        horizon = self.stamp - self.history_steps
-        for key in [k for k in self._peer_msgs if k[1] < horizon]:
-            del self._peer_msgs[key]
-        for key in [k for k in self._own_fix if k < horizon]:
-            del self._own_fix[key]
+        self._forget_before(self.stamp - self.history_steps)
         return done
+
+    def _forget_before(self, horizon: int) -> None:
+        """Drop the peers' messages and own fixes of stamps before ``horizon``."""
+        if self._oldest_peer_msg < horizon:
+            for key in [k for k in self._peer_msgs if k[1] < horizon]:
+                del self._peer_msgs[key]
+            self._oldest_peer_msg = min((k[1] for k in self._peer_msgs), default=math.inf)
+        # Own fixes are stored in increasing stamp order.
+        while self._own_fix and next(iter(self._own_fix)) < horizon:
+            del self._own_fix[next(iter(self._own_fix))]
 
     def _roll_back(self, gated_stamp: int) -> int:
         """Undo the updates of the instants within the filters' memory before ``gated_stamp``;
@@ -649,14 +677,12 @@ class CargoEstimator:
         """Does the filtered motion of this instant stand above the noise of its measurement?"""
         acc = regressor[:3, 0]
         # The force rows' h-columns are skew(wd) + skew(w)^2: wd is their antisymmetric part.
-        m_h = regressor[:3, 1:4]
-        wd = 0.5 * np.array([m_h[2, 1] - m_h[1, 2], m_h[0, 2] - m_h[2, 0], m_h[1, 0] - m_h[0, 1]])
-        # The grasp's accelerations carry the joints' (doubly differentiated encoders) too.
-        nj = self.robot.n_joints
-        ang_noise = np.hypot(self._ang_acc_noise, np.sqrt(nj) * self._joint_acc_noise)
+        (_, h01, h02), (h10, _, h12), (h20, h21, _) = regressor[:3, 1:4].tolist()
+        wd = (0.5 * (h21 - h12), 0.5 * (h02 - h20), 0.5 * (h10 - h01))
+        ang_noise = self._grasp_ang_acc_noise
         lin_noise = np.hypot(self._acc_noise, self._grasp_lever * ang_noise)
-        snr_lin = np.linalg.norm(acc) / max(lin_noise, 1e-300)
-        snr_ang = np.linalg.norm(wd) / max(ang_noise, 1e-300)
+        snr_lin = norm3(acc) / max(lin_noise, 1e-300)
+        snr_ang = norm3(wd) / max(ang_noise, 1e-300)
         return max(snr_lin, snr_ang) >= self.min_excitation_snr
 
     def _relative_pose_cov(self, wrench: np.ndarray, n_fixes: int) -> np.ndarray:
@@ -673,12 +699,11 @@ class CargoEstimator:
         current estimate (scalar per block, magnitudes only): force M sigma_a + m_c L sigma_qdd,
         moment J sigma_wd + M L sigma_a + m_c |c| L sigma_qdd, with M the robot-plus-cargo mass,
         L the base-to-grasp lever and J the inertia about the grasp."""
-        pi = self.ukf.params_mean()
-        m_c = pi[0]
-        com = np.linalg.norm(pi[1:4]) / m_c
+        m_c, h_x, h_y, h_z, i_xx, i_yy, i_zz = self.ukf.params_mean()[:7].tolist()
+        com = norm3((h_x, h_y, h_z)) / m_c
         lever = self._grasp_lever
         total = self._robot_mass + m_c
-        inertia = self._robot_inertia + self._robot_mass * lever**2 + float(pi[4:7].max())
+        inertia = self._robot_inertia + self._robot_mass * lever**2 + max(i_xx, i_yy, i_zz)
         force = (total * self._acc_noise) ** 2 + (m_c * lever * self._joint_acc_noise) ** 2
         moment = (
             (inertia * self._ang_acc_noise) ** 2

@@ -25,14 +25,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.linalg import expm
 
-from .rne import Kinematics, RobotDescription, propagate, wrench_transform
-
-
-def _cross3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    # np.cross costs ~15 us on 3-vectors; this is the same product.
-    a0, a1, a2 = a.tolist()
-    b0, b1, b2 = b.tolist()
-    return np.array((a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0))
+from .rne import Kinematics, RobotDescription, propagate, v_cross, v_sub, wrench_transform
 
 
 class StateVariableFilter:
@@ -61,26 +54,34 @@ class StateVariableFilter:
         self.ad = e[:3, :3]
         self.b_value = e[:3, 3]  # weight of u_k
         self.b_slope = e[:3, 4] / dt_s  # weight of (u_k+1 - u_k)
+        # One product per step: state_k+1 = [Ad | b_value - b_slope | b_slope] [state_k; u_k; u_k+1]
+        # (numpy's per-call overhead on a few small arrays would dominate the separate terms).
+        self._step_matrix = np.column_stack((self.ad, self.b_value - self.b_slope, self.b_slope))
         self.n_channels = int(n_channels)
         self.delay_s = 3.0 / w
+        self._stacked = np.zeros((5, self.n_channels))  # [state (3 rows); u_prev; u]
         self.state = np.zeros((3, self.n_channels))
-        self.u_prev = np.zeros(self.n_channels)
         self.started = False
+
+    @property
+    def u_prev(self) -> np.ndarray:
+        """The previous input sample."""
+        return self._stacked[3].copy()
 
     def step(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         u = np.asarray(u, dtype=float)
         if u.shape != (self.n_channels,):
             raise ValueError(f"filter input must have shape ({self.n_channels},), got {u.shape}")
+        stacked = self._stacked
         if not self.started:
             self.state[0] = u
+            stacked[0] = u
             self.started = True
         else:
-            self.state = (
-                self.ad @ self.state
-                + self.b_value[:, None] * self.u_prev
-                + self.b_slope[:, None] * (u - self.u_prev)
-            )
-        self.u_prev = u.copy()
+            stacked[4] = u
+            self.state = self._step_matrix @ stacked
+            stacked[:3] = self.state
+        stacked[3] = u
         return self.state[0], self.state[1], self.state[2]
 
 
@@ -103,9 +104,19 @@ class Preprocessor:
             "q": slice(6, 6 + nj),
             "thrust": slice(6 + nj, 12 + nj),
         }
+        self._gyro, self._accel, self._q, self._thrust = self._slices.values()
+        self._imu_pos = tuple(robot.imu_pos.tolist())
         self.filter = StateVariableFilter(12 + nj, dt_s, cutoff_hz)
         self._thrust_to_base = wrench_transform(robot.thrust_rot, robot.thrust_pos)
-        self._u = np.zeros(12 + nj)
+        # The filter's input from [gyro; accel; q; thrust command] in one product: the IMU
+        # rotation twice, the identity, the thrust site's wrench transform, block-diagonal.
+        self._to_input = np.zeros((12 + nj, 12 + nj))
+        for block, rows in zip(
+            (robot.imu_rot, robot.imu_rot, np.eye(nj), self._thrust_to_base),
+            self._slices.values(),
+            strict=True,
+        ):
+            self._to_input[rows, rows] = block
         self._y = self._yd = self._ydd = np.zeros(12 + nj)
 
     def step(
@@ -115,28 +126,40 @@ class Preprocessor:
         joint_pos_rad: np.ndarray,
         thrust_command: np.ndarray,
     ) -> None:
-        s, rot = self._slices, self.robot.imu_rot
-        u = self._u
-        u[s["gyro"]] = rot @ gyro_imu
-        u[s["accel"]] = rot @ accel_imu
-        u[s["q"]] = joint_pos_rad
-        u[s["thrust"]] = self._thrust_to_base @ thrust_command
-        self._y, self._yd, self._ydd = self.filter.step(u)
+        self.step_raw(self.raw_input(accel_imu, gyro_imu, joint_pos_rad, thrust_command))
+
+    @staticmethod
+    def raw_input(
+        accel_imu: np.ndarray,
+        gyro_imu: np.ndarray,
+        joint_pos_rad: np.ndarray,
+        thrust_command: np.ndarray,
+    ) -> np.ndarray:
+        """The readings of one step as one vector [gyro; accel; q; thrust] (``step_raw``)."""
+        return np.concatenate((gyro_imu, accel_imu, joint_pos_rad, thrust_command))
+
+    def step_raw(self, raw: np.ndarray) -> None:
+        """``step`` with the readings already in one vector (``raw_input``)."""
+        self._y, self._yd, self._ydd = self.filter.step(self._to_input @ raw)
 
     def base_and_joint_motion(self) -> tuple[np.ndarray, ...]:
         """Filtered (w, wd, acc of B's origin, q, qd, qdd), base frame."""
-        s, r = self._slices, self.robot.imu_pos
-        w, wd = self._y[s["gyro"]], self._yd[s["gyro"]]
-        w_r = _cross3(w, r)
-        acc_origin = self._y[s["accel"]] - _cross3(wd, r) - _cross3(w, w_r)
-        q = s["q"]
-        return w, wd, acc_origin, self._y[q], self._yd[q], self._ydd[q]
+        return tuple(np.array(x) for x in self.base_and_joint_motion_rows())
+
+    def base_and_joint_motion_rows(self) -> tuple[list[float], ...]:
+        """``base_and_joint_motion`` as lists of floats."""
+        w, wd = self._y[self._gyro].tolist(), self._yd[self._gyro].tolist()
+        r = self._imu_pos
+        acc_imu = self._y[self._accel].tolist()
+        acc_origin = v_sub(v_sub(acc_imu, v_cross(wd, r)), v_cross(w, v_cross(w, r)))
+        q = self._q
+        return w, wd, acc_origin, self._y[q].tolist(), self._yd[q].tolist(), self._ydd[q].tolist()
 
     def kinematics(self) -> Kinematics:
         return propagate(self.robot, *self.base_and_joint_motion())
 
     def thrust(self) -> np.ndarray:
-        return self._y[self._slices["thrust"]].copy()
+        return self._y[self._thrust].copy()
 
     @property
     def delay_s(self) -> float:

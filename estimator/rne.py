@@ -100,8 +100,13 @@ class Kinematics:
     grasp_wd: np.ndarray  # (..., 3)
 
 
-def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    # np.cross on small arrays is slow; this is the same product, written out.
+def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a x b over the last axis of two arrays (..., 3): np.cross, written out (np.cross costs
+    ~10 us on small arrays; this is the same product, on Python floats for two 3-vectors)."""
+    if a.ndim == 1 and b.ndim == 1:
+        a0, a1, a2 = a.tolist()
+        b0, b1, b2 = b.tolist()
+        return np.array((a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0))
     return np.stack(
         (
             a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1],
@@ -110,6 +115,13 @@ def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
         ),
         axis=-1,
     )
+
+
+def norm3(v: np.ndarray | tuple[float, float, float]) -> float:
+    """|v| of one 3-vector (array or floats): np.linalg.norm's value (the same sum of squares),
+    on floats."""
+    x, y, z = v.tolist() if isinstance(v, np.ndarray) else v
+    return math.sqrt(x * x + y * y + z * z)
 
 
 def _axis_rotation(axis: np.ndarray, angle: np.ndarray) -> np.ndarray:
@@ -163,11 +175,11 @@ def propagate(
         rots.append(rot)
         poss.append(poss[p] + r)
         ws.append(ws[p] + w_rel)
-        wds.append(wds[p] + qdd[..., jk, None] * z + _cross(ws[p], w_rel))
-        accs.append(accs[p] + _cross(wds[p], r) + _cross(ws[p], _cross(ws[p], r)))
+        wds.append(wds[p] + qdd[..., jk, None] * z + cross(ws[p], w_rel))
+        accs.append(accs[p] + cross(wds[p], r) + cross(ws[p], cross(ws[p], r)))
     g = robot.grasp_link
     r_g = _rmv(rots[g], robot.grasp_pos)
-    grasp_acc = accs[g] + _cross(wds[g], r_g) + _cross(ws[g], _cross(ws[g], r_g))
+    grasp_acc = accs[g] + cross(wds[g], r_g) + cross(ws[g], cross(ws[g], r_g))
     return Kinematics(
         rot=np.stack(rots, axis=-3),
         pos=np.stack(poss, axis=-2),
@@ -197,15 +209,21 @@ def grasp_pose(robot: RobotDescription, q: np.ndarray) -> tuple[np.ndarray, np.n
     """Grasp frame in the base frame at joint angles ``q`` (rotation, position). Single sample,
     on Python floats (called per robot per step by the env and the controller); the same forward
     kinematics as ``link_poses`` and ``propagate`` (tests hold them equal)."""
-    links, g, grot, gpos = _fast_constants(robot)
-    qs = [float(x) for x in q]
+    rot, pos = grasp_pose_rows(robot, np.asarray(q, dtype=float).tolist())
+    return np.array(rot), np.array(pos)
+
+
+def grasp_pose_rows(robot: RobotDescription, qs: list[float]) -> tuple[tuple, tuple]:
+    """``grasp_pose`` as tuples of floats (3x3 rows, 3-vector) for the float helpers below."""
+    _, g, grot, gpos, joints = _fast_constants(robot)
     rots = [((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))]
     poss = [(0.0, 0.0, 0.0)]
-    for k, (parent, r0, pos, _axis, kk, *_rest) in enumerate(links[1:], start=1):
-        rots.append(_m_m(_m_m(rots[parent], r0), _rodrigues(kk, qs[k - 1])))
-        poss.append(_v_add(poss[parent], _m_v(rots[parent], pos)))
+    for k, (parent, r0, pos, kk) in enumerate(joints):
+        rot_0, r = _joint_frame(rots, parent, r0, pos)
+        rots.append(m_m(rot_0, _rodrigues(kk, qs[k])))
+        poss.append(v_add(poss[parent], r))
     rot_g = rots[g]
-    return np.array(_m_m(rot_g, grot)), np.array(_v_add(poss[g], _m_v(rot_g, gpos)))
+    return m_m(rot_g, grot), v_add(poss[g], m_v(rot_g, gpos))
 
 
 def link_momentum_rate(robot: RobotDescription, kin: Kinematics) -> np.ndarray:
@@ -216,9 +234,9 @@ def link_momentum_rate(robot: RobotDescription, kin: Kinematics) -> np.ndarray:
     inertia_local = np.stack([link.inertia_com for link in robot.links])
     c = np.einsum("...kij,kj->...ki", kin.rot, com_local)
     inertia = kin.rot @ inertia_local @ np.swapaxes(kin.rot, -1, -2)
-    rdd = kin.acc + _cross(kin.wd, c) + _cross(kin.w, _cross(kin.w, c))
+    rdd = kin.acc + cross(kin.wd, c) + cross(kin.w, cross(kin.w, c))
     f = mass[:, None] * rdd
-    n = _rmv(inertia, kin.wd) + _cross(kin.w, _rmv(inertia, kin.w)) + _cross(kin.pos + c, f)
+    n = _rmv(inertia, kin.wd) + cross(kin.w, _rmv(inertia, kin.w)) + cross(kin.pos + c, f)
     return np.concatenate((f.sum(axis=-2), n.sum(axis=-2)), axis=-1)
 
 
@@ -265,7 +283,7 @@ def grasp_from_base(rot: np.ndarray, pos: np.ndarray) -> np.ndarray:
     """Inverse of ``wrench_transform(rot, pos)``: wrench in B (about B's origin) -> frame G whose
     pose in B is (rot, pos), moments about G's origin: f_G = R^T f, n_G = R^T (n - pos x f)."""
     rot_t = np.asarray(rot, dtype=float).T
-    px, py, pz = (float(x) for x in pos)
+    px, py, pz = np.asarray(pos, dtype=float).tolist()
     t = np.zeros((6, 6))
     t[:3, :3] = rot_t
     t[3:, 3:] = rot_t
@@ -294,44 +312,85 @@ def thrust_wrench(robot: RobotDescription, command: np.ndarray) -> np.ndarray:
 # Fast path for one sample. The estimator evaluates the balance of one instant tens of times per
 # second per robot; numpy's per-call overhead on 3-vectors made that 240 us. The same equations
 # as ``propagate`` / ``link_momentum_rate`` / ``body_regressor`` written on Python floats; tests
-# hold it equal to them to 1e-12.
-def _v_add(a, b):
+# hold it equal to them to 1e-12. The helpers work on 3-vectors and 3x3 matrices (rows) as tuples
+# of floats (as_rows makes them from arrays): m_v(m, v) = m v, mt_v(m, v) = m^T v, m_m(a, b) =
+# a b, mt_m(a, b) = a^T b, m_mt(a, b) = a b^T. They also serve the env's navigation and
+# observations, the estimator's attitude and the trajectories. Their products round as written
+# (left to right, no fused multiply-add), unlike numpy's BLAS products of the same matrices.
+def as_rows(mat) -> tuple:
+    """A 3x3 matrix (array or nested sequences) as a tuple of row tuples of floats."""
+    return tuple(map(tuple, np.asarray(mat, dtype=float).tolist()))
+
+
+def v_add(a, b):
     return (a[0] + b[0], a[1] + b[1], a[2] + b[2])
 
 
-def _v_sub(a, b):
+def v_sub(a, b):
     return (a[0] - b[0], a[1] - b[1], a[2] - b[2])
 
 
-def _v_scale(s, a):
+def v_scale(s, a):
     return (s * a[0], s * a[1], s * a[2])
 
 
-def _v_cross(a, b):
+def v_cross(a, b):
+    a0, a1, a2 = a
+    b0, b1, b2 = b
+    return (a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0)
+
+
+def point_acc(acc, w, wd, r):
+    """acc + wd x r + w x (w x r): the acceleration of the point r of a rigid body whose origin
+    accelerates at acc (the sums and products of v_add and v_cross, in one call)."""
+    r0, r1, r2 = r
+    w0, w1, w2 = w
+    d0, d1, d2 = wd
+    c0, c1, c2 = w1 * r2 - w2 * r1, w2 * r0 - w0 * r2, w0 * r1 - w1 * r0  # w x r
     return (
-        a[1] * b[2] - a[2] * b[1],
-        a[2] * b[0] - a[0] * b[2],
-        a[0] * b[1] - a[1] * b[0],
+        acc[0] + (d1 * r2 - d2 * r1) + (w1 * c2 - w2 * c1),
+        acc[1] + (d2 * r0 - d0 * r2) + (w2 * c0 - w0 * c2),
+        acc[2] + (d0 * r1 - d1 * r0) + (w0 * c1 - w1 * c0),
     )
 
 
-def _m_v(m, v):
+def m_v(m, v):
+    (m00, m01, m02), (m10, m11, m12), (m20, m21, m22) = m
+    v0, v1, v2 = v
     return (
-        m[0][0] * v[0] + m[0][1] * v[1] + m[0][2] * v[2],
-        m[1][0] * v[0] + m[1][1] * v[1] + m[1][2] * v[2],
-        m[2][0] * v[0] + m[2][1] * v[1] + m[2][2] * v[2],
+        m00 * v0 + m01 * v1 + m02 * v2,
+        m10 * v0 + m11 * v1 + m12 * v2,
+        m20 * v0 + m21 * v1 + m22 * v2,
     )
 
 
-def _mt_v(m, v):
+def mt_v(m, v):
+    (m00, m01, m02), (m10, m11, m12), (m20, m21, m22) = m
+    v0, v1, v2 = v
     return (
-        m[0][0] * v[0] + m[1][0] * v[1] + m[2][0] * v[2],
-        m[0][1] * v[0] + m[1][1] * v[1] + m[2][1] * v[2],
-        m[0][2] * v[0] + m[1][2] * v[1] + m[2][2] * v[2],
+        m00 * v0 + m10 * v1 + m20 * v2,
+        m01 * v0 + m11 * v1 + m21 * v2,
+        m02 * v0 + m12 * v1 + m22 * v2,
     )
 
 
-def _m_m(a, b):
+def _euler_moment(inertia, w, wd):
+    """I wd + w x (I w): a rigid body's rate of angular momentum about its centre of mass, all
+    in one frame (v_add, m_v and v_cross in one call)."""
+    (i00, i01, i02), (i10, i11, i12), (i20, i21, i22) = inertia
+    w0, w1, w2 = w
+    d0, d1, d2 = wd
+    h0 = i00 * w0 + i01 * w1 + i02 * w2
+    h1 = i10 * w0 + i11 * w1 + i12 * w2
+    h2 = i20 * w0 + i21 * w1 + i22 * w2
+    return (
+        (i00 * d0 + i01 * d1 + i02 * d2) + (w1 * h2 - w2 * h1),
+        (i10 * d0 + i11 * d1 + i12 * d2) + (w2 * h0 - w0 * h2),
+        (i20 * d0 + i21 * d1 + i22 * d2) + (w0 * h1 - w1 * h0),
+    )
+
+
+def m_m(a, b):
     (a00, a01, a02), (a10, a11, a12), (a20, a21, a22) = a
     (b00, b01, b02), (b10, b11, b12), (b20, b21, b22) = b
     return (
@@ -353,6 +412,50 @@ def _m_m(a, b):
     )
 
 
+def mt_m(a, b):
+    (a00, a01, a02), (a10, a11, a12), (a20, a21, a22) = a
+    (b00, b01, b02), (b10, b11, b12), (b20, b21, b22) = b
+    return (
+        (
+            a00 * b00 + a10 * b10 + a20 * b20,
+            a00 * b01 + a10 * b11 + a20 * b21,
+            a00 * b02 + a10 * b12 + a20 * b22,
+        ),
+        (
+            a01 * b00 + a11 * b10 + a21 * b20,
+            a01 * b01 + a11 * b11 + a21 * b21,
+            a01 * b02 + a11 * b12 + a21 * b22,
+        ),
+        (
+            a02 * b00 + a12 * b10 + a22 * b20,
+            a02 * b01 + a12 * b11 + a22 * b21,
+            a02 * b02 + a12 * b12 + a22 * b22,
+        ),
+    )
+
+
+def m_mt(a, b):
+    (a00, a01, a02), (a10, a11, a12), (a20, a21, a22) = a
+    (b00, b01, b02), (b10, b11, b12), (b20, b21, b22) = b
+    return (
+        (
+            a00 * b00 + a01 * b01 + a02 * b02,
+            a00 * b10 + a01 * b11 + a02 * b12,
+            a00 * b20 + a01 * b21 + a02 * b22,
+        ),
+        (
+            a10 * b00 + a11 * b01 + a12 * b02,
+            a10 * b10 + a11 * b11 + a12 * b12,
+            a10 * b20 + a11 * b21 + a12 * b22,
+        ),
+        (
+            a20 * b00 + a21 * b01 + a22 * b02,
+            a20 * b10 + a21 * b11 + a22 * b12,
+            a20 * b20 + a21 * b21 + a22 * b22,
+        ),
+    )
+
+
 def _rodrigues(kk, angle: float):
     """I + sin K + (1 - cos) K^2 for a precomputed (K, K^2)."""
     s, c1 = math.sin(angle), 1.0 - math.cos(angle)
@@ -363,6 +466,16 @@ def _rodrigues(kk, angle: float):
         (s * k10 + c1 * m10, 1.0 + s * k11 + c1 * m11, s * k12 + c1 * m12),
         (s * k20 + c1 * m20, s * k21 + c1 * m21, 1.0 + s * k22 + c1 * m22),
     )
+
+
+def _joint_frame(rots, parent, rot_in_parent, pos_in_parent):
+    """A link's frame at q = 0 and its origin relative to its parent's, in B axes: R_p R_pk0 and
+    R_p p_pk (for a child of the base, R_p = I: the products are skipped, their values are the
+    same)."""
+    if parent == 0:
+        return rot_in_parent, pos_in_parent
+    rot_p = rots[parent]
+    return m_m(rot_p, rot_in_parent), m_v(rot_p, pos_in_parent)
 
 
 _FAST_CACHE: dict[int, tuple] = {}
@@ -379,24 +492,26 @@ def _fast_constants(robot: RobotDescription) -> tuple:
         k = None
         if axis is not None:
             kx = skew(np.asarray(axis))
-            k = (tuple(map(tuple, kx.tolist())), tuple(map(tuple, (kx @ kx).tolist())))
+            k = (as_rows(kx), as_rows(kx @ kx))
         links.append(
             (
                 link.parent,
-                tuple(map(tuple, np.asarray(link.rot_in_parent, float).tolist())),
+                as_rows(link.rot_in_parent),
                 tuple(float(x) for x in link.pos_in_parent),
                 axis,
                 k,
                 float(link.mass),
                 tuple(float(x) for x in link.com),
-                tuple(map(tuple, np.asarray(link.inertia_com, float).tolist())),
+                as_rows(link.inertia_com),
             )
         )
     const = (
         tuple(links),
         robot.grasp_link,
-        tuple(map(tuple, np.asarray(robot.grasp_rot, float).tolist())),
+        as_rows(robot.grasp_rot),
         tuple(float(x) for x in robot.grasp_pos),
+        # The joints' links only, what forward kinematics needs: (parent, R_pk0, p_pk, (K, K^2)).
+        tuple((parent, r0, pos, kk) for parent, r0, pos, _, kk, *_ in links[1:]),
     )
     _FAST_CACHE[key] = (robot, const)
     return const
@@ -417,96 +532,89 @@ def balance_in_grasp_frame(
     the grasp frame's rotation (3, 3) and position (3,) in B), so that
     thrust_G = links_G + Y pi_G - (peers' wrenches in G). Single sample; same equations as
     ``propagate``, ``link_momentum_rate`` and ``body_regressor``."""
-    links, g, grot, gpos = _fast_constants(robot)
-    w0 = tuple(float(x) for x in w_base)
-    rots = [((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))]
-    poss = [(0.0, 0.0, 0.0)]
-    ws = [w0]
-    wds = [tuple(float(x) for x in wd_base)]
-    accs = [tuple(float(x) for x in acc_base)]
-    qs, qds, qdds = q.tolist(), qd.tolist(), qdd.tolist()
-    f_sum = (0.0, 0.0, 0.0)
-    n_sum = (0.0, 0.0, 0.0)
-    for k, (parent, r0, pos, axis, kk, mass, com, inertia) in enumerate(links):
-        if k:
-            j = k - 1
-            rq = _rodrigues(kk, qs[j])
-            rp = rots[parent]
-            rot = _m_m(_m_m(rp, r0), rq)
-            r = _m_v(rp, pos)
-            z = _m_v(rot, axis)
-            w_rel = _v_scale(qds[j], z)
-            wp, wdp = ws[parent], wds[parent]
-            rots.append(rot)
-            poss.append(_v_add(poss[parent], r))
-            ws.append(_v_add(wp, w_rel))
-            wds.append(_v_add(_v_add(wdp, _v_scale(qdds[j], z)), _v_cross(wp, w_rel)))
-            accs.append(
-                _v_add(_v_add(accs[parent], _v_cross(wdp, r)), _v_cross(wp, _v_cross(wp, r)))
-            )
-        rot, w, wd = rots[k], ws[k], wds[k]
-        cvec = _m_v(rot, com)
-        rdd = _v_add(_v_add(accs[k], _v_cross(wd, cvec)), _v_cross(w, _v_cross(w, cvec)))
-        f = _v_scale(mass, rdd)
-        w_l, wd_l = _mt_v(rot, w), _mt_v(rot, wd)
-        n_l = _v_add(_m_v(inertia, wd_l), _v_cross(w_l, _m_v(inertia, w_l)))
-        n = _v_add(_m_v(rot, n_l), _v_cross(_v_add(poss[k], cvec), f))
-        f_sum = _v_add(f_sum, f)
-        n_sum = _v_add(n_sum, n)
-    # Grasp frame.
-    rg = rots[g]
-    r_g = _m_v(rg, gpos)
-    rot_g = _m_m(rg, grot)
-    p_g = _v_add(poss[g], r_g)
-    wg, wdg = ws[g], wds[g]
-    acc_g = _v_add(_v_add(accs[g], _v_cross(wdg, r_g)), _v_cross(wg, _v_cross(wg, r_g)))
-
-    def to_grasp(wrench):
-        f3 = (wrench[0], wrench[1], wrench[2])
-        n3 = (wrench[3], wrench[4], wrench[5])
-        return _mt_v(rot_g, f3) + _mt_v(rot_g, _v_sub(n3, _v_cross(p_g, f3)))
-
-    thrust = tuple(float(x) for x in thrust_base)
-    thrust_g = np.array(to_grasp(thrust))
-    links_g = np.array(to_grasp(f_sum + n_sum))
-    a, wv, wdv = _mt_v(rot_g, acc_g), _mt_v(rot_g, wg), _mt_v(rot_g, wdg)
+    inputs = (w_base, wd_base, acc_base, q, qd, qdd, thrust_base)
+    values, rot_g, p_g = balance_rows(robot, *(np.asarray(x, dtype=float).tolist() for x in inputs))
     return (
-        thrust_g,
-        links_g,
-        _body_regressor_one(a, wv, wdv),
+        np.array(values[0:6]),
+        np.array(values[6:12]),
+        np.array(values[12:72]).reshape(6, 10),
         np.array(rot_g),
         np.array(p_g),
     )
 
 
-def _body_regressor_one(a, w, wd) -> np.ndarray:
-    """``body_regressor`` for one sample on Python floats."""
+def balance_rows(robot: RobotDescription, w_base, wd_base, acc_base, q, qd, qdd, thrust_base):
+    """``balance_in_grasp_frame`` on lists of floats: (thrust_G, links_G, Y row by row) as one
+    tuple of 72 floats, the grasp frame's rotation (rows) and position (the estimator filters
+    the 72 values as one vector)."""
+    links, g, grot, gpos, _ = _fast_constants(robot)
+    rots = [((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))]
+    poss = [(0.0, 0.0, 0.0)]
+    ws = [w_base]
+    wds = [wd_base]
+    accs = [acc_base]
+    qs, qds, qdds = q, qd, qdd
+    f_sum = (0.0, 0.0, 0.0)
+    n_sum = (0.0, 0.0, 0.0)
+    for k, (parent, r0, pos, axis, kk, mass, com, inertia) in enumerate(links):
+        if k:
+            j = k - 1
+            rot_0, r = _joint_frame(rots, parent, r0, pos)
+            rot = m_m(rot_0, _rodrigues(kk, qs[j]))
+            z = m_v(rot, axis)
+            w_rel = v_scale(qds[j], z)
+            wp, wdp = ws[parent], wds[parent]
+            rots.append(rot)
+            poss.append(v_add(poss[parent], r))
+            ws.append(v_add(wp, w_rel))
+            wds.append(v_add(v_add(wdp, v_scale(qdds[j], z)), v_cross(wp, w_rel)))
+            accs.append(point_acc(accs[parent], wp, wdp, r))
+        rot, w, wd = rots[k], ws[k], wds[k]
+        cvec = m_v(rot, com)
+        f = v_scale(mass, point_acc(accs[k], w, wd, cvec))
+        w_l, wd_l = mt_v(rot, w), mt_v(rot, wd)
+        n_l = _euler_moment(inertia, w_l, wd_l)
+        n = v_add(m_v(rot, n_l), v_cross(v_add(poss[k], cvec), f))
+        f_sum = v_add(f_sum, f)
+        n_sum = v_add(n_sum, n)
+    # Grasp frame.
+    rg = rots[g]
+    r_g = m_v(rg, gpos)
+    rot_g = m_m(rg, grot)
+    p_g = v_add(poss[g], r_g)
+    wg, wdg = ws[g], wds[g]
+    acc_g = point_acc(accs[g], wg, wdg, r_g)
+
+    def to_grasp(wrench):
+        f3 = (wrench[0], wrench[1], wrench[2])
+        n3 = (wrench[3], wrench[4], wrench[5])
+        return mt_v(rot_g, f3) + mt_v(rot_g, v_sub(n3, v_cross(p_g, f3)))
+
+    a, wv, wdv = mt_v(rot_g, acc_g), mt_v(rot_g, wg), mt_v(rot_g, wdg)
+    values = to_grasp(thrust_base) + to_grasp(f_sum + n_sum) + _body_regressor_values(a, wv, wdv)
+    return values, rot_g, p_g
+
+
+def _body_regressor_values(a, w, wd) -> tuple:
+    """``body_regressor`` for one sample on Python floats, its 60 values row by row: its matrix
+    products written out, the terms that are products with zero dropped from their sums (the
+    sums keep their order)."""
+    a0, a1, a2 = a
     w0, w1, w2 = w
     d0, d1, d2 = wd
-    # skew(wd) + skew(w)^2
-    sw2 = (
-        (-(w1 * w1 + w2 * w2), w0 * w1, w0 * w2),
-        (w0 * w1, -(w0 * w0 + w2 * w2), w1 * w2),
-        (w0 * w2, w1 * w2, -(w0 * w0 + w1 * w1)),
-    )
-    m_h = (
-        (sw2[0][0], -d2 + sw2[0][1], d1 + sw2[0][2]),
-        (d2 + sw2[1][0], sw2[1][1], -d0 + sw2[1][2]),
-        (-d1 + sw2[2][0], d0 + sw2[2][1], sw2[2][2]),
-    )
-    # L(wd) + skew(w) L(w), L(v) = [[v0,0,0,v1,v2,0],[0,v1,0,v0,0,v2],[0,0,v2,0,v0,v1]]
-    lw = ((w0, 0.0, 0.0, w1, w2, 0.0), (0.0, w1, 0.0, w0, 0.0, w2), (0.0, 0.0, w2, 0.0, w0, w1))
-    sk = ((0.0, -w2, w1), (w2, 0.0, -w0), (-w1, w0, 0.0))
-    lwd = ((d0, 0.0, 0.0, d1, d2, 0.0), (0.0, d1, 0.0, d0, 0.0, d2), (0.0, 0.0, d2, 0.0, d0, d1))
-    a0, a1, a2 = a
-    rows = []
-    for i in range(3):
-        rows.append((a[i],) + m_h[i] + (0.0,) * 6)
-    ska = ((0.0, a2, -a1), (-a2, 0.0, a0), (a1, -a0, 0.0))  # -skew(a)
-    for i in range(3):
-        inert = tuple(
-            lwd[i][j] + sk[i][0] * lw[0][j] + sk[i][1] * lw[1][j] + sk[i][2] * lw[2][j]
-            for j in range(6)
-        )
-        rows.append((0.0,) + ska[i] + inert)
-    return np.array(rows)
+    # skew(w)^2: diagonal, then the symmetric off-diagonal entries.
+    s00, s11, s22 = -(w1 * w1 + w2 * w2), -(w0 * w0 + w2 * w2), -(w0 * w0 + w1 * w1)
+    s01, s02, s12 = w0 * w1, w0 * w2, w1 * w2
+    # Columns [m, h (3), I_xx, I_yy, I_zz, I_xy, I_xz, I_yz]; force rows: a, skew(wd) + skew(w)^2;
+    # moment rows: -skew(a), L(wd) + skew(w) L(w) with I v = L(v) [I_xx .. I_yz].
+    return (
+        a0, s00, -d2 + s01, d1 + s02, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0,
+        a1, d2 + s01, s11, -d0 + s12, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0,
+        a2, -d1 + s02, d0 + s12, s22, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0,
+        0.0, 0.0, a2, -a1,
+        d0, (-w2) * w1, w1 * w2, d1 + (-w2) * w0, d2 + w1 * w0, (-w2) * w2 + w1 * w1,
+        0.0, -a2, 0.0, a0,
+        w2 * w0, d1, (-w0) * w2, d0 + w2 * w1, w2 * w2 + (-w0) * w0, d2 + (-w0) * w1,
+        0.0, a1, -a0, 0.0,
+        (-w1) * w0, w0 * w1, d2, (-w1) * w1 + w0 * w0, d0 + (-w1) * w2, d1 + w0 * w2,
+    )  # fmt: skip

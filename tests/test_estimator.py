@@ -60,6 +60,21 @@ def test_filter_derivatives_of_a_sine_are_the_filtered_derivatives():
     np.testing.assert_allclose(ydd, d2, atol=1e-4 * w * w)
 
 
+def test_filter_step_is_the_first_order_hold_recurrence():
+    """The filter's one-product step equals Ad y + b_value u_k + b_slope (u_k+1 - u_k)."""
+    rng = np.random.default_rng(3)
+    f = StateVariableFilter(4, DT, 1.0)
+    inputs = rng.normal(size=(50, 4))
+    state = np.zeros((3, 4))
+    state[0] = inputs[0]
+    f.step(inputs[0])
+    for u_prev, u in zip(inputs[:-1], inputs[1:], strict=True):
+        state = f.ad @ state + f.b_value[:, None] * u_prev + f.b_slope[:, None] * (u - u_prev)
+        y, yd, ydd = f.step(u)
+        np.testing.assert_allclose(np.array([y, yd, ydd]), state, rtol=1e-12, atol=1e-12)
+        np.testing.assert_array_equal(f.u_prev, u)
+
+
 @pytest.mark.parametrize("cutoff", [0.0, -1.0, 40.0, np.nan])
 def test_filter_rejects_bad_cutoff(cutoff):
     with pytest.raises(ValueError, match="cutoff"):
@@ -275,3 +290,30 @@ def test_fast_balance_equals_the_batched_model():
         np.testing.assert_allclose(
             to_g @ rne.wrench_transform(kin.grasp_rot, kin.grasp_pos), np.eye(6), atol=1e-12
         )
+
+
+def test_float_helpers_are_the_numpy_products():
+    """rne's helpers on tuples of floats (the env's and the estimator's per-step paths) compute
+    numpy's products, up to rounding; cross and norm3 exactly as np.cross / np.linalg.norm."""
+    from astrocargo.estimator import rne
+
+    rng = np.random.default_rng(5)
+    for _ in range(50):
+        a, b = rng.normal(size=(2, 3, 3))
+        u, v, w, r = rng.normal(size=(4, 3))
+        ra, rb = rne.as_rows(a), rne.as_rows(b)
+        for got, expected in (
+            (rne.m_m(ra, rb), a @ b),
+            (rne.mt_m(ra, rb), a.T @ b),
+            (rne.m_mt(ra, rb), a @ b.T),
+            (rne.m_v(ra, tuple(u)), a @ u),
+            (rne.mt_v(ra, tuple(u)), a.T @ u),
+            (
+                rne.point_acc(tuple(u), tuple(w), tuple(v), tuple(r)),
+                u + np.cross(v, r) + np.cross(w, np.cross(w, r)),
+            ),
+        ):
+            np.testing.assert_allclose(np.array(got), expected, rtol=1e-13, atol=1e-13)
+        np.testing.assert_array_equal(rne.cross(u, v), np.cross(u, v))
+        np.testing.assert_array_equal(rne.cross(a, b), np.cross(a, b))
+        assert rne.norm3(u) == np.linalg.norm(u)

@@ -116,6 +116,40 @@ def test_noise_is_seeded():
     assert not np.array_equal(a.accel_imu, c.accel_imu)
 
 
+@pytest.mark.parametrize("step", [1, 0])  # without and with a localization fix
+def test_noise_is_drawn_robot_by_robot_in_reading_order(step):
+    """Two robots read with nominal noise differ from the ideal readings by the standard
+    deviations times one stream of normals: per robot accel (3), gyro (3), encoders (2), then at
+    a fix position (3) and attitude (3)."""
+    world = World(2)
+    data = world.make_data()
+    for h in world.robots:
+        data.ctrl[list(h.thrust_actuators)] = 0.5 * world.robot_model(h.index).thrust_limit
+    mujoco.mj_step(world.model, data, nstep=10)
+    mujoco.mj_forward(world.model, data)
+    profile = noise_profile("nominal")
+    ideal_suite = SensorSuite(world, noise_profile("ideal"), np.random.default_rng(0))
+    suite = SensorSuite(world, profile, np.random.default_rng(9))
+    for s in (ideal_suite, suite):
+        s.begin_period(data)
+    mujoco.mj_step(world.model, data)
+    mujoco.mj_forward(world.model, data)
+    ideal, noisy = ideal_suite.read(data, step), suite.read(data, step)
+    draws = np.random.default_rng(9).standard_normal(28 if step == 0 else 16).reshape(2, -1)
+    for k in range(2):
+        z = draws[k]
+        np.testing.assert_allclose(noisy[k].accel_imu - ideal[k].accel_imu, 1e-3 * z[0:3])
+        np.testing.assert_allclose(noisy[k].gyro_imu - ideal[k].gyro_imu, 2e-4 * z[3:6])
+        assert np.abs(noisy[k].accel_imu).max() > 1e-3  # a real reading, not noise alone
+        np.testing.assert_allclose(
+            noisy[k].joint_pos_rad - ideal[k].joint_pos_rad, profile.encoder_std_rad * z[6:8]
+        )
+        if step == 0:
+            np.testing.assert_allclose(
+                noisy[k].base_pos_world - ideal[k].base_pos_world, profile.position_std_m * z[8:11]
+            )
+
+
 def test_actuation_noise():
     world = World(1)
     profile = noise_profile("nominal")
