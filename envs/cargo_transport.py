@@ -2,7 +2,7 @@
 
 ## Description
 
-`n_robots` Astrobees (1 to 4) hold one cargo transfer bag by its handrails inside an ISS module
+`n_robots` Astrobees (1 to 8) hold one cargo transfer bag by its handrails inside an ISS module
 (microgravity) and carry it along a reference trajectory of the cargo (`agents.trajectories`:
 a figure-eight with a yaw ramp, optionally with roll and pitch oscillations, or a hover). Every
 robot runs its own constrained UKF (`estimator.cargo_estimator.CargoEstimator`) that estimates the
@@ -230,7 +230,8 @@ its qpos, qvel, body and arm-target entries are zeros (its quaternions too: neve
 
 | Argument            | Default       | Meaning                                                  |
 |---------------------|---------------|----------------------------------------------------------|
-| `n_robots`          | 2             | robots holding the cargo, 1 to 4 (four handrails)        |
+| `n_robots`          | 2             | robots holding the cargo, 1 to 8: up to 4 on the half    |
+|                     |               | CTB, 5 to 8 on the single CTB (eight handrails; `World`) |
 | `trajectory`        | "figure8_yaw" | cargo reference: one of `Trajectory.NAMES`               |
 | `fast`              | False         | twice the figure-eight speed                             |
 | `noise`             | "nominal"     | sensor and actuation noise: one of `NOISE_PROFILES`      |
@@ -240,7 +241,9 @@ its qpos, qvel, body and arm-target entries are zeros (its quaternions too: neve
 |                     |               | or None: uniform in +-0.03 m                             |
 | `cargo_inertia`     | None          | (I_xx, I_yy, I_zz, I_xy, I_xz, I_yz) about the CoM,      |
 |                     |               | physical, principal moments <= m d^2 (d: bag diagonal); |
-|                     |               | or None: uniform 0.42 x 0.30 x 0.25 m box of that mass   |
+|                     |               | or None: uniform box of the bag's size and that mass     |
+|                     |               | (half CTB 0.42 x 0.30 x 0.25 m, single CTB 0.502 x 0.425 |
+|                     |               | x 0.248 m: `World.cargo_size_m`)                         |
 | `comm_latency`      | 0.0           | message latency in [0, 60] s (rounded to periods)        |
 | `comm_drop`         | 0.0           | probability that one message to one receiver is lost     |
 | `comm_noise`        | (0.0, 0.0)    | std of the noise on sent wrenches (force N, moment N m), |
@@ -333,14 +336,10 @@ ARM_OFFSET_RAD = 0.5  # reach of the arm actions around the deployed pose
 ARM_SPEED_RADPS = 0.12  # URDF joint velocity limit (facts file section 5)
 CONTROL_HZ = 62.5  # Astrobee GNC and PMC rate (facts file section 3.1)
 EPISODE_S = 90.0  # default episode length: the seed paper's runs last 90 s
-CARGO_BOX_M = (0.42, 0.30, 0.25)  # the bag's outer size (assets/cargo.xml)
 CARGO_COM_SPREAD_M = 0.03  # sampled centre of mass: uniform in +-this per axis
 # Accepted cargo masses: an empty bag (the ISAAC cargo model's 0.5 kg, facts file section 7) to
 # ten Astrobees' worth; beyond that two robots' 0.4 N cannot move it within an episode.
 CARGO_MASS_LIMITS_KG = (0.1, 100.0)
-# The cargo's mass lies in its bag: its centre of mass too, and no mass is farther than the bag's
-# diagonal from an axis through it, so each principal moment is at most m * diagonal^2.
-CARGO_DIAGONAL_M = math.hypot(*CARGO_BOX_M)
 CONTROL_HZ_LIMITS = (10.0, 1000.0)  # estimator filters need >= 10 Hz (1 Hz pre-filter cutoff)
 MAX_REWARD_WEIGHT = 1e6  # keeps every weighted term finite
 MAX_COMM_LATENCY_S = 60.0  # far beyond the estimators' history (2 s): nothing then arrives in time
@@ -744,6 +743,7 @@ class CargoTransport:
         self.profile = get_noise_profile(noise)
         self.observe_estimates = bool(observe_estimates)
         self.use_estimators = bool(estimators)
+        self.world = World(self.n_robots)
         self._set_cargo_args(cargo_mass_kg, cargo_com_m, cargo_inertia)
 
         low_hz, high_hz = CONTROL_HZ_LIMITS
@@ -753,7 +753,6 @@ class CargoTransport:
             raise ValueError(f"control_hz must be {allowed_hz}, got {control_hz}")
         self.control_hz = control_hz
         self.dt_s = 1.0 / control_hz
-        self.world = World(self.n_robots)
         mjcf_timestep = float(self.world.model.opt.timestep)
         if frame_skip is None:
             frame_skip = max(1, math.ceil(self.dt_s / mjcf_timestep - 1e-9))
@@ -851,7 +850,11 @@ class CargoTransport:
         if not low_kg <= bounds[0] <= bounds[1] <= high_kg:
             raise ValueError(f"cargo_mass_kg must be {allowed}, low <= high, got {mass_kg!r}")
         self.cargo_mass_range = bounds
-        half_box = 0.5 * np.asarray(CARGO_BOX_M)
+        # The cargo's mass lies in its bag (the World's, chosen by the number of robots): its
+        # centre of mass too, and no mass is farther than the bag's diagonal from an axis through
+        # it, so each principal moment is at most m * diagonal^2.
+        half_box = 0.5 * self.world.cargo_size_m
+        diagonal_m = math.hypot(*self.world.cargo_size_m)
         if com_m is None:
             self.cargo_com = None
         else:
@@ -875,11 +878,11 @@ class CargoTransport:
                 check_physical(params_from_mass_com_inertia(1.0, np.zeros(3), tensor))
             except ValueError as err:
                 raise ValueError(f"cargo_inertia is not a physical inertia tensor: {err}") from err
-            max_moment = bounds[0] * CARGO_DIAGONAL_M**2
+            max_moment = bounds[0] * diagonal_m**2
             if np.linalg.eigvalsh(tensor)[-1] > max_moment:
                 raise ValueError(
                     f"cargo_inertia: a principal moment exceeds m * d^2 = {max_moment:.3g} kg m^2 "
-                    f"(mass {bounds[0]} kg within the bag, diagonal d = {CARGO_DIAGONAL_M:.3f} m), "
+                    f"(mass {bounds[0]} kg within the bag, diagonal d = {diagonal_m:.3f} m), "
                     f"got {inertia!r}"
                 )
             self.cargo_inertia = tensor
@@ -892,8 +895,7 @@ class CargoTransport:
         else:
             com = self.cargo_com.copy()
         if self.cargo_inertia is None:
-            a, b, c = (x * x for x in CARGO_BOX_M)
-            inertia = mass / 12.0 * np.diag([b + c, a + c, a + b])
+            inertia = self.world.uniform_cargo_inertia(mass)
         else:
             inertia = self.cargo_inertia.copy()
         return mass, com, inertia

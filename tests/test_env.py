@@ -18,7 +18,7 @@ import pytest
 from pettingzoo.test import api_test, parallel_api_test, parallel_seed_test
 from true_state import true_states
 
-from astrocargo.agents.controllers import CooperativeController
+from astrocargo.agents.controllers import CooperativeController, ObservationController
 from astrocargo.envs import astrobee_cargo_v0
 from astrocargo.envs.cargo_transport import (
     ARM_SPEED_RADPS,
@@ -28,6 +28,7 @@ from astrocargo.envs.cargo_transport import (
 )
 from astrocargo.estimator.inertia import (
     com_error_m,
+    mass_com_inertia_from_params,
     mass_rel_error,
     principal_rel_errors,
     transform_params,
@@ -56,6 +57,7 @@ def _zero_actions(env):
         {"n_robots": 2, "noise": "ideal", "estimators": False, "observe_estimates": False},
         {"n_robots": 2, "shared_reward": 0.5, "w_info": 1.0, "cargo_mass_kg": (2.0, 8.0)},
         {"n_robots": 4, "noise": "ideal", "trajectory": "figure8_tumble", "fast": True},
+        {"n_robots": 8, "comm_latency": 0.05},
     ],
 )
 def test_parallel_api(kwargs):
@@ -178,6 +180,42 @@ def test_reset_observation_does_not_depend_on_the_cargo():
         np.testing.assert_array_equal(obs_l[agent], obs_h[agent])
         assert info_l[agent]["true_params"][0] == 2.0 and info_h[agent]["true_params"][0] == 9.0
     assert np.any(light.state() != heavy.state())
+
+
+def test_teams_of_five_to_eight_carry_the_larger_bag():
+    """Defaults and bounds follow the bag the World picks: the half CTB up to four robots, the
+    single CTB (eight handrails) beyond; a centre of mass valid in the larger bag only is refused
+    with two robots."""
+    small = astrobee_cargo_v0.parallel_env(n_robots=2, cargo_com_m=None, cargo_inertia=None)
+    large = astrobee_cargo_v0.parallel_env(n_robots=8, cargo_com_m=None, cargo_inertia=None)
+    small.reset(seed=0)
+    _, infos = large.reset(seed=0)
+    for env in (small, large):
+        world = env.sim.world
+        mass, _, inertia = mass_com_inertia_from_params(env.sim.true_params)
+        np.testing.assert_allclose(inertia, world.uniform_cargo_inertia(mass), atol=1e-12)
+    assert np.allclose(large.sim.world.cargo_size_m, (0.502, 0.425, 0.248))
+    assert len(infos) == 8 and large.observation_space("astrobee_7").shape == (33 + 8 * 7 + 20,)
+    com = (0.23, 0.0, 0.0)  # inside the single CTB (half length 0.251 m), outside the half CTB
+    astrobee_cargo_v0.parallel_env(n_robots=8, cargo_com_m=com)
+    with pytest.raises(ValueError, match="cargo_com_m"):
+        astrobee_cargo_v0.parallel_env(n_robots=2, cargo_com_m=com)
+
+
+def test_eight_robots_carry_the_cargo_along_the_figure_eight():
+    """The scripted controller with its live estimates keeps the eight-robot team on the
+    figure-eight (nominal noise), without touching the module."""
+    env = astrobee_cargo_v0.parallel_env(n_robots=8, max_cycles=round(30 * 62.5))
+    obs, _ = env.reset(seed=0)
+    controller = ObservationController.for_env(env, cargo_model="estimate")
+    errors = []
+    while env.agents:
+        actions, _ = controller.predict(obs)
+        obs, _, terms, _, infos = env.step(actions)
+        errors.append(env.sim.tracking_error()[0])
+    assert not any(terms.values())  # truncated at 30 s, no wall contact
+    assert all(info["estimator"]["updates"] > 0 for info in infos.values())
+    assert np.mean(errors) < 0.01 and np.max(errors) < 0.03
 
 
 def test_ideal_reset_observation_starts_on_the_reference():

@@ -30,16 +30,17 @@ from pettingzoo.test import api_test, parallel_api_test
 from astrocargo.agents.controllers import ObservationController
 from astrocargo.envs import astrobee_cargo_v0
 from astrocargo.envs.cargo_transport import (
-    CARGO_BOX_M,
     FAULT_KINDS,
     MAX_COMM_LATENCY_S,
     Fault,
     observation_layout,
 )
 from astrocargo.envs.comms import CommChannel
+from astrocargo.envs.world import World
 from astrocargo.estimator.cargo_estimator import WrenchMessage
 
 SEED = 3
+CARGO_BOX_M = tuple(World(1).cargo_size_m)  # the bag of every team these tests draw (1-4)
 EPISODE_S = 18.0
 FAULT_START_S = 9.0  # the estimators update from about 7 s (warm-up, relative grasp)
 CARGO = {
