@@ -21,12 +21,13 @@ floors of DESIGN.md "Estimation model": accelerometer 1e-3 m/s^2 and gyro 2e-4 r
 G362-class MEMS IMU; the Astrobee IMU is an Epson G362P, facts file section 4.1), localization 5 mm
 and 0.2 deg at 62.5 / 20 = 3.125 Hz (the simulator's sparse-map features arrive at 3 Hz, facts
 section 4.2), encoders 1e-3 rad, actuation 0.005 N + 2 % of the command and 5e-4 N m + 2 %.
+``ideal``: no noise at all; ``actuation_only``: perfect sensors with ``nominal``'s actuation noise.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import mujoco
 import numpy as np
@@ -64,6 +65,16 @@ NOISE_PROFILES: dict[str, NoiseProfile] = {
         torque_rel=0.02,
     ),
 }
+# Perfect sensors, nominal actuation: what the propulsion noise alone leaves to estimate (it
+# bounds what any sensor fusion could reach under `nominal`; docs/estimation_limits.md).
+NOISE_PROFILES["actuation_only"] = replace(
+    NOISE_PROFILES["nominal"],
+    accel_std=0.0,
+    gyro_std=0.0,
+    position_std_m=0.0,
+    attitude_std_rad=0.0,
+    encoder_std_rad=0.0,
+)
 
 
 def estimator_noise_kwargs(profile: NoiseProfile) -> dict:

@@ -50,6 +50,8 @@ import numpy as np  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the sibling scripts/ray_backend.py
 from ray_backend import import_ray, ray_connection  # noqa: E402
 
+from astrocargo.envs.sensors import NOISE_PROFILES  # noqa: E402
+
 # Default cargo: 5 kg, off-centre, full inertia tensor (cargo frame, about the centre of mass).
 CARGO_MASS = 5.0
 CARGO_COM = (0.02, -0.03, 0.04)
@@ -625,7 +627,7 @@ def main(argv: list[str] | None = None) -> int:
     # One custom case (these exact flags); with --robots the standard suite is not run.
     p.add_argument("--robots", type=int)
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--noise", choices=("ideal", "nominal"), default="nominal")
+    p.add_argument("--noise", choices=sorted(NOISE_PROFILES), default="nominal")
     p.add_argument("--trajectory", default="figure8_tumble")
     p.add_argument("--cargo-mass", type=float, default=CARGO_MASS)
     p.add_argument("--cargo-com", type=lambda s: _floats(s, 3, "--cargo-com"), default=CARGO_COM)
