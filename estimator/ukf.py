@@ -793,6 +793,20 @@ def constrained_mode(
     return clipped, False
 
 
+def _barrier_start(
+    mean: np.ndarray, lower: np.ndarray, clipped: np.ndarray, start: np.ndarray | None
+) -> tuple[np.ndarray, float]:
+    """Whitened starting point v (cov = L L^T) and barrier weight t of `constrained_mode`: the
+    clipped body at t = 1, or ``start`` further down the central path (t = 1e-2) if it is
+    consistent and nearer the mean."""
+    v = _solve_lower(lower, clipped - mean)
+    if start is not None and _is_physical(start):
+        v_start = _solve_lower(lower, np.asarray(start, dtype=float) - mean)
+        if _dot(v_start, v_start) < _dot(v, v):
+            return v_start, 1e-2
+    return v, 1.0
+
+
 def _barrier_mode(
     mean: np.ndarray,
     cov: np.ndarray,
@@ -840,13 +854,7 @@ def _barrier_mode(
     c_cat_T = c_cat.T
     c_flat = c_cat.reshape(16, 10).T  # (10, 16), Fortran-ordered: row l is vec(C_l) permuted
 
-    v = _solve_lower(lower, clipped - mean)
-    t = 1.0
-    if start is not None and _is_physical(start):
-        v_start = _solve_lower(lower, np.asarray(start, dtype=float) - mean)
-        if _dot(v_start, v_start) < _dot(v, v):
-            # Near the new mode already: start further down the central path.
-            v, t = v_start, 1e-2
+    v, t = _barrier_start(mean, lower, clipped, start)
     v = v.copy()  # updated in place
     # J(v) and J(u) as flat vectors (C order; J is symmetric, so also its Fortran order).
     j_v = np.dot(mean, _PSEUDO_INERTIA_BASIS)
@@ -964,13 +972,7 @@ def _barrier_mode_reference(
         hess = np.einsum("lij,mji->lm", a, a)
         return 2.0 * float(np.log(np.diag(chol)).sum()), grad, hess
 
-    v = _solve_lower(lower, clipped - mean)
-    t = 1.0
-    if start is not None and _is_physical(start):
-        v_start = _solve_lower(lower, np.asarray(start, dtype=float) - mean)
-        if v_start @ v_start < v @ v:
-            # Near the new mode already: start further down the central path.
-            v, t = v_start, 1e-2
+    v, t = _barrier_start(mean, lower, clipped, start)
     terms = barrier_terms(mean + lower @ v)
     if terms is None:
         raise np.linalg.LinAlgError("the starting point is not strictly consistent")
