@@ -294,7 +294,7 @@ def test_fast_balance_equals_the_batched_model():
 
 def test_float_helpers_are_the_numpy_products():
     """rne's helpers on tuples of floats (the env's and the estimator's per-step paths) compute
-    numpy's products, up to rounding; cross and norm3 exactly as np.cross / np.linalg.norm."""
+    numpy's products, up to rounding."""
     from astrocargo.estimator import rne
 
     rng = np.random.default_rng(5)
@@ -314,6 +314,8 @@ def test_float_helpers_are_the_numpy_products():
             ),
         ):
             np.testing.assert_allclose(np.array(got), expected, rtol=1e-13, atol=1e-13)
-        np.testing.assert_array_equal(rne.cross(u, v), np.cross(u, v))
-        np.testing.assert_array_equal(rne.cross(a, b), np.cross(a, b))
-        assert rne.norm3(u) == np.linalg.norm(u)
+        # Different summation orders (np.linalg.norm goes through the CPU's BLAS kernel): equal
+        # within a few ulps, never bit for bit.
+        np.testing.assert_array_max_ulp(rne.cross(u, v), np.cross(u, v), maxulp=4)
+        np.testing.assert_array_max_ulp(rne.cross(a, b), np.cross(a, b), maxulp=4)
+        np.testing.assert_array_max_ulp(rne.norm3(u), np.linalg.norm(u), maxulp=4)
