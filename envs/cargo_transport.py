@@ -280,6 +280,8 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
+import sys
 from dataclasses import dataclass
 from typing import Any
 
@@ -921,9 +923,7 @@ class CargoTransport:
         """Simulate ``world`` (with its state in ``data``): the robots it holds act, and the
         indices into its model are refreshed."""
         self.world, self.model, self.data = world, world.model, data
-        # Views of the data's arrays used every step (each property access builds a new one).
-        self._qpos, self._qvel, self._ctrl = data.qpos, data.qvel, data.ctrl
-        self._xpos, self._xmat, self._warnings = data.xpos, data.xmat, data.warning.number
+        self._bind_views()
         self.holding = world.holding
         # Index of the holding robots' rows in per-robot arrays: a slice (no copy) for all.
         everyone = len(self.holding) == self.n_robots
@@ -939,6 +939,23 @@ class CargoTransport:
         self._wall_geom[list(world.wall_geoms)] = True
         # Where this world's qpos, qvel and bodies go in state()'s fixed layout.
         self._state_qpos, self._state_qvel, self._state_body = world.layout_in(self._full_world)
+
+    _VIEWS = ("_qpos", "_qvel", "_ctrl", "_xpos", "_xmat", "_warnings")
+
+    def _bind_views(self) -> None:
+        """Views of the data's arrays used every step (each property access builds a new one)."""
+        data = self.data
+        self._qpos, self._qvel, self._ctrl = data.qpos, data.qvel, data.ctrl
+        self._xpos, self._xmat, self._warnings = data.xpos, data.xmat, data.warning.number
+
+    # A copy (copy.deepcopy, pickle) gets its own MjData: the views are rebound to it, not copied
+    # as detached arrays.
+    def __getstate__(self) -> dict[str, Any]:
+        return {k: v for k, v in self.__dict__.items() if k not in self._VIEWS}
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update(state)
+        self._bind_views()
 
     # ------------------------------------------------------------------ episode
     def reset(self, rng: np.random.Generator) -> tuple[np.ndarray, list[dict[str, Any]]]:
@@ -1443,6 +1460,19 @@ class CargoTransport:
 # --------------------------------------------------------------------------- PettingZoo
 
 
+def _require_display() -> None:
+    """Raise ``RuntimeError`` when human rendering cannot open a window: on Linux without
+    ``DISPLAY`` or ``WAYLAND_DISPLAY``, GLFW (MuJoCo's viewer) ends the whole process instead of
+    raising, which would also take down test runners and env checkers."""
+    if sys.platform.startswith("linux") and not (
+        os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")
+    ):
+        raise RuntimeError(
+            'render_mode="human" needs a display (neither DISPLAY nor WAYLAND_DISPLAY is set); '
+            'without one use render_mode="rgb_array" (with MUJOCO_GL=egl or osmesa) or None'
+        )
+
+
 class AstrobeeCargoEnv(ParallelEnv):
     """PettingZoo ParallelEnv of ``CargoTransport``; see the module docstring."""
 
@@ -1488,6 +1518,8 @@ class AstrobeeCargoEnv(ParallelEnv):
                 f"unknown render_mode {render_mode!r}; allowed: None, "
                 f"{self.metadata['render_modes']}"
             )
+        if render_mode == "human":
+            _require_display()
         self.sim = CargoTransport(
             n_robots=n_robots,
             trajectory=trajectory,
@@ -1662,6 +1694,7 @@ class AstrobeeCargoEnv(ParallelEnv):
             self._viewer.close()  # a robot let go: the world was rebuilt without it
             self._viewer = None
         if self._viewer is None:
+            _require_display()  # GLFW would end the process without one
             import mujoco.viewer  # only for human rendering: needs a display
 
             self._viewer = mujoco.viewer.launch_passive(self.sim.model, self.sim.data)
@@ -1691,6 +1724,13 @@ class AstrobeeCargoEnv(ParallelEnv):
             camera.elevation = TRACK_ELEVATION_DEG
         self._renderer.update_scene(self.sim.data, camera=camera, scene_option=self._scene_option)
         return self._renderer.render()
+
+    # A copy (copy.deepcopy, pickle) continues the episode bit for bit; a live renderer or viewer
+    # is not copied (it holds a GL context or a window): the copy opens its own when it renders.
+    def __getstate__(self) -> dict[str, Any]:
+        state = self.__dict__.copy()
+        state.update(_renderer=None, _renderer_model=None, _viewer=None, _viewer_model=None)
+        return state
 
     def close(self) -> None:
         if self._renderer is not None:

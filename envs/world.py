@@ -233,10 +233,12 @@ class World:
         self.holding = self._check_holding(holding)
         self.cargo_pos = cargo_pos
         self.robot_asset_model = mujoco.MjModel.from_xml_path(str(ASSETS_DIR / "astrobee.xml"))
-        self.spec = self._build_spec(cargo_pos)
+        # The spec is not kept: MjSpec does not pickle, and the compiled model is all we need
+        # (a World, and the env holding it, can be deep-copied and sent to other processes).
+        spec = self._build_spec(cargo_pos)
         if timestep_s is not None:
-            self.spec.option.timestep = float(timestep_s)
-        self.model = self.spec.compile()
+            spec.option.timestep = float(timestep_s)
+        self.model = spec.compile()
         self.robots = tuple(self._handles(i) for i in self.holding)
         # Handrail i is on the cargo whether or not robot i holds it (known geometry).
         self.handrail_sites = tuple(
