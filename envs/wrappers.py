@@ -17,8 +17,14 @@
   ``gymnasium.make("astrocargo.envs:" + ENV_ID)`` imports the package and makes it in one call
   (``"astrocargo.envs.wrappers:" + ENV_ID`` works too).
 
-SuperSuit's ``pettingzoo_env_to_vec_env_v1`` is not used: with SB3 2.9 it reports truncation as
-termination, breaks ``seed=`` and starts every copy identical (shared/reference/pitfalls.md).
+SuperSuit's vector path (``pettingzoo_env_to_vec_env_v1`` then ``concat_vec_envs_v1``) also
+works: the env deep-copies and pickles (a live renderer is not copied), which that path needs to
+build its copies. It is not used here because of its known limits with SB3 2.9 (SuperSuit 3.11):
+truncation at ``max_cycles`` is reported as termination (no ``TimeLimit.truncated``, so SB3 does
+not bootstrap the value at the time limit); ``ConcatVecEnv`` has no ``seed``, so passing
+``seed=`` to an SB3 algorithm fails; and every copy starts from the same deep copy, so without
+explicit per-copy seeds the copies run identical episodes. ``SharedPolicyVecEnv`` reports
+truncation, seeds copy ``c`` with ``s + c`` and implements ``seed``.
 """
 
 from __future__ import annotations
