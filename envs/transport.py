@@ -11,6 +11,7 @@ from typing import Any
 
 import mujoco
 import numpy as np
+from numba import njit
 
 from astrocargo.agents.trajectories import Reference, ReferenceValues, Trajectory
 from astrocargo.envs.comms import CommChannel
@@ -25,19 +26,15 @@ from astrocargo.envs.faults import (
     Fault,
     parse_release_at,
 )
-from astrocargo.envs.navigation import BaseNavigator, rotvec_of_rows
-from astrocargo.envs.observations import observation_layout
+from astrocargo.envs.navigation import BaseNavigator
+from astrocargo.envs.observations import ObservationBuilder, observation_layout
+from astrocargo.envs.rewards import ROTATION_WEIGHT_M_PER_RAD, reward_terms
 from astrocargo.envs.sensors import SensorPacket, SensorSuite, estimator_noise_kwargs
 from astrocargo.envs.sensors import noise_profile as get_noise_profile
 from astrocargo.envs.validation import check_finite_array, check_finite_number
-from astrocargo.envs.world import (
-    ARM_DEPLOYED_RAD,
-    MAX_TIMESTEP_S,
-    World,
-    _mat_to_quat,
-    _quat_to_mat,
-)
+from astrocargo.envs.world import ARM_DEPLOYED_RAD, MAX_TIMESTEP_S, World
 from astrocargo.estimator.cargo_estimator import CargoEstimator
+from astrocargo.estimator.geometry import log_so3, mat_to_quat, quat_to_mat
 from astrocargo.estimator.inertia import (
     check_physical,
     com_error_m,
@@ -46,44 +43,23 @@ from astrocargo.estimator.inertia import (
     principal_rel_errors,
     vec_to_inertia,
 )
-from astrocargo.estimator.rne import (
-    as_rows,
-    grasp_pose_rows,
-    m_m,
-    m_mt,
-    m_v,
-    mt_m,
-    mt_v,
-    norm3,
-    v_add,
-    v_cross,
-    v_sub,
-)
 
 ACTION_DIM = 8
+ARM_DEPLOYED = np.asarray(ARM_DEPLOYED_RAD, dtype=float)
 ARM_OFFSET_RAD = 0.5  # reach of the arm actions around the deployed pose
 ARM_SPEED_RADPS = 0.12  # URDF joint velocity limit (facts file section 5)
 CARGO_COM_SPREAD_M = 0.03  # sampled centre of mass: uniform in +-this per axis
-ROTATION_WEIGHT_M_PER_RAD = 0.5  # tracking term: metres of position error per radian
 LOG_STD_FLOOR = 1e-12
 REWARD_KEYS = tuple(f"reward_{t}" for t in REWARD_TERMS)  # their names in infos
 _BAD_QACC = int(mujoco.mjtWarning.mjWARN_BADQACC)
-_EMPTY_PEER_SLOT = (0.0,) * 8  # a peer slot before its first message: wrench, age, valid
 TERMINATION_REASONS = ("wall_contact", "non_finite", "released")  # "released": one agent
 
 
-def _arm_target(current: float, wanted: float, max_move: float, low: float, high: float) -> float:
-    """The next servo target: ``wanted`` approached by at most ``max_move``, within the joint
-    range [low, high] (np.clip's min-then-max, on floats)."""
-    return min(max(current + min(max(wanted - current, -max_move), max_move), low), high)
-
-
-def _mean(values: list[float], indices: tuple[int, ...]) -> float:
-    """Mean of ``values`` at ``indices``, summed in order as numpy's mean of a few values."""
-    total = -0.0
-    for i in indices:
-        total += values[i]
-    return total / len(indices)
+@njit(cache=True)
+def tracking_errors(pos, rot, ref_pos, ref_rot):
+    """Position error |p - p_ref| (m) and rotation angle error |log(R_ref^T R)| (rad)."""
+    angle = log_so3(np.ascontiguousarray(ref_rot.T) @ rot)
+    return np.linalg.norm(pos - ref_pos), np.linalg.norm(angle)
 
 
 @dataclass(frozen=True)
@@ -138,7 +114,7 @@ class CargoTransport:
         self.comm_args = (c.comm_latency, c.comm_drop, c.comm_noise)
         CommChannel(self.n_robots, *self.comm_args, self.dt_s, np.random.default_rng(0))
         self.weights = c.weights
-        self._weights = [self.weights[t] for t in REWARD_TERMS]
+        self._weights = np.array([self.weights[t] for t in REWARD_TERMS])
         self.shared_reward = c.shared_reward
         self.estimator_kwargs = {
             **estimator_noise_kwargs(self.profile),
@@ -149,6 +125,7 @@ class CargoTransport:
         self.robots = [self.world.robot_model(i) for i in range(self.n_robots)]
         self.thrust_limits = np.array([r.thrust_limit for r in self.robots])
         self.joint_ranges = np.array([r.joint_range for r in self.robots])
+        self._joint_low, self._joint_high = self.joint_ranges[..., 0], self.joint_ranges[..., 1]
         self._bind_world(self._full_world, self._full_data)
         self._init_layouts()
         if self.use_estimators:  # fail early on bad estimator settings
@@ -173,13 +150,11 @@ class CargoTransport:
         """Handrail poses, the observation layout, the peer slots and the state's size."""
         # Robot i's handrail (its grasp site on the cargo) in the cargo frame: known geometry.
         self.handrail_pose = [
-            (_quat_to_mat(self.model.site_quat[site]), self.model.site_pos[site].copy())
+            (quat_to_mat(self.model.site_quat[site]), self.model.site_pos[site].copy())
             for site in self.world.handrail_sites
         ]
-        self._handrail_rows = [
-            (as_rows(rot), tuple(pos.tolist())) for rot, pos in self.handrail_pose
-        ]
         self.obs_layout = observation_layout(self.n_robots, self.observe_estimates)
+        self._observations = ObservationBuilder(self.obs_layout, self.robots, self.handrail_pose)
         # Per robot: the peer in each of its peer slots (increasing index, skipping itself).
         self._peer_slots = [
             [j for j in range(self.n_robots) if j != i] for i in range(self.n_robots)
@@ -273,6 +248,8 @@ class CargoTransport:
         self.world, self.model, self.data = world, world.model, data
         self._bind_views()
         self.holding = world.holding
+        self._acting_mask = np.zeros(self.n_robots, dtype=np.bool_)
+        self._acting_mask[list(self.holding)] = True
         # Index of the holding robots' rows in per-robot arrays: a slice (no copy) for all.
         everyone = len(self.holding) == self.n_robots
         self._rows: slice | list[int] = slice(None) if everyone else list(self.holding)
@@ -334,7 +311,7 @@ class CargoTransport:
             elif fault.kind == "comm_delay":
                 self.channel.add_delay(fault.robot, first, end, fault.delay_s)
         self.estimators = self._make_estimators() if self.use_estimators else []
-        self.navigators = [BaseNavigator(r, self.dt_s, self.profile) for r in self.robots]
+        self.navigator = BaseNavigator(self.robots, self.dt_s, self.profile)
         self.arm_targets = np.tile(np.asarray(ARM_DEPLOYED_RAD), (self.n_robots, 1))
         self.peer_msgs: list[dict[int, Any]] = [{} for _ in range(self.n_robots)]
         self.step_count = 0
@@ -342,8 +319,7 @@ class CargoTransport:
 
         packets = self._read_at_rest()
         self._update_estimators(packets, np.zeros((self.n_robots, 6)), 0)
-        for nav, packet in zip(self.navigators, packets, strict=True):
-            nav.reset(packet)
+        self.navigator.reset(packets)
         self.packets = packets
         self._refresh_estimates()
         self._log_std_sum = self._estimate_log_std_sums()
@@ -394,12 +370,11 @@ class CargoTransport:
 
         commands = self._apply_actions(clipped)
         mujoco.mj_step(self.model, self.data, nstep=self.frame_skip)
-        mujoco.mj_forward(self.model, self.data)
+        self._forward_kinematics()
         finite = self._physics_finite()
         packets = self._read_sensors(k)
         self._update_estimators(packets, commands, k)
-        for i in acting:
-            self.navigators[i].update(packets[i])
+        self.navigator.update(packets, self._acting_mask)
         self.packets = packets
 
         robot_contacts, cargo_contacts = self._wall_contacts()
@@ -453,23 +428,12 @@ class CargoTransport:
         the cargo, start the period. Returns the thrust commands (n_robots, 6) each robot knows
         it sent (zeros for those that have let go)."""
         commands = clipped[:, :6] * self.thrust_limits
-        # The servo targets, joint by joint on floats (four numbers: numpy's overhead dominates).
+        # The servo targets: the requested ones approached by at most max_move, within range.
         max_move = ARM_SPEED_RADPS * self.dt_s
-        self.arm_targets = np.array(
-            [
-                [
-                    _arm_target(current, deployed + ARM_OFFSET_RAD * action, max_move, low, high)
-                    for action, current, deployed, (low, high) in zip(
-                        actions, currents, ARM_DEPLOYED_RAD, ranges, strict=True
-                    )
-                ]
-                for actions, currents, ranges in zip(
-                    clipped[:, 6:].tolist(),
-                    self.arm_targets.tolist(),
-                    self.joint_ranges.tolist(),
-                    strict=True,
-                )
-            ]
+        wanted = ARM_DEPLOYED + ARM_OFFSET_RAD * clipped[:, 6:]
+        move = np.minimum(np.maximum(wanted - self.arm_targets, -max_move), max_move)
+        self.arm_targets = np.minimum(
+            np.maximum(self.arm_targets + move, self._joint_low), self._joint_high
         )
         rows = self._rows
         delivered = self.sensors.actuate(commands[rows])  # row k: robot holding[k]
@@ -484,6 +448,16 @@ class CargoTransport:
         self._ctrl[self._arm_ctrl] = self.arm_targets[rows]
         self.sensors.begin_period(self.data)
         return commands
+
+    def _forward_kinematics(self) -> None:
+        """The stages of ``mj_forward`` that the step reads after ``mj_step``: positions,
+        contacts and position sensors, then velocities. The acceleration stage (qacc,
+        constraint forces, acceleration sensors) is left as ``mj_step`` computed it, for the
+        state before its last integration: nothing here reads it, and the next ``mj_step``
+        recomputes it from qpos, qvel, ctrl and the solver's warm start."""
+        mujoco.mj_fwdPosition(self.model, self.data)
+        mujoco.mj_sensorPos(self.model, self.data)
+        mujoco.mj_fwdVelocity(self.model, self.data)
 
     def _physics_finite(self) -> bool:
         unstable = self._warnings[_BAD_QACC] > 0
@@ -568,9 +542,13 @@ class CargoTransport:
     def _refresh_estimates(self) -> None:
         if not self.estimators:
             self.est_mean, self.est_std, self.est_errors = [], [], []
+            self._estimates = np.zeros((self.n_robots, 0))
             return
         self.est_mean = [est.params_mean() for est in self.estimators]
         self.est_std = [est.params_std() for est in self.estimators]
+        # The observation's estimate blocks (N, 20), or none (N, 0).
+        observed = (self.est_mean, self.est_std) if self.observe_estimates else ()
+        self._estimates = np.concatenate((*observed, np.zeros((self.n_robots, 0))), axis=1)
         self._log_std_now = np.log(np.maximum(np.array(self.est_std), LOG_STD_FLOOR)).sum(axis=1)
         # Every robot's errors in one call per kind (the same values robot by robot).
         means, truths = np.array(self.est_mean), np.array(self.true_params_grasp)
@@ -617,76 +595,67 @@ class CargoTransport:
         """The reference at the current time on floats (evaluated once per time)."""
         return self._reference_cache()[1]
 
+    def _reference_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The reference at the current time as arrays: rotation (3, 3); position, velocity,
+        acceleration, angular velocity and angular acceleration (5, 3), world; pan angle and
+        rate (2,)."""
+        cache = self._reference_cache()
+        if cache[3] is None:
+            ref = cache[1]
+            cache[3] = (
+                np.array(ref.rot, dtype=float),
+                np.array((ref.pos, ref.vel, ref.acc, ref.w, ref.wd), dtype=float),
+                np.array((ref.pan, ref.pan_rate), dtype=float),
+            )
+        return cache[3]
+
     def _reference_cache(self) -> list:
-        """[time, its ReferenceValues, its Reference once asked for]."""
+        """[time, its ReferenceValues, its Reference and its arrays once asked for]."""
         t = float(self.data.time)
         if self._ref_cache is None or self._ref_cache[0] != t:
-            self._ref_cache = [t, self.trajectory.values(t), None]
+            self._ref_cache = [t, self.trajectory.values(t), None, None]
         return self._ref_cache
 
-    def _base_reference(
-        self, i: int, ref: ReferenceValues, joint_pos: list[float]
-    ) -> tuple[tuple, tuple, tuple]:
-        """Robot i's base pose and velocity if the cargo were on its reference, grasp rigid at
-        the arm angles ``joint_pos``: rotation (rows), position, velocity (world), floats."""
-        grasp_rot, grasp_pos = grasp_pose_rows(self.robots[i], joint_pos)
-        rot_ch, pos_ch = self._handrail_rows[i]
-        rot = m_mt(m_m(ref.rot, rot_ch), grasp_rot)
-        pos = v_sub(v_add(ref.pos, m_v(ref.rot, pos_ch)), m_v(rot, grasp_pos))
-        vel = v_add(ref.vel, v_cross(ref.w, v_sub(pos, ref.pos)))
-        return rot, pos, vel
-
     def _get_obs(self, robots: tuple[int, ...]) -> np.ndarray:
-        """Observations of ``robots`` (the others' rows zeros). A peer that has let go of the
-        cargo has its slot zeroed: its messages are forgotten (``_release``).
+        """Observations of ``robots`` (the others' rows zeros), assembled from the layout
+        (``envs.observations``). A peer that has let go of the cargo has its slot zeroed: its
+        messages are forgotten (``_release``)."""
+        ref_rot, ref_vecs, ref_pan = self._reference_arrays()
+        n, nav = self.n_robots, self.navigator
+        acting = np.zeros(n, dtype=np.bool_)
+        acting[list(robots)] = True
+        joint_pos = np.zeros((n, 2))
+        for i in robots:
+            joint_pos[i] = self.packets[i].joint_pos_rad
+        peer_wrench, peer_age, peer_valid = self._peer_slot_values(robots)
+        return self._observations.build(
+            acting, nav.rot, nav.base_pos, nav.base_vel, nav.w_base, joint_pos, self.arm_targets,
+            ref_rot, ref_vecs, ref_pan, peer_wrench, peer_age, peer_valid,
+            self._estimates,
+        )  # fmt: skip
 
-        Each row is assembled on floats in the order of ``observation_layout``."""
-        ref = self._reference_values()
-        obs = np.zeros((self.n_robots, self.obs_dim))
+    def _peer_slot_values(self, robots: tuple[int, ...]) -> tuple[np.ndarray, ...]:
+        """Each robot's peer slots: the latest message's wrench (world axes) (N, P, 6), its age
+        in s and whether one has arrived (N, P); zeros before the first message."""
+        n = self.n_robots
+        wrench, age, valid = np.zeros((n, n - 1, 6)), np.zeros((n, n - 1)), np.zeros((n, n - 1))
         step_count, dt = self.step_count, self.dt_s
         for i in robots:
-            rot, base_pos, base_vel, w = self.navigators[i].state_rows()
-            joint_pos = self.packets[i].joint_pos_rad.tolist()
-            rot_ref, pos_ref, vel_ref = self._base_reference(i, ref, joint_pos)
-            row = [
-                *mt_v(rot, v_sub(base_pos, pos_ref)),
-                *mt_v(rot, v_sub(base_vel, vel_ref)),
-                *rotvec_of_rows(mt_m(rot_ref, rot)),
-                *w,
-                *joint_pos,
-                *self.arm_targets[i].tolist(),
-                *mt_v(rot, v_sub(ref.pos, base_pos)),
-                *mt_v(rot, ref.vel),
-                *mt_v(rot, ref.acc),
-                *mt_v(rot, ref.w),
-                *mt_v(rot, ref.wd),
-                ref.pan,
-                ref.pan_rate,
-            ]
             latest = self.peer_msgs[i]
-            for j in self._peer_slots[i]:
+            for p, j in enumerate(self._peer_slots[i]):
                 msg = latest.get(j)
-                if msg is None:
-                    row += _EMPTY_PEER_SLOT
-                    continue
-                wrench = msg.wrench_world.tolist()
-                row += mt_v(rot, wrench[:3])
-                row += mt_v(rot, wrench[3:])
-                row += ((step_count - msg.stamp) * dt, 1.0)
-            if self.observe_estimates:
-                row += self.est_mean[i].tolist()
-                row += self.est_std[i].tolist()
-            obs[i] = row
-        return obs
+                if msg is not None:
+                    wrench[i, p] = msg.wrench_world
+                    age[i, p] = (step_count - msg.stamp) * dt
+                    valid[i, p] = 1.0
+        return wrench, age, valid
 
     # ------------------------------------------------------------------ rewards, infos
     def tracking_error(self) -> tuple[float, float]:
         """True cargo frame position error (m) and rotation angle error (rad)."""
         b = self.world.cargo_body
-        ref = self._reference_values()
-        rot = as_rows(self._xmat[b].reshape(3, 3))
-        pos_err = norm3(v_sub(self._xpos[b].tolist(), ref.pos))
-        return pos_err, norm3(rotvec_of_rows(mt_m(ref.rot, rot)))
+        ref_rot, ref_vecs, _ = self._reference_arrays()
+        return tracking_errors(self._xpos[b], self._xmat[b].reshape(3, 3), ref_vecs[0], ref_rot)
 
     def _get_rewards(
         self,
@@ -698,7 +667,6 @@ class CargoTransport:
     ) -> tuple[dict[str, list[float]], np.ndarray]:
         """Every reward term per robot, weighted and mixed (team vs individual), and their sum
         per robot; the team of this step is ``robots`` (the others' rows zeros)."""
-        n = self.n_robots
         if finite:
             pos_err, angle_err = self.tracking_error()
             track = -(pos_err + ROTATION_WEIGHT_M_PER_RAD * angle_err)
@@ -706,29 +674,16 @@ class CargoTransport:
             track = 0.0
         effort = -(clipped**2).sum(axis=1)
         log_std = self._estimate_log_std_sums()
-        info = (self._log_std_sum - log_std).tolist()
+        info = self._log_std_sum - log_std
         self._log_std_sum = log_std
-        if not all(map(math.isfinite, info)):
-            info = [0.0] * n
-        # Rows in REWARD_TERMS order: (track, effort, info, contact) per robot and for the team,
-        # on floats (a few numbers: numpy's per-call overhead would dominate).
-        robot_contacts = robot_contacts.tolist()
-        contact = [-(c + cargo_contacts) for c in robot_contacts]
-        individual = [[float(track)] * n, effort.tolist(), info, contact]
-        team = [_mean(values, robots) for values in individual]
-        team[0] = track
-        team[3] = -float(sum(robot_contacts) + cargo_contacts)
-        s = self.shared_reward
-        mask = [1.0 if i in robots else 0.0 for i in range(n)]
-        mixed = [
-            [
-                (weight * m) * (s * team_term + (1.0 - s) * x)
-                for m, x in zip(mask, term, strict=True)
-            ]
-            for weight, team_term, term in zip(self._weights, team, individual, strict=True)
-        ]
-        rewards = [sum(values) for values in zip(*mixed, strict=True)]  # 0 + track + ... + contact
-        return dict(zip(REWARD_TERMS, mixed, strict=True)), np.array(rewards)
+        if not np.isfinite(info).all():
+            info = np.zeros(self.n_robots)
+        acting = np.zeros(self.n_robots, dtype=np.bool_)
+        acting[list(robots)] = True
+        return reward_terms(
+            track, effort, info, robot_contacts, cargo_contacts, acting, self._weights,
+            self.shared_reward,
+        )  # fmt: skip
 
     def _get_infos(
         self,
@@ -795,7 +750,7 @@ class CargoTransport:
             ref.pos,
             ref.vel,
             ref.acc,
-            _mat_to_quat(ref.rot),
+            mat_to_quat(np.array(ref.rot)),
             ref.w,
             ref.wd,
             np.array([ref.pan, ref.pan_rate]),
