@@ -3,7 +3,8 @@
 Readings come from the MJCF sensors of each robot (``base_pos`` / ``base_quat`` of the base body,
 ``tilt_pos`` / ``pan_pos`` encoders) and the IMU site's motion, and must be read after
 ``mj_forward`` (or its position and velocity stages) so they describe the current state
-(pitfalls: after ``mj_step`` they lag one step). The MJCF ``noise`` attribute does nothing at run time, so noise is added here from the env's
+(pitfalls: after ``mj_step`` they lag one step).
+The MJCF ``noise`` attribute does nothing at run time, so noise is added here from the env's
 ``np.random.Generator``. Nothing of the cargo is sensed.
 
 IMU readings are averages over the control period (``begin_period`` marks its start): the change of

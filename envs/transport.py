@@ -14,9 +14,9 @@ import numpy as np
 from numba import njit
 
 from astrocargo.agents.trajectories import Reference, ReferenceValues, Trajectory
+from astrocargo.envs.cargo import CARGO_COM_SPREAD_M, CargoDraw  # noqa: F401
 from astrocargo.envs.comms import CommChannel
 from astrocargo.envs.config import (
-    CARGO_MASS_LIMITS_KG,
     REWARD_TERMS,
     EnvConfig,
 )
@@ -31,24 +31,19 @@ from astrocargo.envs.observations import ObservationBuilder, observation_layout
 from astrocargo.envs.rewards import ROTATION_WEIGHT_M_PER_RAD, reward_terms
 from astrocargo.envs.sensors import SensorPacket, SensorSuite, estimator_noise_kwargs
 from astrocargo.envs.sensors import noise_profile as get_noise_profile
-from astrocargo.envs.validation import check_finite_array, check_finite_number
 from astrocargo.envs.world import ARM_DEPLOYED_RAD, MAX_TIMESTEP_S, World
 from astrocargo.estimator.cargo_estimator import CargoEstimator
 from astrocargo.estimator.geometry import log_so3, mat_to_quat, quat_to_mat
 from astrocargo.estimator.inertia import (
-    check_physical,
     com_error_m,
     mass_rel_error,
-    params_from_mass_com_inertia,
     principal_rel_errors,
-    vec_to_inertia,
 )
 
 ACTION_DIM = 8
 ARM_DEPLOYED = np.asarray(ARM_DEPLOYED_RAD, dtype=float)
 ARM_OFFSET_RAD = 0.5  # reach of the arm actions around the deployed pose
 ARM_SPEED_RADPS = 0.12  # URDF joint velocity limit (facts file section 5)
-CARGO_COM_SPREAD_M = 0.03  # sampled centre of mass: uniform in +-this per axis
 LOG_STD_FLOOR = 1e-12
 REWARD_KEYS = tuple(f"reward_{t}" for t in REWARD_TERMS)  # their names in infos
 _BAD_QACC = int(mujoco.mjtWarning.mjWARN_BADQACC)
@@ -98,7 +93,9 @@ class CargoTransport:
         self.observe_estimates = c.observe_estimates
         self.use_estimators = c.estimators
         self.world = World(self.n_robots)
-        self._set_cargo_args(c.cargo_mass_kg, c.cargo_com_m, c.cargo_inertia)
+        self.cargo_draw = CargoDraw.from_args(
+            self.world, c.cargo_mass_kg, c.cargo_com_m, c.cargo_inertia
+        )
         self.control_hz = c.control_hz
         self.dt_s = 1.0 / c.control_hz
         self.frame_skip = self._check_frame_skip(c.frame_skip)
@@ -163,67 +160,6 @@ class CargoTransport:
         full = self._full_world.model
         self.state_dim = 1 + full.nq + full.nv + 13 * (full.nbody - 1)
         self.state_dim += 10 + 21 + 2 * self.n_robots + self.n_robots
-
-    # ------------------------------------------------------------------ arguments
-    def _set_cargo_args(self, mass_kg: Any, com_m: Any, inertia: Any) -> None:
-        low_kg, high_kg = CARGO_MASS_LIMITS_KG
-        allowed = f"a mass in [{low_kg}, {high_kg}] kg, or a range (low, high) within it"
-        if isinstance(mass_kg, tuple | list | np.ndarray):
-            bounds = check_finite_array("cargo_mass_kg", mass_kg, (2,), allowed)
-        else:
-            bounds = np.full(2, check_finite_number("cargo_mass_kg", mass_kg, allowed))
-        if not low_kg <= bounds[0] <= bounds[1] <= high_kg:
-            raise ValueError(f"cargo_mass_kg must be {allowed}, low <= high, got {mass_kg!r}")
-        self.cargo_mass_range = bounds
-        # The cargo's mass lies in its bag (the World's, chosen by the number of robots): its
-        # centre of mass too, and no mass is farther than the bag's diagonal from an axis through
-        # it, so each principal moment is at most m * diagonal^2.
-        half_box = 0.5 * self.world.cargo_size_m
-        diagonal_m = math.hypot(*self.world.cargo_size_m)
-        if com_m is None:
-            self.cargo_com = None
-        else:
-            allowed = f"None or 3 numbers (m) within the bag, |c| <= {tuple(half_box)}"
-            com = check_finite_array("cargo_com_m", com_m, (3,), allowed)
-            if np.any(np.abs(com) > half_box):
-                raise ValueError(f"cargo_com_m must be {allowed}, got {com_m!r}")
-            self.cargo_com = com
-        if inertia is None:
-            self.cargo_inertia = None
-        else:
-            vec = check_finite_array(
-                "cargo_inertia",
-                inertia,
-                (6,),
-                "None or 6 finite numbers (I_xx, I_yy, I_zz, I_xy, I_xz, I_yz) about the centre "
-                "of mass",
-            )
-            tensor = vec_to_inertia(vec)
-            try:  # realisable about the centre of mass, whatever the mass
-                check_physical(params_from_mass_com_inertia(1.0, np.zeros(3), tensor))
-            except ValueError as err:
-                raise ValueError(f"cargo_inertia is not a physical inertia tensor: {err}") from err
-            max_moment = bounds[0] * diagonal_m**2
-            if np.linalg.eigvalsh(tensor)[-1] > max_moment:
-                raise ValueError(
-                    f"cargo_inertia: a principal moment exceeds m * d^2 = {max_moment:.3g} kg m^2 "
-                    f"(mass {bounds[0]} kg within the bag, diagonal d = {diagonal_m:.3f} m), "
-                    f"got {inertia!r}"
-                )
-            self.cargo_inertia = tensor
-
-    def _sample_cargo(self, rng: np.random.Generator) -> tuple[float, np.ndarray, np.ndarray]:
-        low, high = self.cargo_mass_range
-        mass = float(rng.uniform(low, high)) if high > low else float(low)
-        if self.cargo_com is None:
-            com = rng.uniform(-CARGO_COM_SPREAD_M, CARGO_COM_SPREAD_M, 3)
-        else:
-            com = self.cargo_com.copy()
-        if self.cargo_inertia is None:
-            inertia = self.world.uniform_cargo_inertia(mass)
-        else:
-            inertia = self.cargo_inertia.copy()
-        return mass, com, inertia
 
     def _make_estimators(self) -> list[CargoEstimator]:
         out = []
@@ -290,7 +226,7 @@ class CargoTransport:
         # Spawned only with faults, so that a run without them draws as it always did.
         self.fault_rng = rng.spawn(1)[0] if self.faults else None
         self.fault_counts = {k: np.zeros(self.n_robots, dtype=np.int64) for k in FAULT_COUNTERS}
-        self.cargo = self._sample_cargo(cargo_rng)
+        self.cargo = self.cargo_draw.sample(cargo_rng, self.world)
         if self.world is not self._full_world:  # robots let go last episode
             self._bind_world(self._full_world, self._full_data)
         self.released_at_s: dict[int, float] = {}
