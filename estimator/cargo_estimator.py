@@ -458,7 +458,7 @@ class CargoEstimator:
         std = self._actuation_abs + self._actuation_rel * np.abs(thrust_command)
         self._act_cov_sum += (to_grasp * std**2) @ to_grasp.T
         self._act_cov_n += 1
-        self._grasp_lever = float(np.linalg.norm(pos_bg))
+        self._grasp_lever = math.sqrt(pos_bg @ pos_bg)
         filtered, _, _ = self.balance_filter.step(balance.to_vector())
         self._balance = Balance.from_vector(filtered)
 

@@ -34,7 +34,7 @@ from .rne import Kinematics, RobotDescription, point_acceleration, propagate
 @njit(cache=True)
 def _first_order_hold_step(ad, b_value, b_slope, state, u_prev, u):
     """x_k+1 = Ad x_k + b_value u_k + b_slope (u_k+1 - u_k), every channel (column) at once."""
-    return ad @ state + np.outer(b_value, u_prev) + np.outer(b_slope, u - u_prev)
+    return ad @ state + b_value[:, None] * u_prev + b_slope[:, None] * (u - u_prev)
 
 
 class StateVariableFilter:

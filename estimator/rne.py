@@ -212,10 +212,11 @@ def _forward_pass(arrays, w_base, wd_base, acc_base, q, qd, qdd):
         axis = arrays.joint_axis[k]
         rot[k] = rot[p] @ arrays.rot_in_parent[k] @ exp_so3(axis * q[j])
         r = rot[p] @ arrays.pos_in_parent[k]
-        w_rel = qd[j] * (rot[k] @ axis)
+        z = rot[k] @ axis
+        w_rel = qd[j] * z
         pos[k] = pos[p] + r
         w[k] = w[p] + w_rel
-        wd[k] = wd[p] + qdd[j] * (rot[k] @ axis) + np.cross(w[p], w_rel)
+        wd[k] = wd[p] + qdd[j] * z + np.cross(w[p], w_rel)
         acc[k] = point_acceleration(acc[p], w[p], wd[p], r)
     g = arrays.grasp_link
     r_g = rot[g] @ arrays.grasp_pos
@@ -280,9 +281,33 @@ def _grasp_from_base(rot: np.ndarray, pos: np.ndarray) -> np.ndarray:
     return t
 
 
+# Entry points called from Python take the fields of ``RobotArrays`` as separate arguments, in
+# its order (numba types separate arrays far faster than a tuple of them), and assemble it.
 @njit(cache=True)
-def _grasp_balance(arrays, w_base, wd_base, acc_base, q, qd, qdd, thrust_base):
+def _grasp_pose(
+    parent, joint_axis, rot_in_parent, pos_in_parent, mass, com, inertia_com, grasp_link,
+    grasp_rot, grasp_pos, q,
+):  # fmt: skip
+    """G's pose in B at joint angles q, the base and the joints at rest."""
+    arrays = RobotArrays(
+        parent, joint_axis, rot_in_parent, pos_in_parent, mass, com, inertia_com, grasp_link,
+        grasp_rot, grasp_pos,
+    )  # fmt: skip
+    zero3, zero_j = np.zeros(3), np.zeros(q.shape[0])
+    out = _forward_pass(arrays, zero3, zero3, zero3, q, zero_j, zero_j)
+    return out[5], out[6]
+
+
+@njit(cache=True)
+def _grasp_balance(
+    parent, joint_axis, rot_in_parent, pos_in_parent, mass, com, inertia_com, grasp_link,
+    grasp_rot, grasp_pos, w_base, wd_base, acc_base, q, qd, qdd, thrust_base,
+):  # fmt: skip
     """One sample's balance in G: (thrust_G, links_G, Y, grasp_rot, grasp_pos)."""
+    arrays = RobotArrays(
+        parent, joint_axis, rot_in_parent, pos_in_parent, mass, com, inertia_com, grasp_link,
+        grasp_rot, grasp_pos,
+    )  # fmt: skip
     rot, pos, w, wd, acc, grasp_rot, grasp_pos, grasp_acc = _forward_pass(
         arrays, w_base, wd_base, acc_base, q, qd, qdd
     )
@@ -295,20 +320,34 @@ def _grasp_balance(arrays, w_base, wd_base, acc_base, q, qd, qdd, thrust_base):
 
 
 @njit(cache=True)
-def _propagate_batch(arrays, w_base, wd_base, acc_base, q, qd, qdd):
-    n, n_links = w_base.shape[0], arrays.parent.shape[0]
+def _propagate_batch(
+    parent, joint_axis, rot_in_parent, pos_in_parent, mass, com, inertia_com, grasp_link,
+    grasp_rot, grasp_pos, w_base, wd_base, acc_base, q, qd, qdd,
+):  # fmt: skip
+    arrays = RobotArrays(
+        parent, joint_axis, rot_in_parent, pos_in_parent, mass, com, inertia_com, grasp_link,
+        grasp_rot, grasp_pos,
+    )  # fmt: skip
+    n, n_links = w_base.shape[0], parent.shape[0]
     rot = np.empty((n, n_links, 3, 3))
     pos, w, wd, acc = [np.empty((n, n_links, 3)) for _ in range(4)]
-    grasp_rot = np.empty((n, 3, 3))
-    grasp_pos, grasp_acc = np.empty((n, 3)), np.empty((n, 3))
+    g_rot = np.empty((n, 3, 3))
+    g_pos, g_acc = np.empty((n, 3)), np.empty((n, 3))
     for i in range(n):
         out = _forward_pass(arrays, w_base[i], wd_base[i], acc_base[i], q[i], qd[i], qdd[i])
-        rot[i], pos[i], w[i], wd[i], acc[i], grasp_rot[i], grasp_pos[i], grasp_acc[i] = out
-    return rot, pos, w, wd, acc, grasp_rot, grasp_pos, grasp_acc
+        rot[i], pos[i], w[i], wd[i], acc[i], g_rot[i], g_pos[i], g_acc[i] = out
+    return rot, pos, w, wd, acc, g_rot, g_pos, g_acc
 
 
 @njit(cache=True)
-def _momentum_rate_batch(arrays, rot, pos, w, wd, acc):
+def _momentum_rate_batch(
+    parent, joint_axis, rot_in_parent, pos_in_parent, mass, com, inertia_com, grasp_link,
+    grasp_rot, grasp_pos, rot, pos, w, wd, acc,
+):  # fmt: skip
+    arrays = RobotArrays(
+        parent, joint_axis, rot_in_parent, pos_in_parent, mass, com, inertia_com, grasp_link,
+        grasp_rot, grasp_pos,
+    )  # fmt: skip
     out = np.empty((rot.shape[0], 6))
     for i in range(rot.shape[0]):
         out[i] = _momentum_rate_pass(arrays, rot[i], pos[i], w[i], wd[i], acc[i])
@@ -342,6 +381,14 @@ def _flat(x, trailing: tuple[int, ...], batch: tuple[int, ...], name: str) -> np
     return np.ascontiguousarray(a.reshape(-1, *trailing))
 
 
+def _single(x, shape: tuple[int, ...], name: str) -> np.ndarray:
+    """``x`` as a contiguous float64 array of ``shape`` (one sample)."""
+    a = np.asarray(x, dtype=float)
+    if a.shape != shape:
+        raise ValueError(f"{name} must have shape {shape}, got {a.shape}")
+    return a if a.flags.c_contiguous else np.ascontiguousarray(a)
+
+
 def propagate(
     robot: RobotDescription,
     w_base: np.ndarray,
@@ -362,7 +409,7 @@ def propagate(
     args = [_flat(x, (3,), batch, name) for x, name in
             ((w_base, "w_base"), (wd_base, "wd_base"), (acc_base, "acc_base"))]  # fmt: skip
     args += [_flat(x, (nj,), batch, name) for x, name in ((q, "q"), (qd, "qd"), (qdd, "qdd"))]
-    rot, pos, w, wd, acc, grasp_rot, grasp_pos, grasp_acc = _propagate_batch(robot.arrays, *args)
+    rot, pos, w, wd, acc, grasp_rot, grasp_pos, grasp_acc = _propagate_batch(*robot.arrays, *args)
     g = robot.grasp_link
     n_links = len(robot.links)
     return Kinematics(
@@ -390,10 +437,7 @@ def link_poses(robot: RobotDescription, q: np.ndarray) -> tuple[np.ndarray, np.n
 def grasp_pose(robot: RobotDescription, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Grasp frame G in the base frame at joint angles ``q`` (n_joints,) rad: rotation (3, 3)
     and origin (3,) m (``propagate`` at rest)."""
-    zero3, zero_j = np.zeros(3), np.zeros(robot.n_joints)
-    q = _flat(q, (robot.n_joints,), (), "q")[0]
-    out = _forward_pass(robot.arrays, zero3, zero3, zero3, q, zero_j, zero_j)
-    return out[5], out[6]
+    return _grasp_pose(*robot.arrays, _single(q, (robot.n_joints,), "q"))
 
 
 def link_momentum_rate(robot: RobotDescription, kin: Kinematics) -> np.ndarray:
@@ -404,7 +448,7 @@ def link_momentum_rate(robot: RobotDescription, kin: Kinematics) -> np.ndarray:
     fields = [_flat(kin.rot, (n_links, 3, 3), batch, "kin.rot")]
     fields += [_flat(getattr(kin, name), (n_links, 3), batch, f"kin.{name}")
                for name in ("pos", "w", "wd", "acc")]  # fmt: skip
-    return _momentum_rate_batch(robot.arrays, *fields).reshape(*batch, 6)
+    return _momentum_rate_batch(*robot.arrays, *fields).reshape(*batch, 6)
 
 
 def body_regressor(acc: np.ndarray, w: np.ndarray, wd: np.ndarray) -> np.ndarray:
@@ -424,13 +468,13 @@ def body_regressor(acc: np.ndarray, w: np.ndarray, wd: np.ndarray) -> np.ndarray
 def wrench_transform(rot: np.ndarray, pos: np.ndarray) -> np.ndarray:
     """6x6 map of a wrench [f; n about A's origin] in frame A to frame B, where A's pose in B is
     (rot (3, 3), pos (3,) m): f_B = R f, n_B = R n + pos x (R f)."""
-    return _wrench_transform(_flat(rot, (3, 3), (), "rot")[0], _flat(pos, (3,), (), "pos")[0])
+    return _wrench_transform(_single(rot, (3, 3), "rot"), _single(pos, (3,), "pos"))
 
 
 def grasp_from_base(rot: np.ndarray, pos: np.ndarray) -> np.ndarray:
     """Inverse of ``wrench_transform(rot, pos)``: wrench in B (about B's origin) -> frame G whose
     pose in B is (rot, pos), moments about G's origin: f_G = R^T f, n_G = R^T (n - pos x f)."""
-    return _grasp_from_base(_flat(rot, (3, 3), (), "rot")[0], _flat(pos, (3,), (), "pos")[0])
+    return _grasp_from_base(_single(rot, (3, 3), "rot"), _single(pos, (3,), "pos"))
 
 
 def cargo_regressor(kin: Kinematics) -> np.ndarray:
@@ -464,12 +508,12 @@ def balance_in_grasp_frame(
     origin (3,) m). Inputs as ``propagate`` for one sample, and the propulsion wrench
     ``thrust_base`` (6,) in B about B's origin. Both passes and the regressor in one compiled
     call: the estimator evaluates it every other control step."""
-    vectors = [_flat(x, (3,), (), name)[0] for x, name in
-               ((w_base, "w_base"), (wd_base, "wd_base"), (acc_base, "acc_base"))]  # fmt: skip
-    joints = [_flat(x, (robot.n_joints,), (), name)[0] for x, name in
-              ((q, "q"), (qd, "qd"), (qdd, "qdd"))]  # fmt: skip
-    thrust = _flat(thrust_base, (6,), (), "thrust_base")[0]
-    thrust_g, links_g, y, rot, pos = _grasp_balance(robot.arrays, *vectors, *joints, thrust)
+    nj = (robot.n_joints,)
+    inputs = [_single(x, shape, name) for x, shape, name in (
+        (w_base, (3,), "w_base"), (wd_base, (3,), "wd_base"), (acc_base, (3,), "acc_base"),
+        (q, nj, "q"), (qd, nj, "qd"), (qdd, nj, "qdd"), (thrust_base, (6,), "thrust_base"),
+    )]  # fmt: skip
+    thrust_g, links_g, y, rot, pos = _grasp_balance(*robot.arrays, *inputs)
     return Balance(thrust_g, links_g, y), rot, pos
 
 
