@@ -179,6 +179,34 @@ class _RelativeGrasp:
         return wrench_transform(rot, self.pos_sum / self.count)
 
 
+def _check_arguments(
+    index, peers, update_every, regressor_every, force_std_n, torque_std_nm, warmup_s, history_s,
+    gate_prob, min_excitation_snr, process_std_rel, min_relative_fixes,
+) -> None:  # fmt: skip
+    """Raise ValueError for a constructor argument of ``CargoEstimator`` out of its range."""
+    if regressor_every < 1 or update_every < 1 or update_every % regressor_every:
+        raise ValueError(
+            f"update_every ({update_every}) must be a positive multiple of regressor_every "
+            f"({regressor_every})"
+        )
+    if not (force_std_n > 0 and torque_std_nm > 0):
+        raise ValueError("force_std_n and torque_std_nm must be positive")
+    if index in peers:
+        raise ValueError(f"robot {index} cannot be its own peer")
+    if not (np.isfinite(warmup_s) and warmup_s >= 0):
+        raise ValueError(f"warmup_s must be a finite number >= 0 s, got {warmup_s!r}")
+    if not (np.isfinite(history_s) and history_s > 0):
+        raise ValueError(f"history_s must be a finite number > 0 s, got {history_s!r}")
+    if gate_prob is not None and not 0 < gate_prob < 1:
+        raise ValueError(f"gate_prob must be None or a probability in (0, 1), got {gate_prob!r}")
+    if not (np.isfinite(min_excitation_snr) and min_excitation_snr >= 0):
+        raise ValueError(f"min_excitation_snr must be finite and >= 0, got {min_excitation_snr!r}")
+    if not (np.isfinite(process_std_rel) and process_std_rel >= 0):
+        raise ValueError(f"process_std_rel must be finite and >= 0, got {process_std_rel!r}")
+    if min_relative_fixes < 1:
+        raise ValueError(f"min_relative_fixes must be >= 1, got {min_relative_fixes}")
+
+
 class CargoEstimator:
     """Constrained UKF on the cargo's inertial parameters for robot ``index``.
 
@@ -255,27 +283,10 @@ class CargoEstimator:
         relative_grasps: dict[int, tuple[np.ndarray, np.ndarray]] | None = None,
         record: bool = False,
     ) -> None:
-        if regressor_every < 1 or update_every < 1 or update_every % regressor_every:
-            raise ValueError(
-                f"update_every ({update_every}) must be a positive multiple of regressor_every "
-                f"({regressor_every})"
-            )
-        if not (force_std_n > 0 and torque_std_nm > 0):
-            raise ValueError("force_std_n and torque_std_nm must be positive")
-        if index in peers:
-            raise ValueError(f"robot {index} cannot be its own peer")
-        if not (np.isfinite(warmup_s) and warmup_s >= 0):
-            raise ValueError(f"warmup_s must be a finite number >= 0 s, got {warmup_s!r}")
-        if not (np.isfinite(history_s) and history_s > 0):
-            raise ValueError(f"history_s must be a finite number > 0 s, got {history_s!r}")
-        if gate_prob is not None and not 0 < gate_prob < 1:
-            raise ValueError(
-                f"gate_prob must be None or a probability in (0, 1), got {gate_prob!r}"
-            )
-        if not (np.isfinite(min_excitation_snr) and min_excitation_snr >= 0):
-            raise ValueError(
-                f"min_excitation_snr must be finite and >= 0, got {min_excitation_snr!r}"
-            )
+        _check_arguments(
+            index, peers, update_every, regressor_every, force_std_n, torque_std_nm, warmup_s,
+            history_s, gate_prob, min_excitation_snr, process_std_rel, min_relative_fixes,
+        )  # fmt: skip
         self.robot = robot
         self.index = int(index)
         self.peers = tuple(int(p) for p in peers)
@@ -300,11 +311,23 @@ class CargoEstimator:
         self.taint_steps = int(np.ceil(4 * memory_s / dt_s))
         prior = default_prior(robot) if prior_params is None else np.asarray(prior_params, float)
         gate = None if gate_prob is None else float(chi2.ppf(gate_prob, 6))
-        if not (np.isfinite(process_std_rel) and process_std_rel >= 0):
-            raise ValueError(f"process_std_rel must be finite and >= 0, got {process_std_rel!r}")
         prior_cov = prior_covariance(prior, prior_std)
         process_cov = np.diag(process_std_rel**2 * np.diag(prior_cov))
         self.ukf = InertialParamUKF(prior, prior_cov, process_cov, gate_nis=gate)
+        self._init_noise_model(
+            force_std_n, torque_std_nm, actuation_noise, sensor_noise, peer_noise_std,
+            localization_noise, cutoff_hz,
+        )  # fmt: skip
+        self.min_excitation_snr = float(min_excitation_snr)
+        self.min_relative_fixes = int(min_relative_fixes)
+        self._init_bookkeeping(relative_grasps, record)
+
+    def _init_noise_model(
+        self, force_std_n, torque_std_nm, actuation_noise, sensor_noise, peer_noise_std,
+        localization_noise, cutoff_hz,
+    ) -> None:  # fmt: skip
+        """The measurement covariance's parts (see the constructor's arguments)."""
+        dt_s, robot = self.dt_s, self.robot
         # Residuals of successive updates are correlated over the filter's decorrelation time
         # 1 / (2 ENBW), ENBW = 3 w / 32 for (w / (s + w))^3: treating them as independent would
         # make the filter overconfident, so the covariance is scaled by the number of updates that
@@ -332,14 +355,10 @@ class CargoEstimator:
             raise ValueError("peer_noise_std must be 2 non-negative numbers")
         self._peer_noise_cov = np.diag(np.repeat(peer_noise**2, 3))
         self._peer_noise = bool(np.any(peer_noise > 0))  # else its covariance adds zeros
-        self.min_excitation_snr = float(min_excitation_snr)
         loc = np.asarray(localization_noise, dtype=float)
         if loc.shape != (2,) or np.any(loc < 0):
             raise ValueError("localization_noise must be 2 non-negative numbers")
         self._loc_pos_std, self._loc_att_std = (float(x) for x in loc)
-        if min_relative_fixes < 1:
-            raise ValueError(f"min_relative_fixes must be >= 1, got {min_relative_fixes}")
-        self.min_relative_fixes = int(min_relative_fixes)
         # Noise gains of the slow filter (impulse response energy of y, y', y''): white noise of
         # std s per step becomes s * g on the filtered value and its derivatives.
         gains = StateVariableFilter(1, dt_s, cutoff_hz).noise_gains()
@@ -357,6 +376,9 @@ class CargoEstimator:
         self._robot_inertia = sum(
             float(np.linalg.eigvalsh(link.inertia_com)[-1]) for link in robot.links
         )
+
+    def _init_bookkeeping(self, relative_grasps, record: bool) -> None:
+        """Counters, histories and the peers' relative grasps, at the start of a run."""
         self._grasp_lever = 0.0
         self.n_skipped_low_excitation = 0
         self._rot_world_base: np.ndarray | None = None  # (3, 3) base frame in world
