@@ -69,6 +69,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.stats import chi2
 
+from .geometry import exp_so3, quat_to_mat
 from .inertia import (
     inertia_to_vec,
     mass_com_inertia_from_params,
@@ -77,15 +78,11 @@ from .inertia import (
 )
 from .preprocess import Preprocessor, StateVariableFilter
 from .rne import (
+    Balance,
     RobotDescription,
-    as_rows,
-    balance_rows,
+    balance_in_grasp_frame,
     grasp_from_base,
     grasp_pose,
-    m_m,
-    m_v,
-    norm3,
-    v_scale,
     wrench_transform,
 )
 from .ukf import InertialParamUKF
@@ -98,39 +95,8 @@ DEFAULT_PRIOR_STD = (3.0, 0.15, 0.1, 0.03)
 DEFAULT_PROCESS_STD_REL = 1e-5
 
 
-def quat_to_mat(quat: np.ndarray) -> np.ndarray:
-    """Rotation matrix of a unit quaternion (w, x, y, z)."""
-    w, x, y, z = np.asarray(quat, dtype=float) / np.linalg.norm(quat)
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-        ]
-    )
-
-
-def exp_so3(rotvec: np.ndarray | tuple[float, float, float]) -> np.ndarray:
-    """Rotation matrix of a rotation vector, an array or 3 floats (Rodrigues)."""
-    return np.array(exp_so3_rows(rotvec))
-
-
-def exp_so3_rows(rotvec: np.ndarray | tuple[float, float, float]) -> tuple:
-    """``exp_so3`` as rows of floats (for rne's float helpers: called every step)."""
-    x, y, z = map(float, rotvec)
-    angle = math.sqrt(x * x + y * y + z * z)
-    if angle < 1e-12:
-        return ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
-    x, y, z = x / angle, y / angle, z / angle
-    s, c1 = math.sin(angle), 1.0 - math.cos(angle)
-    return (
-        (1.0 - c1 * (y * y + z * z), c1 * x * y - s * z, c1 * x * z + s * y),
-        (c1 * x * y + s * z, 1.0 - c1 * (x * x + z * z), c1 * y * z - s * x),
-        (c1 * x * z - s * y, c1 * y * z + s * x, 1.0 - c1 * (x * x + y * y)),
-    )
-
-
 def _project_rotation(m: np.ndarray) -> np.ndarray:
+    """The rotation nearest (Frobenius) to a 3x3 matrix: U diag(1, 1, det(U V^T)) V^T."""
     u, _, vt = np.linalg.svd(m)
     d = np.sign(np.linalg.det(u @ vt))
     return u @ np.diag([1.0, 1.0, d]) @ vt
@@ -213,6 +179,34 @@ class _RelativeGrasp:
         return wrench_transform(rot, self.pos_sum / self.count)
 
 
+def _check_arguments(
+    index, peers, update_every, regressor_every, force_std_n, torque_std_nm, warmup_s, history_s,
+    gate_prob, min_excitation_snr, process_std_rel, min_relative_fixes,
+) -> None:  # fmt: skip
+    """Raise ValueError for a constructor argument of ``CargoEstimator`` out of its range."""
+    if regressor_every < 1 or update_every < 1 or update_every % regressor_every:
+        raise ValueError(
+            f"update_every ({update_every}) must be a positive multiple of regressor_every "
+            f"({regressor_every})"
+        )
+    if not (force_std_n > 0 and torque_std_nm > 0):
+        raise ValueError("force_std_n and torque_std_nm must be positive")
+    if index in peers:
+        raise ValueError(f"robot {index} cannot be its own peer")
+    if not (np.isfinite(warmup_s) and warmup_s >= 0):
+        raise ValueError(f"warmup_s must be a finite number >= 0 s, got {warmup_s!r}")
+    if not (np.isfinite(history_s) and history_s > 0):
+        raise ValueError(f"history_s must be a finite number > 0 s, got {history_s!r}")
+    if gate_prob is not None and not 0 < gate_prob < 1:
+        raise ValueError(f"gate_prob must be None or a probability in (0, 1), got {gate_prob!r}")
+    if not (np.isfinite(min_excitation_snr) and min_excitation_snr >= 0):
+        raise ValueError(f"min_excitation_snr must be finite and >= 0, got {min_excitation_snr!r}")
+    if not (np.isfinite(process_std_rel) and process_std_rel >= 0):
+        raise ValueError(f"process_std_rel must be finite and >= 0, got {process_std_rel!r}")
+    if min_relative_fixes < 1:
+        raise ValueError(f"min_relative_fixes must be >= 1, got {min_relative_fixes}")
+
+
 class CargoEstimator:
     """Constrained UKF on the cargo's inertial parameters for robot ``index``.
 
@@ -289,27 +283,10 @@ class CargoEstimator:
         relative_grasps: dict[int, tuple[np.ndarray, np.ndarray]] | None = None,
         record: bool = False,
     ) -> None:
-        if regressor_every < 1 or update_every < 1 or update_every % regressor_every:
-            raise ValueError(
-                f"update_every ({update_every}) must be a positive multiple of regressor_every "
-                f"({regressor_every})"
-            )
-        if not (force_std_n > 0 and torque_std_nm > 0):
-            raise ValueError("force_std_n and torque_std_nm must be positive")
-        if index in peers:
-            raise ValueError(f"robot {index} cannot be its own peer")
-        if not (np.isfinite(warmup_s) and warmup_s >= 0):
-            raise ValueError(f"warmup_s must be a finite number >= 0 s, got {warmup_s!r}")
-        if not (np.isfinite(history_s) and history_s > 0):
-            raise ValueError(f"history_s must be a finite number > 0 s, got {history_s!r}")
-        if gate_prob is not None and not 0 < gate_prob < 1:
-            raise ValueError(
-                f"gate_prob must be None or a probability in (0, 1), got {gate_prob!r}"
-            )
-        if not (np.isfinite(min_excitation_snr) and min_excitation_snr >= 0):
-            raise ValueError(
-                f"min_excitation_snr must be finite and >= 0, got {min_excitation_snr!r}"
-            )
+        _check_arguments(
+            index, peers, update_every, regressor_every, force_std_n, torque_std_nm, warmup_s,
+            history_s, gate_prob, min_excitation_snr, process_std_rel, min_relative_fixes,
+        )  # fmt: skip
         self.robot = robot
         self.index = int(index)
         self.peers = tuple(int(p) for p in peers)
@@ -325,20 +302,32 @@ class CargoEstimator:
             ("thrust_command", (6,)),
         )
         self.pre = Preprocessor(robot, dt_s, kinematics_cutoff_hz)
-        self._imu_rot = as_rows(robot.imu_rot)
-        # Slow filter over [thrust 6, links 6, Y 60], grasp frame.
-        self.balance_filter = StateVariableFilter(72, dt_s * regressor_every, cutoff_hz)
+        self._imu_rot = np.asarray(robot.imu_rot, dtype=float)
+        # Slow filter over the whole balance (``Balance.to_vector``), grasp frame.
+        self.balance_filter = StateVariableFilter(Balance.SIZE, dt_s * regressor_every, cutoff_hz)
         # Memory of the filters: one delay (rollback after a gate) and four (taint).
         memory_s = self.pre.delay_s + self.balance_filter.delay_s
         self.rollback_steps = int(np.ceil(memory_s / dt_s))
         self.taint_steps = int(np.ceil(4 * memory_s / dt_s))
         prior = default_prior(robot) if prior_params is None else np.asarray(prior_params, float)
         gate = None if gate_prob is None else float(chi2.ppf(gate_prob, 6))
-        if not (np.isfinite(process_std_rel) and process_std_rel >= 0):
-            raise ValueError(f"process_std_rel must be finite and >= 0, got {process_std_rel!r}")
         prior_cov = prior_covariance(prior, prior_std)
         process_cov = np.diag(process_std_rel**2 * np.diag(prior_cov))
         self.ukf = InertialParamUKF(prior, prior_cov, process_cov, gate_nis=gate)
+        self._init_noise_model(
+            force_std_n, torque_std_nm, actuation_noise, sensor_noise, peer_noise_std,
+            localization_noise, cutoff_hz,
+        )  # fmt: skip
+        self.min_excitation_snr = float(min_excitation_snr)
+        self.min_relative_fixes = int(min_relative_fixes)
+        self._init_bookkeeping(relative_grasps, record)
+
+    def _init_noise_model(
+        self, force_std_n, torque_std_nm, actuation_noise, sensor_noise, peer_noise_std,
+        localization_noise, cutoff_hz,
+    ) -> None:  # fmt: skip
+        """The measurement covariance's parts (see the constructor's arguments)."""
+        dt_s, robot = self.dt_s, self.robot
         # Residuals of successive updates are correlated over the filter's decorrelation time
         # 1 / (2 ENBW), ENBW = 3 w / 32 for (w / (s + w))^3: treating them as independent would
         # make the filter overconfident, so the covariance is scaled by the number of updates that
@@ -357,7 +346,7 @@ class CargoEstimator:
         self._actuation_rel = np.repeat(self.actuation_noise[[1, 3]], 3)
         self._act_cov_sum = np.zeros((6, 6))
         self._act_cov_n = 0
-        self._thrust_to_base = wrench_transform(robot.thrust_rot, robot.thrust_pos)
+        self._thrust_to_base = robot.thrust_to_base
         sensor_noise = np.asarray(sensor_noise, dtype=float)
         if sensor_noise.shape != (3,) or np.any(sensor_noise < 0):
             raise ValueError("sensor_noise must be 3 non-negative numbers")
@@ -366,22 +355,13 @@ class CargoEstimator:
             raise ValueError("peer_noise_std must be 2 non-negative numbers")
         self._peer_noise_cov = np.diag(np.repeat(peer_noise**2, 3))
         self._peer_noise = bool(np.any(peer_noise > 0))  # else its covariance adds zeros
-        self.min_excitation_snr = float(min_excitation_snr)
         loc = np.asarray(localization_noise, dtype=float)
         if loc.shape != (2,) or np.any(loc < 0):
             raise ValueError("localization_noise must be 2 non-negative numbers")
         self._loc_pos_std, self._loc_att_std = (float(x) for x in loc)
-        if min_relative_fixes < 1:
-            raise ValueError(f"min_relative_fixes must be >= 1, got {min_relative_fixes}")
-        self.min_relative_fixes = int(min_relative_fixes)
         # Noise gains of the slow filter (impulse response energy of y, y', y''): white noise of
         # std s per step becomes s * g on the filtered value and its derivatives.
-        probe = StateVariableFilter(1, dt_s, cutoff_hz)
-        probe.step(np.zeros(1))
-        energy = np.zeros(3)
-        for k in range(int(20 * probe.delay_s / dt_s)):
-            energy += np.concatenate(probe.step(np.array([1.0 if k == 0 else 0.0]))) ** 2
-        gains = np.sqrt(energy)
+        gains = StateVariableFilter(1, dt_s, cutoff_hz).noise_gains()
         # Accelerations in the balance: base linear (accelerometer, y), angular (gyro, y') and
         # joint (encoders, y'').
         self._acc_noise = sensor_noise[0] * gains[0]
@@ -396,9 +376,12 @@ class CargoEstimator:
         self._robot_inertia = sum(
             float(np.linalg.eigvalsh(link.inertia_com)[-1]) for link in robot.links
         )
+
+    def _init_bookkeeping(self, relative_grasps, record: bool) -> None:
+        """Counters, histories and the peers' relative grasps, at the start of a run."""
         self._grasp_lever = 0.0
         self.n_skipped_low_excitation = 0
-        self._rot_world_base: tuple | None = None  # rows of floats (rne's helpers)
+        self._rot_world_base: np.ndarray | None = None  # (3, 3) base frame in world
         self._pos_world_base: np.ndarray | None = None
         self._last_input: tuple[np.ndarray, ...] | None = None
         self._tainted_until = -1
@@ -488,17 +471,18 @@ class CargoEstimator:
         return self._record_instant(stamp, q, fix)
 
     def _filter_balance(self, thrust_command: np.ndarray) -> None:
-        values, rot_bg, pos_bg = balance_rows(
-            self.robot, *self.pre.base_and_joint_motion_rows(), self.pre.thrust().tolist()
+        m = self.pre.motion()
+        balance, rot_bg, pos_bg = balance_in_grasp_frame(
+            self.robot, m.w_base, m.wd_base, m.acc_base, m.q, m.qd, m.qdd, self.pre.thrust()
         )
         # Per-step covariance of the actuation noise, carried into the grasp frame.
         to_grasp = grasp_from_base(rot_bg, pos_bg) @ self._thrust_to_base
         std = self._actuation_abs + self._actuation_rel * np.abs(thrust_command)
         self._act_cov_sum += (to_grasp * std**2) @ to_grasp.T
         self._act_cov_n += 1
-        self._grasp_lever = norm3(pos_bg)
-        # [thrust_G (6), links_G (6), Y (60, row by row)].
-        self._balance, _, _ = self.balance_filter.step(np.array(values))
+        self._grasp_lever = math.sqrt(pos_bg @ pos_bg)
+        filtered, _, _ = self.balance_filter.step(balance.to_vector())
+        self._balance = Balance.from_vector(filtered)
 
     def _update_attitude(self, gyro_imu, base_pos_world, base_quat_world) -> bool:
         """Attitude from the last fix, propagated with the gyro between fixes."""
@@ -508,29 +492,28 @@ class CargoEstimator:
             if quat.shape != (4,) or pos.shape != (3,):
                 raise ValueError("base_pos_world must be (3,) and base_quat_world (4,)")
             if np.all(np.isfinite(quat)) and np.all(np.isfinite(pos)) and np.linalg.norm(quat) > 0:
-                self._rot_world_base = as_rows(quat_to_mat(quat))
+                self._rot_world_base = quat_to_mat(quat)
                 self._pos_world_base = pos.copy()
                 self.n_fixes += 1
                 return True
             self.n_bad_readings += 1
         if self._rot_world_base is not None:
-            w_base = m_v(self._imu_rot, gyro_imu.tolist())
-            step = exp_so3_rows(v_scale(self.dt_s, w_base))
-            self._rot_world_base = m_m(self._rot_world_base, step)
+            w_base = self._imu_rot @ gyro_imu
+            self._rot_world_base = self._rot_world_base @ exp_so3(self.dt_s * w_base)
         return False
 
     def _record_instant(self, stamp: int, q_raw: np.ndarray, fix: bool) -> WrenchMessage | None:
         b = self._balance
-        wrench_grasp = b[0:6] - b[6:12]
+        wrench_grasp = b.thrust - b.links
         # Per-step actuation covariance averaged over this update's window (grasp frame).
         act_cov = self._act_cov_sum / max(self._act_cov_n, 1)
         self._act_cov_sum = np.zeros((6, 6))
         self._act_cov_n = 0
         tainted = stamp <= self._tainted_until
         self._pending[stamp] = _Instant(
-            thrust=b[0:6].copy(),
-            links=b[6:12].copy(),
-            regressor=b[12:72].reshape(6, 10).copy(),
+            thrust=b.thrust.copy(),
+            links=b.links.copy(),
+            regressor=b.regressor.copy(),
             act_cov=act_cov,
             tainted=tainted,
         )
@@ -539,7 +522,7 @@ class CargoEstimator:
         # The grasp pose for the relative-grasp average uses the current encoders, not the
         # filtered (delayed) angles, so that it matches the fix in time.
         rot_bg, pos_bg = self.robot_grasp_pose(q_raw)
-        rot_wb = np.array(self._rot_world_base)
+        rot_wb = self._rot_world_base
         rot_wg = rot_wb @ rot_bg
         pos_wg = self._pos_world_base + rot_wb @ pos_bg
         if fix:
@@ -677,12 +660,12 @@ class CargoEstimator:
         """Does the filtered motion of this instant stand above the noise of its measurement?"""
         acc = regressor[:3, 0]
         # The force rows' h-columns are skew(wd) + skew(w)^2: wd is their antisymmetric part.
-        (_, h01, h02), (h10, _, h12), (h20, h21, _) = regressor[:3, 1:4].tolist()
-        wd = (0.5 * (h21 - h12), 0.5 * (h02 - h20), 0.5 * (h10 - h01))
+        h = regressor[:3, 1:4]
+        wd = 0.5 * np.array((h[2, 1] - h[1, 2], h[0, 2] - h[2, 0], h[1, 0] - h[0, 1]))
         ang_noise = self._grasp_ang_acc_noise
         lin_noise = np.hypot(self._acc_noise, self._grasp_lever * ang_noise)
-        snr_lin = norm3(acc) / max(lin_noise, 1e-300)
-        snr_ang = norm3(wd) / max(ang_noise, 1e-300)
+        snr_lin = np.linalg.norm(acc) / max(lin_noise, 1e-300)
+        snr_ang = np.linalg.norm(wd) / max(ang_noise, 1e-300)
         return max(snr_lin, snr_ang) >= self.min_excitation_snr
 
     def _relative_pose_cov(self, wrench: np.ndarray, n_fixes: int) -> np.ndarray:
@@ -699,8 +682,9 @@ class CargoEstimator:
         current estimate (scalar per block, magnitudes only): force M sigma_a + m_c L sigma_qdd,
         moment J sigma_wd + M L sigma_a + m_c |c| L sigma_qdd, with M the robot-plus-cargo mass,
         L the base-to-grasp lever and J the inertia about the grasp."""
-        m_c, h_x, h_y, h_z, i_xx, i_yy, i_zz = self.ukf.params_mean()[:7].tolist()
-        com = norm3((h_x, h_y, h_z)) / m_c
+        params = self.ukf.params_mean()
+        m_c, i_xx, i_yy, i_zz = (float(x) for x in params[[0, 4, 5, 6]])
+        com = float(np.linalg.norm(params[1:4])) / m_c
         lever = self._grasp_lever
         total = self._robot_mass + m_c
         inertia = self._robot_inertia + self._robot_mass * lever**2 + max(i_xx, i_yy, i_zz)
@@ -761,3 +745,10 @@ class CargoEstimator:
             "stale_messages": self.n_stale_messages,
             "pending": len(self._pending),
         }
+
+
+# ---------------------------------------------------------------------------------------------
+# Temporary: removed when envs/ and agents/ are rewritten (#14). envs/cargo_transport.py imports
+# it; use ``geometry.exp_so3``.
+def exp_so3_rows(rotvec) -> tuple:
+    return tuple(map(tuple, exp_so3(np.asarray(rotvec, dtype=float)).tolist()))

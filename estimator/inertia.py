@@ -46,7 +46,6 @@ __all__ = [
     "pseudo_inertia_distance",
     "pseudo_inertia_to_params",
     "pseudo_inertia_transform",
-    "skew",
     "transform_params",
     "vec_to_inertia",
     "project_physical",
@@ -144,14 +143,6 @@ def _check_rotation(rotation: np.ndarray) -> None:
 
 
 # --------------------------------------------------------------------------- small helpers
-
-
-def skew(v: np.ndarray) -> np.ndarray:
-    """Cross-product matrix [v]x of shape (..., 3, 3), with [v]x u = v x u."""
-    v = _as_array(v, (3,), "v")
-    x, y, z = np.moveaxis(v, -1, 0)
-    zero = np.zeros_like(x)
-    return np.stack([zero, -z, y, z, zero, -x, -y, x, zero], axis=-1).reshape(v.shape + (3,))
 
 
 def _vec_to_inertia(v: np.ndarray) -> np.ndarray:

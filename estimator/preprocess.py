@@ -22,17 +22,34 @@ of y'' (a ramp of 0.02 rad/s gave y'' = -6e-3 rad/s^2 at 2 Hz instead of 0).
 
 from __future__ import annotations
 
-import numpy as np
-from scipy.linalg import expm
+from dataclasses import dataclass
 
-from .rne import Kinematics, RobotDescription, propagate, v_cross, v_sub, wrench_transform
+import numpy as np
+from numba import njit
+from scipy.linalg import expm, solve_discrete_lyapunov
+
+from .rne import Kinematics, RobotDescription, point_acceleration, propagate
+
+
+@njit(cache=True)
+def _first_order_hold_step(ad, b_value, b_slope, state, u_prev, u):
+    """x_k+1 = Ad x_k + b_value u_k + b_slope (u_k+1 - u_k), every channel (column) at once."""
+    return ad @ state + b_value[:, None] * u_prev + b_slope[:, None] * (u - u_prev)
 
 
 class StateVariableFilter:
     """Third-order critically damped low-pass with derivatives, vectorised over channels.
 
-    ``step(u)`` takes one sample (n_channels,) and returns (y, yd, ydd), each (n_channels,).
-    The first sample initialises the filter at rest at that value (no start-up transient on y).
+    Continuous form x' = A x + B u with x = (y, y', y''), A the companion matrix of (s + w)^3 and
+    B = (0, 0, w^3); discretised exactly for an input linear between samples (first-order hold):
+
+        x_k+1 = Ad x_k + b_value u_k + b_slope (u_k+1 - u_k),   Ad = exp(A dt),
+
+    with b_value and b_slope the input columns of the exponential of the system augmented with
+    the input and its slope. ``step(u)`` takes one sample (n_channels,) and returns (y, yd, ydd),
+    each (n_channels,). The first sample puts the filter in its steady state for that constant
+    input, x_ss = (I - Ad)^-1 b_value u = (u, 0, 0) (unit DC gain, zero derivatives): no start-up
+    transient on y.
     """
 
     def __init__(self, n_channels: int, dt_s: float, cutoff_hz: float) -> None:
@@ -44,45 +61,63 @@ class StateVariableFilter:
         w = 2 * np.pi * cutoff_hz / np.sqrt(2 ** (1 / 3) - 1)
         a = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [-(w**3), -3 * w**2, -3 * w]])
         b = np.array([0.0, 0.0, w**3])
-        # Exact ZOH discretisation: expm of the augmented matrix [[A, B], [0, 0]] dt.
         # Exact first-order-hold discretisation: augment with the input and its constant slope.
         aug = np.zeros((5, 5))
         aug[:3, :3] = a
         aug[:3, 3] = b
         aug[3, 4] = 1.0
         e = expm(aug * dt_s)
-        self.ad = e[:3, :3]
-        self.b_value = e[:3, 3]  # weight of u_k
+        self.ad = np.ascontiguousarray(e[:3, :3])
+        self.b_value = np.ascontiguousarray(e[:3, 3])  # weight of u_k
         self.b_slope = e[:3, 4] / dt_s  # weight of (u_k+1 - u_k)
-        # One product per step: state_k+1 = [Ad | b_value - b_slope | b_slope] [state_k; u_k; u_k+1]
-        # (numpy's per-call overhead on a few small arrays would dominate the separate terms).
-        self._step_matrix = np.column_stack((self.ad, self.b_value - self.b_slope, self.b_slope))
         self.n_channels = int(n_channels)
         self.delay_s = 3.0 / w
-        self._stacked = np.zeros((5, self.n_channels))  # [state (3 rows); u_prev; u]
         self.state = np.zeros((3, self.n_channels))
+        self._u_prev = np.zeros(self.n_channels)
         self.started = False
 
     @property
     def u_prev(self) -> np.ndarray:
         """The previous input sample."""
-        return self._stacked[3].copy()
+        return self._u_prev.copy()
 
     def step(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         u = np.asarray(u, dtype=float)
         if u.shape != (self.n_channels,):
             raise ValueError(f"filter input must have shape ({self.n_channels},), got {u.shape}")
-        stacked = self._stacked
-        if not self.started:
-            self.state[0] = u
-            stacked[0] = u
-            self.started = True
+        if self.started:
+            self.state = _first_order_hold_step(
+                self.ad, self.b_value, self.b_slope, self.state, self._u_prev, u
+            )
         else:
-            stacked[4] = u
-            self.state = self._step_matrix @ stacked
-            stacked[:3] = self.state
-        stacked[3] = u
+            self.state = np.zeros((3, self.n_channels))
+            self.state[0] = u
+            self.started = True
+        self._u_prev = u.copy()
         return self.state[0], self.state[1], self.state[2]
+
+    def noise_gains(self) -> np.ndarray:
+        """(g_y, g_yd, g_ydd) (3,): white noise of standard deviation s per sample leaves s * g on
+        y, y' and y'' in steady state. g^2 is the energy of the impulse response, in closed form:
+        a unit impulse at sample 0 leaves x_1 = b_slope and x_2 = Ad x_1 + b_value - b_slope, then
+        x_k+1 = Ad x_k, so g^2 = x_1^2 + diag(P) with P = Ad P Ad^T + x_2 x_2^T (discrete
+        Lyapunov equation)."""
+        x1 = self.b_slope
+        x2 = self.ad @ x1 + (self.b_value - self.b_slope)
+        tail = solve_discrete_lyapunov(self.ad, np.outer(x2, x2))
+        return np.sqrt(x1**2 + np.diag(tail))
+
+
+@dataclass(frozen=True)
+class BaseAndJointMotion:
+    """Filtered motion of one instant, base frame B: what ``rne.propagate`` takes."""
+
+    w_base: np.ndarray  # (3,) rad/s
+    wd_base: np.ndarray  # (3,) rad/s^2
+    acc_base: np.ndarray  # (3,) acceleration of B's origin, m/s^2
+    q: np.ndarray  # (n_joints,) rad
+    qd: np.ndarray  # (n_joints,) rad/s
+    qdd: np.ndarray  # (n_joints,) rad/s^2
 
 
 class Preprocessor:
@@ -90,33 +125,25 @@ class Preprocessor:
 
     Per control step, ``step`` filters: the gyro and the IMU's specific force rotated into the base
     frame, the joint angles, and the commanded propulsion wrench (base frame, about B's origin).
-    ``kinematics()`` then gives the link kinematics (IMU lever arm removed: the accelerometer
-    measures the IMU point, a_imu = a_o + wd x r + w x (w x r)) and ``thrust()`` the filtered
-    thrust; all share the filter's delay.
+    ``motion()`` then gives the base and joint motion (IMU lever arm r removed: the accelerometer
+    measures the IMU point, a_imu = a_o + wd x r + w x (w x r)), ``kinematics()`` the link
+    kinematics and ``thrust()`` the filtered thrust; all share the filter's delay.
     """
 
     def __init__(self, robot: RobotDescription, dt_s: float, cutoff_hz: float = 1.0) -> None:
         self.robot = robot
         nj = robot.n_joints
-        self._slices = {
-            "gyro": slice(0, 3),
-            "accel": slice(3, 6),
-            "q": slice(6, 6 + nj),
-            "thrust": slice(6 + nj, 12 + nj),
-        }
-        self._gyro, self._accel, self._q, self._thrust = self._slices.values()
-        self._imu_pos = tuple(robot.imu_pos.tolist())
+        self._gyro, self._accel = slice(0, 3), slice(3, 6)
+        self._q, self._thrust = slice(6, 6 + nj), slice(6 + nj, 12 + nj)
+        self._imu_pos_neg = -np.asarray(robot.imu_pos, dtype=float)
         self.filter = StateVariableFilter(12 + nj, dt_s, cutoff_hz)
-        self._thrust_to_base = wrench_transform(robot.thrust_rot, robot.thrust_pos)
         # The filter's input from [gyro; accel; q; thrust command] in one product: the IMU
         # rotation twice, the identity, the thrust site's wrench transform, block-diagonal.
         self._to_input = np.zeros((12 + nj, 12 + nj))
-        for block, rows in zip(
-            (robot.imu_rot, robot.imu_rot, np.eye(nj), self._thrust_to_base),
-            self._slices.values(),
-            strict=True,
-        ):
-            self._to_input[rows, rows] = block
+        blocks = (robot.imu_rot, robot.imu_rot, np.eye(nj), robot.thrust_to_base)
+        rows = (self._gyro, self._accel, self._q, self._thrust)
+        for block, row in zip(blocks, rows, strict=True):
+            self._to_input[row, row] = block
         self._y = self._yd = self._ydd = np.zeros(12 + nj)
 
     def step(
@@ -142,21 +169,17 @@ class Preprocessor:
         """``step`` with the readings already in one vector (``raw_input``)."""
         self._y, self._yd, self._ydd = self.filter.step(self._to_input @ raw)
 
-    def base_and_joint_motion(self) -> tuple[np.ndarray, ...]:
-        """Filtered (w, wd, acc of B's origin, q, qd, qdd), base frame."""
-        return tuple(np.array(x) for x in self.base_and_joint_motion_rows())
-
-    def base_and_joint_motion_rows(self) -> tuple[list[float], ...]:
-        """``base_and_joint_motion`` as lists of floats."""
-        w, wd = self._y[self._gyro].tolist(), self._yd[self._gyro].tolist()
-        r = self._imu_pos
-        acc_imu = self._y[self._accel].tolist()
-        acc_origin = v_sub(v_sub(acc_imu, v_cross(wd, r)), v_cross(w, v_cross(w, r)))
+    def motion(self) -> BaseAndJointMotion:
+        """Filtered base and joint motion, base frame."""
+        w, wd = self._y[self._gyro], self._yd[self._gyro]
+        # a_o = a_imu - wd x r - w x (w x r): the IMU point's acceleration at the lever -r.
+        acc_origin = point_acceleration(self._y[self._accel], w, wd, self._imu_pos_neg)
         q = self._q
-        return w, wd, acc_origin, self._y[q].tolist(), self._yd[q].tolist(), self._ydd[q].tolist()
+        return BaseAndJointMotion(w, wd, acc_origin, self._y[q], self._yd[q], self._ydd[q])
 
     def kinematics(self) -> Kinematics:
-        return propagate(self.robot, *self.base_and_joint_motion())
+        m = self.motion()
+        return propagate(self.robot, m.w_base, m.wd_base, m.acc_base, m.q, m.qd, m.qdd)
 
     def thrust(self) -> np.ndarray:
         return self._y[self._thrust].copy()

@@ -14,6 +14,7 @@ from astrocargo.agents.controllers import CooperativeController
 from astrocargo.agents.trajectories import Trajectory
 from astrocargo.envs.sensors import SensorSuite, estimator_noise_kwargs, noise_profile
 from astrocargo.envs.world import World
+from astrocargo.estimator import rne
 from astrocargo.estimator.baselines import (
     Recording,
     batch_wls,
@@ -26,6 +27,7 @@ from astrocargo.estimator.inertia import (
     com_error_m,
     mass_rel_error,
     physical_violation,
+    vec_to_inertia,
 )
 from astrocargo.estimator.preprocess import StateVariableFilter
 
@@ -73,6 +75,30 @@ def test_filter_step_is_the_first_order_hold_recurrence():
         y, yd, ydd = f.step(u)
         np.testing.assert_allclose(np.array([y, yd, ydd]), state, rtol=1e-12, atol=1e-12)
         np.testing.assert_array_equal(f.u_prev, u)
+
+
+def test_filter_noise_gains_are_the_impulse_response_energy():
+    """The closed form (discrete Lyapunov equation) equals stepping a unit impulse through the
+    filter until it has died out."""
+    for cutoff in (0.25, 1.0):
+        f = StateVariableFilter(1, DT, cutoff)
+        f.step(np.zeros(1))
+        energy = np.zeros(3)
+        for k in range(int(20 * f.delay_s / DT)):
+            energy += np.concatenate(f.step(np.array([1.0 if k == 0 else 0.0]))) ** 2
+        np.testing.assert_allclose(f.noise_gains(), np.sqrt(energy), rtol=1e-12)
+
+
+def test_filter_starts_in_its_steady_state():
+    """(I - Ad)^-1 b_value u = (u, 0, 0): a constant input leaves the started filter at rest."""
+    f = StateVariableFilter(2, DT, 1.0)
+    np.testing.assert_allclose(np.linalg.solve(np.eye(3) - f.ad, f.b_value), [1, 0, 0], atol=1e-9)
+    u = np.array([0.3, -2.0])
+    first = np.array(f.step(u))
+    for _ in range(50):
+        y = np.array(f.step(u))
+    np.testing.assert_allclose(y, first, rtol=1e-12, atol=1e-12)
+    np.testing.assert_array_equal(first, [u, [0, 0], [0, 0]])
 
 
 @pytest.mark.parametrize("cutoff", [0.0, -1.0, 40.0, np.nan])
@@ -261,61 +287,130 @@ def test_missing_peer_message_is_skipped_and_counted():
     assert est.counters["skipped_missing"] > 0
 
 
-def test_fast_balance_equals_the_batched_model():
-    """The single-sample fast path is the same model as propagate / link_momentum_rate /
-    body_regressor (which tests/test_rne_mujoco.py holds against MuJoCo)."""
-    from astrocargo.estimator import rne
+# --------------------------------------------------------------------------- sub-body model
+def _rodrigues(axis, angle):
+    k = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
+    return np.eye(3) + np.sin(angle) * k + (1.0 - np.cos(angle)) * (k @ k)
 
+
+def _reference_balance(robot, w_base, wd_base, acc_base, q, qd, qdd, thrust_base):
+    """The seed paper's recursion (eq. 1-6) written plainly, link by link, for one sample:
+    thrust, links and the cargo regressor in G, and G's pose in B."""
+    rots, poss, ws, wds, accs = [np.eye(3)], [np.zeros(3)], [w_base], [wd_base], [acc_base]
+    for k, link in enumerate(robot.links[1:], start=1):
+        p = link.parent
+        rot = rots[p] @ link.rot_in_parent @ _rodrigues(link.joint_axis, q[k - 1])
+        r = rots[p] @ link.pos_in_parent
+        z = rot @ link.joint_axis
+        rots.append(rot)
+        poss.append(poss[p] + r)
+        ws.append(ws[p] + qd[k - 1] * z)
+        wds.append(wds[p] + qdd[k - 1] * z + np.cross(ws[p], qd[k - 1] * z))
+        accs.append(accs[p] + np.cross(wds[p], r) + np.cross(ws[p], np.cross(ws[p], r)))
+    links = np.zeros(6)
+    for k, link in enumerate(robot.links):
+        c = rots[k] @ link.com
+        f = link.mass * (accs[k] + np.cross(wds[k], c) + np.cross(ws[k], np.cross(ws[k], c)))
+        inertia = rots[k] @ link.inertia_com @ rots[k].T
+        n = inertia @ wds[k] + np.cross(ws[k], inertia @ ws[k]) + np.cross(poss[k] + c, f)
+        links += np.concatenate((f, n))
+    g = robot.grasp_link
+    r_g = rots[g] @ robot.grasp_pos
+    rot_g, pos_g = rots[g] @ robot.grasp_rot, poss[g] + r_g
+    acc_g = accs[g] + np.cross(wds[g], r_g) + np.cross(ws[g], np.cross(ws[g], r_g))
+
+    def to_grasp(wrench):
+        return np.concatenate(
+            (rot_g.T @ wrench[:3], rot_g.T @ (wrench[3:] - np.cross(pos_g, wrench[:3])))
+        )
+
+    # Columns of Y: the cargo's momentum rate in G for each unit parameter, from its definition
+    # f = m a + wd x h + w x (w x h), n = I wd + w x I w + h x a.
+    a, w, wd = rot_g.T @ acc_g, rot_g.T @ ws[g], rot_g.T @ wds[g]
+    regressor = np.zeros((6, 10))
+    for i in range(10):
+        pi = np.eye(10)[i]
+        m, h = pi[0], pi[1:4]
+        inertia = vec_to_inertia(pi[4:])
+        f = m * a + np.cross(wd, h) + np.cross(w, np.cross(w, h))
+        n = inertia @ wd + np.cross(w, inertia @ w) + np.cross(h, a)
+        regressor[:, i] = np.concatenate((f, n))
+    return to_grasp(thrust_base), to_grasp(links), regressor, rot_g, pos_g
+
+
+def _random_motion(rng, n_joints, batch=()):
+    w, wd, acc = rng.normal(size=(3, *batch, 3))
+    q, qd, qdd = rng.normal(size=(3, *batch, n_joints))
+    return w, wd, acc, q, qd, qdd
+
+
+def test_balance_equals_the_plain_recursion():
+    """The compiled two-pass model is the seed paper's recursion (which tests/test_rne_mujoco.py
+    holds against MuJoCo), written plainly in the test."""
     robot = World(1).robot_model(0)
     rng = np.random.default_rng(3)
     for _ in range(20):
-        w, wd, acc = rng.normal(size=(3, 3))
-        q, qd, qdd = rng.normal(size=(3, 2))
-        thrust = rng.normal(size=6)
-        kin = rne.propagate(robot, w, wd, acc, q, qd, qdd)
-        to_g = rne.grasp_from_base(kin.grasp_rot, kin.grasp_pos)
-        rot_t = kin.grasp_rot.T
-        expected = (
-            to_g @ rne.thrust_wrench(robot, thrust),
-            to_g @ rne.link_momentum_rate(robot, kin),
-            rne.body_regressor(rot_t @ kin.grasp_acc, rot_t @ kin.grasp_w, rot_t @ kin.grasp_wd),
-            kin.grasp_rot,
-            kin.grasp_pos,
-        )
-        got = rne.balance_in_grasp_frame(
-            robot, w, wd, acc, q, qd, qdd, rne.thrust_wrench(robot, thrust)
-        )
+        motion = _random_motion(rng, robot.n_joints)
+        thrust = rne.thrust_wrench(robot, rng.normal(size=6))
+        expected = _reference_balance(robot, *motion, thrust)
+        balance, rot, pos = rne.balance_in_grasp_frame(robot, *motion, thrust)
+        got = (balance.thrust, balance.links, balance.regressor, rot, pos)
         for e, g in zip(expected, got, strict=True):
             np.testing.assert_allclose(g, e, rtol=0, atol=1e-12)
+        kin = rne.propagate(robot, *motion)
+        to_g = rne.grasp_from_base(kin.grasp_rot, kin.grasp_pos)
+        np.testing.assert_allclose(to_g @ rne.link_momentum_rate(robot, kin), got[1], atol=1e-12)
         np.testing.assert_allclose(
             to_g @ rne.wrench_transform(kin.grasp_rot, kin.grasp_pos), np.eye(6), atol=1e-12
         )
+        np.testing.assert_allclose(to_g @ rne.cargo_regressor(kin), got[2], atol=1e-12)
 
 
-def test_float_helpers_are_the_numpy_products():
-    """rne's helpers on tuples of floats (the env's and the estimator's per-step paths) compute
-    numpy's products, up to rounding."""
-    from astrocargo.estimator import rne
+def test_batched_model_equals_per_sample():
+    robot = World(1).robot_model(0)
+    rng = np.random.default_rng(4)
+    motion = _random_motion(rng, robot.n_joints, batch=(2, 3))
+    kin = rne.propagate(robot, *motion)
+    links = rne.link_momentum_rate(robot, kin)
+    cargo = rne.cargo_regressor(kin)
+    regressor = rne.body_regressor(*motion[:3])
+    assert kin.rot.shape == (2, 3, len(robot.links), 3, 3) and cargo.shape == (2, 3, 6, 10)
+    for index in np.ndindex(2, 3):
+        single = rne.propagate(robot, *(x[index] for x in motion))
+        np.testing.assert_array_equal(kin.grasp_acc[index], single.grasp_acc)
+        np.testing.assert_array_equal(links[index], rne.link_momentum_rate(robot, single))
+        np.testing.assert_array_equal(cargo[index], rne.cargo_regressor(single))
+        np.testing.assert_array_equal(
+            regressor[index], rne.body_regressor(*(x[index] for x in motion[:3]))
+        )
+    rot, pos = rne.grasp_pose(robot, motion[3][0, 0])
+    rots, poss = rne.link_poses(robot, motion[3][0, 0])
+    np.testing.assert_allclose(rot, rots[robot.grasp_link] @ robot.grasp_rot, atol=1e-15)
+    np.testing.assert_allclose(
+        pos, poss[robot.grasp_link] + rots[robot.grasp_link] @ robot.grasp_pos, atol=1e-15
+    )
 
-    rng = np.random.default_rng(5)
-    for _ in range(50):
-        a, b = rng.normal(size=(2, 3, 3))
-        u, v, w, r = rng.normal(size=(4, 3))
-        ra, rb = rne.as_rows(a), rne.as_rows(b)
-        for got, expected in (
-            (rne.m_m(ra, rb), a @ b),
-            (rne.mt_m(ra, rb), a.T @ b),
-            (rne.m_mt(ra, rb), a @ b.T),
-            (rne.m_v(ra, tuple(u)), a @ u),
-            (rne.mt_v(ra, tuple(u)), a.T @ u),
-            (
-                rne.point_acc(tuple(u), tuple(w), tuple(v), tuple(r)),
-                u + np.cross(v, r) + np.cross(w, np.cross(w, r)),
-            ),
-        ):
-            np.testing.assert_allclose(np.array(got), expected, rtol=1e-13, atol=1e-13)
-        # Different summation orders (np.linalg.norm goes through the CPU's BLAS kernel): equal
-        # within a few ulps, never bit for bit.
-        np.testing.assert_array_max_ulp(rne.cross(u, v), np.cross(u, v), maxulp=4)
-        np.testing.assert_array_max_ulp(rne.cross(a, b), np.cross(a, b), maxulp=4)
-        np.testing.assert_array_max_ulp(rne.norm3(u), np.linalg.norm(u), maxulp=4)
+
+def test_model_inputs_are_checked():
+    robot = World(1).robot_model(0)
+    zeros = [np.zeros(3)] * 3 + [np.zeros(robot.n_joints)] * 3
+    with pytest.raises(ValueError, match="q must have shape"):
+        rne.balance_in_grasp_frame(robot, *zeros[:3], np.zeros(3), *zeros[4:], np.zeros(6))
+    with pytest.raises(ValueError, match="thrust_base must have shape"):
+        rne.balance_in_grasp_frame(robot, *zeros, np.zeros(3))
+    with pytest.raises(ValueError, match="wd_base must have shape"):
+        rne.propagate(robot, np.zeros((4, 3)), np.zeros(3), *zeros[2:])
+    with pytest.raises(ValueError, match="balance vector"):
+        rne.Balance.from_vector(np.zeros(71))
+
+
+def test_balance_vector_round_trip_and_robot_arrays():
+    rng = np.random.default_rng(6)
+    balance = rne.Balance(rng.normal(size=6), rng.normal(size=6), rng.normal(size=(6, 10)))
+    again = rne.Balance.from_vector(balance.to_vector())
+    for name in ("thrust", "links", "regressor"):
+        np.testing.assert_array_equal(getattr(again, name), getattr(balance, name))
+    robot = World(1).robot_model(0)
+    assert robot.arrays is robot.arrays  # packed once
+    np.testing.assert_array_equal(robot.arrays.mass, [link.mass for link in robot.links])
+    np.testing.assert_array_equal(robot.arrays.joint_axis[1], robot.links[1].joint_axis)

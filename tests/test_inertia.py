@@ -28,7 +28,6 @@ from astrocargo.estimator.inertia import (
     pseudo_inertia_distance,
     pseudo_inertia_to_params,
     pseudo_inertia_transform,
-    skew,
     transform_params,
     vec_to_inertia,
 )
@@ -107,12 +106,6 @@ def point_mass_params(masses_kg: np.ndarray, points_m: np.ndarray) -> np.ndarray
 
 
 # --------------------------------------------------------------------------- small helpers
-
-
-def test_skew_is_the_cross_product():
-    rng = np.random.default_rng(1)
-    v, u = rng.normal(size=(2, 7, 3))
-    np.testing.assert_allclose(skew(v) @ u[..., None], np.cross(v, u)[..., None], atol=1e-14)
 
 
 def test_inertia_vector_order_and_round_trip():
@@ -450,7 +443,6 @@ def _batched_cases(rng: np.random.Generator, shape: tuple[int, ...]):
         "principal_moments": (principal_moments, (inertia,)),
         "inertia_to_vec": (inertia_to_vec, (inertia,)),
         "vec_to_inertia": (vec_to_inertia, (pi[..., 4:],)),
-        "skew": (skew, (translation_m,)),
         "mass_rel_error": (mass_rel_error, (pi, pi_other)),
         "com_error_m": (com_error_m, (pi, pi_other)),
         "principal_rel_errors": (principal_rel_errors, (pi, pi_other)),
