@@ -12,16 +12,16 @@ results. The summary is ``results.json``, ``results.md`` (tables) and plots.
 
 Cases run on this machine in a process pool (``--backend local --workers N``, the default) or as
 Ray tasks on a cluster (``--backend ray --ray-address HOST:PORT``, default ``$RAY_ADDRESS``, else a
-new local Ray instance; needs ``pip install 'astrocargo[ray]'`` and astrocargo installed on every
-node). Each case depends only on its seed, so both backends give the same numbers; a case whose
-Ray worker dies runs again.
+new local Ray instance; needs the ray extra, ``bash scripts/setup.sh --dev``, and astrocargo
+installed on every node). Each case depends only on its seed, so both backends give the same
+numbers; a case whose Ray worker dies runs again.
 
-    python scripts/benchmark_estimation.py                         # the standard suite
-    python scripts/benchmark_estimation.py --seeds 2 --duration 30  # a quick look
-    python scripts/benchmark_estimation.py --suite sweep --seeds 40 --duration 30 \\
+    .venv/bin/python scripts/benchmark_estimation.py                         # the standard suite
+    .venv/bin/python scripts/benchmark_estimation.py --seeds 2 --duration 30  # a quick look
+    .venv/bin/python scripts/benchmark_estimation.py --suite sweep --seeds 40 --duration 30 \\
         --backend ray --ray-address HEAD:6379                      # Monte Carlo over cargos
-    python scripts/benchmark_estimation.py --robots 2 --duration 90 --seed 3 --noise nominal \\
-        --trajectory figure8_tumble --cargo-mass 5 --cargo-com 0.02,-0.03,0.04 \\
+    .venv/bin/python scripts/benchmark_estimation.py --robots 2 --duration 90 --seed 3 \\
+        --noise nominal --trajectory figure8_tumble --cargo-mass 5 --cargo-com 0.02,-0.03,0.04 \\
         --cargo-inertia 0.07,0.10,0.11,0.005,0,-0.004 --comm-latency 0.1 --comm-drop 0.2 \\
         --out case.json                                            # one custom case
 """

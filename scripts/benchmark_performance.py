@@ -12,7 +12,7 @@ Sections:
   subprocess per copy as subprocess_steps_per_s).
 
 Usage:
-    python scripts/benchmark_performance.py [--only {estimator,env,training}] [--json FILE]
+    .venv/bin/python scripts/benchmark_performance.py [--only SECTION] [--json FILE]
 
 With --json the figures are merged into FILE under the section's key (other keys are kept).
 

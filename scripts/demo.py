@@ -6,8 +6,8 @@ observations and their own live estimates. Prints a table of final errors and ma
 times per robot and saves a figure like the paper's Fig. 3: each parameter's estimate with its
 2-sigma band against the truth over time. Optionally an animated GIF.
 
-    MUJOCO_GL=egl python scripts/demo.py                 # the defaults above
-    python scripts/demo.py --trajectory figure8_tumble --duration 60 --video out/demo.gif
+    MUJOCO_GL=egl .venv/bin/python scripts/demo.py                 # the defaults above
+    .venv/bin/python scripts/demo.py --trajectory figure8_tumble --duration 60 --video out/demo.gif
 """
 
 from __future__ import annotations

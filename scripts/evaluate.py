@@ -9,9 +9,9 @@ deviation over episodes) of the return (mean over robots), the cargo tracking er
 mean over the episode and at its end), and the estimators' errors at the end of the episode
 (mean over robots); ``--json`` writes every episode and the summaries.
 
-    python scripts/evaluate.py --policy runs/ppo_est runs/ppo_noest zero scripted \\
+    .venv/bin/python scripts/evaluate.py --policy runs/ppo_est runs/ppo_noest zero scripted \\
         --episodes 10 --json runs/eval.json
-    MUJOCO_GL=egl python scripts/evaluate.py --policy runs/ppo_est --video out/videos
+    MUJOCO_GL=egl .venv/bin/python scripts/evaluate.py --policy runs/ppo_est --video out/videos
 
 The task (robots, trajectory, episode length, noise) comes from the first run folder's
 configuration, else from the flags (default: ``LEARNING_TASK``, 2 robots).

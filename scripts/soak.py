@@ -1,6 +1,6 @@
 """Soak test: one long episode with the scripted controller, checking that nothing drifts.
 
-    python scripts/soak.py --duration 3600 --robots 2
+    .venv/bin/python scripts/soak.py --duration 3600 --robots 2
 
 Runs ``astrobee_cargo_v0`` for ``--duration`` simulated seconds (one episode, 62.5 Hz) with the
 observation-driven cooperative controller (``ObservationController``, ``--cargo-model``

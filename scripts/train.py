@@ -12,22 +12,22 @@ TensorBoard logs under ``tb/``. ``--timesteps`` counts samples as SB3 does: one 
 control step in the shared view (environment steps = timesteps / robots), one per control step
 in the central view.
 
-    python scripts/train.py --algo ppo --robots 2 --timesteps 600000 --copies 2 \\
+    .venv/bin/python scripts/train.py --algo ppo --robots 2 --timesteps 600000 --copies 2 \\
         --seed 1 --checkpoint-every 50000 --log-dir runs/ppo_est
-    python scripts/train.py ... --no-estimates --log-dir runs/ppo_noest
-    tensorboard --logdir runs
+    .venv/bin/python scripts/train.py ... --no-estimates --log-dir runs/ppo_noest
+    .venv/bin/tensorboard --logdir runs
 
-``--backend rllib`` (needs ``pip install 'astrocargo[ray]'``) trains PPO with RLlib instead, for
-runs that outgrow one machine: the parallel env is wrapped in RLlib's ``ParallelPettingZooEnv``,
-all robots act with one shared policy (the ``shared`` view), and ``--env-runners`` sampling
-actors are spread over the Ray cluster at ``--ray-address`` (default ``$RAY_ADDRESS``, else a new
-local instance; ``--copies`` and ``--subprocess`` are SB3's); the learner runs in this process.
-Observations are normalised with RLlib's ``MeanStdFilter`` (rewards are not). ``--timesteps``
-counts robot samples as above. The run folder receives ``checkpoint/``
+``--backend rllib`` (needs the ray extra, ``bash scripts/setup.sh --dev``) trains PPO with RLlib
+instead, for runs that outgrow one machine: the parallel env is wrapped in RLlib's
+``ParallelPettingZooEnv``, all robots act with one shared policy (the ``shared`` view), and
+``--env-runners`` sampling actors are spread over the Ray cluster at ``--ray-address`` (default
+``$RAY_ADDRESS``, else a new local instance; ``--copies`` and ``--subprocess`` are SB3's); the
+learner runs in this process. Observations are normalised with RLlib's ``MeanStdFilter`` (rewards
+are not). ``--timesteps`` counts robot samples as above. The run folder receives ``checkpoint/``
 (``Algorithm.from_checkpoint`` restores it), ``config.json`` and ``progress.csv`` (one row per
 training iteration).
 
-    python scripts/train.py --backend rllib --ray-address HEAD:6379 --env-runners 8 \\
+    .venv/bin/python scripts/train.py --backend rllib --ray-address HEAD:6379 --env-runners 8 \\
         --timesteps 600000 --seed 1 --log-dir runs/rllib_ppo
 """
 
