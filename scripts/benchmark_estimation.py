@@ -47,10 +47,22 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))  # the sibling scripts/ray_backend.py
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # the sibling cli.py, ray_backend.py
+from cli import (  # noqa: E402
+    VectorAction,
+    join_vector_values,
+    nonnegative_float,
+    nonnegative_int,
+    output_dir,
+    output_file,
+    positive_float,
+    positive_int,
+)
 from ray_backend import import_ray, ray_connection  # noqa: E402
 
+from astrocargo.agents.trajectories import Trajectory  # noqa: E402
 from astrocargo.envs.sensors import NOISE_PROFILES  # noqa: E402
+from astrocargo.envs.world import MAX_ROBOTS  # noqa: E402
 
 # Default cargo: 5 kg, off-centre, full inertia tensor (cargo frame, about the centre of mass).
 CARGO_MASS = 5.0
@@ -58,6 +70,10 @@ CARGO_COM = (0.02, -0.03, 0.04)
 CARGO_INERTIA = (0.07, 0.10, 0.11, 0.005, 0.0, -0.004)
 MASS_TOL = 0.02
 CONTROL_HZ = 62.5
+# Shortest analysed case: the estimators make no update in their first 4 s (warm-up), and batch
+# least squares and the Cramer-Rao bound need recorded updates; twice the warm-up leaves 4 s.
+MIN_DURATION_S = 8.0
+VECTOR_OPTIONS = {"--cargo-com": 3, "--cargo-inertia": 6}
 BACKENDS = ("local", "ray")
 # A Ray task whose worker process or node dies is run again up to this many times; an exception
 # raised by the case itself is not retried (it would fail the same way).
@@ -593,24 +609,21 @@ def plot(results: list[dict], path: Path) -> None:
 
 
 # ------------------------------------------------------------------------------- CLI
-def _floats(text: str, n: int, name: str) -> tuple[float, ...]:
-    try:
-        values = tuple(float(x) for x in text.split(","))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{name} must be {n} comma-separated numbers") from None
-    if len(values) != n:
-        raise argparse.ArgumentTypeError(f"{name} must be {n} comma-separated numbers")
-    return values
-
-
-def main(argv: list[str] | None = None) -> int:
+def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--out-dir", default="out/benchmark_estimation")
-    p.add_argument("--seeds", type=int, default=5, help="seeds per scenario (standard suite)")
     p.add_argument(
-        "--workers", type=int, default=2, help="processes for the cases (--backend local)"
+        "--seeds", type=positive_int, default=5, help="seeds per scenario (standard suite)"
     )
-    p.add_argument("--duration", type=float, default=90.0, help="simulated seconds per case")
+    p.add_argument(
+        "--workers", type=positive_int, default=2, help="processes for the cases (--backend local)"
+    )
+    p.add_argument(
+        "--duration",
+        type=positive_float,
+        default=90.0,
+        help=f"simulated seconds per case, at least {MIN_DURATION_S:g}",
+    )
     p.add_argument(
         "--suite",
         choices=("standard", "smoke", "sweep"),
@@ -625,19 +638,80 @@ def main(argv: list[str] | None = None) -> int:
         "Ray instance",
     )
     # One custom case (these exact flags); with --robots the standard suite is not run.
-    p.add_argument("--robots", type=int)
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--robots", type=int, help=f"1..{MAX_ROBOTS}: run one custom case")
+    p.add_argument("--seed", type=nonnegative_int, default=0)
     p.add_argument("--noise", choices=sorted(NOISE_PROFILES), default="nominal")
-    p.add_argument("--trajectory", default="figure8_tumble")
-    p.add_argument("--cargo-mass", type=float, default=CARGO_MASS)
-    p.add_argument("--cargo-com", type=lambda s: _floats(s, 3, "--cargo-com"), default=CARGO_COM)
+    p.add_argument("--trajectory", default="figure8_tumble", choices=Trajectory.NAMES)
+    p.add_argument("--cargo-mass", type=positive_float, default=CARGO_MASS, help="kg")
     p.add_argument(
-        "--cargo-inertia", type=lambda s: _floats(s, 6, "--cargo-inertia"), default=CARGO_INERTIA
+        "--cargo-com",
+        action=VectorAction,
+        size=3,
+        default=CARGO_COM,
+        help="m, cargo frame: 3 numbers, comma-separated (--cargo-com=-0.045,0.012,-0.03) or "
+        "separated by spaces (--cargo-com -0.045 0.012 -0.03)",
     )
-    p.add_argument("--comm-latency", type=float, default=0.0)
-    p.add_argument("--comm-drop", type=float, default=0.0)
-    p.add_argument("--out", help="JSON file of the custom case")
-    args = p.parse_args(argv)
+    p.add_argument(
+        "--cargo-inertia",
+        action=VectorAction,
+        size=6,
+        default=CARGO_INERTIA,
+        help="kg m^2 about the centre of mass: Ixx,Iyy,Izz,Ixy,Ixz,Iyz, written as --cargo-com",
+    )
+    p.add_argument("--comm-latency", type=nonnegative_float, default=0.0, help="seconds")
+    p.add_argument("--comm-drop", type=nonnegative_float, default=0.0, help="probability, < 1")
+    p.add_argument("--out", help="JSON file of the custom case (default: custom_case.json)")
+    return p
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    """The command line, checked, with its output folder created: every error is the parser's,
+    before any case runs. A comma-separated vector may start with a minus sign after a space
+    (``--cargo-com -0.045,0.012,-0.03``)."""
+    p = build_parser()
+    argv = sys.argv[1:] if argv is None else list(argv)
+    args = p.parse_args(join_vector_values(argv, list(VECTOR_OPTIONS)))
+    if args.duration < MIN_DURATION_S:
+        p.error(
+            f"--duration must be at least {MIN_DURATION_S:g} s (the estimators' 4 s warm-up and "
+            f"time to record updates), got {args.duration:g}"
+        )
+    if args.robots is not None:
+        if not 1 <= args.robots <= MAX_ROBOTS:
+            p.error(f"--robots must be in 1..{MAX_ROBOTS}, got {args.robots}")
+        if not args.comm_drop < 1:
+            p.error(f"--comm-drop must be a probability below 1, got {args.comm_drop:g}")
+        output_file(p, Path(args.out or "custom_case.json"), "--out")
+    else:
+        output_dir(p, Path(args.out_dir), "--out-dir")
+    if args.backend == "ray":
+        try:
+            import_ray()
+        except ImportError as err:
+            p.error(str(err))
+    return args
+
+
+def suite_cases(args: argparse.Namespace) -> list[Case]:
+    """The cases of ``--suite``."""
+    if args.suite == "smoke":
+        return smoke_cases(args.duration)
+    if args.suite == "sweep":
+        return sweep_cases(args.seeds, args.duration)
+    return standard_cases(args.seeds, args.duration)
+
+
+def seed_list(cases: list[Case]) -> str:
+    """The seeds the cases use, as "0..4" when consecutive."""
+    seeds = sorted({c.seed for c in cases})
+    if seeds == list(range(seeds[0], seeds[-1] + 1)) and len(seeds) > 2:
+        return f"{seeds[0]}..{seeds[-1]}"
+    return ", ".join(map(str, seeds))
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    p = build_parser()
 
     if args.robots is not None:
         case = Case(
@@ -671,23 +745,13 @@ def main(argv: list[str] | None = None) -> int:
         return 0
 
     out_dir = Path(args.out_dir)
-    if args.suite == "smoke":
-        cases = smoke_cases(args.duration)
-    elif args.suite == "sweep":
-        cases = sweep_cases(args.seeds, args.duration)
-    else:
-        cases = standard_cases(args.seeds, args.duration)
+    cases = suite_cases(args)
     where = (
         f"{args.workers} local processes"
         if args.backend == "local"
         else f"Ray at {args.ray_address or 'a new local instance'}"
     )
-    print(f"seeds 0..{args.seeds - 1}; {len(cases)} cases on {where}; output {out_dir}")
-    if args.backend == "ray":
-        try:
-            import_ray()
-        except ImportError as err:
-            p.error(str(err))
+    print(f"seeds {seed_list(cases)}; {len(cases)} cases on {where}; output {out_dir}")
     start = time.perf_counter()
     results = run_all(cases, out_dir, args.workers, args.backend, args.ray_address)
     print(f"cases finished in {time.perf_counter() - start:.1f} s")

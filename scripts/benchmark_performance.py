@@ -37,6 +37,9 @@ from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # the sibling scripts/cli.py
+from cli import json_object_file  # noqa: E402
+
 SEED = 20240601
 
 
@@ -316,14 +319,27 @@ def merge_json(path: Path, results: dict[str, dict[str, float]]) -> None:
     path.write_text(json.dumps(data, indent=2) + "\n")
 
 
-def main(argv: list[str] | None = None) -> int:
+def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument(
         "--only", choices=sorted(SECTIONS), help="run one section (default: all implemented)"
     )
     parser.add_argument("--json", type=Path, metavar="FILE", help="merge results into FILE")
-    args = parser.parse_args(argv)
+    return parser
 
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    """The command line, checked before any benchmark runs: --json must be a new file or hold
+    a JSON object (the results are merged into it)."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.json is not None:
+        json_object_file(parser, args.json, "--json")
+    return args
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
     results: dict[str, dict[str, float]] = {}
     for name in [args.only] if args.only else list(SECTIONS):
         try:

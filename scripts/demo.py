@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import sys
 import time
 from pathlib import Path
 
@@ -26,9 +27,13 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 
 from tqdm import tqdm  # noqa: E402
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # the sibling scripts/cli.py
+from cli import nonnegative_int, output_dir, output_file, positive_float, positive_int  # noqa: E402
+
 from astrocargo.agents.controllers import ObservationController  # noqa: E402
 from astrocargo.agents.trajectories import Trajectory  # noqa: E402
 from astrocargo.envs import astrobee_cargo_v0  # noqa: E402
+from astrocargo.envs.sensors import NOISE_PROFILES  # noqa: E402
 from astrocargo.envs.world import MAX_ROBOTS  # noqa: E402
 from astrocargo.estimator.baselines import convergence_time  # noqa: E402
 from astrocargo.estimator.inertia import (  # noqa: E402
@@ -38,6 +43,7 @@ from astrocargo.estimator.inertia import (  # noqa: E402
 
 LABELS = ("m [kg]", "c_x [m]", "c_y [m]", "c_z [m]", "I_xx", "I_yy", "I_zz", "I_xy", "I_xz", "I_yz")
 MASS_TOL = 0.02  # convergence: mass error stays within 2 %
+CONTROL_HZ = 62.5  # the env's default control rate (Astrobee's GNC rate)
 
 
 def physical(pi: np.ndarray) -> np.ndarray:
@@ -51,7 +57,7 @@ def run(args: argparse.Namespace) -> dict:
         n_robots=args.robots,
         trajectory=args.trajectory,
         noise=args.noise,
-        max_cycles=int(round(args.duration * 62.5)),
+        max_cycles=control_steps(args.duration),
         render_mode="rgb_array" if args.video else None,
     )
     obs, _ = env.reset(seed=args.seed)
@@ -102,7 +108,7 @@ def run(args: argparse.Namespace) -> dict:
     plot(times, means[:, 0], stds[:, 0], truth[0], args, out / "estimates.png")
     (out / "results.json").write_text(json.dumps(results, indent=2, default=float))
     if frames:
-        save_gif(frames, out / Path(args.video).name, fps=62.5 / args.video_every)
+        save_gif(frames, Path(args.video), fps=CONTROL_HZ / args.video_every)
     env.close()
     return results
 
@@ -172,33 +178,61 @@ def print_table(results: dict) -> None:
     )
 
 
-def main() -> None:
+def control_steps(duration_s: float) -> int:
+    """Control steps of an episode of ``duration_s`` simulated seconds."""
+    return int(round(duration_s * CONTROL_HZ))
+
+
+def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--robots", type=int, default=2)
+    parser.add_argument("--robots", type=int, default=2, help=f"1..{MAX_ROBOTS}")
     parser.add_argument("--trajectory", default="figure8_yaw", choices=Trajectory.NAMES)
-    parser.add_argument("--noise", default="nominal", choices=("ideal", "nominal"))
-    parser.add_argument("--duration", type=float, default=90.0, help="simulated seconds")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--noise", default="nominal", choices=sorted(NOISE_PROFILES))
+    parser.add_argument("--duration", type=positive_float, default=90.0, help="simulated seconds")
+    parser.add_argument("--seed", type=nonnegative_int, default=0)
     parser.add_argument(
         "--cargo-model",
         default="estimate",
         choices=("estimate", "none", "truth"),
         help="cargo model the controller uses",
     )
-    parser.add_argument("--out-dir", default="out/demo")
-    parser.add_argument("--video", default=None, help="also write an animated GIF of this name")
-    parser.add_argument("--video-every", type=int, default=8, help="control steps per frame")
-    args = parser.parse_args()
+    parser.add_argument("--out-dir", default="out/demo", help="folder of the figure and results")
+    parser.add_argument(
+        "--video", default=None, metavar="GIF", help="also write an animated GIF to this path"
+    )
+    parser.add_argument(
+        "--video-every", type=positive_int, default=8, help="control steps per frame"
+    )
+    return parser
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    """The command line, checked, with its output folders created: every error is the parser's,
+    before anything runs."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
     if not 1 <= args.robots <= MAX_ROBOTS:
-        parser.error(f"--robots must be in 1..{MAX_ROBOTS}")
-    if not args.duration > 0:
-        parser.error("--duration must be positive")
+        parser.error(f"--robots must be in 1..{MAX_ROBOTS}, got {args.robots}")
+    if control_steps(args.duration) < 1:
+        parser.error(
+            f"--duration must be at least one control period ({1 / CONTROL_HZ} s), "
+            f"got {args.duration}"
+        )
+    output_dir(parser, Path(args.out_dir), "--out-dir")
+    if args.video is not None:
+        output_file(parser, Path(args.video), "--video", suffix=".gif")
+    return args
+
+
+def main(argv: list[str] | None = None) -> None:
+    args = parse_args(argv)
     print(f"seed {args.seed}")
     results = run(args)
     print_table(results)
     print(
         f"figure: {Path(args.out_dir) / 'estimates.png'}; "
         f"results: {Path(args.out_dir) / 'results.json'}"
+        + (f"; video: {args.video}" if args.video else "")
     )
 
 

@@ -33,8 +33,20 @@ os.environ.setdefault("MUJOCO_GL", "egl")  # only used with --video
 
 import numpy as np  # noqa: E402
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # the sibling scripts/cli.py
+from cli import (  # noqa: E402
+    nonnegative_int,
+    output_dir,
+    output_file,
+    positive_float,
+    positive_int,
+)
+
 from astrocargo.agents.controllers import ObservationController  # noqa: E402
+from astrocargo.agents.trajectories import Trajectory  # noqa: E402
 from astrocargo.envs import astrobee_cargo_v0  # noqa: E402
+from astrocargo.envs.sensors import NOISE_PROFILES  # noqa: E402
+from astrocargo.envs.world import MAX_ROBOTS  # noqa: E402
 from astrocargo.envs.wrappers import LEARNING_TASK  # noqa: E402
 
 METRICS = (
@@ -113,15 +125,25 @@ class TrainedPolicy:
         return np.asarray(action, dtype=np.float64).reshape(n, -1)
 
 
+def check_policy_spec(spec: str) -> None:
+    """ValueError unless ``spec`` is 'zero', 'scripted' or a run folder of scripts/train.py."""
+    if spec in ("zero", "scripted"):
+        return
+    run_dir = Path(spec)
+    if not (run_dir / "model.zip").is_file() or not (run_dir / "config.json").is_file():
+        raise ValueError(
+            f"policy must be 'zero', 'scripted' or a run folder of scripts/train.py (with "
+            f"model.zip and config.json), got {spec!r}"
+        )
+
+
 def make_policy(spec: str, cargo_model: str):
+    check_policy_spec(spec)
     if spec == "zero":
         return ZeroPolicy()
     if spec == "scripted":
         return ScriptedPolicy(cargo_model)
-    run_dir = Path(spec)
-    if not (run_dir / "model.zip").is_file():
-        raise ValueError(f"policy must be 'zero', 'scripted' or a run folder, got {spec!r}")
-    return TrainedPolicy(run_dir)
+    return TrainedPolicy(Path(spec))
 
 
 # --------------------------------------------------------------------------- episodes
@@ -284,7 +306,7 @@ def plot_curves(curves: dict, baselines: list[dict], path: Path) -> None:
     plt.close(fig)
 
 
-def main(argv: list[str] | None = None) -> int:
+def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--policy", nargs="+", default=[], help="run folders, 'zero' or 'scripted'")
     parser.add_argument(
@@ -292,25 +314,51 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--plot", type=Path, metavar="PNG", help="learning curves (with --curve)")
     parser.add_argument("--cargo-model", default="estimate", choices=("estimate", "none", "truth"))
-    parser.add_argument("--episodes", type=int, default=10)
-    parser.add_argument("--seed", type=int, default=1000, help="episode k uses seed + k")
+    parser.add_argument("--episodes", type=positive_int, default=10)
+    parser.add_argument(
+        "--seed", type=nonnegative_int, default=1000, help="episode k uses seed + k"
+    )
     parser.add_argument("--robots", type=int, default=None, help="default: run's, else 2")
-    parser.add_argument("--trajectory", default=None)
-    parser.add_argument("--max-cycles", type=int, default=None)
-    parser.add_argument("--noise", default=None)
-    parser.add_argument("--control-hz", type=float, default=None)
+    parser.add_argument("--trajectory", default=None, choices=Trajectory.NAMES)
+    parser.add_argument("--max-cycles", type=positive_int, default=None)
+    parser.add_argument("--noise", default=None, choices=sorted(NOISE_PROFILES))
+    parser.add_argument("--control-hz", type=positive_float, default=None)
     parser.add_argument("--json", type=Path, metavar="FILE", help="write the results here")
     parser.add_argument("--video", type=Path, metavar="DIR", help="GIF of episode 0 per policy")
+    return parser
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    """The command line, checked, with output folders created: every error is the parser's,
+    before any model is loaded or episode run."""
+    parser = build_parser()
     args = parser.parse_args(argv)
-    if args.episodes < 1:
-        parser.error("--episodes must be a positive integer")
     if not args.policy and not args.curve:
         parser.error("give --policy or --curve")
+    if args.robots is not None and not 1 <= args.robots <= MAX_ROBOTS:
+        parser.error(f"--robots must be in 1..{MAX_ROBOTS}, got {args.robots}")
+    for spec in args.policy:
+        try:
+            check_policy_spec(spec)
+        except ValueError as err:
+            parser.error(f"--policy: {err}")
+    for run_dir in args.curve:
+        if not (run_dir / "config.json").is_file():
+            parser.error(f"--curve: {run_dir} is not a run folder of scripts/train.py")
+    if args.plot is not None:
+        if not args.curve:
+            parser.error("--plot draws the learning curves of --curve: give --curve too")
+        output_file(parser, args.plot, "--plot", suffix=".png")
+    if args.json is not None:
+        output_file(parser, args.json, "--json")
+    if args.video is not None:
+        output_dir(parser, args.video, "--video")
+    return args
 
-    try:
-        policies = [make_policy(spec, args.cargo_model) for spec in args.policy]
-    except ValueError as err:
-        parser.error(str(err))
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    policies = [make_policy(spec, args.cargo_model) for spec in args.policy]
     trained = [p.config for p in policies if isinstance(p, TrainedPolicy)]
     trained += [json.loads((run / "config.json").read_text()) for run in args.curve]
     base = trained[0]["env_kwargs"] if trained else {**LEARNING_TASK, "n_robots": 2}

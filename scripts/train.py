@@ -62,6 +62,8 @@ from stable_baselines3.common.vec_env import (  # noqa: E402
     VecNormalize,
 )
 
+from astrocargo.agents.trajectories import Trajectory  # noqa: E402
+from astrocargo.envs.sensors import NOISE_PROFILES  # noqa: E402
 from astrocargo.envs.world import MAX_ROBOTS  # noqa: E402
 from astrocargo.envs.wrappers import (  # noqa: E402
     LEARNING_TASK,
@@ -69,7 +71,8 @@ from astrocargo.envs.wrappers import (  # noqa: E402
     make_vec_env,
 )
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))  # the sibling scripts/ray_backend.py
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # the sibling cli.py, ray_backend.py
+from cli import nonnegative_int, output_dir, positive_float, positive_int  # noqa: E402
 from ray_backend import import_ray, ray_connection  # noqa: E402
 
 ALGOS = {"ppo": PPO, "sac": SAC}
@@ -406,7 +409,10 @@ def build_parser() -> argparse.ArgumentParser:
         "local Ray instance",
     )
     parser.add_argument(
-        "--env-runners", type=int, default=2, help="RLlib sampling actors (--backend rllib)"
+        "--env-runners",
+        type=nonnegative_int,
+        default=2,
+        help="RLlib sampling actors (--backend rllib; 0: sample in the script's process)",
     )
     parser.add_argument("--algo", choices=sorted(ALGOS), default="ppo")
     parser.add_argument("--view", choices=VIEWS, default="shared")
@@ -414,14 +420,16 @@ def build_parser() -> argparse.ArgumentParser:
         "--robots", type=int, default=2, help=f"robots holding the cargo, 1..{MAX_ROBOTS}"
     )
     parser.add_argument("--timesteps", type=int, default=600_000, help="samples (see above)")
-    parser.add_argument("--copies", type=int, default=2, help="environment copies")
+    parser.add_argument("--copies", type=positive_int, default=2, help="environment copies")
     parser.add_argument(
         "--subprocess",
         action=argparse.BooleanOptionalAction,
         default=False,
         help="run each copy in its own process",
     )
-    parser.add_argument("--seed", type=int, default=None, help="default: drawn and printed")
+    parser.add_argument(
+        "--seed", type=nonnegative_int, default=None, help="default: drawn and printed"
+    )
     parser.add_argument("--log-dir", default="runs/ppo", help="run folder")
     parser.add_argument(
         "--estimates",
@@ -429,15 +437,17 @@ def build_parser() -> argparse.ArgumentParser:
         default=True,
         help="observe the estimators' cargo estimates",
     )
-    parser.add_argument("--trajectory", default=LEARNING_TASK["trajectory"])
     parser.add_argument(
-        "--max-cycles", type=int, default=LEARNING_TASK["max_cycles"], help="steps/episode"
+        "--trajectory", default=LEARNING_TASK["trajectory"], choices=Trajectory.NAMES
     )
-    parser.add_argument("--noise", default=LEARNING_TASK["noise"])
     parser.add_argument(
-        "--control-hz", type=float, default=LEARNING_TASK["control_hz"], help="policy rate"
+        "--max-cycles", type=positive_int, default=LEARNING_TASK["max_cycles"], help="steps/episode"
     )
-    parser.add_argument("--torch-threads", type=int, default=1)
+    parser.add_argument("--noise", default=LEARNING_TASK["noise"], choices=sorted(NOISE_PROFILES))
+    parser.add_argument(
+        "--control-hz", type=positive_float, default=LEARNING_TASK["control_hz"], help="policy rate"
+    )
+    parser.add_argument("--torch-threads", type=positive_int, default=1)
     parser.add_argument(
         "--progress-bar", action=argparse.BooleanOptionalAction, default=True, help="SB3's bar"
     )
@@ -449,29 +459,38 @@ def build_parser() -> argparse.ArgumentParser:
         help="override HYPERPARAMS entries, values as Python literals (gamma=0.98)",
     )
     parser.add_argument(
-        "--checkpoint-every", type=int, default=0, help="save the model every N samples (0: no)"
+        "--checkpoint-every",
+        type=nonnegative_int,
+        default=0,
+        help="save the model every N samples (0: no)",
     )
     parser.add_argument("--verbose", type=int, default=0)
     return parser
 
 
-def main(argv: list[str] | None = None) -> int:
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    """The command line, checked, with the run folder created: every error is the parser's,
+    before anything is built."""
     parser = build_parser()
     args = parser.parse_args(argv)
-    for name in ("timesteps", "copies", "max_cycles", "torch_threads"):
-        if getattr(args, name) < 1:
-            parser.error(f"--{name.replace('_', '-')} must be a positive integer")
+    if args.timesteps < 1:
+        parser.error("--timesteps must be a positive integer")
     if not 1 <= args.robots <= MAX_ROBOTS:
-        parser.error(f"--robots must be in 1..{MAX_ROBOTS}")
+        parser.error(f"--robots must be in 1..{MAX_ROBOTS}, got {args.robots}")
     if args.backend == "rllib":
         if args.algo != "ppo" or args.view != "shared":
             parser.error("--backend rllib trains PPO in the shared view only")
-        if args.env_runners < 0:
-            parser.error("--env-runners must be 0 (sample in this process) or more")
         try:
             import_ray("--backend rllib needs Ray and RLlib")
         except ImportError as err:
             parser.error(str(err))
+    output_dir(parser, Path(args.log_dir), "--log-dir")
+    return args
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    if args.backend == "rllib":
         train_rllib(args)
     else:
         train(args)
