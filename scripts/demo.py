@@ -66,18 +66,20 @@ def run(args: argparse.Namespace) -> dict:
     truth = [physical(p) for p in sim.true_params_grasp]
     times, means, stds, track, frames = [], [], [], [], []
     start = time.perf_counter()
-    for step in tqdm(range(env.max_cycles), desc="simulating", unit="step"):
-        actions, _ = controller.predict(obs)
-        obs, _, _, _, infos = env.step(actions)
-        times.append(sim.data.time)
-        estimates = [est.physical_estimate() for est in sim.estimators]
-        means.append([m for m, _ in estimates])
-        stds.append([s for _, s in estimates])
-        track.append(sim.tracking_error())
-        if args.video and step % args.video_every == 0:
-            frames.append(env.render())
-        if not env.agents:
-            break
+    step = 0
+    with tqdm(total=env.max_cycles, desc="simulating", unit="step") as bar:
+        while env.agents:
+            actions, _ = controller.predict(obs)
+            obs, _, _, truncations, infos = env.step(actions)
+            times.append(sim.data.time)
+            estimates = [est.physical_estimate() for est in sim.estimators]
+            means.append([m for m, _ in estimates])
+            stds.append([s for _, s in estimates])
+            track.append(sim.tracking_error())
+            if args.video and step % args.video_every == 0:
+                frames.append(env.render())
+            step += 1
+            bar.update()
     wall = time.perf_counter() - start
     reason = next(iter(infos.values())).get("termination_reason")
     times, means, stds, track = map(np.asarray, (times, means, stds, track))
@@ -87,6 +89,8 @@ def run(args: argparse.Namespace) -> dict:
         "wall_s": wall,
         "sim_s": float(times[-1]),
         "termination_reason": reason,
+        # None: the episode ran to its time limit (truncated), else the termination's reason.
+        "end": "time limit" if reason is None and any(truncations.values()) else reason,
         "agents": {},
     }
     for i, agent in enumerate(env.possible_agents):
@@ -158,7 +162,7 @@ def print_table(results: dict) -> None:
     print(
         f"\nfinal estimates after {results['sim_s']:.1f} s (wall {results['wall_s']:.1f} s, "
         f"real-time factor {results['sim_s'] / results['wall_s']:.1f}); "
-        f"termination: {results['termination_reason']}"
+        f"end: {results['end']}"
     )
     header = f"{'agent':<12}{'mass err':>10}{'CoM err':>10}{'principal moment errs':>26}"
     print(header + f"{'mass conv.':>12}{'updates':>9}{'skipped':>9}")
