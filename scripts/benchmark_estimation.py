@@ -49,6 +49,7 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the sibling cli.py, ray_backend.py
 from cli import (  # noqa: E402
+    Formatter,
     VectorAction,
     join_vector_values,
     nonnegative_float,
@@ -610,7 +611,7 @@ def plot(results: list[dict], path: Path) -> None:
 
 # ------------------------------------------------------------------------------- CLI
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=Formatter)
     p.add_argument("--out-dir", default="out/benchmark_estimation")
     p.add_argument(
         "--seeds", type=positive_int, default=5, help="seeds per scenario (standard suite)"
@@ -634,7 +635,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--ray-address",
         default=os.environ.get("RAY_ADDRESS"),
-        help="Ray cluster (HOST:PORT) for --backend ray; default $RAY_ADDRESS, else a new local "
+        help="Ray cluster (HOST:PORT) for --backend ray, default $RAY_ADDRESS; none: a new local "
         "Ray instance",
     )
     # One custom case (these exact flags); with --robots the standard suite is not run.
@@ -660,7 +661,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--comm-latency", type=nonnegative_float, default=0.0, help="seconds")
     p.add_argument("--comm-drop", type=nonnegative_float, default=0.0, help="probability, < 1")
-    p.add_argument("--out", help="JSON file of the custom case (default: custom_case.json)")
+    p.add_argument("--out", help="JSON file of the custom case (none: custom_case.json)")
     return p
 
 

@@ -38,7 +38,7 @@ from pathlib import Path  # noqa: E402
 import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the sibling scripts/cli.py
-from cli import json_object_file  # noqa: E402
+from cli import Formatter, json_object_file  # noqa: E402
 
 SEED = 20240601
 
@@ -320,9 +320,9 @@ def merge_json(path: Path, results: dict[str, dict[str, float]]) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=Formatter)
     parser.add_argument(
-        "--only", choices=sorted(SECTIONS), help="run one section (default: all implemented)"
+        "--only", choices=sorted(SECTIONS), help="run one section (none: every section)"
     )
     parser.add_argument("--json", type=Path, metavar="FILE", help="merge results into FILE")
     return parser

@@ -7,9 +7,11 @@ Every check ends in the parser's own error (``parser.error``: usage, message, ex
 from __future__ import annotations
 
 import argparse
+import copy
 import json
 import os
 import re
+from argparse import SUPPRESS
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -154,3 +156,14 @@ def check(parser: argparse.ArgumentParser, ok: bool, message: str) -> None:
     """The parser's error with ``message`` unless ``ok``."""
     if not ok:
         parser.error(message)
+
+
+class Formatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
+    """--help lists every option with its default (options without a help text too) and keeps
+    the description's line breaks."""
+
+    def _format_action(self, action: argparse.Action) -> str:
+        if action.help is None and action.option_strings and action.default is not SUPPRESS:
+            action = copy.copy(action)
+            action.help = "(default: %(default)s)"
+        return super()._format_action(action)

@@ -28,7 +28,14 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 from tqdm import tqdm  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the sibling scripts/cli.py
-from cli import nonnegative_int, output_dir, output_file, positive_float, positive_int  # noqa: E402
+from cli import (  # noqa: E402
+    Formatter,
+    nonnegative_int,
+    output_dir,
+    output_file,
+    positive_float,
+    positive_int,
+)
 
 from astrocargo.agents.controllers import ObservationController  # noqa: E402
 from astrocargo.agents.trajectories import Trajectory  # noqa: E402
@@ -188,7 +195,7 @@ def control_steps(duration_s: float) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=Formatter)
     parser.add_argument("--robots", type=int, default=2, help=f"1..{MAX_ROBOTS}")
     parser.add_argument("--trajectory", default="figure8_yaw", choices=Trajectory.NAMES)
     parser.add_argument("--noise", default="nominal", choices=sorted(NOISE_PROFILES))

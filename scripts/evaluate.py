@@ -14,7 +14,8 @@ mean over the episode and at its end), and the estimators' errors at the end of 
     MUJOCO_GL=egl .venv/bin/python scripts/evaluate.py --policy runs/ppo_est --video out/videos
 
 The task (robots, trajectory, episode length, noise) comes from the first run folder's
-configuration, else from the flags (default: ``LEARNING_TASK``, 2 robots).
+configuration, else from the flags (default: ``LEARNING_TASK`` of ``astrocargo.envs.wrappers``,
+2 robots).
 """
 
 from __future__ import annotations
@@ -35,6 +36,7 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the sibling scripts/cli.py
 from cli import (  # noqa: E402
+    Formatter,
     nonnegative_int,
     output_dir,
     output_file,
@@ -47,7 +49,9 @@ from astrocargo.agents.trajectories import Trajectory  # noqa: E402
 from astrocargo.envs import astrobee_cargo_v0  # noqa: E402
 from astrocargo.envs.sensors import NOISE_PROFILES  # noqa: E402
 from astrocargo.envs.world import MAX_ROBOTS  # noqa: E402
-from astrocargo.envs.wrappers import LEARNING_TASK  # noqa: E402
+
+# Stable-Baselines3 and torch (astrocargo.envs.wrappers imports them) load after the command line
+# is parsed: --help and argument errors answer at once.
 
 METRICS = (
     ("return", "return", "{:9.2f}"),
@@ -307,7 +311,7 @@ def plot_curves(curves: dict, baselines: list[dict], path: Path) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=Formatter)
     parser.add_argument("--policy", nargs="+", default=[], help="run folders, 'zero' or 'scripted'")
     parser.add_argument(
         "--curve", nargs="+", type=Path, default=[], help="run folders: score every checkpoint"
@@ -318,7 +322,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--seed", type=nonnegative_int, default=1000, help="episode k uses seed + k"
     )
-    parser.add_argument("--robots", type=int, default=None, help="default: run's, else 2")
+    parser.add_argument("--robots", type=int, default=None, help="none: the run's, else 2")
     parser.add_argument("--trajectory", default=None, choices=Trajectory.NAMES)
     parser.add_argument("--max-cycles", type=positive_int, default=None)
     parser.add_argument("--noise", default=None, choices=sorted(NOISE_PROFILES))
@@ -358,6 +362,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
+    from astrocargo.envs.wrappers import LEARNING_TASK
+
     policies = [make_policy(spec, args.cargo_model) for spec in args.policy]
     trained = [p.config for p in policies if isinstance(p, TrainedPolicy)]
     trained += [json.loads((run / "config.json").read_text()) for run in args.curve]

@@ -38,7 +38,13 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # before numpy: see estimato
 import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the sibling scripts/cli.py
-from cli import nonnegative_int, output_file, positive_float, positive_int  # noqa: E402
+from cli import (  # noqa: E402
+    Formatter,
+    nonnegative_int,
+    output_file,
+    positive_float,
+    positive_int,
+)
 
 from astrocargo.agents.controllers import ObservationController  # noqa: E402
 from astrocargo.agents.trajectories import Trajectory  # noqa: E402
@@ -157,7 +163,9 @@ def check(env, obs, rewards) -> dict:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], formatter_class=Formatter
+    )
     parser.add_argument("--duration", type=positive_float, default=3600.0, help="simulated seconds")
     parser.add_argument("--robots", type=int, default=2, help=f"1..{MAX_ROBOTS}")
     parser.add_argument("--cargo-model", choices=("estimate", "truth"), default="estimate")

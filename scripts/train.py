@@ -72,7 +72,13 @@ from astrocargo.envs.wrappers import (  # noqa: E402
 )
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the sibling cli.py, ray_backend.py
-from cli import nonnegative_int, output_dir, positive_float, positive_int  # noqa: E402
+from cli import (  # noqa: E402
+    Formatter,
+    nonnegative_int,
+    output_dir,
+    positive_float,
+    positive_int,
+)
 from ray_backend import import_ray, ray_connection  # noqa: E402
 
 ALGOS = {"ppo": PPO, "sac": SAC}
@@ -395,7 +401,7 @@ def parse_override(text: str) -> tuple[str, Any]:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=Formatter)
     parser.add_argument(
         "--backend",
         choices=BACKENDS,
@@ -405,7 +411,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--ray-address",
         default=os.environ.get("RAY_ADDRESS"),
-        help="Ray cluster (HOST:PORT) for --backend rllib; default $RAY_ADDRESS, else a new "
+        help="Ray cluster (HOST:PORT) for --backend rllib, default $RAY_ADDRESS; none: a new "
         "local Ray instance",
     )
     parser.add_argument(
@@ -419,7 +425,14 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--robots", type=int, default=2, help=f"robots holding the cargo, 1..{MAX_ROBOTS}"
     )
-    parser.add_argument("--timesteps", type=int, default=600_000, help="samples (see above)")
+    parser.add_argument(
+        "--timesteps",
+        type=int,
+        default=600_000,
+        help="training length in samples, as SB3 counts them: one per robot per control step in "
+        "the shared view (environment steps = timesteps / robots), one per control step in the "
+        "central view",
+    )
     parser.add_argument("--copies", type=positive_int, default=2, help="environment copies")
     parser.add_argument(
         "--subprocess",
@@ -428,7 +441,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="run each copy in its own process",
     )
     parser.add_argument(
-        "--seed", type=nonnegative_int, default=None, help="default: drawn and printed"
+        "--seed", type=nonnegative_int, default=None, help="none: drawn and printed"
     )
     parser.add_argument("--log-dir", default="runs/ppo", help="run folder")
     parser.add_argument(

@@ -4,8 +4,10 @@ defaults. The scripts' parsers run in-process (no simulation starts)."""
 
 from __future__ import annotations
 
+import argparse
 import importlib.util
 import json
+import subprocess
 import sys
 from pathlib import Path
 
@@ -215,3 +217,37 @@ def test_evaluate_rejects(scripts, capsys, argv, message):
 )
 def test_render_scene_rejects(scripts, capsys, argv, message):
     assert message in parser_error(scripts["render_scene"].main, argv, capsys)
+
+
+@pytest.mark.parametrize(
+    "name", ["demo", "benchmark_estimation", "benchmark_performance", "soak", "train", "evaluate"]
+)
+def test_help_shows_every_default(scripts, capsys, name):
+    module = scripts[name]
+    with pytest.raises(SystemExit) as exc:
+        module.parse_args(["--help"])
+    assert exc.value.code == 0
+    out = capsys.readouterr().out
+    parser = module.build_parser()
+    for action in parser._actions:
+        if action.option_strings and action.default is not argparse.SUPPRESS:
+            shown = " ".join(out.split())  # help lines are wrapped
+            assert f"(default: {action.default})" in shown, (name, action.dest)
+
+
+def test_render_scene_help_shows_defaults(scripts, capsys):
+    with pytest.raises(SystemExit):
+        scripts["render_scene"].main(["--help"])
+    assert "(default: 960)" in capsys.readouterr().out
+
+
+def test_evaluate_parses_without_torch():
+    """evaluate.py --help answers at once: torch and SB3 load after parsing."""
+    code = (
+        "import runpy, sys; sys.argv = ['evaluate.py', '--help']\n"
+        "try:\n    runpy.run_path(sys.argv[0].replace('evaluate.py', r'"
+        + str(SCRIPTS / "evaluate.py")
+        + "'), run_name='__main__')\nexcept SystemExit:\n    pass\n"
+        "assert 'torch' not in sys.modules and 'stable_baselines3' not in sys.modules\n"
+    )
+    subprocess.run([sys.executable, "-c", code], check=True, timeout=120, capture_output=True)
