@@ -306,8 +306,8 @@ def run_case(case: Case) -> dict:
         "com_err_m": float(com_error_m(wls, truth0)),
         "principal_rel_err": [float(x) for x in principal_rel_errors(wls, truth0)],
     }
-    # The same measurements through the log-Cholesky-state UKF (DESIGN.md's recommended design,
-    # replaced by the standard-parameter filter: estimator/ukf.py says why).
+    # The same measurements through the log-Cholesky-state UKF (the design first built, replaced
+    # by the standard-parameter filter: docs/design.md and estimator/ukf.py say why).
     lc = LogCholeskyUKF(prior_params0, LOG_CHOLESKY_PRIOR_STD, LOG_CHOLESKY_PROCESS_STD)
     for z, a, b, r in est0.log:
         lc.predict()
