@@ -555,20 +555,42 @@ def markdown(summary: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+def run_conditions(results: list[dict]) -> str:
+    """One line stating how the analysed cases ran: seeds, duration, noise, cargo."""
+    cases = [r["case"] for r in results if "agents" in r]
+    seeds = sorted({c["seed"] for c in cases})
+    durations = sorted({c["duration"] for c in cases})
+    noises = sorted({c["noise"] for c in cases})
+    masses = sorted({c["cargo_mass"] for c in cases})
+    mass = f"{masses[0]:g} kg" if len(masses) == 1 else f"{masses[0]:g}-{masses[-1]:g} kg"
+    return (
+        f"{len(seeds)} seed{'s' if len(seeds) != 1 else ''} per scenario, "
+        f"{' / '.join(f'{d:g}' for d in durations)} s simulated, {' / '.join(noises)} noise, "
+        f"{mass} cargo; UKF: every robot's final estimate; batch LS and CRLB: robot 0's "
+        f"measurements"
+    )
+
+
 def plot(results: list[dict], path: Path) -> None:
+    """Final errors per scenario (one row each): every robot's UKF estimate, batch least squares
+    and the Cramer-Rao bound of robot 0's measurements, on log axes."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
     names = sorted(
         {
             r["case"]["name"]
             for r in results
             if "agents" in r and not r["case"]["name"].startswith("control")
-        }
+        },
+        reverse=True,  # top to bottom in alphabetical order
     )
-    fig, axes = plt.subplots(1, 3, figsize=(16, 4.5))
+    fig, axes = plt.subplots(
+        1, 3, figsize=(15, 1.6 + 0.55 * len(names)), sharey=True, layout="constrained"
+    )
     for k, name in enumerate(names):
         rs = [r for r in results if r["case"]["name"] == name]
         ukf = [a for r in rs for a in r["agents"].values()]
@@ -579,32 +601,38 @@ def plot(results: list[dict], path: Path) -> None:
             wls = [scale * np.max(r["batch_ls"][key]) for r in rs]
             bound = [scale * np.max(r["crlb"][key]) for r in rs]
             ax.scatter(
-                [k] * len(vals), vals, color="tab:blue", s=14, label="UKF" if k == 0 else None
+                vals, [k] * len(vals), color="tab:blue", s=14, label="UKF" if k == 0 else None
             )
             ax.scatter(
-                [k + 0.2] * len(wls),
                 wls,
+                [k - 0.2] * len(wls),
                 color="tab:orange",
                 s=14,
                 label="batch LS" if k == 0 else None,
             )
             ax.scatter(
-                [k - 0.2] * len(bound),
                 bound,
+                [k + 0.2] * len(bound),
                 color="k",
-                marker="_",
-                s=60,
+                marker="|",
+                s=80,
                 label="CRLB (1 sigma)" if k == 0 else None,
             )
+    plain = FuncFormatter(lambda v, _: f"{v:g}")
     for ax, title in zip(
         axes, ("mass error [%]", "CoM error [mm]", "worst principal moment error [%]"), strict=True
     ):
-        ax.set_title(title)
-        ax.set_xticks(range(len(names)), names, rotation=30, ha="right", fontsize=8)
-        ax.set_yscale("log")
+        ax.set_xlabel(title)
+        ax.set_xscale("log")
+        ax.xaxis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0)))
+        ax.xaxis.set_major_formatter(plain)
+        ax.xaxis.set_minor_formatter(NullFormatter())
         ax.grid(alpha=0.3)
-    axes[0].legend(fontsize=8)
-    fig.tight_layout()
+    axes[0].set_yticks(range(len(names)), names, fontsize=9)
+    axes[0].set_ylim(-0.6, len(names) - 0.4)
+    handles, labels = axes[0].get_legend_handles_labels()
+    fig.legend(handles, labels, fontsize=8, loc="outside lower center", ncols=len(labels))
+    fig.suptitle(f"Final estimation errors per scenario - {run_conditions(results)}", fontsize=10)
     fig.savefig(path, dpi=110)
     plt.close(fig)
 

@@ -84,7 +84,12 @@ def run(args: argparse.Namespace) -> dict:
             stds.append([s for _, s in estimates])
             track.append(sim.tracking_error())
             if args.video and step % args.video_every == 0:
-                frames.append(env.render())
+                first = infos[env.possible_agents[0]]
+                caption = (
+                    f"t = {sim.data.time:5.1f} s   {env.possible_agents[0]}: mass error "
+                    f"{first['mass_rel_err']:.1%}, CoM error {first['com_err_m'] * 1e3:.1f} mm"
+                )
+                frames.append(with_caption(env.render(), caption))
             step += 1
             bar.update()
     wall = time.perf_counter() - start
@@ -124,14 +129,39 @@ def run(args: argparse.Namespace) -> dict:
     return results
 
 
+# Figure: the y-limits hold the estimate, its band and the truth from ZOOM_AFTER of the run on
+# (the prior's band of the first seconds would hide the convergence); a parameter whose reported
+# spread ends above UNREVEALED_STD_FRACTION of the prior's is one the trajectory cannot reveal.
+ZOOM_AFTER = 0.2
+UNREVEALED_STD_FRACTION = 0.5
+
+
+def zoomed_limits(
+    times: np.ndarray, mean: np.ndarray, std: np.ndarray, truth: float, revealed: bool
+) -> tuple[float, float]:
+    """y-limits holding the truth and, after ZOOM_AFTER of the run, the estimate and (for a
+    revealed parameter) its 2-sigma band, with a 10 % margin."""
+    late = times >= times[0] + ZOOM_AFTER * (times[-1] - times[0])
+    values = [mean[late], [truth]]
+    if revealed:
+        values += [mean[late] - 2 * std[late], mean[late] + 2 * std[late]]
+    lo, hi = float(np.min(np.concatenate(values))), float(np.max(np.concatenate(values)))
+    margin = 0.1 * (hi - lo) or 0.05 * max(abs(truth), 1e-3)
+    return lo - margin, hi + margin
+
+
 def plot(times, mean, std, truth, args, path: Path) -> None:
+    """Each parameter's estimate with its 2-sigma band against the truth over time."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(2, 5, figsize=(17, 6), sharex=True)
+    fig, axes = plt.subplots(2, 5, figsize=(17, 6.4), sharex=True)
+    zoom_s = ZOOM_AFTER * (times[-1] - times[0]) + times[0]
     for k, ax in enumerate(axes.ravel()):
+        spread = std[-1, k] / std[0, k]  # reported spread at the end over the prior's
+        revealed = spread <= UNREVEALED_STD_FRACTION
         ax.fill_between(
             times,
             mean[:, k] - 2 * std[:, k],
@@ -143,19 +173,54 @@ def plot(times, mean, std, truth, args, path: Path) -> None:
         )
         ax.plot(times, mean[:, k], color="tab:blue", lw=1.2, label="estimate")
         ax.axhline(truth[k], color="k", ls="--", lw=1, label="truth")
-        lo, hi = truth[k] - 1.5 * abs(truth[k]) - 0.02, truth[k] + 1.5 * abs(truth[k]) + 0.02
+        lo, hi = zoomed_limits(times, mean[:, k], std[:, k], truth[k], revealed)
+        if not revealed:
+            lo -= 0.35 * (hi - lo)  # room for the note below the curves
         ax.set_ylim(lo, hi)
-        ax.set_title(LABELS[k] if k < 4 else LABELS[k] + " [kg m^2]", fontsize=10)
+        title = LABELS[k] if k < 4 else LABELS[k] + " [kg m^2]"
+        if not revealed:
+            ax.text(
+                0.5,
+                0.04,
+                f"not revealed by this motion\nspread {spread:.0%} of the prior's",
+                transform=ax.transAxes,
+                ha="center",
+                va="bottom",
+                fontsize=7.5,
+                color="0.2",
+                bbox={"boxstyle": "round", "facecolor": "white", "alpha": 0.85, "lw": 0},
+            )
+            title += " - not revealed"
+        ax.set_title(title, fontsize=10)
+        ax.ticklabel_format(axis="y", style="plain", useOffset=False)
         if k >= 5:
             ax.set_xlabel("time [s]")
     axes[0, 0].legend(fontsize=8, loc="upper right")
     fig.suptitle(
         f"astrobee_0's estimate of the cargo (grasp frame; inertia about the centre of mass) - "
-        f"{args.robots} robots, {args.trajectory}, {args.noise} noise, seed {args.seed}"
+        f"{args.robots} robots, {args.trajectory}, {args.noise} noise, seed {args.seed}\n"
+        f"y-limits: the estimate, its band and the truth after {zoom_s:.0f} s (the band is "
+        f"clipped before); 'not revealed': reported spread still above "
+        f"{UNREVEALED_STD_FRACTION:.0%} of the prior's at the end",
+        fontsize=11,
     )
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def with_caption(frame: np.ndarray, text: str) -> np.ndarray:
+    """The frame with ``text`` on a dark band along its top edge."""
+    from PIL import Image, ImageDraw, ImageFont
+
+    image = Image.fromarray(frame)
+    draw = ImageDraw.Draw(image)
+    font = ImageFont.load_default(size=max(12, image.height // 28))
+    left, top, right, bottom = draw.textbbox((0, 0), text, font=font)
+    pad = 6
+    draw.rectangle((0, 0, image.width, bottom - top + 2 * pad), fill=(0, 0, 0))
+    draw.text((pad, pad - top), text, fill=(255, 255, 255), font=font)
+    return np.asarray(image)
 
 
 def save_gif(frames: list[np.ndarray], path: Path, fps: float) -> None:

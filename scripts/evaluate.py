@@ -272,7 +272,7 @@ def plot_curves(curves: dict, baselines: list[dict], path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+    fig, axes = plt.subplots(1, 2, figsize=(11, 5), layout="constrained")
     for (key, label), ax in zip(
         (("return", "return (mean over robots)"), ("track_pos_m", "cargo position error [m]")),
         axes,
@@ -286,15 +286,10 @@ def plot_curves(curves: dict, baselines: list[dict], path: Path) -> None:
             std = np.array([p[key]["std"] for p in curve["points"]])
             obs = "with" if config["env_kwargs"]["observe_estimates"] else "without"
             minutes = config.get("wall_s", float("nan")) / 60
-            line = ax.plot(steps, mean, marker="o", ms=3, label=f"PPO {obs} estimates")[0]
+            # The training's wall time goes in the legend: notes at the curves' ends overlap.
+            name = f"PPO {obs} estimates, seed {config.get('seed', '?')} ({minutes:.0f} min)"
+            line = ax.plot(steps, mean, marker="o", ms=3, label=name)[0]
             ax.fill_between(steps, mean - std, mean + std, color=line.get_color(), alpha=0.2)
-            ax.annotate(
-                f"{minutes:.0f} min",
-                (steps[-1], mean[-1]),
-                textcoords="offset points",
-                xytext=(-10, 6),
-                fontsize=8,
-            )
         for base, style in zip(baselines, ("-.", "--", ":"), strict=False):
             ax.axhline(
                 base["summary"][key]["mean"], color="k", ls=style, lw=1, label=base["policy"]
@@ -302,9 +297,12 @@ def plot_curves(curves: dict, baselines: list[dict], path: Path) -> None:
         ax.set_xlabel("environment steps (control steps of one copy)")
         ax.set_ylabel(label)
         ax.grid(alpha=0.3)
-    axes[0].legend(fontsize=8)
-    fig.suptitle("Deterministic policy on the same seeded episodes (mean +- std over episodes)")
-    fig.tight_layout()
+    handles, labels = axes[0].get_legend_handles_labels()
+    fig.legend(handles, labels, fontsize=8, loc="outside lower center", ncols=min(3, len(labels)))
+    fig.suptitle(
+        "Deterministic policy on the same seeded episodes (mean +- std over episodes; "
+        "training wall time in brackets)"
+    )
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)
     plt.close(fig)
