@@ -29,8 +29,10 @@ from astrocargo.estimator.rne import RobotDescription
 from .team_dynamics import (
     TeamModel,
     body_from_params,
-    grasp_frame,
     pd_accelerations,
+    place_body,
+    robot_body,
+    team_commands,
     team_model,
     thrust_commands,
 )
@@ -118,7 +120,8 @@ class CooperativeController:
         rot_c, pos_c = _vector(cargo.rot, (3, 3)), _vector(cargo.pos, (3,))
         body = _NO_CARGO
         if cargo_params is not None:
-            body = body_from_params(_vector(cargo_params, (10,)), rot_c, pos_c)
+            mass, com, inertia = body_from_params(_vector(cargo_params, (10,)))
+            body = (mass, *place_body(com, inertia, rot_c, pos_c))
         w = _vector(cargo.w, (3,))
         acc, wd = pd_accelerations(
             self._gains,
@@ -129,7 +132,7 @@ class CooperativeController:
             _vector(ref.acc, (3,)),
             _vector(ref.wd, (3,)),
         )
-        out, self.last_ratio = thrust_commands(
+        out, self.last_ratio = team_commands(
             self.team, holding, rot_base, pos_base, q, body, pos_c, w, acc, wd
         )
         return list(out)
@@ -148,6 +151,7 @@ class BaseTracking(NamedTuple):
     ref_acc: np.ndarray  # (k, 3) m/s^2 of the cargo reference
     ref_ang_vel: np.ndarray  # (k, 3) rad/s
     ref_ang_acc: np.ndarray  # (k, 3) rad/s^2
+    ref_pan: np.ndarray  # (k, 2) rad, rad/s: pan ramp angle and rate
     cargo_params: np.ndarray  # (k, 10) cargo's standard parameters in the robot's grasp frame
 
 
@@ -159,50 +163,63 @@ def _team_in_base(
     i: int,
     holding: np.ndarray,
     q: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+) -> tuple:
     """Robot i's view of the team in its base frame B_i, every arm at i's angles q: the bases
-    of the robots ``holding`` (rotations (n, 3, 3), origins (n, 3)), i's grasp frame (R_bg, p_bg)
-    and the cargo frame's origin. Cargo frame C in B_i: R_bc = R_bg R_ch^T, p_bc = p_bg - R_bc p_ch
-    (handrail j's pose (R_ch, p_ch) in C); base j in C: R_cb = R_chj R_bgj^T, p_cb = p_chj -
-    R_cb p_bgj; base j in B_i: (R_bc R_cb, p_bc + R_bc p_cb)."""
-    n = len(handrail_rot)
-    rot_bg, pos_bg = grasp_frame(team, i, q)
+    of the robots ``holding`` (rotations (n, 3, 3), origins (n, 3), zeros for the others), the
+    bodies of those robots and one more slot for the cargo (masses, centres, inertias), i's grasp
+    frame (R_bg, p_bg) and the cargo frame's origin p_bc. Cargo frame C in B_i:
+    R_bc = R_bg R_ch^T, p_bc = p_bg - R_bc p_ch (handrail j's pose (R_ch, p_ch) in C); base j in
+    C: R_cb = R_chj R_bgj^T, p_cb = p_chj - R_cb p_bgj; base j in B_i:
+    (R_bc R_cb, p_bc + R_bc p_cb)."""
+    models = [robot_body(team, m, q) for m in range(len(team.parent))]
+    _, _, _, rot_bg, pos_bg = models[team.model_of[i]]
     rot_bc = rot_bg @ handrail_rot[i].T
     pos_bc = pos_bg - rot_bc @ handrail_pos[i]
+    n, count = len(handrail_rot), len(holding) + 1
     rot_base, pos_base = np.zeros((n, 3, 3)), np.zeros((n, 3))
-    for j in holding:
-        rot_bgj, pos_bgj = grasp_frame(team, j, q)
+    masses, coms, inertias = np.zeros(count), np.zeros((count, 3)), np.zeros((count, 3, 3))
+    for idx in range(len(holding)):
+        j = holding[idx]
+        mass, com, inertia, rot_bgj, pos_bgj = models[team.model_of[j]]
         rot_cb = handrail_rot[j] @ rot_bgj.T
         pos_cb = handrail_pos[j] - rot_cb @ pos_bgj
         rot_base[j] = rot_bc @ rot_cb
         pos_base[j] = pos_bc + rot_bc @ pos_cb
-    return rot_base, pos_base, rot_bg, pos_bg, pos_bc
+        masses[idx] = mass
+        coms[idx], inertias[idx] = place_body(com, inertia, rot_base[j], pos_base[j])
+    return rot_base, pos_base, (masses, coms, inertias), rot_bg, pos_bg, pos_bc
 
 
 @njit(cache=True)
-def _observation_thrusts(
+def _observation_actions(
     team: TeamModel,
     handrail_rot: np.ndarray,
     handrail_pos: np.ndarray,
     gains: np.ndarray,
+    arm_scale_rad: float,
     acting: np.ndarray,
     holding: np.ndarray,
     obs: BaseTracking,
     with_cargo: bool,
 ) -> np.ndarray:
-    """Thrust command (k, 6) of each acting robot: its share of the team wrench worked out in
-    its own base frame, where the cargo is at rest (v = 0) and the reference errors are the
-    base's (the grasp is rigid): e_p = -base_pos_err, v_ref = -base_vel_err,
-    e_R = -base_att_err, and the reference acceleration of the cargo origin seen from the base
-    a_ref = ref_acc + w'_ref x r + w_ref x (w_ref x r), r = -ref_pos_rel."""
-    out = np.zeros((len(acting), 6))
-    q_team = np.empty((len(handrail_rot), obs.joint_pos.shape[1]))
+    """Actions (k, 8) of the acting robots (all holding the cargo): thrust u / thrust_limit,
+    tilt offset 0, pan offset clip(ref_pan / arm_scale_rad, -1, 1). Each robot's thrust u is its
+    share of the team wrench worked out in its own base frame, where the cargo is at rest (v = 0)
+    and the reference errors are the base's (the grasp is rigid): e_p = -base_pos_err,
+    v_ref = -base_vel_err, e_R = -base_att_err, and the reference acceleration of the cargo
+    origin seen from the base a_ref = ref_acc + w'_ref x r + w_ref x (w_ref x r),
+    r = -ref_pos_rel."""
+    out = np.zeros((len(acting), 8))
     for a in range(len(acting)):
         i = acting[a]
-        q_team[:] = obs.joint_pos[a]
-        rot_base, pos_base, rot_bg, pos_bg, pos_bc = _team_in_base(
+        rot_base, pos_base, bodies, rot_bg, pos_bg, pos_bc = _team_in_base(
             team, handrail_rot, handrail_pos, i, holding, obs.joint_pos[a]
         )
+        if with_cargo:
+            mass, com, inertia = body_from_params(obs.cargo_params[a])
+            masses, coms, inertias = bodies
+            masses[-1] = mass
+            coms[-1], inertias[-1] = place_body(com, inertia, rot_bg, pos_bg)
         w_ref, wd_ref, r = obs.ref_ang_vel[a], obs.ref_ang_acc[a], -obs.ref_pos_rel[a]
         acc_ref = obs.ref_acc[a] + np.cross(wd_ref, r) + np.cross(w_ref, np.cross(w_ref, r))
         w = obs.base_ang_vel[a]
@@ -210,13 +227,9 @@ def _observation_thrusts(
             gains, -obs.base_pos_err[a], -obs.base_vel_err[a], -obs.base_att_err[a],
             w_ref - w, acc_ref, wd_ref,
         )  # fmt: skip
-        cargo = (0.0, np.zeros(3), np.zeros((3, 3)))
-        if with_cargo:
-            cargo = body_from_params(obs.cargo_params[a], rot_bg, pos_bg)
-        commands, _ = thrust_commands(
-            team, holding, rot_base, pos_base, q_team, cargo, pos_bc, w, acc, wd
-        )
-        out[a] = commands[i]
+        commands, _ = thrust_commands(team, holding, rot_base, pos_base, bodies, pos_bc, w, acc, wd)
+        out[a, :6] = commands[i] / team.thrust_limit[i]
+        out[a, 7] = min(max(obs.ref_pan[a, 0] / arm_scale_rad, -1.0), 1.0)
     return out
 
 
@@ -305,23 +318,18 @@ class ObservationController:
 
     def _actions(self, acting: np.ndarray, obs: np.ndarray) -> np.ndarray:
         """Actions (k, 8) of the robots ``acting`` (all holding the cargo) from their
-        observations (k, obs_dim): thrust / limit, tilt offset 0, pan offset ref_pan / scale."""
-        holding = np.sort(acting)
-        thrust = _observation_thrusts(
+        observations (k, obs_dim) (``_observation_actions``)."""
+        return _observation_actions(
             self.team.team,
             self._handrail_rot,
             self._handrail_pos,
             self.team._gains,
+            self.arm_scale,
             acting,
-            holding,
+            np.sort(acting),
             self._tracking(acting, obs),
             self.cargo_model != "none",
         )
-        actions = np.zeros((len(acting), 8))
-        actions[:, :6] = thrust / self.team.team.thrust_limit[acting]
-        pan = obs[:, self.layout["ref_pan"]][:, 0]
-        actions[:, 7] = np.clip(pan / self.arm_scale, -1.0, 1.0)
-        return actions
 
     def predict(self, observation, state=None, episode_start=None, deterministic=False):
         """SB3's signature: returns (actions, state)."""

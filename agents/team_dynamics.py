@@ -26,7 +26,7 @@ then every u_j is scaled by 1 / max(1, ratio), ratio = max_j,k |u_jk| / thrust_l
 saturating team keeps the direction of its total wrench.
 
 Each function is compiled with numba (``@njit(cache=True)``) and takes the robots' models as one
-``TeamModel`` of arrays stacked over robots (``team_model``).
+``TeamModel`` of arrays (``team_model``).
 """
 
 from __future__ import annotations
@@ -41,19 +41,39 @@ from astrocargo.estimator.rne import RobotDescription
 
 
 class TeamModel(NamedTuple):
-    """The robots' known models as arrays stacked over n robots of L links each (base first)."""
+    """The robots' known models as arrays: the distinct robot models (m of them, L links each,
+    base first; robots with equal models share one, so a team of one kind costs one forward
+    kinematics per arm pose) and, per robot (n), its model and thrust limits."""
 
-    parent: np.ndarray  # (n, L) int64, parent link of each link (unused for the base)
-    rot_in_parent: np.ndarray  # (n, L, 3, 3) link frame at q = 0 in its parent's frame
-    pos_in_parent: np.ndarray  # (n, L, 3) m, link origin in its parent's frame
-    joint_axis: np.ndarray  # (n, L, 3) unit joint axis in the link frame (zeros for the base)
-    link_mass: np.ndarray  # (n, L) kg
-    link_com: np.ndarray  # (n, L, 3) m, centre of mass in the link frame
-    link_inertia: np.ndarray  # (n, L, 3, 3) kg m^2 about the centre of mass, link axes
-    grasp_link: np.ndarray  # (n,) int64, the link the grasp frame is fixed to
-    grasp_rot: np.ndarray  # (n, 3, 3) grasp frame in that link's frame
-    grasp_pos: np.ndarray  # (n, 3) m
+    parent: np.ndarray  # (m, L) int64, parent link of each link (unused for the base)
+    rot_in_parent: np.ndarray  # (m, L, 3, 3) link frame at q = 0 in its parent's frame
+    pos_in_parent: np.ndarray  # (m, L, 3) m, link origin in its parent's frame
+    joint_axis: np.ndarray  # (m, L, 3) unit joint axis in the link frame (zeros for the base)
+    link_mass: np.ndarray  # (m, L) kg
+    link_com: np.ndarray  # (m, L, 3) m, centre of mass in the link frame
+    link_inertia: np.ndarray  # (m, L, 3, 3) kg m^2 about the centre of mass, link axes
+    grasp_link: np.ndarray  # (m,) int64, the link the grasp frame is fixed to
+    grasp_rot: np.ndarray  # (m, 3, 3) grasp frame in that link's frame
+    grasp_pos: np.ndarray  # (m, 3) m
+    model_of: np.ndarray  # (n,) int64, each robot's model
     thrust_limit: np.ndarray  # (n, 6) N, N m: body force and torque limits
+
+
+def _model_arrays(robot: RobotDescription) -> tuple:
+    """One robot's model as the arrays of a ``TeamModel`` row (fields up to grasp_pos)."""
+    links = robot.links
+    return (
+        np.array([max(k.parent, 0) for k in links], dtype=np.int64),
+        np.array([k.rot_in_parent for k in links], dtype=float),
+        np.array([k.pos_in_parent for k in links], dtype=float),
+        np.array([np.zeros(3) if k.joint_axis is None else k.joint_axis for k in links], float),
+        np.array([k.mass for k in links], dtype=float),
+        np.array([k.com for k in links], dtype=float),
+        np.array([k.inertia_com for k in links], dtype=float),
+        np.int64(robot.grasp_link),
+        np.asarray(robot.grasp_rot, dtype=float),
+        np.asarray(robot.grasp_pos, dtype=float),
+    )
 
 
 def team_model(robots: list[RobotDescription]) -> TeamModel:
@@ -63,63 +83,36 @@ def team_model(robots: list[RobotDescription]) -> TeamModel:
     n_links = {len(r.links) for r in robots}
     if len(n_links) != 1:
         raise ValueError(f"robots must all have the same number of links, got {sorted(n_links)}")
-
-    def stack(get, dtype=float) -> np.ndarray:
-        return np.ascontiguousarray([[get(link) for link in r.links] for r in robots], dtype=dtype)
-
+    models: list[tuple] = []
+    model_of = []
+    for robot in robots:
+        arrays = _model_arrays(robot)
+        same = [all(np.array_equal(a, b) for a, b in zip(arrays, m, strict=True)) for m in models]
+        if True not in same:
+            models.append(arrays)
+        model_of.append(same.index(True) if True in same else len(models) - 1)
+    fields = [np.ascontiguousarray(np.stack(column)) for column in zip(*models, strict=True)]
     return TeamModel(
-        parent=stack(lambda k: max(k.parent, 0), np.int64),
-        rot_in_parent=stack(lambda k: k.rot_in_parent),
-        pos_in_parent=stack(lambda k: k.pos_in_parent),
-        joint_axis=stack(lambda k: np.zeros(3) if k.joint_axis is None else k.joint_axis),
-        link_mass=stack(lambda k: k.mass),
-        link_com=stack(lambda k: k.com),
-        link_inertia=stack(lambda k: k.inertia_com),
-        grasp_link=np.array([r.grasp_link for r in robots], dtype=np.int64),
-        grasp_rot=np.ascontiguousarray([r.grasp_rot for r in robots], dtype=float),
-        grasp_pos=np.ascontiguousarray([r.grasp_pos for r in robots], dtype=float),
+        *fields,
+        model_of=np.array(model_of, dtype=np.int64),
         thrust_limit=np.ascontiguousarray([r.thrust_limit for r in robots], dtype=float),
     )
 
 
 @njit(cache=True)
-def link_frames(team: TeamModel, j: int, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Robot j's link frames in its base frame at joint angles q (L-1,) rad: rotations (L, 3, 3)
+def link_frames(team: TeamModel, m: int, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Model m's link frames in its base frame at joint angles q (L-1,) rad: rotations (L, 3, 3)
     and origins (L, 3) m, R_k = R_p R_pk0 exp(e_k q_k), p_k = p_p + R_p p_pk."""
     n_links = team.parent.shape[1]
     rots = np.empty((n_links, 3, 3))
     poss = np.zeros((n_links, 3))
     rots[0] = np.eye(3)
     for k in range(1, n_links):
-        p = team.parent[j, k]
-        joint = exp_so3(team.joint_axis[j, k] * q[k - 1])
-        rots[k] = rots[p] @ team.rot_in_parent[j, k] @ joint
-        poss[k] = poss[p] + rots[p] @ team.pos_in_parent[j, k]
+        p = team.parent[m, k]
+        joint = exp_so3(team.joint_axis[m, k] * q[k - 1])
+        rots[k] = rots[p] @ team.rot_in_parent[m, k] @ joint
+        poss[k] = poss[p] + rots[p] @ team.pos_in_parent[m, k]
     return rots, poss
-
-
-@njit(cache=True)
-def grasp_frame(team: TeamModel, j: int, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Robot j's grasp frame in its base frame at joint angles q: rotation and origin (m)."""
-    rots, poss = link_frames(team, j, q)
-    g = team.grasp_link[j]
-    return rots[g] @ team.grasp_rot[j], poss[g] + rots[g] @ team.grasp_pos[j]
-
-
-@njit(cache=True)
-def body_from_params(
-    params: np.ndarray, rot: np.ndarray, pos: np.ndarray
-) -> tuple[float, np.ndarray, np.ndarray]:
-    """Mass (kg), centre of mass (m) and inertia about it (kg m^2) in frame W of a body whose
-    standard parameters pi = [m, m c, I_xx, I_yy, I_zz, I_xy, I_xz, I_yz] (I about the origin)
-    are given in frame A, A's pose in W being (rot, pos): c = h / m,
-    I_c = I_o - m (|c|^2 1 - c c^T), then c_W = R c + p and I_W = R I_c R^T."""
-    mass = params[0]
-    com = params[1:4] / mass
-    xx, yy, zz, xy, xz, yz = params[4:10]
-    inertia_o = np.array([[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]])
-    inertia_com = inertia_o - mass * ((com @ com) * np.eye(3) - np.outer(com, com))
-    return mass, rot @ com + pos, rot @ inertia_com @ rot.T
 
 
 @njit(cache=True)
@@ -138,28 +131,41 @@ def composite_body(
 
 
 @njit(cache=True)
-def team_bodies(
-    team: TeamModel,
-    holding: np.ndarray,
-    rot_base: np.ndarray,
-    pos_base: np.ndarray,
-    q: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Every link of the robots ``holding`` as a body in W: masses, centres (m) and inertias
-    about them, from each base pose (rot_base[j], pos_base[j]) and arm angles q[j]."""
-    n_links = team.parent.shape[1]
-    count = len(holding) * n_links
-    masses, coms, inertias = np.empty(count), np.empty((count, 3)), np.empty((count, 3, 3))
-    for idx in range(len(holding)):
-        j = holding[idx]
-        rots, poss = link_frames(team, j, q[j])
-        for k in range(n_links):
-            b = idx * n_links + k
-            rot = rot_base[j] @ rots[k]
-            masses[b] = team.link_mass[j, k]
-            coms[b] = rot_base[j] @ (rots[k] @ team.link_com[j, k] + poss[k]) + pos_base[j]
-            inertias[b] = rot @ team.link_inertia[j, k] @ rot.T
-    return masses, coms, inertias
+def robot_body(team: TeamModel, m: int, q: np.ndarray) -> tuple:
+    """A robot of model m at joint angles q, in its base frame: the composite body of its links
+    (mass kg, centre m, inertia about it kg m^2) and its grasp frame (rotation, origin m)."""
+    rots, poss = link_frames(team, m, q)
+    n_links = len(rots)
+    coms, inertias = np.empty((n_links, 3)), np.empty((n_links, 3, 3))
+    for k in range(n_links):
+        coms[k] = rots[k] @ team.link_com[m, k] + poss[k]
+        inertias[k] = rots[k] @ team.link_inertia[m, k] @ rots[k].T
+    mass, com, inertia = composite_body(team.link_mass[m], coms, inertias)
+    g = team.grasp_link[m]
+    rot_grasp = rots[g] @ team.grasp_rot[m]
+    pos_grasp = poss[g] + rots[g] @ team.grasp_pos[m]
+    return mass, com, inertia, rot_grasp, pos_grasp
+
+
+@njit(cache=True)
+def place_body(
+    com: np.ndarray, inertia: np.ndarray, rot: np.ndarray, pos: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Centre of mass and inertia about it of a body given in frame A, expressed in W, A's pose
+    in W being (rot, pos): c_W = R c + p, I_W = R I R^T."""
+    return rot @ com + pos, rot @ inertia @ rot.T
+
+
+@njit(cache=True)
+def body_from_params(params: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """Mass (kg), centre of mass (m) and inertia about it (kg m^2) of the standard parameters
+    pi = [m, m c, I_xx, I_yy, I_zz, I_xy, I_xz, I_yz] (I about the origin), in pi's frame:
+    c = h / m, I_c = I_o - m (|c|^2 1 - c c^T)."""
+    mass = params[0]
+    com = params[1:4] / mass
+    xx, yy, zz, xy, xz, yz = params[4:10]
+    inertia_o = np.array([[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]])
+    return mass, com, inertia_o - mass * ((com @ com) * np.eye(3) - np.outer(com, com))
 
 
 @njit(cache=True)
@@ -249,6 +255,27 @@ def thrust_commands(
     holding: np.ndarray,
     rot_base: np.ndarray,
     pos_base: np.ndarray,
+    bodies: tuple[np.ndarray, np.ndarray, np.ndarray],
+    origin: np.ndarray,
+    w: np.ndarray,
+    acc: np.ndarray,
+    wd: np.ndarray,
+) -> tuple[np.ndarray, float]:
+    """The robots' body wrenches (n, 6) that give the team, the ``bodies`` (masses, centres,
+    inertias about them, in W: the robots ``holding``, at base poses (rot_base, pos_base), and the
+    cargo) joined rigidly, the cargo frame's desired motion (``team_wrench``, then
+    ``allocate``); and the saturation ratio."""
+    mass, com, inertia = composite_body(*bodies)
+    wrench = team_wrench(mass, com, inertia, origin, w, acc, wd)
+    return allocate(team, holding, rot_base, pos_base, com, wrench)
+
+
+@njit(cache=True)
+def team_commands(
+    team: TeamModel,
+    holding: np.ndarray,
+    rot_base: np.ndarray,
+    pos_base: np.ndarray,
     q: np.ndarray,
     cargo: tuple[float, np.ndarray, np.ndarray],
     origin: np.ndarray,
@@ -256,15 +283,15 @@ def thrust_commands(
     acc: np.ndarray,
     wd: np.ndarray,
 ) -> tuple[np.ndarray, float]:
-    """The robots' body wrenches (n, 6) that give the team (the robots ``holding`` at base poses
-    (rot_base, pos_base) and arm angles q, plus the ``cargo`` body (mass, centre, inertia in W))
-    the cargo frame's desired motion (``team_wrench``, then ``allocate``); and the saturation
-    ratio."""
-    masses, coms, inertias = team_bodies(team, holding, rot_base, pos_base, q)
-    cargo_mass, cargo_com, cargo_inertia = cargo
-    masses = np.append(masses, cargo_mass)
-    coms = np.concatenate((coms, cargo_com.reshape(1, 3)))
-    inertias = np.concatenate((inertias, cargo_inertia.reshape(1, 3, 3)))
-    mass, com, inertia = composite_body(masses, coms, inertias)
-    wrench = team_wrench(mass, com, inertia, origin, w, acc, wd)
-    return allocate(team, holding, rot_base, pos_base, com, wrench)
+    """``thrust_commands`` for the robots ``holding`` at base poses (rot_base, pos_base) in W and
+    arm angles q (n, n_joints), with the ``cargo`` body (mass, centre, inertia in W)."""
+    count = len(holding) + 1
+    masses, coms, inertias = np.empty(count), np.empty((count, 3)), np.empty((count, 3, 3))
+    for idx in range(len(holding)):
+        j = holding[idx]
+        mass, com, inertia, _, _ = robot_body(team, team.model_of[j], q[j])
+        masses[idx] = mass
+        coms[idx], inertias[idx] = place_body(com, inertia, rot_base[j], pos_base[j])
+    masses[-1], coms[-1], inertias[-1] = cargo
+    bodies = (masses, coms, inertias)
+    return thrust_commands(team, holding, rot_base, pos_base, bodies, origin, w, acc, wd)

@@ -6,10 +6,7 @@ import numpy as np
 import pytest
 from true_state import true_states
 
-from astrocargo.agents.controllers import (
-    CooperativeController,
-    rotation_log,
-)
+from astrocargo.agents.controllers import CooperativeController
 from astrocargo.agents.trajectories import (
     FAST_ACCEL_MPS2,
     NOMINAL_ACCEL_MPS2,
@@ -18,6 +15,7 @@ from astrocargo.agents.trajectories import (
     Trajectory,
 )
 from astrocargo.envs.world import World
+from astrocargo.estimator.geometry import log_so3
 
 DT = 0.01
 TIMES = np.arange(0.0, 130.0, DT)
@@ -58,7 +56,7 @@ def test_derivatives_are_consistent(name):
     np.testing.assert_allclose(np.diff(w, axis=0) / DT, mid(wd), atol=1e-5)
     # Angular velocity (world axes) from consecutive attitudes.
     fd_w = np.array(
-        [rotation_log(b.rot @ a.rot.T) / DT for a, b in zip(refs[:-1], refs[1:], strict=True)]
+        [log_so3(b.rot @ a.rot.T) / DT for a, b in zip(refs[:-1], refs[1:], strict=True)]
     )
     np.testing.assert_allclose(fd_w, mid(w), atol=1e-6)
     pan = np.array([r.pan for r in refs])
@@ -106,7 +104,7 @@ def _run_controller(world, data, ref_fn, seconds):
         errors.append(
             (
                 np.linalg.norm(ref.pos - cargo.pos),
-                np.linalg.norm(rotation_log(ref.rot @ cargo.rot.T)),
+                np.linalg.norm(log_so3(ref.rot @ cargo.rot.T)),
             )
         )
     return np.array(errors)
