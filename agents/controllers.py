@@ -1,32 +1,41 @@
-"""Cooperative controller: all robots together track the cargo reference.
+"""Cooperative controllers: all robots together track the cargo reference.
 
 The robots and the cargo are treated as one rigid body (the arms move slowly; their own motion
 is a disturbance the feedback absorbs). With the composite mass M, centre of mass c and inertia
 I_c (robots known, cargo from live estimates, the truth, or nothing), a PD law with feed-forward
 gives the desired acceleration of the cargo frame (Astrobee's law, facts file section 3.1:
-F = m (a_ref + Kd (v_ref - v) + Kp e_p), and likewise for attitude), hence the total wrench about
-c (world axes):
+F = m (a_ref + Kd (v_ref - v) + Kp e_p), and likewise for attitude with e_R = log(R_ref R^T)),
+hence the total wrench about c:
     F = M (a + wd x (c - p) + w x (w x (c - p))),     tau = I_c wd + w x I_c w.
 The wrench is allocated among the robots through the grasp geometry by the minimum-norm solution
 weighted by each robot's propulsion limits, then scaled down uniformly if any robot saturates (so
 the direction of the total wrench is kept). A robot that has let go of the cargo (its state None)
 is part of neither the composite body nor the allocation: the robots still holding share the
-whole wrench.
+whole wrench. The equations and their compiled kernels are in ``team_dynamics``.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
+from numba import njit
 
-from astrocargo.estimator.inertia import (
-    mass_com_inertia_from_params,
-    params_from_mass_com_inertia,
-    transform_params,
+from astrocargo.estimator.geometry import log_so3
+from astrocargo.estimator.inertia import transform_params
+from astrocargo.estimator.rne import RobotDescription
+
+from .team_dynamics import (
+    TeamModel,
+    body_from_params,
+    pd_accelerations,
+    place_body,
+    robot_body,
+    team_commands,
+    team_model,
+    thrust_commands,
 )
-from astrocargo.estimator.rne import RobotDescription, grasp_pose, link_poses, wrench_transform
-
 from .trajectories import Reference
 
 # Translation: ISS flight-mode gains (iss.config); attitude: gnc.config defaults, which the
@@ -34,24 +43,12 @@ from .trajectories import Reference
 POS_KP, POS_KD = 0.6, 1.2
 ATT_KP, ATT_KD = 2.0, 1.6
 CARGO_MODELS = ("estimate", "none", "truth")
-
-
-def rotation_log(rot: np.ndarray) -> np.ndarray:
-    """Rotation vector of a rotation matrix."""
-    cos = np.clip((np.trace(rot) - 1) / 2, -1.0, 1.0)
-    angle = np.arccos(cos)
-    v = np.array([rot[2, 1] - rot[1, 2], rot[0, 2] - rot[2, 0], rot[1, 0] - rot[0, 1]])
-    if angle < 1e-9:
-        return 0.5 * v
-    if np.pi - angle < 1e-6:
-        w, vecs = np.linalg.eigh(0.5 * (rot + rot.T))
-        return angle * vecs[:, -1]
-    return angle / (2 * np.sin(angle)) * v
+_NO_CARGO = (0.0, np.zeros(3), np.zeros((3, 3)))
 
 
 @dataclass(frozen=True)
 class RobotState:
-    """One robot's base pose and twist (world axes) and arm joint angles."""
+    """One robot's base pose (rotation base -> world, position m) and arm joint angles (rad)."""
 
     rot: np.ndarray
     pos: np.ndarray
@@ -60,7 +57,7 @@ class RobotState:
 
 @dataclass(frozen=True)
 class CargoState:
-    """The cargo frame's pose and twist in world axes."""
+    """The cargo frame's pose (rotation, position m) and twist (m/s, rad/s) in world axes."""
 
     rot: np.ndarray
     pos: np.ndarray
@@ -68,11 +65,15 @@ class CargoState:
     w: np.ndarray
 
 
+def _vector(x, shape: tuple[int, ...]) -> np.ndarray:
+    return np.ascontiguousarray(x, dtype=float).reshape(shape)
+
+
 class CooperativeController:
-    """Computes every robot's thrust command and arm targets.
+    """Computes every robot's thrust command from the true (or estimated) team state.
 
     Args:
-        robots: the robots' known models.
+        robots: the robots' known models (one arm structure for all).
         pos_kp, pos_kd, att_kp, att_kd: per-unit-mass / per-unit-inertia gains (1/s^2, 1/s).
     """
 
@@ -86,19 +87,9 @@ class CooperativeController:
     ) -> None:
         self.robots = list(robots)
         self.gains = (pos_kp, pos_kd, att_kp, att_kd)
-        self._link_params: dict[int, np.ndarray] = {}
-
-    def _robot_params_world(self, robot: RobotDescription, state: RobotState) -> np.ndarray:
-        """The robot's standard parameters (all links) in the world frame."""
-        key = id(robot)
-        if key not in self._link_params:
-            self._link_params[key] = np.stack(
-                [params_from_mass_com_inertia(k.mass, k.com, k.inertia_com) for k in robot.links]
-            )
-        rots, poss = link_poses(robot, state.joint_pos)
-        return transform_params(
-            self._link_params[key], state.rot @ rots, state.pos + poss @ state.rot.T
-        ).sum(axis=0)
+        self.team: TeamModel = team_model(self.robots)
+        self._gains = np.array(self.gains, dtype=float)
+        self.last_ratio = 0.0
 
     def commands(
         self,
@@ -111,55 +102,135 @@ class CooperativeController:
 
         ``robot_states``: one per robot, None for a robot that has let go of the cargo (its
         command is zero). ``cargo_params``: the cargo's standard parameters in the cargo frame,
-        or None for no model.
+        or None for no model. ``last_ratio`` keeps the largest command / limit before scaling.
         """
-        if len(robot_states) != len(self.robots):
+        n = len(self.robots)
+        if len(robot_states) != n:
             raise ValueError(
-                f"robot_states must hold one entry per robot ({len(self.robots)}), "
-                f"got {len(robot_states)}"
+                f"robot_states must hold one entry per robot ({n}), got {len(robot_states)}"
             )
-        holding = [i for i, st in enumerate(robot_states) if st is not None]
-        if not holding:
+        holding = np.array([i for i, st in enumerate(robot_states) if st is not None], np.int64)
+        if not len(holding):
             raise ValueError("no robot holds the cargo: every robot state is None")
-        kp, kd, akp, akd = self.gains
-        total = sum(
-            (self._robot_params_world(self.robots[i], robot_states[i]) for i in holding),
-            np.zeros(10),
-        )
+        rot_base, pos_base = np.zeros((n, 3, 3)), np.zeros((n, 3))
+        q = np.zeros((n, self.team.parent.shape[1] - 1))
+        for i in holding:
+            st = robot_states[i]
+            rot_base[i], pos_base[i], q[i] = st.rot, st.pos, st.joint_pos
+        rot_c, pos_c = _vector(cargo.rot, (3, 3)), _vector(cargo.pos, (3,))
+        body = _NO_CARGO
         if cargo_params is not None:
-            total = total + transform_params(cargo_params, cargo.rot, cargo.pos)
-        mass, com, inertia = mass_com_inertia_from_params(total)
-        acc = ref.acc + kd * (ref.vel - cargo.vel) + kp * (ref.pos - cargo.pos)
-        e_rot = rotation_log(ref.rot @ cargo.rot.T)
-        wd = ref.wd + akd * (ref.w - cargo.w) + akp * e_rot
-        r = com - cargo.pos
-        w = cargo.w
-        force = mass * (acc + np.cross(wd, r) + np.cross(w, np.cross(w, r)))
-        torque = inertia @ wd + np.cross(w, inertia @ w)
-        wrench = np.concatenate((force, torque))
-        # Allocation: sum_i G_i u_i = wrench, G_i maps robot i's body wrench to world about com.
-        gs = [wrench_transform(robot_states[i].rot, robot_states[i].pos - com) for i in holding]
-        limits = [self.robots[i].thrust_limit for i in holding]
-        weight = [np.diag(lim**2) for lim in limits]
-        mat = sum(g @ wgt @ g.T for g, wgt in zip(gs, weight, strict=True))
-        lam = np.linalg.solve(mat, wrench)
-        cmds = [wgt @ g.T @ lam for g, wgt in zip(gs, weight, strict=True)]
-        ratio = max(float(np.max(np.abs(u) / lim)) for u, lim in zip(cmds, limits, strict=True))
-        scale = 1.0 / ratio if ratio > 1.0 else 1.0
-        self.last_ratio = ratio
-        out = [np.zeros(6) for _ in self.robots]
-        for i, u in zip(holding, cmds, strict=True):
-            out[i] = scale * u
-        return out
+            mass, com, inertia = body_from_params(_vector(cargo_params, (10,)))
+            body = (mass, *place_body(com, inertia, rot_c, pos_c))
+        w = _vector(cargo.w, (3,))
+        acc, wd = pd_accelerations(
+            self._gains,
+            _vector(ref.pos, (3,)) - pos_c,
+            _vector(ref.vel, (3,)) - _vector(cargo.vel, (3,)),
+            log_so3(_vector(ref.rot, (3, 3)) @ rot_c.T),
+            _vector(ref.w, (3,)) - w,
+            _vector(ref.acc, (3,)),
+            _vector(ref.wd, (3,)),
+        )
+        out, self.last_ratio = team_commands(
+            self.team, holding, rot_base, pos_base, q, body, pos_c, w, acc, wd
+        )
+        return list(out)
 
 
-def _exp_rotvec(v: np.ndarray) -> np.ndarray:
-    angle = float(np.linalg.norm(v))
-    if angle < 1e-12:
-        return np.eye(3)
-    k = v / angle
-    kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
-    return np.eye(3) + np.sin(angle) * kx + (1.0 - np.cos(angle)) * kx @ kx
+class BaseTracking(NamedTuple):
+    """The observation blocks the observation controller reads, one row per acting robot, in
+    that robot's base frame (see the env's observation layout)."""
+
+    joint_pos: np.ndarray  # (k, n_joints) rad
+    base_pos_err: np.ndarray  # (k, 3) m, base minus its reference
+    base_vel_err: np.ndarray  # (k, 3) m/s
+    base_att_err: np.ndarray  # (k, 3) rad, log(R_ref^T R)
+    base_ang_vel: np.ndarray  # (k, 3) rad/s
+    ref_pos_rel: np.ndarray  # (k, 3) m, cargo reference minus base
+    ref_acc: np.ndarray  # (k, 3) m/s^2 of the cargo reference
+    ref_ang_vel: np.ndarray  # (k, 3) rad/s
+    ref_ang_acc: np.ndarray  # (k, 3) rad/s^2
+    ref_pan: np.ndarray  # (k, 2) rad, rad/s: pan ramp angle and rate
+    cargo_params: np.ndarray  # (k, 10) cargo's standard parameters in the robot's grasp frame
+
+
+@njit(cache=True)
+def _team_in_base(
+    team: TeamModel,
+    handrail_rot: np.ndarray,
+    handrail_pos: np.ndarray,
+    i: int,
+    holding: np.ndarray,
+    q: np.ndarray,
+) -> tuple:
+    """Robot i's view of the team in its base frame B_i, every arm at i's angles q: the bases
+    of the robots ``holding`` (rotations (n, 3, 3), origins (n, 3), zeros for the others), the
+    bodies of those robots and one more slot for the cargo (masses, centres, inertias), i's grasp
+    frame (R_bg, p_bg) and the cargo frame's origin p_bc. Cargo frame C in B_i:
+    R_bc = R_bg R_ch^T, p_bc = p_bg - R_bc p_ch (handrail j's pose (R_ch, p_ch) in C); base j in
+    C: R_cb = R_chj R_bgj^T, p_cb = p_chj - R_cb p_bgj; base j in B_i:
+    (R_bc R_cb, p_bc + R_bc p_cb)."""
+    models = [robot_body(team, m, q) for m in range(len(team.parent))]
+    _, _, _, rot_bg, pos_bg = models[team.model_of[i]]
+    rot_bc = rot_bg @ handrail_rot[i].T
+    pos_bc = pos_bg - rot_bc @ handrail_pos[i]
+    n, count = len(handrail_rot), len(holding) + 1
+    rot_base, pos_base = np.zeros((n, 3, 3)), np.zeros((n, 3))
+    masses, coms, inertias = np.zeros(count), np.zeros((count, 3)), np.zeros((count, 3, 3))
+    for idx in range(len(holding)):
+        j = holding[idx]
+        mass, com, inertia, rot_bgj, pos_bgj = models[team.model_of[j]]
+        rot_cb = handrail_rot[j] @ rot_bgj.T
+        pos_cb = handrail_pos[j] - rot_cb @ pos_bgj
+        rot_base[j] = rot_bc @ rot_cb
+        pos_base[j] = pos_bc + rot_bc @ pos_cb
+        masses[idx] = mass
+        coms[idx], inertias[idx] = place_body(com, inertia, rot_base[j], pos_base[j])
+    return rot_base, pos_base, (masses, coms, inertias), rot_bg, pos_bg, pos_bc
+
+
+@njit(cache=True)
+def _observation_actions(
+    team: TeamModel,
+    handrail_rot: np.ndarray,
+    handrail_pos: np.ndarray,
+    gains: np.ndarray,
+    arm_scale_rad: float,
+    acting: np.ndarray,
+    holding: np.ndarray,
+    obs: BaseTracking,
+    with_cargo: bool,
+) -> np.ndarray:
+    """Actions (k, 8) of the acting robots (all holding the cargo): thrust u / thrust_limit,
+    tilt offset 0, pan offset clip(ref_pan / arm_scale_rad, -1, 1). Each robot's thrust u is its
+    share of the team wrench worked out in its own base frame, where the cargo is at rest (v = 0)
+    and the reference errors are the base's (the grasp is rigid): e_p = -base_pos_err,
+    v_ref = -base_vel_err, e_R = -base_att_err, and the reference acceleration of the cargo
+    origin seen from the base a_ref = ref_acc + w'_ref x r + w_ref x (w_ref x r),
+    r = -ref_pos_rel."""
+    out = np.zeros((len(acting), 8))
+    for a in range(len(acting)):
+        i = acting[a]
+        rot_base, pos_base, bodies, rot_bg, pos_bg, pos_bc = _team_in_base(
+            team, handrail_rot, handrail_pos, i, holding, obs.joint_pos[a]
+        )
+        if with_cargo:
+            mass, com, inertia = body_from_params(obs.cargo_params[a])
+            masses, coms, inertias = bodies
+            masses[-1] = mass
+            coms[-1], inertias[-1] = place_body(com, inertia, rot_bg, pos_bg)
+        w_ref, wd_ref, r = obs.ref_ang_vel[a], obs.ref_ang_acc[a], -obs.ref_pos_rel[a]
+        acc_ref = obs.ref_acc[a] + np.cross(wd_ref, r) + np.cross(w_ref, np.cross(w_ref, r))
+        w = obs.base_ang_vel[a]
+        acc, wd = pd_accelerations(
+            gains, -obs.base_pos_err[a], -obs.base_vel_err[a], -obs.base_att_err[a],
+            w_ref - w, acc_ref, wd_ref,
+        )  # fmt: skip
+        commands, _ = thrust_commands(team, holding, rot_base, pos_base, bodies, pos_bc, w, acc, wd)
+        out[a, :6] = commands[i] / team.thrust_limit[i]
+        out[a, 7] = min(max(obs.ref_pan[a, 0] / arm_scale_rad, -1.0), 1.0)
+    return out
 
 
 class ObservationController:
@@ -170,9 +241,9 @@ class ObservationController:
     robots are placed by the known grasp geometry (handrail poses on the cargo; peers' arms
     assumed at this robot's own angles, since all follow the same pan ramp), and the cargo's
     inertia comes from ``cargo_model``: "estimate" (this robot's own live estimate, from the
-    observation), "none" (no cargo), or "truth" (``truth_params``, for comparison only). It then
-    applies its share of the allocation (``CooperativeController``) and sends the arm targets of
-    the reference pan ramp.
+    observation, in its grasp frame), "none" (no cargo), or "truth" (``truth_params``, cargo
+    frame, for comparison only). It then applies its share of the allocation (the equations of
+    ``CooperativeController``) and sends the arm targets of the reference pan ramp.
 
     ``predict(obs)`` takes the env's observation dict (agent -> obs) or an array (n_robots,
     obs_dim) in agent order and returns actions of the same form, with SB3's signature. The
@@ -199,12 +270,22 @@ class ObservationController:
         if cargo_model == "estimate" and "estimate_mean" not in layout:
             raise ValueError('cargo_model="estimate" needs observe_estimates=True in the env')
         self.robots = list(robots)
+        if len(handrail_poses) != len(self.robots):
+            raise ValueError(f"handrail_poses must hold one pose per robot ({len(self.robots)})")
         self.handrail_poses = [(np.asarray(r), np.asarray(p)) for r, p in handrail_poses]
         self.layout = layout
         self.cargo_model = cargo_model
         self.truth_params = None if truth_params is None else np.asarray(truth_params, float)
         self.arm_scale = float(arm_offset_scale_rad)
         self.team = CooperativeController(self.robots)
+        self._handrail_rot = _vector([r for r, _ in self.handrail_poses], (-1, 3, 3))
+        self._handrail_pos = _vector([p for _, p in self.handrail_poses], (-1, 3))
+        # The truth in each robot's grasp frame (the cargo frame in it: R_ch^T, -R_ch^T p_ch).
+        self._truth_in_grasp = np.zeros((len(self.robots), 10))
+        if self.truth_params is not None:
+            rot_hc = np.swapaxes(self._handrail_rot, -1, -2)
+            pos_hc = -np.einsum("nij,nj->ni", rot_hc, self._handrail_pos)
+            self._truth_in_grasp = transform_params(self.truth_params, rot_hc, pos_hc)
         # Agent name -> robot index (the env's possible_agents, in robot order).
         names = agents if agents is not None else [f"astrobee_{i}" for i in range(len(robots))]
         if len(names) != len(self.robots):
@@ -225,58 +306,30 @@ class ObservationController:
             agents=list(env.possible_agents),
         )
 
-    def _act_one(self, i: int, o: np.ndarray, holding: list[int]) -> np.ndarray:
+    def _tracking(self, acting: np.ndarray, obs: np.ndarray) -> BaseTracking:
+        """The blocks of the observations ``obs`` (k, obs_dim) of the robots ``acting``."""
         lay = self.layout
-        q = o[lay["joint_pos"]]
-        # Cargo frame in this robot's base frame, through its grasp and the handrail it holds.
-        rot_bg, pos_bg = grasp_pose(self.robots[i], q)
-        rot_ch, pos_ch = self.handrail_poses[i]
-        rot_bc = rot_bg @ rot_ch.T
-        pos_bc = pos_bg - rot_bc @ pos_ch
-        # Other robots' bases in this base frame (their arms assumed at this robot's angles).
-        states: list[RobotState | None] = []
-        for j, robot in enumerate(self.robots):
-            if j not in holding:
-                states.append(None)
-                continue
-            rot_bgj, pos_bgj = grasp_pose(robot, q)
-            rot_chj, pos_chj = self.handrail_poses[j]
-            rot_cb = rot_chj @ rot_bgj.T
-            pos_cb = pos_chj - rot_cb @ pos_bgj
-            states.append(RobotState(rot_bc @ rot_cb, pos_bc + rot_bc @ pos_cb, q))
-        # Tracking errors of the base stand for the cargo's (rigid assembly).
-        e_rot = o[lay["base_att_err"]]
-        w = o[lay["base_ang_vel"]]
-        ref_w = o[lay["ref_ang_vel"]]
-        ref_wd = o[lay["ref_ang_acc"]]
-        rel = -o[lay["ref_pos_rel"]]  # base minus cargo reference, base frame
-        ref_acc_base = (
-            o[lay["ref_acc"]] + np.cross(ref_wd, rel) + np.cross(ref_w, np.cross(ref_w, rel))
+        if self.cargo_model == "estimate":
+            params = obs[:, lay["estimate_mean"]]
+        else:
+            params = self._truth_in_grasp[acting]
+        blocks = [obs[:, lay[name]] for name in BaseTracking._fields[:-1]]
+        return BaseTracking(*(np.ascontiguousarray(b) for b in (*blocks, params)))
+
+    def _actions(self, acting: np.ndarray, obs: np.ndarray) -> np.ndarray:
+        """Actions (k, 8) of the robots ``acting`` (all holding the cargo) from their
+        observations (k, obs_dim) (``_observation_actions``)."""
+        return _observation_actions(
+            self.team.team,
+            self._handrail_rot,
+            self._handrail_pos,
+            self.team._gains,
+            self.arm_scale,
+            acting,
+            np.sort(acting),
+            self._tracking(acting, obs),
+            self.cargo_model != "none",
         )
-        cargo = CargoState(rot_bc, pos_bc, np.zeros(3), w)
-        # A reference whose errors relative to `cargo` are the base's: position and velocity
-        # (the cargo moves with the base), attitude (R_ref = R exp(-e) in base axes).
-        ref = Reference(
-            pos=pos_bc - o[lay["base_pos_err"]],
-            vel=-o[lay["base_vel_err"]],
-            acc=ref_acc_base,
-            rot=_exp_rotvec(-e_rot) @ rot_bc,
-            w=ref_w,
-            wd=ref_wd,
-            pan=float(o[lay["ref_pan"]][0]),
-            pan_rate=float(o[lay["ref_pan"]][1]),
-        )
-        params = None
-        if self.cargo_model == "truth":
-            params = self.truth_params
-        elif self.cargo_model == "estimate":
-            # Own estimate is in this robot's grasp frame; the cargo frame is (rot_ch, pos_ch)^-1.
-            params = transform_params(o[lay["estimate_mean"]], rot_ch, pos_ch)
-        thrust = self.team.commands(ref, cargo, states, params)[i]
-        action = np.zeros(8)
-        action[:6] = thrust / self.robots[i].thrust_limit
-        action[7] = np.clip(ref.pan / self.arm_scale, -1.0, 1.0)
-        return action
 
     def predict(self, observation, state=None, episode_start=None, deterministic=False):
         """SB3's signature: returns (actions, state)."""
@@ -285,17 +338,14 @@ class ObservationController:
             unknown = [a for a in observation if a not in self.robot_index]
             if unknown:
                 raise ValueError(f"unknown agents {unknown}; agents: {list(self.robot_index)}")
-            holding = sorted(self.robot_index[a] for a in observation)
-            acts = {
-                a: self._act_one(self.robot_index[a], np.asarray(o), holding)
-                for a, o in observation.items()
-            }
-            return acts, state
+            acting = np.array([self.robot_index[a] for a in observation], dtype=np.int64)
+            obs = np.stack([np.asarray(o, dtype=float) for o in observation.values()])
+            actions = self._actions(acting, obs)
+            return dict(zip(observation, actions, strict=True)), state
         obs = np.asarray(observation, dtype=float)
         if obs.ndim != 2 or obs.shape[0] != len(self.robots):
             raise ValueError(
                 f"observation must be a dict or an array ({len(self.robots)}, obs_dim), "
                 f"got shape {obs.shape}"
             )
-        holding = list(range(len(self.robots)))
-        return np.stack([self._act_one(i, o, holding) for i, o in enumerate(obs)]), state
+        return self._actions(np.arange(len(self.robots), dtype=np.int64), obs), state

@@ -2,10 +2,10 @@
 
 All are analytic: position, velocity and acceleration; attitude as a rotation with angular
 velocity and acceleration (world axes); pan angle with its rate. Positions are in the module
-frame (origin at the aisle centre, x along the aisle). Defaults stay within Astrobee's nominal
-limits (facts file section 7.3 / flight modes: 0.2 m/s, 0.0175 m/s^2, 0.1745 rad/s); ``fast=True``
-runs the figure-eight sqrt(2) times faster (accelerations x2, within the "difficult" mode's
-0.02 m/s^2) for the "faster option".
+frame (origin at the aisle centre, x along the aisle), metres and seconds throughout. Defaults
+stay within Astrobee's nominal limits (facts file section 7.3 / flight modes: 0.2 m/s,
+0.0175 m/s^2, 0.1745 rad/s); ``fast=True`` runs the figure-eight sqrt(2) times faster
+(accelerations x2, within the "difficult" mode's 0.02 m/s^2) for the "faster option".
 
 Named trajectories:
 - ``figure8_yaw``: the seed paper's scenario. Figure-eight in the horizontal plane, a yaw ramp
@@ -22,21 +22,32 @@ Named trajectories:
   +-10 deg / 24 s roll left the smallest principal moment's Cramer-Rao bound at 21 %.
 - ``hover``: hold the start pose (controller tests).
 
+Equations (t in s; every motion starts at rest through the smoothstep s(t) of ``ramp_s``):
+- figure-eight, time-warped phase th(t) = omega int_0^t s: x = A sin(th), y = B sin(2 th), so
+  x' = A th' cos(th), x'' = A (th'' cos(th) - th'^2 sin(th)) (and likewise for y with k = 2);
+- attitude R = Rz(yaw) Rx(roll) Ry(pitch) (body-fixed roll then pitch after the yaw), each factor
+  ``exp_so3`` of an axis times its angle; world angular velocity
+  w = yaw' e_z + roll' e_x + pitch' e_y with e_x = Rz[:, 0], e_y = (Rz Rx)[:, 1], and
+  w' = yaw'' e_z + roll'' e_x + roll' (yaw' e_z) x e_x + pitch'' e_y
+       + pitch' (yaw' e_z + roll' e_x) x e_y.
+
 Pan ramp and the closed chain: the cargo-rooted tree has no closed kinematic loop (each robot's
 arm connects its own base to the cargo), so every robot can pan at once; a pan moves that robot's
 base around the cargo, which its controller must follow. All robots use the same pan ramp.
+
+The whole evaluation is compiled with numba (``@njit(cache=True)``): one call per time.
 """
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
+from numba import njit
 
-from astrocargo.estimator.rne import v_add, v_cross, v_scale
+from astrocargo.estimator.geometry import exp_so3
 
 NOMINAL_SPEED_MPS = 0.2
 NOMINAL_ACCEL_MPS2 = 0.0175
@@ -45,25 +56,37 @@ NOMINAL_RATE_RADPS = 0.1745
 # "difficult" flight mode's 0.4 m/s and 0.02 m/s^2 (facts file section 7.3, pyastrobee).
 FAST_FACTOR = 2**0.5
 FAST_ACCEL_MPS2 = 0.02
+# Yaw ramp: final rate (rad/s), and the sudden turn (start s, smooth edge s) doubling it for 10 s.
+YAW_RATE_RADPS = 0.05
+YAW_TURN_S = ((40.0, 1.0), (50.0, -1.0))
+YAW_TURN_EDGE_S = 5.0
+# Pan ramp: a triangle wave of +-PAN_AMPLITUDE_RAD at PAN_RATE_RADPS.
+PAN_AMPLITUDE_RAD = 0.4
+PAN_RATE_RADPS = 0.02
 
 
 @dataclass(frozen=True)
 class Reference:
-    """Reference at one time: cargo pose and rates (world axes) and pan angle."""
+    """Reference at one time: cargo pose and rates (world axes) and pan angle.
+
+    pos (m), vel (m/s), acc (m/s^2) of the cargo frame's origin; rot (3, 3) the cargo frame in
+    world; w (rad/s) and wd (rad/s^2) its angular velocity and acceleration in world axes; pan
+    (rad) and pan_rate (rad/s) of the arms' pan ramp.
+    """
 
     pos: np.ndarray
     vel: np.ndarray
     acc: np.ndarray
-    rot: np.ndarray  # (3, 3) cargo frame in world
-    w: np.ndarray  # angular velocity, world axes
-    wd: np.ndarray  # angular acceleration, world axes
+    rot: np.ndarray
+    w: np.ndarray
+    wd: np.ndarray
     pan: float
     pan_rate: float
 
 
 class ReferenceValues(NamedTuple):
-    """A ``Reference`` on Python floats: vectors as 3 floats, the rotation as its rows (for
-    code on the float helpers of ``estimator.rne``; one evaluation per control step)."""
+    """A ``Reference`` as Python floats (vectors as lists, the rotation as its rows), for code on
+    float helpers; ``Trajectory.values`` returns it. The same numbers as the ``Reference``."""
 
     pos: Sequence[float]
     vel: Sequence[float]
@@ -87,18 +110,25 @@ class ReferenceValues(NamedTuple):
         )
 
 
-def _rot(axis: int, angle: float) -> list[list[float]]:
-    """Rows of the rotation by ``angle`` about axis ``axis`` (0, 1, 2: x, y, z)."""
-    c, s = math.cos(angle), math.sin(angle)
-    i, j = [(1, 2), (2, 0), (0, 1)][axis]
-    r = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]
-    r[i][i] = r[j][j] = c
-    r[i][j], r[j][i] = -s, s
-    return r
+class _Shape(NamedTuple):
+    """A trajectory's constants, as the compiled evaluation takes them."""
+
+    moving: bool  # figure-eight and yaw ramp (False: hover)
+    tumble: bool  # roll, pitch and yaw oscillations
+    pan_ramp: bool
+    center_m: np.ndarray  # (3,)
+    figure8_amp_m: np.ndarray  # (2,) A, B
+    figure8_harmonic: np.ndarray  # (2,) 1, 2
+    omega_radps: float
+    ramp_s: float
+    tumble_amp_rad: np.ndarray  # (3,) roll, pitch, yaw oscillation amplitudes
+    tumble_omega_radps: np.ndarray  # (3,)
 
 
+@njit(cache=True)
 def _smoothstep(t: float, t0: float, duration: float) -> tuple[float, float, float]:
-    """s(t) rising smoothly 0 -> 1 over [t0, t0 + duration]: value, rate, second derivative."""
+    """s(t) rising smoothly 0 -> 1 over [t0, t0 + duration] (quintic 10x^3 - 15x^4 + 6x^5,
+    x = (t - t0) / duration): value, rate, second derivative."""
     x = (t - t0) / duration
     if x <= 0:
         return 0.0, 0.0, 0.0
@@ -110,13 +140,21 @@ def _smoothstep(t: float, t0: float, duration: float) -> tuple[float, float, flo
     return s, ds, dds
 
 
+@njit(cache=True)
+def _ramp_integral(t: float, t0: float, duration: float) -> float:
+    """Integral over [t0, t] of the smoothstep rising over [t0, t0 + duration]."""
+    x = min(max((t - t0) / duration, 0.0), 1.0)
+    return duration * (x**4 * (2.5 - 3 * x + x * x)) + max(t - t0 - duration, 0.0)
+
+
+@njit(cache=True)
 def _oscillation(
     t: float, ramp: tuple[float, float, float], amp: float, omega: float
 ) -> tuple[float, float, float]:
     """amp sin(omega t) faded in by the smoothstep ``ramp`` (its value, rate and second
     derivative at t): the product's value, rate and second derivative."""
     s, ds, dds = ramp
-    sn, cs = math.sin(omega * t), math.cos(omega * t)
+    sn, cs = np.sin(omega * t), np.cos(omega * t)
     return (
         s * amp * sn,
         ds * amp * sn + s * amp * omega * cs,
@@ -124,18 +162,121 @@ def _oscillation(
     )
 
 
-def _combine(*terms: tuple[float, tuple[float, float, float]]) -> tuple[float, float, float]:
-    """sum_k c_k v_k of 3-vectors given as (c_k, v_k), added left to right (as numpy would)."""
-    (c, v), *rest = terms
-    out = v_scale(c, v)
-    for c, v in rest:
-        out = v_add(out, v_scale(c, v))
-    return out
+@njit(cache=True)
+def _figure_eight(
+    t: float, ramp: tuple[float, float, float], shape: _Shape
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Position (m), velocity and acceleration of the time-warped figure-eight about the centre:
+    p_k = A_k sin(k th) for k = 1 (x), 2 (y), th = omega int s (the phase rate rises smoothly from
+    0 to omega, so the motion starts at rest without a burst of acceleration)."""
+    s, ds, _ = ramp
+    omega, amp, k = shape.omega_radps, shape.figure8_amp_m, shape.figure8_harmonic
+    th = omega * _ramp_integral(t, 0.0, shape.ramp_s)
+    thd, thdd = omega * s, omega * ds
+    sn, cs = np.sin(k * th), np.cos(k * th)
+    pos, vel, acc = shape.center_m.copy(), np.zeros(3), np.zeros(3)
+    pos[:2] += amp * sn
+    vel[:2] = amp * k * thd * cs
+    acc[:2] = amp * k * (thdd * cs - k * thd**2 * sn)
+    return pos, vel, acc
+
+
+@njit(cache=True)
+def _yaw(t: float, ramp: tuple[float, float, float], shape: _Shape) -> tuple[float, float, float]:
+    """Yaw angle (rad), rate and acceleration: a ramp to YAW_RATE_RADPS (smoothstep ``ramp``), the
+    rate doubled from 40 to 50 s (edges YAW_TURN_EDGE_S), plus the tumble's yaw oscillation."""
+    if not shape.moving:
+        return 0.0, 0.0, 0.0
+    rate = YAW_RATE_RADPS
+    s, ds, _ = ramp
+    yaw = rate * _ramp_integral(t, 0.0, shape.ramp_s)
+    yaw_rate, yaw_acc = rate * s, rate * ds
+    for t0, sign in YAW_TURN_S:
+        s2, ds2, _ = _smoothstep(t, t0, YAW_TURN_EDGE_S)
+        yaw += sign * rate * _ramp_integral(t, t0, YAW_TURN_EDGE_S)
+        yaw_rate += sign * rate * s2
+        yaw_acc += sign * rate * ds2
+    if shape.tumble and shape.tumble_amp_rad[2] > 0:
+        osc, osc_rate, osc_acc = _oscillation(
+            t, ramp, shape.tumble_amp_rad[2], shape.tumble_omega_radps[2]
+        )
+        yaw += osc
+        yaw_rate += osc_rate
+        yaw_acc += osc_acc
+    return yaw, yaw_rate, yaw_acc
+
+
+@njit(cache=True)
+def _attitude_zxy(
+    yaw: tuple[float, float, float],
+    roll: tuple[float, float, float],
+    pitch: tuple[float, float, float],
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """R = Rz(yaw) Rx(roll) Ry(pitch) and its angular velocity and acceleration in world axes,
+    from each angle's (value rad, rate rad/s, acceleration rad/s^2): w = yaw' e_z + roll' e_x +
+    pitch' e_y with e_x = Rz[:, 0], e_y = (Rz Rx)[:, 1]; de_x/dt = (yaw' e_z) x e_x and
+    de_y/dt = (yaw' e_z + roll' e_x) x e_y give w'."""
+    e_z = np.array([0.0, 0.0, 1.0])
+    rot_z = exp_so3(yaw[0] * e_z)
+    rot_zx = rot_z @ exp_so3(np.array([roll[0], 0.0, 0.0]))
+    rot = rot_zx @ exp_so3(np.array([0.0, pitch[0], 0.0]))
+    e_x = rot_z[:, 0].copy()
+    e_y = rot_zx[:, 1].copy()
+    w_z = yaw[1] * e_z
+    w_zx = w_z + roll[1] * e_x
+    w = w_zx + pitch[1] * e_y
+    wd = (
+        yaw[2] * e_z
+        + roll[2] * e_x
+        + roll[1] * np.cross(w_z, e_x)
+        + pitch[2] * e_y
+        + pitch[1] * np.cross(w_zx, e_y)
+    )
+    return rot, w, wd
+
+
+@njit(cache=True)
+def _pan(t: float, ramp: tuple[float, float, float], shape: _Shape) -> tuple[float, float]:
+    """Pan angle (rad) and rate: a triangle wave of +-PAN_AMPLITUDE_RAD at PAN_RATE_RADPS,
+    faded in by the start's smoothstep ``ramp`` (zero without a pan ramp)."""
+    if not shape.pan_ramp:
+        return 0.0, 0.0
+    rate, amp = PAN_RATE_RADPS, PAN_AMPLITUDE_RAD
+    period = 4 * amp / rate
+    phase = t % period
+    if phase < amp / rate:
+        pan, d = rate * phase, rate
+    elif phase < 3 * amp / rate:
+        pan, d = amp - rate * (phase - amp / rate), -rate
+    else:
+        pan, d = -amp + rate * (phase - 3 * amp / rate), rate
+    s, ds, _ = ramp
+    return s * pan, ds * pan + s * d
+
+
+@njit(cache=True)
+def _evaluate(t: float, shape: _Shape) -> tuple:
+    """The reference at t: (pos, vel, acc, rot, w, wd, pan, pan_rate), as ``Reference``."""
+    ramp = _smoothstep(t, 0.0, shape.ramp_s)
+    if shape.moving:
+        pos, vel, acc = _figure_eight(t, ramp, shape)
+    else:
+        pos, vel, acc = shape.center_m.copy(), np.zeros(3), np.zeros(3)
+    roll = pitch = (0.0, 0.0, 0.0)
+    if shape.tumble:
+        amp, omega = shape.tumble_amp_rad, shape.tumble_omega_radps
+        roll = _oscillation(t, ramp, amp[0], omega[0])
+        pitch = _oscillation(t, ramp, amp[1], omega[1])
+    rot, w, wd = _attitude_zxy(_yaw(t, ramp, shape), roll, pitch)
+    pan, pan_rate = _pan(t, ramp, shape)
+    return pos, vel, acc, rot, w, wd, pan, pan_rate
 
 
 class Trajectory:
-    """A named reference. ``Trajectory(name, fast=False)(t)`` -> ``Reference``;
-    ``values(t)``: the same on Python floats (what the env evaluates once per control step).
+    """A named reference: ``Trajectory(name, fast=False)(t)`` -> ``Reference`` at t (s).
+
+    ``values(t)`` is the same reference as Python floats (``ReferenceValues``), for callers on
+    float helpers.
     """
 
     NAMES = ("figure8_yaw", "figure8_tumble", "hover")
@@ -156,102 +297,40 @@ class Trajectory:
         self.name = name
         self.fast = bool(fast)
         self.center = np.asarray(center_m, dtype=float)
+        if self.center.shape != (3,) or not np.all(np.isfinite(self.center)):
+            raise ValueError(f"center_m must be 3 finite numbers (m), got {center_m!r}")
         self.pan_ramp = bool(pan_ramp) and name != "hover"
         # Figure-eight x = A sin(wt), y = B sin(2wt): peak accelerations A w^2 and 4 B w^2.
         self.amp = np.array([0.7, 0.15])
         self.omega = 0.11 * (FAST_FACTOR if self.fast else 1.0)
-        self._figure8 = ((float(self.amp[0]), 1.0), (float(self.amp[1]), 2.0))  # (A, 1), (B, 2)
         self.ramp_s = 15.0  # smooth start of every motion
-        # (amplitude rad, angular frequency rad/s) of the oscillations (TUMBLE, TUMBLE_YAW).
-        self._tumble = [
-            (float(np.deg2rad(amp_deg)), 2 * np.pi / period) for amp_deg, period in self.TUMBLE
-        ]
-        self._tumble_yaw = (float(np.deg2rad(self.TUMBLE_YAW[0])), 2 * np.pi / self.TUMBLE_YAW[1])
+        amp_deg, period_s = np.array([*self.TUMBLE, self.TUMBLE_YAW]).T
+        self._shape = _Shape(
+            moving=name != "hover",
+            tumble=name == "figure8_tumble",
+            pan_ramp=self.pan_ramp,
+            center_m=self.center.copy(),
+            figure8_amp_m=self.amp.copy(),
+            figure8_harmonic=np.array([1.0, 2.0]),
+            omega_radps=float(self.omega),
+            ramp_s=self.ramp_s,
+            tumble_amp_rad=np.deg2rad(amp_deg),
+            tumble_omega_radps=2 * np.pi / period_s,
+        )
 
     def __call__(self, t: float) -> Reference:
-        return self.values(t).to_reference()
+        return Reference(*_evaluate(float(t), self._shape))
 
     def values(self, t: float) -> ReferenceValues:
-        """The reference at ``t`` on Python floats (the same numbers as ``self(t)``)."""
-        ramp = _smoothstep(t, 0.0, self.ramp_s)
-        s, ds, _ = ramp
-        pos, vel, acc = self.center.tolist(), [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]
-        if self.name != "hover":
-            # Time warp: the figure-eight's phase rate rises smoothly from 0 to omega, so the
-            # motion starts at rest without a burst of acceleration.
-            w = self.omega
-            th, thd, thdd = w * self._ramp_integral(t, 0.0, self.ramp_s), w * s, w * ds
-            for axis, (amp, k) in enumerate(self._figure8):
-                sn, cs = math.sin(k * th), math.cos(k * th)
-                pos[axis] += amp * sn
-                vel[axis] = amp * k * thd * cs
-                acc[axis] = amp * k * (thdd * cs - k * thd**2 * sn)
-        yaw, yaw_rate, yaw_acc = self._yaw(t, ramp)
-        rot = _rot(2, yaw)
-        w_world = (0.0, 0.0, yaw_rate)
-        wd_world = (0.0, 0.0, yaw_acc)
-        if self.name == "figure8_tumble":
-            # Body-fixed roll (x) then pitch (y) oscillations after the yaw: R = Rz Rx Ry.
-            (roll, roll_d, roll_dd), (pitch, pitch_d, pitch_dd) = (
-                _oscillation(t, ramp, a, om) for a, om in self._tumble
-            )
-            rot_zx = np.array(rot) @ np.array(_rot(0, roll))
-            rot = (rot_zx @ np.array(_rot(1, pitch))).tolist()
-            # Angular velocity and acceleration in world axes of R = Rz(yaw) Rx(roll) Ry(pitch).
-            ez = (0.0, 0.0, 1.0)
-            ex = (math.cos(yaw), math.sin(yaw), 0.0)
-            ey = tuple(rot_zx[:, 1].tolist())
-            w_world = _combine((yaw_rate, ez), (roll_d, ex), (pitch_d, ey))
-            # d/dt ex = w_z x ex; d/dt ey = (yaw_rate ez + roll_d ex) x ey.
-            dex = v_cross(v_scale(yaw_rate, ez), ex)
-            dey = v_cross(_combine((yaw_rate, ez), (roll_d, ex)), ey)
-            wd_world = _combine(
-                (yaw_acc, ez), (roll_dd, ex), (roll_d, dex), (pitch_dd, ey), (pitch_d, dey)
-            )
-        pan, pan_rate = self._pan(t, ramp)
-        return ReferenceValues(pos, vel, acc, rot, w_world, wd_world, pan, pan_rate)
-
-    @staticmethod
-    def _ramp_integral(t: float, t0: float, duration: float) -> float:
-        """Integral over [t0, t] of the smoothstep rising over [t0, t0 + duration]."""
-        x = min(max((t - t0) / duration, 0.0), 1.0)
-        return duration * (x**4 * (2.5 - 3 * x + x * x)) + max(t - t0 - duration, 0.0)
-
-    def _yaw(self, t: float, ramp: tuple[float, float, float]) -> tuple[float, float, float]:
-        """Yaw angle, rate and acceleration; ``ramp`` is the smoothstep of the start at t."""
-        if self.name == "hover":
-            return 0.0, 0.0, 0.0
-        rate = 0.05
-        # Base ramp: yaw rate rises smoothly to `rate` over the first ramp_s seconds.
-        s, ds, _ = ramp
-        yaw = rate * self._ramp_integral(t, 0.0, self.ramp_s)
-        yaw_rate, yaw_acc = rate * s, rate * ds
-        # Sudden turn at 40 s: the rate doubles for 10 s (smooth 5 s edges).
-        for t0, sign in ((40.0, 1.0), (50.0, -1.0)):
-            s2, ds2, _ = _smoothstep(t, t0, 5.0)
-            yaw += sign * rate * self._ramp_integral(t, t0, 5.0)
-            yaw_rate += sign * rate * s2
-            yaw_acc += sign * rate * ds2
-        if self.name == "figure8_tumble" and self.TUMBLE_YAW[0] > 0:
-            osc, osc_rate, osc_acc = _oscillation(t, ramp, *self._tumble_yaw)
-            yaw += osc
-            yaw_rate += osc_rate
-            yaw_acc += osc_acc
-        return yaw, yaw_rate, yaw_acc
-
-    def _pan(self, t: float, ramp: tuple[float, float, float]) -> tuple[float, float]:
-        """Pan ramp: a triangle wave of +-0.4 rad at 0.02 rad/s, smoothed at the start
-        (``ramp``: the smoothstep of the start at t)."""
-        if not self.pan_ramp:
-            return 0.0, 0.0
-        rate, amp = 0.02, 0.4
-        period = 4 * amp / rate
-        phase = t % period
-        if phase < amp / rate:
-            pan, d = rate * phase, rate
-        elif phase < 3 * amp / rate:
-            pan, d = amp - rate * (phase - amp / rate), -rate
-        else:
-            pan, d = -amp + rate * (phase - 3 * amp / rate), rate
-        s, ds, _ = ramp
-        return s * pan, ds * pan + s * d
+        """The reference at ``t`` as Python floats (the same numbers as ``self(t)``)."""
+        ref = self(t)
+        return ReferenceValues(
+            ref.pos.tolist(),
+            ref.vel.tolist(),
+            ref.acc.tolist(),
+            ref.rot.tolist(),
+            ref.w.tolist(),
+            ref.wd.tolist(),
+            ref.pan,
+            ref.pan_rate,
+        )

@@ -12,16 +12,16 @@ results. The summary is ``results.json``, ``results.md`` (tables) and plots.
 
 Cases run on this machine in a process pool (``--backend local --workers N``, the default) or as
 Ray tasks on a cluster (``--backend ray --ray-address HOST:PORT``, default ``$RAY_ADDRESS``, else a
-new local Ray instance; needs ``pip install 'astrocargo[ray]'`` and astrocargo installed on every
-node). Each case depends only on its seed, so both backends give the same numbers; a case whose
-Ray worker dies runs again.
+new local Ray instance; needs the ray extra, ``bash scripts/setup.sh --dev``, and astrocargo
+installed on every node). Each case depends only on its seed, so both backends give the same
+numbers; a case whose Ray worker dies runs again.
 
-    python scripts/benchmark_estimation.py                         # the standard suite
-    python scripts/benchmark_estimation.py --seeds 2 --duration 30  # a quick look
-    python scripts/benchmark_estimation.py --suite sweep --seeds 40 --duration 30 \\
+    .venv/bin/python scripts/benchmark_estimation.py                         # the standard suite
+    .venv/bin/python scripts/benchmark_estimation.py --seeds 2 --duration 30  # a quick look
+    .venv/bin/python scripts/benchmark_estimation.py --suite sweep --seeds 40 --duration 30 \\
         --backend ray --ray-address HEAD:6379                      # Monte Carlo over cargos
-    python scripts/benchmark_estimation.py --robots 2 --duration 90 --seed 3 --noise nominal \\
-        --trajectory figure8_tumble --cargo-mass 5 --cargo-com 0.02,-0.03,0.04 \\
+    .venv/bin/python scripts/benchmark_estimation.py --robots 2 --duration 90 --seed 3 \\
+        --noise nominal --trajectory figure8_tumble --cargo-mass 5 --cargo-com 0.02,-0.03,0.04 \\
         --cargo-inertia 0.07,0.10,0.11,0.005,0,-0.004 --comm-latency 0.1 --comm-drop 0.2 \\
         --out case.json                                            # one custom case
 """
@@ -47,10 +47,23 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))  # the sibling scripts/ray_backend.py
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # the sibling cli.py, ray_backend.py
+from cli import (  # noqa: E402
+    Formatter,
+    VectorAction,
+    join_vector_values,
+    nonnegative_float,
+    nonnegative_int,
+    output_dir,
+    output_file,
+    positive_float,
+    positive_int,
+)
 from ray_backend import import_ray, ray_connection  # noqa: E402
 
+from astrocargo.agents.trajectories import Trajectory  # noqa: E402
 from astrocargo.envs.sensors import NOISE_PROFILES  # noqa: E402
+from astrocargo.envs.world import MAX_ROBOTS  # noqa: E402
 
 # Default cargo: 5 kg, off-centre, full inertia tensor (cargo frame, about the centre of mass).
 CARGO_MASS = 5.0
@@ -58,6 +71,10 @@ CARGO_COM = (0.02, -0.03, 0.04)
 CARGO_INERTIA = (0.07, 0.10, 0.11, 0.005, 0.0, -0.004)
 MASS_TOL = 0.02
 CONTROL_HZ = 62.5
+# Shortest analysed case: the estimators make no update in their first 4 s (warm-up), and batch
+# least squares and the Cramer-Rao bound need recorded updates; twice the warm-up leaves 4 s.
+MIN_DURATION_S = 8.0
+VECTOR_OPTIONS = {"--cargo-com": 3, "--cargo-inertia": 6}
 BACKENDS = ("local", "ray")
 # A Ray task whose worker process or node dies is run again up to this many times; an exception
 # raised by the case itself is not retried (it would fail the same way).
@@ -289,8 +306,8 @@ def run_case(case: Case) -> dict:
         "com_err_m": float(com_error_m(wls, truth0)),
         "principal_rel_err": [float(x) for x in principal_rel_errors(wls, truth0)],
     }
-    # The same measurements through the log-Cholesky-state UKF (DESIGN.md's recommended design,
-    # replaced by the standard-parameter filter: estimator/ukf.py says why).
+    # The same measurements through the log-Cholesky-state UKF (the design first built, replaced
+    # by the standard-parameter filter: docs/design.md and estimator/ukf.py say why).
     lc = LogCholeskyUKF(prior_params0, LOG_CHOLESKY_PRIOR_STD, LOG_CHOLESKY_PROCESS_STD)
     for z, a, b, r in est0.log:
         lc.predict()
@@ -538,20 +555,42 @@ def markdown(summary: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+def run_conditions(results: list[dict]) -> str:
+    """One line stating how the analysed cases ran: seeds, duration, noise, cargo."""
+    cases = [r["case"] for r in results if "agents" in r]
+    seeds = sorted({c["seed"] for c in cases})
+    durations = sorted({c["duration"] for c in cases})
+    noises = sorted({c["noise"] for c in cases})
+    masses = sorted({c["cargo_mass"] for c in cases})
+    mass = f"{masses[0]:g} kg" if len(masses) == 1 else f"{masses[0]:g}-{masses[-1]:g} kg"
+    return (
+        f"{len(seeds)} seed{'s' if len(seeds) != 1 else ''} per scenario, "
+        f"{' / '.join(f'{d:g}' for d in durations)} s simulated, {' / '.join(noises)} noise, "
+        f"{mass} cargo; UKF: every robot's final estimate; batch LS and CRLB: robot 0's "
+        f"measurements"
+    )
+
+
 def plot(results: list[dict], path: Path) -> None:
+    """Final errors per scenario (one row each): every robot's UKF estimate, batch least squares
+    and the Cramer-Rao bound of robot 0's measurements, on log axes."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
     names = sorted(
         {
             r["case"]["name"]
             for r in results
             if "agents" in r and not r["case"]["name"].startswith("control")
-        }
+        },
+        reverse=True,  # top to bottom in alphabetical order
     )
-    fig, axes = plt.subplots(1, 3, figsize=(16, 4.5))
+    fig, axes = plt.subplots(
+        1, 3, figsize=(15, 1.6 + 0.55 * len(names)), sharey=True, layout="constrained"
+    )
     for k, name in enumerate(names):
         rs = [r for r in results if r["case"]["name"] == name]
         ukf = [a for r in rs for a in r["agents"].values()]
@@ -562,55 +601,58 @@ def plot(results: list[dict], path: Path) -> None:
             wls = [scale * np.max(r["batch_ls"][key]) for r in rs]
             bound = [scale * np.max(r["crlb"][key]) for r in rs]
             ax.scatter(
-                [k] * len(vals), vals, color="tab:blue", s=14, label="UKF" if k == 0 else None
+                vals, [k] * len(vals), color="tab:blue", s=14, label="UKF" if k == 0 else None
             )
             ax.scatter(
-                [k + 0.2] * len(wls),
                 wls,
+                [k - 0.2] * len(wls),
                 color="tab:orange",
                 s=14,
                 label="batch LS" if k == 0 else None,
             )
             ax.scatter(
-                [k - 0.2] * len(bound),
                 bound,
+                [k + 0.2] * len(bound),
                 color="k",
-                marker="_",
-                s=60,
+                marker="|",
+                s=80,
                 label="CRLB (1 sigma)" if k == 0 else None,
             )
+    plain = FuncFormatter(lambda v, _: f"{v:g}")
     for ax, title in zip(
         axes, ("mass error [%]", "CoM error [mm]", "worst principal moment error [%]"), strict=True
     ):
-        ax.set_title(title)
-        ax.set_xticks(range(len(names)), names, rotation=30, ha="right", fontsize=8)
-        ax.set_yscale("log")
+        ax.set_xlabel(title)
+        ax.set_xscale("log")
+        ax.xaxis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0)))
+        ax.xaxis.set_major_formatter(plain)
+        ax.xaxis.set_minor_formatter(NullFormatter())
         ax.grid(alpha=0.3)
-    axes[0].legend(fontsize=8)
-    fig.tight_layout()
+    axes[0].set_yticks(range(len(names)), names, fontsize=9)
+    axes[0].set_ylim(-0.6, len(names) - 0.4)
+    handles, labels = axes[0].get_legend_handles_labels()
+    fig.legend(handles, labels, fontsize=8, loc="outside lower center", ncols=len(labels))
+    fig.suptitle(f"Final estimation errors per scenario - {run_conditions(results)}", fontsize=10)
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
 
 # ------------------------------------------------------------------------------- CLI
-def _floats(text: str, n: int, name: str) -> tuple[float, ...]:
-    try:
-        values = tuple(float(x) for x in text.split(","))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{name} must be {n} comma-separated numbers") from None
-    if len(values) != n:
-        raise argparse.ArgumentTypeError(f"{name} must be {n} comma-separated numbers")
-    return values
-
-
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=Formatter)
     p.add_argument("--out-dir", default="out/benchmark_estimation")
-    p.add_argument("--seeds", type=int, default=5, help="seeds per scenario (standard suite)")
     p.add_argument(
-        "--workers", type=int, default=2, help="processes for the cases (--backend local)"
+        "--seeds", type=positive_int, default=5, help="seeds per scenario (standard suite)"
     )
-    p.add_argument("--duration", type=float, default=90.0, help="simulated seconds per case")
+    p.add_argument(
+        "--workers", type=positive_int, default=2, help="processes for the cases (--backend local)"
+    )
+    p.add_argument(
+        "--duration",
+        type=positive_float,
+        default=90.0,
+        help=f"simulated seconds per case, at least {MIN_DURATION_S:g}",
+    )
     p.add_argument(
         "--suite",
         choices=("standard", "smoke", "sweep"),
@@ -621,23 +663,84 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument(
         "--ray-address",
         default=os.environ.get("RAY_ADDRESS"),
-        help="Ray cluster (HOST:PORT) for --backend ray; default $RAY_ADDRESS, else a new local "
+        help="Ray cluster (HOST:PORT) for --backend ray, default $RAY_ADDRESS; none: a new local "
         "Ray instance",
     )
     # One custom case (these exact flags); with --robots the standard suite is not run.
-    p.add_argument("--robots", type=int)
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--robots", type=int, help=f"1..{MAX_ROBOTS}: run one custom case")
+    p.add_argument("--seed", type=nonnegative_int, default=0)
     p.add_argument("--noise", choices=sorted(NOISE_PROFILES), default="nominal")
-    p.add_argument("--trajectory", default="figure8_tumble")
-    p.add_argument("--cargo-mass", type=float, default=CARGO_MASS)
-    p.add_argument("--cargo-com", type=lambda s: _floats(s, 3, "--cargo-com"), default=CARGO_COM)
+    p.add_argument("--trajectory", default="figure8_tumble", choices=Trajectory.NAMES)
+    p.add_argument("--cargo-mass", type=positive_float, default=CARGO_MASS, help="kg")
     p.add_argument(
-        "--cargo-inertia", type=lambda s: _floats(s, 6, "--cargo-inertia"), default=CARGO_INERTIA
+        "--cargo-com",
+        action=VectorAction,
+        size=3,
+        default=CARGO_COM,
+        help="m, cargo frame: 3 numbers, comma-separated (--cargo-com=-0.045,0.012,-0.03) or "
+        "separated by spaces (--cargo-com -0.045 0.012 -0.03)",
     )
-    p.add_argument("--comm-latency", type=float, default=0.0)
-    p.add_argument("--comm-drop", type=float, default=0.0)
-    p.add_argument("--out", help="JSON file of the custom case")
-    args = p.parse_args(argv)
+    p.add_argument(
+        "--cargo-inertia",
+        action=VectorAction,
+        size=6,
+        default=CARGO_INERTIA,
+        help="kg m^2 about the centre of mass: Ixx,Iyy,Izz,Ixy,Ixz,Iyz, written as --cargo-com",
+    )
+    p.add_argument("--comm-latency", type=nonnegative_float, default=0.0, help="seconds")
+    p.add_argument("--comm-drop", type=nonnegative_float, default=0.0, help="probability, < 1")
+    p.add_argument("--out", help="JSON file of the custom case (none: custom_case.json)")
+    return p
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    """The command line, checked, with its output folder created: every error is the parser's,
+    before any case runs. A comma-separated vector may start with a minus sign after a space
+    (``--cargo-com -0.045,0.012,-0.03``)."""
+    p = build_parser()
+    argv = sys.argv[1:] if argv is None else list(argv)
+    args = p.parse_args(join_vector_values(argv, list(VECTOR_OPTIONS)))
+    if args.duration < MIN_DURATION_S:
+        p.error(
+            f"--duration must be at least {MIN_DURATION_S:g} s (the estimators' 4 s warm-up and "
+            f"time to record updates), got {args.duration:g}"
+        )
+    if args.robots is not None:
+        if not 1 <= args.robots <= MAX_ROBOTS:
+            p.error(f"--robots must be in 1..{MAX_ROBOTS}, got {args.robots}")
+        if not args.comm_drop < 1:
+            p.error(f"--comm-drop must be a probability below 1, got {args.comm_drop:g}")
+        output_file(p, Path(args.out or "custom_case.json"), "--out")
+    else:
+        output_dir(p, Path(args.out_dir), "--out-dir")
+    if args.backend == "ray":
+        try:
+            import_ray()
+        except ImportError as err:
+            p.error(str(err))
+    return args
+
+
+def suite_cases(args: argparse.Namespace) -> list[Case]:
+    """The cases of ``--suite``."""
+    if args.suite == "smoke":
+        return smoke_cases(args.duration)
+    if args.suite == "sweep":
+        return sweep_cases(args.seeds, args.duration)
+    return standard_cases(args.seeds, args.duration)
+
+
+def seed_list(cases: list[Case]) -> str:
+    """The seeds the cases use, as "0..4" when consecutive."""
+    seeds = sorted({c.seed for c in cases})
+    if seeds == list(range(seeds[0], seeds[-1] + 1)) and len(seeds) > 2:
+        return f"{seeds[0]}..{seeds[-1]}"
+    return ", ".join(map(str, seeds))
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    p = build_parser()
 
     if args.robots is not None:
         case = Case(
@@ -671,23 +774,13 @@ def main(argv: list[str] | None = None) -> int:
         return 0
 
     out_dir = Path(args.out_dir)
-    if args.suite == "smoke":
-        cases = smoke_cases(args.duration)
-    elif args.suite == "sweep":
-        cases = sweep_cases(args.seeds, args.duration)
-    else:
-        cases = standard_cases(args.seeds, args.duration)
+    cases = suite_cases(args)
     where = (
         f"{args.workers} local processes"
         if args.backend == "local"
         else f"Ray at {args.ray_address or 'a new local instance'}"
     )
-    print(f"seeds 0..{args.seeds - 1}; {len(cases)} cases on {where}; output {out_dir}")
-    if args.backend == "ray":
-        try:
-            import_ray()
-        except ImportError as err:
-            p.error(str(err))
+    print(f"seeds {seed_list(cases)}; {len(cases)} cases on {where}; output {out_dir}")
     start = time.perf_counter()
     results = run_all(cases, out_dir, args.workers, args.backend, args.ray_address)
     print(f"cases finished in {time.perf_counter() - start:.1f} s")

@@ -4,15 +4,28 @@ Sections:
 - estimator: one predict + update of `InertialParamUKF` against filterpy's stock
   `UnscentedKalmanFilter` given the very same per-point measurement function, on a seeded
   sequence of cargo-inertia measurements (n = 10 states, m = 6 wrench components).
-- env: one `AstrobeeCargoEnv.step` (N = 1, 2, 4 robots; estimators on and off) against bare
-  MuJoCo `mj_step(nstep=frame_skip)` of the same model; real-time factor = control period / mean
-  step time.
+- env: one `env.step` (N = 1, 2, 4, 8 robots; estimators on and off) against bare MuJoCo
+  `mj_step(nstep=frame_skip)` of the same model from the same state; real-time factor = control
+  period / mean step time; step_over_physics = mean step / mean physics step (estimators on, and
+  off as step_over_physics_no_estimator; the same of medians as ..._median, robust to other jobs
+  on a shared machine); reset_ms = mean `env.reset()` time (reset_median_ms: median).
+- controller: `ObservationController.predict` beside the `env.step` it drives, in one loop
+  (2 and 3 robots); predict_over_step = mean predict / mean step.
+- sb3_loop: environment steps per second per copy through the SB3 adapter of envs/wrappers.py
+  (`SharedPolicyVecEnv`, set up as scripts/train.py does, one copy): a plain loop of PPO's
+  `predict` and `VecEnv.step`, and the same loop with zero actions (the adapter and env alone).
 - training: environment steps per second inside SB3's loop (PPO rollouts and updates, set up
   as scripts/train.py does) for 1 and 2 environment copies (2 copies: in-process, and one
   subprocess per copy as subprocess_steps_per_s).
+- numba: wall time of a fresh process that imports the package, builds a 2-robot env, resets it
+  and steps it once, twice with the same empty NUMBA_CACHE_DIR: the first run compiles every
+  kernel and writes the cache, the second loads it (first_s, cached_s, compile_s = difference).
+
+Every section uses the public API only (`astrobee_cargo_v0.parallel_env`, `env.sim`'s model,
+data and control period, `ObservationController.for_env`, scripts/train.py's set-up).
 
 Usage:
-    python scripts/benchmark_performance.py [--only {estimator,env,training}] [--json FILE]
+    .venv/bin/python scripts/benchmark_performance.py [--only SECTION] [--json FILE]
 
 With --json the figures are merged into FILE under the section's key (other keys are kept).
 
@@ -36,6 +49,9 @@ from collections.abc import Callable  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # the sibling scripts/cli.py
+from cli import Formatter, json_object_file  # noqa: E402
 
 SEED = 20240601
 
@@ -157,13 +173,22 @@ ENV_WARMUP_STEPS = 300  # past the estimators' 4 s warm-up, so UKF updates are i
 ENV_STEPS = 500
 
 
+ENV_RESETS = 5  # timed resets per robot count (after one untimed)
+
+
+def _make_env(n_robots: int, estimators: bool = True, **kwargs):
+    """``astrobee_cargo_v0.parallel_env`` with nominal noise."""
+    from astrocargo.envs import astrobee_cargo_v0
+
+    return astrobee_cargo_v0.parallel_env(
+        n_robots=n_robots, noise="nominal", estimators=estimators, **kwargs
+    )
+
+
 def _env_step_times_ns(n_robots: int, estimators: bool) -> tuple[np.ndarray, object]:
     """Wall time of each of ENV_STEPS env steps (after ENV_WARMUP_STEPS), and the env."""
-    from astrocargo.envs.cargo_transport import AstrobeeCargoEnv
-
-    env = AstrobeeCargoEnv(
-        n_robots=n_robots,
-        noise="nominal",
+    env = _make_env(
+        n_robots,
         estimators=estimators,
         observe_estimates=estimators,
         max_cycles=10 * (ENV_WARMUP_STEPS + ENV_STEPS),
@@ -193,38 +218,65 @@ def _env_step_times_ns(n_robots: int, estimators: bool) -> tuple[np.ndarray, obj
     return np.array(times), env
 
 
+def _frame_skip(sim) -> int:
+    """Physics steps per control step: ``sim.frame_skip``, else the control period over MuJoCo's
+    time step."""
+    frame_skip = getattr(sim, "frame_skip", None)
+    return int(frame_skip) if frame_skip else max(1, round(sim.dt_s / sim.model.opt.timestep))
+
+
 def _physics_step_times_ns(env) -> np.ndarray:
     """Bare mj_step(nstep=frame_skip) of the env's own model from its current state."""
     import mujoco
 
     model, data = env.sim.model, env.sim.data
+    nstep = _frame_skip(env.sim)
     times = []
     for k in range(ENV_WARMUP_STEPS + ENV_STEPS):
         t0 = time.perf_counter_ns()
-        mujoco.mj_step(model, data, nstep=env.sim.frame_skip)
+        mujoco.mj_step(model, data, nstep=nstep)
         t1 = time.perf_counter_ns()
         if k >= ENV_WARMUP_STEPS:
             times.append(t1 - t0)
     return np.array(times)
 
 
+def _reset_times_ms(n_robots: int) -> np.ndarray:
+    """Wall time of ENV_RESETS ``env.reset`` calls (new seeds, after one untimed reset), ms."""
+    env = _make_env(n_robots)
+    env.reset(seed=SEED)
+    times = []
+    for k in range(ENV_RESETS):
+        t0 = time.perf_counter_ns()
+        env.reset(seed=SEED + 1 + k)
+        times.append((time.perf_counter_ns() - t0) / 1e6)
+    env.close()
+    return np.array(times)
+
+
 def bench_env() -> dict[str, dict[str, float]]:
-    """Microseconds per env step (median and mean) and real-time factors, per robot count."""
+    """Microseconds per env step (median and mean), real-time factors, the step's cost over
+    MuJoCo's physics alone and the time of a reset, per robot count."""
     results: dict[str, dict[str, float]] = {}
     print(
         f"env: {ENV_STEPS} steps after {ENV_WARMUP_STEPS} warm-up steps, nominal noise, seed "
         f"{SEED}, OPENBLAS_NUM_THREADS={os.environ['OPENBLAS_NUM_THREADS']}; rtf = control "
-        f"period / mean step time"
+        f"period / mean step time; /phys = mean step / mean mj_step; reset: mean of "
+        f"{ENV_RESETS}"
     )
     print(
         f"  {'N':>2} {'step us':>9} {'mean us':>9} {'rtf':>7} {'no-est us':>10} {'mean us':>9} "
-        f"{'rtf':>7} {'mj_step us':>11} {'rtf':>8}"
+        f"{'rtf':>7} {'mj_step us':>11} {'rtf':>8} {'/phys':>6} {'no-est/phys':>12} "
+        f"{'median /phys':>13} "
+        f"{'reset ms':>9}"
     )
     for n in ENV_ROBOTS:
         on, env = _env_step_times_ns(n, estimators=True)
         off, _ = _env_step_times_ns(n, estimators=False)
         physics = _physics_step_times_ns(env)
+        resets = _reset_times_ms(n)
         dt_us = env.sim.dt_s * 1e6
+        physics_mean_us = float(np.mean(physics)) / 1e3
         row = {
             "step_us": float(np.median(on)) / 1e3,
             "step_mean_us": float(np.mean(on)) / 1e3,
@@ -233,16 +285,167 @@ def bench_env() -> dict[str, dict[str, float]]:
             "step_no_estimator_mean_us": float(np.mean(off)) / 1e3,
             "rtf_no_estimator": dt_us / (float(np.mean(off)) / 1e3),
             "physics_only_us": float(np.median(physics)) / 1e3,
-            "rtf_physics_only": dt_us / (float(np.mean(physics)) / 1e3),
+            "physics_only_mean_us": physics_mean_us,
+            "rtf_physics_only": dt_us / physics_mean_us,
+            "step_over_physics": float(np.mean(on)) / 1e3 / physics_mean_us,
+            "step_over_physics_no_estimator": float(np.mean(off)) / 1e3 / physics_mean_us,
+            # Medians over medians: the same ratios, robust to other jobs on a shared machine.
+            "step_over_physics_median": float(np.median(on) / np.median(physics)),
+            "step_over_physics_no_estimator_median": float(np.median(off) / np.median(physics)),
+            "reset_ms": float(np.mean(resets)),
+            "reset_median_ms": float(np.median(resets)),
         }
         results[str(n)] = row
         print(
             f"  {n:>2} {row['step_us']:9.0f} {row['step_mean_us']:9.0f} {row['rtf']:7.1f} "
             f"{row['step_no_estimator_us']:10.0f} {row['step_no_estimator_mean_us']:9.0f} "
             f"{row['rtf_no_estimator']:7.1f} {row['physics_only_us']:11.1f} "
-            f"{row['rtf_physics_only']:8.0f}"
+            f"{row['rtf_physics_only']:8.0f} {row['step_over_physics']:6.1f} "
+            f"{row['step_over_physics_no_estimator']:12.1f} "
+            f"{row['step_over_physics_median']:6.1f} / "
+            f"{row['step_over_physics_no_estimator_median']:4.1f} "
+            f"{row['reset_ms']:9.1f}"
         )
     return results
+
+
+CONTROLLER_ROBOTS = (2, 3)
+
+
+def bench_controller() -> dict[str, dict[str, float]]:
+    """The scripted controller's ``predict`` beside the ``env.step`` it drives, in one loop, per
+    robot count: microseconds (mean) and their ratio."""
+    from astrocargo.agents.controllers import ObservationController
+
+    results: dict[str, dict[str, float]] = {}
+    print(
+        f"controller: ObservationController.predict (cargo model 'estimate') and env.step in one "
+        f"loop, figure8_tumble, {ENV_STEPS} steps after {ENV_WARMUP_STEPS} warm-up, seed {SEED}"
+    )
+    print(f"  {'N':>2} {'predict us':>11} {'step us':>9} {'predict/step':>13}")
+    for n in CONTROLLER_ROBOTS:
+        env = _make_env(
+            n, trajectory="figure8_tumble", max_cycles=10 * (ENV_WARMUP_STEPS + ENV_STEPS)
+        )
+        obs, _ = env.reset(seed=SEED)
+        controller = ObservationController.for_env(env, "estimate")
+        predict_ns, step_ns = [], []
+        gc_was_enabled = gc.isenabled()
+        gc.disable()
+        try:
+            for k in range(ENV_WARMUP_STEPS + ENV_STEPS):
+                t0 = time.perf_counter_ns()
+                actions, _ = controller.predict(obs)
+                t1 = time.perf_counter_ns()
+                obs, *_ = env.step(actions)
+                t2 = time.perf_counter_ns()
+                if k >= ENV_WARMUP_STEPS:
+                    predict_ns.append(t1 - t0)
+                    step_ns.append(t2 - t1)
+                if not env.agents:
+                    raise RuntimeError(f"benchmark episode ended early at step {k}")
+        finally:
+            if gc_was_enabled:
+                gc.enable()
+        env.close()
+        row = {
+            "predict_us": float(np.mean(predict_ns)) / 1e3,
+            "step_us": float(np.mean(step_ns)) / 1e3,
+        }
+        row["predict_over_step"] = row["predict_us"] / row["step_us"]
+        results[str(n)] = row
+        print(
+            f"  {n:>2} {row['predict_us']:11.0f} {row['step_us']:9.0f} "
+            f"{row['predict_over_step']:13.2f}"
+        )
+    return results
+
+
+SB3_LOOP_WARMUP_STEPS = 200
+SB3_LOOP_STEPS = 2000
+
+
+def bench_sb3_loop() -> dict[str, float]:
+    """Environment steps per second per copy through the SB3 adapter, one copy set up as
+    scripts/train.py does: PPO's predict + VecEnv.step, and zero actions + VecEnv.step."""
+    train = _load_train_script()
+    args = train.build_parser().parse_args(
+        ["--copies", "1", "--no-progress-bar", "--seed", str(SEED)]
+    )
+    model, _ = train.build_model(args, SEED)
+    venv = model.get_env()
+    zeros = np.zeros((venv.num_envs, *venv.action_space.shape), dtype=venv.action_space.dtype)
+
+    def loop(act) -> float:
+        obs = venv.reset()
+        for _ in range(SB3_LOOP_WARMUP_STEPS):
+            obs, *_ = venv.step(act(obs))
+        start = time.perf_counter()
+        for _ in range(SB3_LOOP_STEPS):
+            obs, *_ = venv.step(act(obs))
+        return SB3_LOOP_STEPS / (time.perf_counter() - start)
+
+    policy = loop(lambda obs: model.predict(obs, deterministic=False)[0])
+    adapter = loop(lambda obs: zeros)
+    venv.close()
+    print(
+        f"sb3_loop: one copy of scripts/train.py's set-up ({args.robots} robots, "
+        f"{'with' if args.estimates else 'without'} estimates, VecNormalize), "
+        f"{SB3_LOOP_STEPS} steps after {SB3_LOOP_WARMUP_STEPS}; env steps/s per copy"
+    )
+    print(f"  PPO predict + step   {policy:9.0f}")
+    print(f"  zero actions + step  {adapter:9.0f}")
+    return {"steps_per_s": policy, "adapter_steps_per_s": adapter, "robots": args.robots}
+
+
+NUMBA_PROBE = """
+import time
+start = time.perf_counter()
+import numpy as np
+from astrocargo.envs import astrobee_cargo_v0
+env = astrobee_cargo_v0.parallel_env(n_robots=2, noise="nominal")
+env.reset(seed=0)
+env.step({a: np.zeros(env.action_space(a).shape) for a in env.agents})
+print(time.perf_counter() - start)
+"""
+
+
+def bench_numba() -> dict[str, float]:
+    """Seconds for a fresh process to import the package, build, reset and step a 2-robot env:
+    first with an empty numba cache (every @njit(cache=True) kernel compiles and is written to
+    it), then again with that cache."""
+    import subprocess
+    import tempfile
+
+    def probe(cache_dir: str) -> float:
+        env = {**os.environ, "NUMBA_CACHE_DIR": cache_dir}
+        out = subprocess.run(
+            [sys.executable, "-c", NUMBA_PROBE],
+            env=env,
+            check=True,
+            capture_output=True,
+            text=True,
+            timeout=600,
+        )
+        return float(out.stdout.strip().splitlines()[-1])
+
+    with tempfile.TemporaryDirectory(prefix="numba_cache_") as cache_dir:
+        first = probe(cache_dir)
+        cached = probe(cache_dir)
+        n_files = sum(len(files) for _, _, files in os.walk(cache_dir))
+    print(
+        f"numba: fresh process importing astrocargo, building, resetting and stepping a 2-robot "
+        f"env; NUMBA_CACHE_DIR a new empty folder ({n_files} cache files written)"
+    )
+    print(f"  first run (compiles)  {first:7.2f} s")
+    print(f"  second run (cached)   {cached:7.2f} s")
+    print(f"  compile time          {first - cached:7.2f} s")
+    return {
+        "first_s": first,
+        "cached_s": cached,
+        "compile_s": first - cached,
+        "cache_files": n_files,
+    }
 
 
 TRAIN_COPIES = (1, 2)
@@ -302,7 +505,10 @@ def bench_training() -> dict[str, dict[str, float]]:
 SECTIONS: dict[str, Callable[[], dict[str, float]]] = {
     "estimator": bench_estimator,
     "env": bench_env,
+    "controller": bench_controller,
+    "sb3_loop": bench_sb3_loop,
     "training": bench_training,
+    "numba": bench_numba,
 }
 
 
@@ -316,14 +522,27 @@ def merge_json(path: Path, results: dict[str, dict[str, float]]) -> None:
     path.write_text(json.dumps(data, indent=2) + "\n")
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=Formatter)
     parser.add_argument(
-        "--only", choices=sorted(SECTIONS), help="run one section (default: all implemented)"
+        "--only", choices=sorted(SECTIONS), help="run one section (none: every section)"
     )
     parser.add_argument("--json", type=Path, metavar="FILE", help="merge results into FILE")
-    args = parser.parse_args(argv)
+    return parser
 
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    """The command line, checked before any benchmark runs: --json must be a new file or hold
+    a JSON object (the results are merged into it)."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.json is not None:
+        json_object_file(parser, args.json, "--json")
+    return args
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
     results: dict[str, dict[str, float]] = {}
     for name in [args.only] if args.only else list(SECTIONS):
         try:

@@ -6,8 +6,8 @@ observations and their own live estimates. Prints a table of final errors and ma
 times per robot and saves a figure like the paper's Fig. 3: each parameter's estimate with its
 2-sigma band against the truth over time. Optionally an animated GIF.
 
-    MUJOCO_GL=egl python scripts/demo.py                 # the defaults above
-    python scripts/demo.py --trajectory figure8_tumble --duration 60 --video out/demo.gif
+    MUJOCO_GL=egl .venv/bin/python scripts/demo.py                 # the defaults above
+    .venv/bin/python scripts/demo.py --trajectory figure8_tumble --duration 60 --video out/demo.gif
 """
 
 from __future__ import annotations
@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import sys
 import time
 from pathlib import Path
 
@@ -26,9 +27,20 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 
 from tqdm import tqdm  # noqa: E402
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # the sibling scripts/cli.py
+from cli import (  # noqa: E402
+    Formatter,
+    nonnegative_int,
+    output_dir,
+    output_file,
+    positive_float,
+    positive_int,
+)
+
 from astrocargo.agents.controllers import ObservationController  # noqa: E402
 from astrocargo.agents.trajectories import Trajectory  # noqa: E402
 from astrocargo.envs import astrobee_cargo_v0  # noqa: E402
+from astrocargo.envs.sensors import NOISE_PROFILES  # noqa: E402
 from astrocargo.envs.world import MAX_ROBOTS  # noqa: E402
 from astrocargo.estimator.baselines import convergence_time  # noqa: E402
 from astrocargo.estimator.inertia import (  # noqa: E402
@@ -38,6 +50,7 @@ from astrocargo.estimator.inertia import (  # noqa: E402
 
 LABELS = ("m [kg]", "c_x [m]", "c_y [m]", "c_z [m]", "I_xx", "I_yy", "I_zz", "I_xy", "I_xz", "I_yz")
 MASS_TOL = 0.02  # convergence: mass error stays within 2 %
+CONTROL_HZ = 62.5  # the env's default control rate (Astrobee's GNC rate)
 
 
 def physical(pi: np.ndarray) -> np.ndarray:
@@ -51,7 +64,7 @@ def run(args: argparse.Namespace) -> dict:
         n_robots=args.robots,
         trajectory=args.trajectory,
         noise=args.noise,
-        max_cycles=int(round(args.duration * 62.5)),
+        max_cycles=control_steps(args.duration),
         render_mode="rgb_array" if args.video else None,
     )
     obs, _ = env.reset(seed=args.seed)
@@ -60,18 +73,25 @@ def run(args: argparse.Namespace) -> dict:
     truth = [physical(p) for p in sim.true_params_grasp]
     times, means, stds, track, frames = [], [], [], [], []
     start = time.perf_counter()
-    for step in tqdm(range(env.max_cycles), desc="simulating", unit="step"):
-        actions, _ = controller.predict(obs)
-        obs, _, _, _, infos = env.step(actions)
-        times.append(sim.data.time)
-        estimates = [est.physical_estimate() for est in sim.estimators]
-        means.append([m for m, _ in estimates])
-        stds.append([s for _, s in estimates])
-        track.append(sim.tracking_error())
-        if args.video and step % args.video_every == 0:
-            frames.append(env.render())
-        if not env.agents:
-            break
+    step = 0
+    with tqdm(total=env.max_cycles, desc="simulating", unit="step") as bar:
+        while env.agents:
+            actions, _ = controller.predict(obs)
+            obs, _, _, truncations, infos = env.step(actions)
+            times.append(sim.data.time)
+            estimates = [est.physical_estimate() for est in sim.estimators]
+            means.append([m for m, _ in estimates])
+            stds.append([s for _, s in estimates])
+            track.append(sim.tracking_error())
+            if args.video and step % args.video_every == 0:
+                first = infos[env.possible_agents[0]]
+                caption = (
+                    f"t = {sim.data.time:5.1f} s   {env.possible_agents[0]}: mass error "
+                    f"{first['mass_rel_err']:.1%}, CoM error {first['com_err_m'] * 1e3:.1f} mm"
+                )
+                frames.append(with_caption(env.render(), caption))
+            step += 1
+            bar.update()
     wall = time.perf_counter() - start
     reason = next(iter(infos.values())).get("termination_reason")
     times, means, stds, track = map(np.asarray, (times, means, stds, track))
@@ -81,6 +101,8 @@ def run(args: argparse.Namespace) -> dict:
         "wall_s": wall,
         "sim_s": float(times[-1]),
         "termination_reason": reason,
+        # None: the episode ran to its time limit (truncated), else the termination's reason.
+        "end": "time limit" if reason is None and any(truncations.values()) else reason,
         "agents": {},
     }
     for i, agent in enumerate(env.possible_agents):
@@ -102,19 +124,44 @@ def run(args: argparse.Namespace) -> dict:
     plot(times, means[:, 0], stds[:, 0], truth[0], args, out / "estimates.png")
     (out / "results.json").write_text(json.dumps(results, indent=2, default=float))
     if frames:
-        save_gif(frames, out / Path(args.video).name, fps=62.5 / args.video_every)
+        save_gif(frames, Path(args.video), fps=CONTROL_HZ / args.video_every)
     env.close()
     return results
 
 
+# Figure: the y-limits hold the estimate, its band and the truth from ZOOM_AFTER of the run on
+# (the prior's band of the first seconds would hide the convergence); a parameter whose reported
+# spread ends above UNREVEALED_STD_FRACTION of the prior's is one the trajectory cannot reveal.
+ZOOM_AFTER = 0.2
+UNREVEALED_STD_FRACTION = 0.5
+
+
+def zoomed_limits(
+    times: np.ndarray, mean: np.ndarray, std: np.ndarray, truth: float, revealed: bool
+) -> tuple[float, float]:
+    """y-limits holding the truth and, after ZOOM_AFTER of the run, the estimate and (for a
+    revealed parameter) its 2-sigma band, with a 10 % margin."""
+    late = times >= times[0] + ZOOM_AFTER * (times[-1] - times[0])
+    values = [mean[late], [truth]]
+    if revealed:
+        values += [mean[late] - 2 * std[late], mean[late] + 2 * std[late]]
+    lo, hi = float(np.min(np.concatenate(values))), float(np.max(np.concatenate(values)))
+    margin = 0.1 * (hi - lo) or 0.05 * max(abs(truth), 1e-3)
+    return lo - margin, hi + margin
+
+
 def plot(times, mean, std, truth, args, path: Path) -> None:
+    """Each parameter's estimate with its 2-sigma band against the truth over time."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(2, 5, figsize=(17, 6), sharex=True)
+    fig, axes = plt.subplots(2, 5, figsize=(17, 6.4), sharex=True)
+    zoom_s = ZOOM_AFTER * (times[-1] - times[0]) + times[0]
     for k, ax in enumerate(axes.ravel()):
+        spread = std[-1, k] / std[0, k]  # reported spread at the end over the prior's
+        revealed = spread <= UNREVEALED_STD_FRACTION
         ax.fill_between(
             times,
             mean[:, k] - 2 * std[:, k],
@@ -126,19 +173,54 @@ def plot(times, mean, std, truth, args, path: Path) -> None:
         )
         ax.plot(times, mean[:, k], color="tab:blue", lw=1.2, label="estimate")
         ax.axhline(truth[k], color="k", ls="--", lw=1, label="truth")
-        lo, hi = truth[k] - 1.5 * abs(truth[k]) - 0.02, truth[k] + 1.5 * abs(truth[k]) + 0.02
+        lo, hi = zoomed_limits(times, mean[:, k], std[:, k], truth[k], revealed)
+        if not revealed:
+            lo -= 0.35 * (hi - lo)  # room for the note below the curves
         ax.set_ylim(lo, hi)
-        ax.set_title(LABELS[k] if k < 4 else LABELS[k] + " [kg m^2]", fontsize=10)
+        title = LABELS[k] if k < 4 else LABELS[k] + " [kg m^2]"
+        if not revealed:
+            ax.text(
+                0.5,
+                0.04,
+                f"not revealed by this motion\nspread {spread:.0%} of the prior's",
+                transform=ax.transAxes,
+                ha="center",
+                va="bottom",
+                fontsize=7.5,
+                color="0.2",
+                bbox={"boxstyle": "round", "facecolor": "white", "alpha": 0.85, "lw": 0},
+            )
+            title += " - not revealed"
+        ax.set_title(title, fontsize=10)
+        ax.ticklabel_format(axis="y", style="plain", useOffset=False)
         if k >= 5:
             ax.set_xlabel("time [s]")
     axes[0, 0].legend(fontsize=8, loc="upper right")
     fig.suptitle(
         f"astrobee_0's estimate of the cargo (grasp frame; inertia about the centre of mass) - "
-        f"{args.robots} robots, {args.trajectory}, {args.noise} noise, seed {args.seed}"
+        f"{args.robots} robots, {args.trajectory}, {args.noise} noise, seed {args.seed}\n"
+        f"y-limits: the estimate, its band and the truth after {zoom_s:.0f} s (the band is "
+        f"clipped before); 'not revealed': reported spread still above "
+        f"{UNREVEALED_STD_FRACTION:.0%} of the prior's at the end",
+        fontsize=11,
     )
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def with_caption(frame: np.ndarray, text: str) -> np.ndarray:
+    """The frame with ``text`` on a dark band along its top edge."""
+    from PIL import Image, ImageDraw, ImageFont
+
+    image = Image.fromarray(frame)
+    draw = ImageDraw.Draw(image)
+    font = ImageFont.load_default(size=max(12, image.height // 28))
+    left, top, right, bottom = draw.textbbox((0, 0), text, font=font)
+    pad = 6
+    draw.rectangle((0, 0, image.width, bottom - top + 2 * pad), fill=(0, 0, 0))
+    draw.text((pad, pad - top), text, fill=(255, 255, 255), font=font)
+    return np.asarray(image)
 
 
 def save_gif(frames: list[np.ndarray], path: Path, fps: float) -> None:
@@ -152,7 +234,7 @@ def print_table(results: dict) -> None:
     print(
         f"\nfinal estimates after {results['sim_s']:.1f} s (wall {results['wall_s']:.1f} s, "
         f"real-time factor {results['sim_s'] / results['wall_s']:.1f}); "
-        f"termination: {results['termination_reason']}"
+        f"end: {results['end']}"
     )
     header = f"{'agent':<12}{'mass err':>10}{'CoM err':>10}{'principal moment errs':>26}"
     print(header + f"{'mass conv.':>12}{'updates':>9}{'skipped':>9}")
@@ -172,33 +254,61 @@ def print_table(results: dict) -> None:
     )
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--robots", type=int, default=2)
+def control_steps(duration_s: float) -> int:
+    """Control steps of an episode of ``duration_s`` simulated seconds."""
+    return int(round(duration_s * CONTROL_HZ))
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=Formatter)
+    parser.add_argument("--robots", type=int, default=2, help=f"1..{MAX_ROBOTS}")
     parser.add_argument("--trajectory", default="figure8_yaw", choices=Trajectory.NAMES)
-    parser.add_argument("--noise", default="nominal", choices=("ideal", "nominal"))
-    parser.add_argument("--duration", type=float, default=90.0, help="simulated seconds")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--noise", default="nominal", choices=sorted(NOISE_PROFILES))
+    parser.add_argument("--duration", type=positive_float, default=90.0, help="simulated seconds")
+    parser.add_argument("--seed", type=nonnegative_int, default=0)
     parser.add_argument(
         "--cargo-model",
         default="estimate",
         choices=("estimate", "none", "truth"),
         help="cargo model the controller uses",
     )
-    parser.add_argument("--out-dir", default="out/demo")
-    parser.add_argument("--video", default=None, help="also write an animated GIF of this name")
-    parser.add_argument("--video-every", type=int, default=8, help="control steps per frame")
-    args = parser.parse_args()
+    parser.add_argument("--out-dir", default="out/demo", help="folder of the figure and results")
+    parser.add_argument(
+        "--video", default=None, metavar="GIF", help="also write an animated GIF to this path"
+    )
+    parser.add_argument(
+        "--video-every", type=positive_int, default=8, help="control steps per frame"
+    )
+    return parser
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    """The command line, checked, with its output folders created: every error is the parser's,
+    before anything runs."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
     if not 1 <= args.robots <= MAX_ROBOTS:
-        parser.error(f"--robots must be in 1..{MAX_ROBOTS}")
-    if not args.duration > 0:
-        parser.error("--duration must be positive")
+        parser.error(f"--robots must be in 1..{MAX_ROBOTS}, got {args.robots}")
+    if control_steps(args.duration) < 1:
+        parser.error(
+            f"--duration must be at least one control period ({1 / CONTROL_HZ} s), "
+            f"got {args.duration}"
+        )
+    output_dir(parser, Path(args.out_dir), "--out-dir")
+    if args.video is not None:
+        output_file(parser, Path(args.video), "--video", suffix=".gif")
+    return args
+
+
+def main(argv: list[str] | None = None) -> None:
+    args = parse_args(argv)
     print(f"seed {args.seed}")
     results = run(args)
     print_table(results)
     print(
         f"figure: {Path(args.out_dir) / 'estimates.png'}; "
         f"results: {Path(args.out_dir) / 'results.json'}"
+        + (f"; video: {args.video}" if args.video else "")
     )
 
 

@@ -9,12 +9,13 @@ deviation over episodes) of the return (mean over robots), the cargo tracking er
 mean over the episode and at its end), and the estimators' errors at the end of the episode
 (mean over robots); ``--json`` writes every episode and the summaries.
 
-    python scripts/evaluate.py --policy runs/ppo_est runs/ppo_noest zero scripted \\
+    .venv/bin/python scripts/evaluate.py --policy runs/ppo_est runs/ppo_noest zero scripted \\
         --episodes 10 --json runs/eval.json
-    MUJOCO_GL=egl python scripts/evaluate.py --policy runs/ppo_est --video out/videos
+    MUJOCO_GL=egl .venv/bin/python scripts/evaluate.py --policy runs/ppo_est --video out/videos
 
 The task (robots, trajectory, episode length, noise) comes from the first run folder's
-configuration, else from the flags (default: ``LEARNING_TASK``, 2 robots).
+configuration, else from the flags (default: ``LEARNING_TASK`` of ``astrocargo.envs.wrappers``,
+2 robots).
 """
 
 from __future__ import annotations
@@ -33,9 +34,24 @@ os.environ.setdefault("MUJOCO_GL", "egl")  # only used with --video
 
 import numpy as np  # noqa: E402
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # the sibling scripts/cli.py
+from cli import (  # noqa: E402
+    Formatter,
+    nonnegative_int,
+    output_dir,
+    output_file,
+    positive_float,
+    positive_int,
+)
+
 from astrocargo.agents.controllers import ObservationController  # noqa: E402
+from astrocargo.agents.trajectories import Trajectory  # noqa: E402
 from astrocargo.envs import astrobee_cargo_v0  # noqa: E402
-from astrocargo.envs.wrappers import LEARNING_TASK  # noqa: E402
+from astrocargo.envs.sensors import NOISE_PROFILES  # noqa: E402
+from astrocargo.envs.world import MAX_ROBOTS  # noqa: E402
+
+# Stable-Baselines3 and torch (astrocargo.envs.wrappers imports them) load after the command line
+# is parsed: --help and argument errors answer at once.
 
 METRICS = (
     ("return", "return", "{:9.2f}"),
@@ -113,15 +129,25 @@ class TrainedPolicy:
         return np.asarray(action, dtype=np.float64).reshape(n, -1)
 
 
+def check_policy_spec(spec: str) -> None:
+    """ValueError unless ``spec`` is 'zero', 'scripted' or a run folder of scripts/train.py."""
+    if spec in ("zero", "scripted"):
+        return
+    run_dir = Path(spec)
+    if not (run_dir / "model.zip").is_file() or not (run_dir / "config.json").is_file():
+        raise ValueError(
+            f"policy must be 'zero', 'scripted' or a run folder of scripts/train.py (with "
+            f"model.zip and config.json), got {spec!r}"
+        )
+
+
 def make_policy(spec: str, cargo_model: str):
+    check_policy_spec(spec)
     if spec == "zero":
         return ZeroPolicy()
     if spec == "scripted":
         return ScriptedPolicy(cargo_model)
-    run_dir = Path(spec)
-    if not (run_dir / "model.zip").is_file():
-        raise ValueError(f"policy must be 'zero', 'scripted' or a run folder, got {spec!r}")
-    return TrainedPolicy(run_dir)
+    return TrainedPolicy(Path(spec))
 
 
 # --------------------------------------------------------------------------- episodes
@@ -246,7 +272,7 @@ def plot_curves(curves: dict, baselines: list[dict], path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+    fig, axes = plt.subplots(1, 2, figsize=(11, 5), layout="constrained")
     for (key, label), ax in zip(
         (("return", "return (mean over robots)"), ("track_pos_m", "cargo position error [m]")),
         axes,
@@ -260,15 +286,10 @@ def plot_curves(curves: dict, baselines: list[dict], path: Path) -> None:
             std = np.array([p[key]["std"] for p in curve["points"]])
             obs = "with" if config["env_kwargs"]["observe_estimates"] else "without"
             minutes = config.get("wall_s", float("nan")) / 60
-            line = ax.plot(steps, mean, marker="o", ms=3, label=f"PPO {obs} estimates")[0]
+            # The training's wall time goes in the legend: notes at the curves' ends overlap.
+            name = f"PPO {obs} estimates, seed {config.get('seed', '?')} ({minutes:.0f} min)"
+            line = ax.plot(steps, mean, marker="o", ms=3, label=name)[0]
             ax.fill_between(steps, mean - std, mean + std, color=line.get_color(), alpha=0.2)
-            ax.annotate(
-                f"{minutes:.0f} min",
-                (steps[-1], mean[-1]),
-                textcoords="offset points",
-                xytext=(-10, 6),
-                fontsize=8,
-            )
         for base, style in zip(baselines, ("-.", "--", ":"), strict=False):
             ax.axhline(
                 base["summary"][key]["mean"], color="k", ls=style, lw=1, label=base["policy"]
@@ -276,41 +297,72 @@ def plot_curves(curves: dict, baselines: list[dict], path: Path) -> None:
         ax.set_xlabel("environment steps (control steps of one copy)")
         ax.set_ylabel(label)
         ax.grid(alpha=0.3)
-    axes[0].legend(fontsize=8)
-    fig.suptitle("Deterministic policy on the same seeded episodes (mean +- std over episodes)")
-    fig.tight_layout()
+    handles, labels = axes[0].get_legend_handles_labels()
+    fig.legend(handles, labels, fontsize=8, loc="outside lower center", ncols=min(3, len(labels)))
+    fig.suptitle(
+        "Deterministic policy on the same seeded episodes (mean +- std over episodes; "
+        "training wall time in brackets)"
+    )
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=Formatter)
     parser.add_argument("--policy", nargs="+", default=[], help="run folders, 'zero' or 'scripted'")
     parser.add_argument(
         "--curve", nargs="+", type=Path, default=[], help="run folders: score every checkpoint"
     )
     parser.add_argument("--plot", type=Path, metavar="PNG", help="learning curves (with --curve)")
     parser.add_argument("--cargo-model", default="estimate", choices=("estimate", "none", "truth"))
-    parser.add_argument("--episodes", type=int, default=10)
-    parser.add_argument("--seed", type=int, default=1000, help="episode k uses seed + k")
-    parser.add_argument("--robots", type=int, default=None, help="default: run's, else 2")
-    parser.add_argument("--trajectory", default=None)
-    parser.add_argument("--max-cycles", type=int, default=None)
-    parser.add_argument("--noise", default=None)
-    parser.add_argument("--control-hz", type=float, default=None)
+    parser.add_argument("--episodes", type=positive_int, default=10)
+    parser.add_argument(
+        "--seed", type=nonnegative_int, default=1000, help="episode k uses seed + k"
+    )
+    parser.add_argument("--robots", type=int, default=None, help="none: the run's, else 2")
+    parser.add_argument("--trajectory", default=None, choices=Trajectory.NAMES)
+    parser.add_argument("--max-cycles", type=positive_int, default=None)
+    parser.add_argument("--noise", default=None, choices=sorted(NOISE_PROFILES))
+    parser.add_argument("--control-hz", type=positive_float, default=None)
     parser.add_argument("--json", type=Path, metavar="FILE", help="write the results here")
     parser.add_argument("--video", type=Path, metavar="DIR", help="GIF of episode 0 per policy")
+    return parser
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    """The command line, checked, with output folders created: every error is the parser's,
+    before any model is loaded or episode run."""
+    parser = build_parser()
     args = parser.parse_args(argv)
-    if args.episodes < 1:
-        parser.error("--episodes must be a positive integer")
     if not args.policy and not args.curve:
         parser.error("give --policy or --curve")
+    if args.robots is not None and not 1 <= args.robots <= MAX_ROBOTS:
+        parser.error(f"--robots must be in 1..{MAX_ROBOTS}, got {args.robots}")
+    for spec in args.policy:
+        try:
+            check_policy_spec(spec)
+        except ValueError as err:
+            parser.error(f"--policy: {err}")
+    for run_dir in args.curve:
+        if not (run_dir / "config.json").is_file():
+            parser.error(f"--curve: {run_dir} is not a run folder of scripts/train.py")
+    if args.plot is not None:
+        if not args.curve:
+            parser.error("--plot draws the learning curves of --curve: give --curve too")
+        output_file(parser, args.plot, "--plot", suffix=".png")
+    if args.json is not None:
+        output_file(parser, args.json, "--json")
+    if args.video is not None:
+        output_dir(parser, args.video, "--video")
+    return args
 
-    try:
-        policies = [make_policy(spec, args.cargo_model) for spec in args.policy]
-    except ValueError as err:
-        parser.error(str(err))
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    from astrocargo.envs.wrappers import LEARNING_TASK
+
+    policies = [make_policy(spec, args.cargo_model) for spec in args.policy]
     trained = [p.config for p in policies if isinstance(p, TrainedPolicy)]
     trained += [json.loads((run / "config.json").read_text()) for run in args.curve]
     base = trained[0]["env_kwargs"] if trained else {**LEARNING_TASK, "n_robots": 2}

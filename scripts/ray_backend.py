@@ -15,7 +15,8 @@ def import_ray(purpose: str = "the Ray backend needs Ray"):
         import ray
     except ImportError as err:
         raise ImportError(
-            f"{purpose}: pip install 'astrocargo[ray]' (or pip install -e '.[ray]' in a checkout)"
+            f"{purpose}: pip install 'astrocargo[ray]' (in a checkout: bash scripts/setup.sh "
+            "--dev, or .venv/bin/python -m pip install -e '.[ray]')"
         ) from err
     return ray
 

@@ -25,6 +25,9 @@ import matplotlib.pyplot as plt  # noqa: E402
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # the sibling scripts/cli.py
+from cli import Formatter  # noqa: E402
+
 from astrocargo.envs.world import MAX_ROBOTS, World  # noqa: E402
 
 MODULE_CAMERAS = ("overview", "aisle", "top")  # fixed cameras in assets/iss_module.xml
@@ -67,8 +70,8 @@ def render(n_robots: int, width: int, height: int, camera: str) -> np.ndarray:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--robots", type=int, default=2, help=f"1..{MAX_ROBOTS} (default 2)")
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=Formatter)
+    parser.add_argument("--robots", type=int, default=2, help=f"1..{MAX_ROBOTS}")
     parser.add_argument("--out", type=Path, default=Path("scene.png"), help="PNG file to write")
     parser.add_argument("--width", type=int, default=960, help="pixels, at most 1280")
     parser.add_argument("--height", type=int, default=540, help="pixels, at most 720")
@@ -76,7 +79,7 @@ def main(argv: list[str] | None = None) -> int:
         "--camera",
         default=FREE_CAMERA,
         choices=(FREE_CAMERA, *MODULE_CAMERAS),
-        help=f"'{FREE_CAMERA}' (free camera on the cargo, default) or a module camera",
+        help=f"'{FREE_CAMERA}' (free camera on the cargo) or a module camera",
     )
     args = parser.parse_args(argv)
     if not 1 <= args.robots <= MAX_ROBOTS:

@@ -1,6 +1,6 @@
 """Soak test: one long episode with the scripted controller, checking that nothing drifts.
 
-    python scripts/soak.py --duration 3600 --robots 2
+    .venv/bin/python scripts/soak.py --duration 3600 --robots 2
 
 Runs ``astrobee_cargo_v0`` for ``--duration`` simulated seconds (one episode, 62.5 Hz) with the
 observation-driven cooperative controller (``ObservationController``, ``--cargo-model``
@@ -37,13 +37,27 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # before numpy: see estimato
 
 import numpy as np  # noqa: E402
 
-from astrocargo.agents.controllers import ObservationController
-from astrocargo.envs import astrobee_cargo_v0
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # the sibling scripts/cli.py
+from cli import (  # noqa: E402
+    Formatter,
+    nonnegative_int,
+    output_file,
+    positive_float,
+    positive_int,
+)
+
+from astrocargo.agents.controllers import ObservationController  # noqa: E402
+from astrocargo.agents.trajectories import Trajectory  # noqa: E402
+from astrocargo.envs import astrobee_cargo_v0  # noqa: E402
+from astrocargo.envs.sensors import NOISE_PROFILES  # noqa: E402
+from astrocargo.envs.world import MAX_ROBOTS  # noqa: E402
 
 MIB = 1024.0 * 1024.0
 PRINT_EVERY_S = 600.0  # one progress line per 10 simulated minutes
 SYMMETRY_TOL = 0.0  # P is kept exactly symmetric by construction (estimator.ukf)
 PARAMS_COV_SYMMETRY_TOL = 0.0  # params_cov() symmetrises its result
+CONTROL_HZ = 62.5  # the env's default control rate
+MIN_DURATION_S = 10.0  # the heap windows and at least one check need this many steps
 
 
 def rss_mib() -> float:
@@ -148,19 +162,44 @@ def check(env, obs, rewards) -> dict:
     return out
 
 
-def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--duration", type=float, default=3600.0, help="simulated seconds")
-    parser.add_argument("--robots", type=int, default=2)
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], formatter_class=Formatter
+    )
+    parser.add_argument("--duration", type=positive_float, default=3600.0, help="simulated seconds")
+    parser.add_argument("--robots", type=int, default=2, help=f"1..{MAX_ROBOTS}")
     parser.add_argument("--cargo-model", choices=("estimate", "truth"), default="estimate")
-    parser.add_argument("--noise", default="nominal")
-    parser.add_argument("--trajectory", default="figure8_yaw")
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--check-every", type=int, default=625, help="control steps (10 s)")
-    parser.add_argument("--trace-steps", type=int, default=5000, help="tracemalloc window")
+    parser.add_argument("--noise", default="nominal", choices=sorted(NOISE_PROFILES))
+    parser.add_argument("--trajectory", default="figure8_yaw", choices=Trajectory.NAMES)
+    parser.add_argument("--seed", type=nonnegative_int, default=0)
+    parser.add_argument(
+        "--check-every", type=positive_int, default=625, help="control steps (10 s)"
+    )
+    parser.add_argument("--trace-steps", type=positive_int, default=5000, help="tracemalloc window")
     parser.add_argument("--json", type=Path, default=None, help="save the figures here")
-    args = parser.parse_args()
+    return parser
 
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    """The command line, checked before anything runs."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not 1 <= args.robots <= MAX_ROBOTS:
+        parser.error(f"--robots must be in 1..{MAX_ROBOTS}, got {args.robots}")
+    if args.duration < MIN_DURATION_S:
+        parser.error(f"--duration must be at least {MIN_DURATION_S:g} s, got {args.duration:g}")
+    if round(args.duration * CONTROL_HZ) < args.check_every:
+        parser.error(
+            f"--duration ({args.duration:g} s) must cover at least one check "
+            f"(--check-every {args.check_every} steps = {args.check_every / CONTROL_HZ:g} s)"
+        )
+    if args.json is not None:
+        output_file(parser, args.json, "--json")
+    return args
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
     env = astrobee_cargo_v0.parallel_env(
         n_robots=args.robots, noise=args.noise, trajectory=args.trajectory, max_cycles=10**9
     )

@@ -12,22 +12,22 @@ TensorBoard logs under ``tb/``. ``--timesteps`` counts samples as SB3 does: one 
 control step in the shared view (environment steps = timesteps / robots), one per control step
 in the central view.
 
-    python scripts/train.py --algo ppo --robots 2 --timesteps 600000 --copies 2 \\
+    .venv/bin/python scripts/train.py --algo ppo --robots 2 --timesteps 600000 --copies 2 \\
         --seed 1 --checkpoint-every 50000 --log-dir runs/ppo_est
-    python scripts/train.py ... --no-estimates --log-dir runs/ppo_noest
-    tensorboard --logdir runs
+    .venv/bin/python scripts/train.py ... --no-estimates --log-dir runs/ppo_noest
+    .venv/bin/tensorboard --logdir runs
 
-``--backend rllib`` (needs ``pip install 'astrocargo[ray]'``) trains PPO with RLlib instead, for
-runs that outgrow one machine: the parallel env is wrapped in RLlib's ``ParallelPettingZooEnv``,
-all robots act with one shared policy (the ``shared`` view), and ``--env-runners`` sampling
-actors are spread over the Ray cluster at ``--ray-address`` (default ``$RAY_ADDRESS``, else a new
-local instance; ``--copies`` and ``--subprocess`` are SB3's); the learner runs in this process.
-Observations are normalised with RLlib's ``MeanStdFilter`` (rewards are not). ``--timesteps``
-counts robot samples as above. The run folder receives ``checkpoint/``
+``--backend rllib`` (needs the ray extra, ``bash scripts/setup.sh --dev``) trains PPO with RLlib
+instead, for runs that outgrow one machine: the parallel env is wrapped in RLlib's
+``ParallelPettingZooEnv``, all robots act with one shared policy (the ``shared`` view), and
+``--env-runners`` sampling actors are spread over the Ray cluster at ``--ray-address`` (default
+``$RAY_ADDRESS``, else a new local instance; ``--copies`` and ``--subprocess`` are SB3's); the
+learner runs in this process. Observations are normalised with RLlib's ``MeanStdFilter`` (rewards
+are not). ``--timesteps`` counts robot samples as above. The run folder receives ``checkpoint/``
 (``Algorithm.from_checkpoint`` restores it), ``config.json`` and ``progress.csv`` (one row per
 training iteration).
 
-    python scripts/train.py --backend rllib --ray-address HEAD:6379 --env-runners 8 \\
+    .venv/bin/python scripts/train.py --backend rllib --ray-address HEAD:6379 --env-runners 8 \\
         --timesteps 600000 --seed 1 --log-dir runs/rllib_ppo
 """
 
@@ -62,6 +62,8 @@ from stable_baselines3.common.vec_env import (  # noqa: E402
     VecNormalize,
 )
 
+from astrocargo.agents.trajectories import Trajectory  # noqa: E402
+from astrocargo.envs.sensors import NOISE_PROFILES  # noqa: E402
 from astrocargo.envs.world import MAX_ROBOTS  # noqa: E402
 from astrocargo.envs.wrappers import (  # noqa: E402
     LEARNING_TASK,
@@ -69,7 +71,14 @@ from astrocargo.envs.wrappers import (  # noqa: E402
     make_vec_env,
 )
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))  # the sibling scripts/ray_backend.py
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # the sibling cli.py, ray_backend.py
+from cli import (  # noqa: E402
+    Formatter,
+    nonnegative_int,
+    output_dir,
+    positive_float,
+    positive_int,
+)
 from ray_backend import import_ray, ray_connection  # noqa: E402
 
 ALGOS = {"ppo": PPO, "sac": SAC}
@@ -392,7 +401,7 @@ def parse_override(text: str) -> tuple[str, Any]:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=Formatter)
     parser.add_argument(
         "--backend",
         choices=BACKENDS,
@@ -402,26 +411,38 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--ray-address",
         default=os.environ.get("RAY_ADDRESS"),
-        help="Ray cluster (HOST:PORT) for --backend rllib; default $RAY_ADDRESS, else a new "
+        help="Ray cluster (HOST:PORT) for --backend rllib, default $RAY_ADDRESS; none: a new "
         "local Ray instance",
     )
     parser.add_argument(
-        "--env-runners", type=int, default=2, help="RLlib sampling actors (--backend rllib)"
+        "--env-runners",
+        type=nonnegative_int,
+        default=2,
+        help="RLlib sampling actors (--backend rllib; 0: sample in the script's process)",
     )
     parser.add_argument("--algo", choices=sorted(ALGOS), default="ppo")
     parser.add_argument("--view", choices=VIEWS, default="shared")
     parser.add_argument(
         "--robots", type=int, default=2, help=f"robots holding the cargo, 1..{MAX_ROBOTS}"
     )
-    parser.add_argument("--timesteps", type=int, default=600_000, help="samples (see above)")
-    parser.add_argument("--copies", type=int, default=2, help="environment copies")
+    parser.add_argument(
+        "--timesteps",
+        type=int,
+        default=600_000,
+        help="training length in samples, as SB3 counts them: one per robot per control step in "
+        "the shared view (environment steps = timesteps / robots), one per control step in the "
+        "central view",
+    )
+    parser.add_argument("--copies", type=positive_int, default=2, help="environment copies")
     parser.add_argument(
         "--subprocess",
         action=argparse.BooleanOptionalAction,
         default=False,
         help="run each copy in its own process",
     )
-    parser.add_argument("--seed", type=int, default=None, help="default: drawn and printed")
+    parser.add_argument(
+        "--seed", type=nonnegative_int, default=None, help="none: drawn and printed"
+    )
     parser.add_argument("--log-dir", default="runs/ppo", help="run folder")
     parser.add_argument(
         "--estimates",
@@ -429,15 +450,17 @@ def build_parser() -> argparse.ArgumentParser:
         default=True,
         help="observe the estimators' cargo estimates",
     )
-    parser.add_argument("--trajectory", default=LEARNING_TASK["trajectory"])
     parser.add_argument(
-        "--max-cycles", type=int, default=LEARNING_TASK["max_cycles"], help="steps/episode"
+        "--trajectory", default=LEARNING_TASK["trajectory"], choices=Trajectory.NAMES
     )
-    parser.add_argument("--noise", default=LEARNING_TASK["noise"])
     parser.add_argument(
-        "--control-hz", type=float, default=LEARNING_TASK["control_hz"], help="policy rate"
+        "--max-cycles", type=positive_int, default=LEARNING_TASK["max_cycles"], help="steps/episode"
     )
-    parser.add_argument("--torch-threads", type=int, default=1)
+    parser.add_argument("--noise", default=LEARNING_TASK["noise"], choices=sorted(NOISE_PROFILES))
+    parser.add_argument(
+        "--control-hz", type=positive_float, default=LEARNING_TASK["control_hz"], help="policy rate"
+    )
+    parser.add_argument("--torch-threads", type=positive_int, default=1)
     parser.add_argument(
         "--progress-bar", action=argparse.BooleanOptionalAction, default=True, help="SB3's bar"
     )
@@ -449,29 +472,38 @@ def build_parser() -> argparse.ArgumentParser:
         help="override HYPERPARAMS entries, values as Python literals (gamma=0.98)",
     )
     parser.add_argument(
-        "--checkpoint-every", type=int, default=0, help="save the model every N samples (0: no)"
+        "--checkpoint-every",
+        type=nonnegative_int,
+        default=0,
+        help="save the model every N samples (0: no)",
     )
     parser.add_argument("--verbose", type=int, default=0)
     return parser
 
 
-def main(argv: list[str] | None = None) -> int:
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    """The command line, checked, with the run folder created: every error is the parser's,
+    before anything is built."""
     parser = build_parser()
     args = parser.parse_args(argv)
-    for name in ("timesteps", "copies", "max_cycles", "torch_threads"):
-        if getattr(args, name) < 1:
-            parser.error(f"--{name.replace('_', '-')} must be a positive integer")
+    if args.timesteps < 1:
+        parser.error("--timesteps must be a positive integer")
     if not 1 <= args.robots <= MAX_ROBOTS:
-        parser.error(f"--robots must be in 1..{MAX_ROBOTS}")
+        parser.error(f"--robots must be in 1..{MAX_ROBOTS}, got {args.robots}")
     if args.backend == "rllib":
         if args.algo != "ppo" or args.view != "shared":
             parser.error("--backend rllib trains PPO in the shared view only")
-        if args.env_runners < 0:
-            parser.error("--env-runners must be 0 (sample in this process) or more")
         try:
             import_ray("--backend rllib needs Ray and RLlib")
         except ImportError as err:
             parser.error(str(err))
+    output_dir(parser, Path(args.log_dir), "--log-dir")
+    return args
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    if args.backend == "rllib":
         train_rllib(args)
     else:
         train(args)

@@ -1,0 +1,297 @@
+"""The team as one rigid body: composite inertia, desired wrench and its allocation, compiled.
+
+The cooperative controllers (``controllers.py``) treat the robots and the cargo as one rigid body
+(the arms move slowly; their own motion is a disturbance the feedback absorbs). Every function
+here works in one frame W (the world, or one robot's base frame: the equations are the same), with
+vectors in metres, seconds, radians, kilograms, and wrenches [force (N); moment (N m)].
+
+Kinematics of robot j's arm (links k = 1..L-1, parent p, joint angle q_k, unit axis e_k):
+    R_k = R_p R_pk0 exp(e_k q_k),    p_k = p_p + R_p p_pk             (link frames in its base)
+
+Composite body of bodies b (robot links and the cargo), mass m_b, centre c_b and inertia I_b about
+c_b (W axes), by the parallel-axis theorem:
+    M = sum m_b,   c = sum m_b c_b / M,  I_c = sum I_b + m_b (|r_b|^2 1 - r_b r_b^T), r_b = c_b - c
+
+Desired motion of the cargo frame (PD with feed-forward, Astrobee's law, facts file section 3.1):
+    a  = a_ref  + K_d (v_ref - v) + K_p e_p,      e_p = p_ref - p
+    w' = w'_ref + K_dw (w_ref - w) + K_pw e_R,    e_R = log(R_ref R^T)
+and the wrench about c that gives it to the composite body, with r = c - p:
+    F = M (a + w' x r + w x (w x r)),      tau = I_c w' + w x I_c w.
+
+Allocation: robot j's body wrench u_j (about its base origin, base axes) acts in W about c as
+G_j u_j, G_j = [[R_j, 0], [[p_j - c]x R_j, R_j]]. The minimum of sum_j u_j^T W_j^-1 u_j subject
+to sum_j G_j u_j = [F; tau], with W_j = diag(thrust_limit_j^2), is
+    u_j = W_j G_j^T lambda,    (sum_j G_j W_j G_j^T) lambda = [F; tau]
+then every u_j is scaled by 1 / max(1, ratio), ratio = max_j,k |u_jk| / thrust_limit_jk, so a
+saturating team keeps the direction of its total wrench.
+
+Each function is compiled with numba (``@njit(cache=True)``) and takes the robots' models as one
+``TeamModel`` of arrays (``team_model``).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+from numba import njit
+
+from astrocargo.estimator.geometry import exp_so3, skew
+from astrocargo.estimator.rne import RobotDescription
+
+
+class TeamModel(NamedTuple):
+    """The robots' known models as arrays: the distinct robot models (m of them, L links each,
+    base first; robots with equal models share one, so a team of one kind costs one forward
+    kinematics per arm pose) and, per robot (n), its model and thrust limits."""
+
+    parent: np.ndarray  # (m, L) int64, parent link of each link (unused for the base)
+    rot_in_parent: np.ndarray  # (m, L, 3, 3) link frame at q = 0 in its parent's frame
+    pos_in_parent: np.ndarray  # (m, L, 3) m, link origin in its parent's frame
+    joint_axis: np.ndarray  # (m, L, 3) unit joint axis in the link frame (zeros for the base)
+    link_mass: np.ndarray  # (m, L) kg
+    link_com: np.ndarray  # (m, L, 3) m, centre of mass in the link frame
+    link_inertia: np.ndarray  # (m, L, 3, 3) kg m^2 about the centre of mass, link axes
+    grasp_link: np.ndarray  # (m,) int64, the link the grasp frame is fixed to
+    grasp_rot: np.ndarray  # (m, 3, 3) grasp frame in that link's frame
+    grasp_pos: np.ndarray  # (m, 3) m
+    model_of: np.ndarray  # (n,) int64, each robot's model
+    thrust_limit: np.ndarray  # (n, 6) N, N m: body force and torque limits
+
+
+def _model_arrays(robot: RobotDescription) -> tuple:
+    """One robot's model as the arrays of a ``TeamModel`` row (fields up to grasp_pos)."""
+    links = robot.links
+    return (
+        np.array([max(k.parent, 0) for k in links], dtype=np.int64),
+        np.array([k.rot_in_parent for k in links], dtype=float),
+        np.array([k.pos_in_parent for k in links], dtype=float),
+        np.array([np.zeros(3) if k.joint_axis is None else k.joint_axis for k in links], float),
+        np.array([k.mass for k in links], dtype=float),
+        np.array([k.com for k in links], dtype=float),
+        np.array([k.inertia_com for k in links], dtype=float),
+        np.int64(robot.grasp_link),
+        np.asarray(robot.grasp_rot, dtype=float),
+        np.asarray(robot.grasp_pos, dtype=float),
+    )
+
+
+def team_model(robots: list[RobotDescription]) -> TeamModel:
+    """Stack the robots' models. They must share one arm structure (the same number of links)."""
+    if not robots:
+        raise ValueError("team_model needs at least one robot")
+    n_links = {len(r.links) for r in robots}
+    if len(n_links) != 1:
+        raise ValueError(f"robots must all have the same number of links, got {sorted(n_links)}")
+    models: list[tuple] = []
+    model_of = []
+    for robot in robots:
+        arrays = _model_arrays(robot)
+        same = [all(np.array_equal(a, b) for a, b in zip(arrays, m, strict=True)) for m in models]
+        if True not in same:
+            models.append(arrays)
+        model_of.append(same.index(True) if True in same else len(models) - 1)
+    fields = [np.ascontiguousarray(np.stack(column)) for column in zip(*models, strict=True)]
+    return TeamModel(
+        *fields,
+        model_of=np.array(model_of, dtype=np.int64),
+        thrust_limit=np.ascontiguousarray([r.thrust_limit for r in robots], dtype=float),
+    )
+
+
+@njit(cache=True)
+def link_frames(team: TeamModel, m: int, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Model m's link frames in its base frame at joint angles q (L-1,) rad: rotations (L, 3, 3)
+    and origins (L, 3) m, R_k = R_p R_pk0 exp(e_k q_k), p_k = p_p + R_p p_pk."""
+    n_links = team.parent.shape[1]
+    rots = np.empty((n_links, 3, 3))
+    poss = np.zeros((n_links, 3))
+    rots[0] = np.eye(3)
+    for k in range(1, n_links):
+        p = team.parent[m, k]
+        joint = exp_so3(team.joint_axis[m, k] * q[k - 1])
+        rots[k] = rots[p] @ team.rot_in_parent[m, k] @ joint
+        poss[k] = poss[p] + rots[p] @ team.pos_in_parent[m, k]
+    return rots, poss
+
+
+@njit(cache=True)
+def composite_body(
+    masses: np.ndarray, coms: np.ndarray, inertias: np.ndarray
+) -> tuple[float, np.ndarray, np.ndarray]:
+    """Mass, centre of mass and inertia about it of rigidly joined bodies (b,), (b, 3),
+    (b, 3, 3) (each about its own centre), by the parallel-axis theorem."""
+    mass = masses.sum()
+    com = (masses @ coms) / mass
+    inertia = np.zeros((3, 3))
+    for b in range(len(masses)):
+        r = coms[b] - com
+        inertia += inertias[b] + masses[b] * ((r @ r) * np.eye(3) - np.outer(r, r))
+    return mass, com, inertia
+
+
+@njit(cache=True)
+def robot_body(team: TeamModel, m: int, q: np.ndarray) -> tuple:
+    """A robot of model m at joint angles q, in its base frame: the composite body of its links
+    (mass kg, centre m, inertia about it kg m^2) and its grasp frame (rotation, origin m)."""
+    rots, poss = link_frames(team, m, q)
+    n_links = len(rots)
+    coms, inertias = np.empty((n_links, 3)), np.empty((n_links, 3, 3))
+    for k in range(n_links):
+        coms[k] = rots[k] @ team.link_com[m, k] + poss[k]
+        inertias[k] = rots[k] @ team.link_inertia[m, k] @ rots[k].T
+    mass, com, inertia = composite_body(team.link_mass[m], coms, inertias)
+    g = team.grasp_link[m]
+    rot_grasp = rots[g] @ team.grasp_rot[m]
+    pos_grasp = poss[g] + rots[g] @ team.grasp_pos[m]
+    return mass, com, inertia, rot_grasp, pos_grasp
+
+
+@njit(cache=True)
+def place_body(
+    com: np.ndarray, inertia: np.ndarray, rot: np.ndarray, pos: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Centre of mass and inertia about it of a body given in frame A, expressed in W, A's pose
+    in W being (rot, pos): c_W = R c + p, I_W = R I R^T."""
+    return rot @ com + pos, rot @ inertia @ rot.T
+
+
+@njit(cache=True)
+def body_from_params(params: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """Mass (kg), centre of mass (m) and inertia about it (kg m^2) of the standard parameters
+    pi = [m, m c, I_xx, I_yy, I_zz, I_xy, I_xz, I_yz] (I about the origin), in pi's frame:
+    c = h / m, I_c = I_o - m (|c|^2 1 - c c^T)."""
+    mass = params[0]
+    com = params[1:4] / mass
+    xx, yy, zz, xy, xz, yz = params[4:10]
+    inertia_o = np.array([[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]])
+    return mass, com, inertia_o - mass * ((com @ com) * np.eye(3) - np.outer(com, com))
+
+
+@njit(cache=True)
+def pd_accelerations(
+    gains: np.ndarray,
+    pos_err: np.ndarray,
+    vel_err: np.ndarray,
+    rot_err: np.ndarray,
+    w_err: np.ndarray,
+    acc_ref: np.ndarray,
+    wd_ref: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Desired linear (m/s^2) and angular (rad/s^2) accelerations of the cargo frame, gains
+    (K_p, K_d, K_pw, K_dw) in 1/s^2, 1/s: a = a_ref + K_d v_err + K_p p_err and
+    w' = w'_ref + K_dw w_err + K_pw e_R (errors are reference minus state)."""
+    kp, kd, akp, akd = gains[0], gains[1], gains[2], gains[3]
+    acc = acc_ref + kd * vel_err + kp * pos_err
+    wd = wd_ref + akd * w_err + akp * rot_err
+    return acc, wd
+
+
+@njit(cache=True)
+def team_wrench(
+    mass: float,
+    com: np.ndarray,
+    inertia: np.ndarray,
+    origin: np.ndarray,
+    w: np.ndarray,
+    acc: np.ndarray,
+    wd: np.ndarray,
+) -> np.ndarray:
+    """Wrench (6,) about the centre of mass ``com`` that gives the composite body the cargo
+    frame's desired acceleration ``acc`` of its origin ``origin`` and angular acceleration ``wd``
+    at angular velocity ``w``: F = M (a + w' x r + w x (w x r)), r = com - origin,
+    tau = I_c w' + w x I_c w."""
+    r = com - origin
+    force = mass * (acc + np.cross(wd, r) + np.cross(w, np.cross(w, r)))
+    torque = inertia @ wd + np.cross(w, inertia @ w)
+    return np.concatenate((force, torque))
+
+
+@njit(cache=True)
+def wrench_map(rot: np.ndarray, pos: np.ndarray) -> np.ndarray:
+    """G (6, 6): a wrench [f; n about A's origin] in frame A to W about W's origin, A's pose in W
+    being (rot, pos): f_W = R f, n_W = R n + pos x (R f)."""
+    g = np.zeros((6, 6))
+    g[:3, :3] = rot
+    g[3:, 3:] = rot
+    g[3:, :3] = skew(pos) @ rot
+    return g
+
+
+@njit(cache=True)
+def allocate(
+    team: TeamModel,
+    holding: np.ndarray,
+    rot_base: np.ndarray,
+    pos_base: np.ndarray,
+    com: np.ndarray,
+    wrench: np.ndarray,
+) -> tuple[np.ndarray, float]:
+    """Body wrenches (n, 6) of the robots (zeros for those not ``holding``) summing to ``wrench``
+    about ``com``: weighted minimum norm u_j = W_j G_j^T lambda, (sum G W G^T) lambda = wrench,
+    W_j = diag(limit_j^2), scaled down together if any exceeds its limit. Also returns the
+    largest |u_jk| / limit_jk before scaling."""
+    maps = np.empty((len(holding), 6, 6))
+    normal = np.zeros((6, 6))
+    for idx in range(len(holding)):
+        j = holding[idx]
+        maps[idx] = wrench_map(rot_base[j], pos_base[j] - com)
+        normal += (maps[idx] * team.thrust_limit[j] ** 2) @ maps[idx].T
+    lam = np.linalg.solve(normal, wrench)
+    commands = np.zeros((len(rot_base), 6))
+    ratio = 0.0
+    for idx in range(len(holding)):
+        j = holding[idx]
+        commands[j] = team.thrust_limit[j] ** 2 * (maps[idx].T @ lam)
+        ratio = max(ratio, np.max(np.abs(commands[j]) / team.thrust_limit[j]))
+    if ratio > 1.0:
+        commands /= ratio
+    return commands, ratio
+
+
+@njit(cache=True)
+def thrust_commands(
+    team: TeamModel,
+    holding: np.ndarray,
+    rot_base: np.ndarray,
+    pos_base: np.ndarray,
+    bodies: tuple[np.ndarray, np.ndarray, np.ndarray],
+    origin: np.ndarray,
+    w: np.ndarray,
+    acc: np.ndarray,
+    wd: np.ndarray,
+) -> tuple[np.ndarray, float]:
+    """The robots' body wrenches (n, 6) that give the team, the ``bodies`` (masses, centres,
+    inertias about them, in W: the robots ``holding``, at base poses (rot_base, pos_base), and the
+    cargo) joined rigidly, the cargo frame's desired motion (``team_wrench``, then
+    ``allocate``); and the saturation ratio."""
+    mass, com, inertia = composite_body(*bodies)
+    wrench = team_wrench(mass, com, inertia, origin, w, acc, wd)
+    return allocate(team, holding, rot_base, pos_base, com, wrench)
+
+
+@njit(cache=True)
+def team_commands(
+    team: TeamModel,
+    holding: np.ndarray,
+    rot_base: np.ndarray,
+    pos_base: np.ndarray,
+    q: np.ndarray,
+    cargo: tuple[float, np.ndarray, np.ndarray],
+    origin: np.ndarray,
+    w: np.ndarray,
+    acc: np.ndarray,
+    wd: np.ndarray,
+) -> tuple[np.ndarray, float]:
+    """``thrust_commands`` for the robots ``holding`` at base poses (rot_base, pos_base) in W and
+    arm angles q (n, n_joints), with the ``cargo`` body (mass, centre, inertia in W)."""
+    count = len(holding) + 1
+    masses, coms, inertias = np.empty(count), np.empty((count, 3)), np.empty((count, 3, 3))
+    for idx in range(len(holding)):
+        j = holding[idx]
+        mass, com, inertia, _, _ = robot_body(team, team.model_of[j], q[j])
+        masses[idx] = mass
+        coms[idx], inertias[idx] = place_body(com, inertia, rot_base[j], pos_base[j])
+    masses[-1], coms[-1], inertias[-1] = cargo
+    bodies = (masses, coms, inertias)
+    return thrust_commands(team, holding, rot_base, pos_base, bodies, origin, w, acc, wd)

@@ -1,0 +1,253 @@
+"""Command lines of the scripts: every bad input ends in the parser's error (usage, a message,
+exit status 2) before anything runs, vectors may start with a minus sign, and --help shows the
+defaults. The scripts' parsers run in-process (no simulation starts)."""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"
+
+
+def load(name: str):
+    """scripts/NAME.py as a module (its main() is not run)."""
+    spec = importlib.util.spec_from_file_location(f"_script_{name}", SCRIPTS / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.fixture(scope="module")
+def scripts():
+    names = ("demo", "benchmark_estimation", "benchmark_performance", "soak", "train")
+    return {name: load(name) for name in names + ("evaluate", "render_scene")}
+
+
+def parser_error(parse, argv: list[str], capsys) -> str:
+    """The message of the parser's error for argv (fails if argv is accepted)."""
+    with pytest.raises(SystemExit) as exc:
+        parse(argv)
+    assert exc.value.code == 2, f"{argv}: exit status {exc.value.code}, expected 2"
+    err = capsys.readouterr().err
+    assert "usage:" in err and "error:" in err, err
+    return err.split("error:", 1)[1].strip()
+
+
+# --------------------------------------------------------------------------- benchmark_estimation
+
+
+@pytest.mark.parametrize(
+    "spelling",
+    [
+        ["--cargo-com", "-0.045,0.012,-0.03"],  # comma-separated after a space
+        ["--cargo-com=-0.045,0.012,-0.03"],  # comma-separated with "="
+        ["--cargo-com", "-0.045", "0.012", "-0.03"],  # three values
+    ],
+)
+def test_vectors_may_start_with_a_minus_sign(scripts, tmp_path, spelling):
+    args = scripts["benchmark_estimation"].parse_args(
+        ["--robots", "2", *spelling, "--cargo-inertia", "0.07,0.10,0.11,0.005,0,-0.004"]
+        + ["--out", str(tmp_path / "case.json")]
+    )
+    assert args.cargo_com == (-0.045, 0.012, -0.03)
+    assert args.cargo_inertia == (0.07, 0.10, 0.11, 0.005, 0.0, -0.004)
+
+
+def test_vector_defaults_are_kept(scripts, tmp_path):
+    module = scripts["benchmark_estimation"]
+    args = module.parse_args(["--out-dir", str(tmp_path)])
+    assert args.cargo_com == module.CARGO_COM and args.cargo_inertia == module.CARGO_INERTIA
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["--suite", "smoke", "--duration", "1"], "--duration must be at least 8"),
+        (["--seeds", "0"], "--seeds: must be a positive integer"),
+        (["--workers", "0"], "--workers: must be a positive integer"),
+        (["--duration", "-3"], "--duration: must be a positive number"),
+        (["--duration", "nan"], "--duration: must be finite"),
+        (["--robots", "2", "--cargo-com", "0.1,0.2"], "expected 3 numbers"),
+        (["--robots", "2", "--cargo-com", "0.1,x,0.2"], "not a number"),
+        (["--robots", "2", "--cargo-inertia", "1", "2", "3"], "expected 6 numbers"),
+        (["--robots", "0"], "--robots must be in 1.."),
+        (["--robots", "2", "--seed", "-1"], "--seed: must be an integer >= 0"),
+        (["--robots", "2", "--comm-drop", "1"], "--comm-drop must be a probability below 1"),
+        (["--robots", "2", "--cargo-mass", "0"], "--cargo-mass: must be a positive number"),
+        (["--trajectory", "circle"], "invalid choice"),
+        (["--out-dir", "/dev/null/x"], "--out-dir: cannot create folder"),
+    ],
+)
+def test_benchmark_estimation_rejects(scripts, capsys, tmp_path, monkeypatch, argv, message):
+    monkeypatch.chdir(tmp_path)  # the default output folders land here
+    assert message in parser_error(scripts["benchmark_estimation"].parse_args, argv, capsys)
+
+
+def test_benchmark_estimation_prints_the_seeds_it_uses(scripts):
+    module = scripts["benchmark_estimation"]
+    smoke = module.smoke_cases(8.0)
+    assert module.seed_list(smoke) == ", ".join(map(str, sorted({c.seed for c in smoke})))
+    assert module.seed_list(module.standard_cases(5, 8.0)) == "0..4"
+
+
+# --------------------------------------------------------------------------- benchmark_performance
+
+
+@pytest.mark.parametrize(
+    "content, message", [("", "is empty"), ("{oops", "is not JSON"), ("[1, 2]", "not an object")]
+)
+def test_benchmark_performance_checks_its_json_file_first(
+    scripts, capsys, tmp_path, content, message
+):
+    path = tmp_path / "bench.json"
+    path.write_text(content)
+    assert message in parser_error(
+        scripts["benchmark_performance"].parse_args, ["--json", str(path)], capsys
+    )
+
+
+def test_benchmark_performance_accepts_a_new_or_its_own_json_file(scripts, tmp_path):
+    parse = scripts["benchmark_performance"].parse_args
+    assert parse(["--json", str(tmp_path / "new.json")]).json == tmp_path / "new.json"
+    own = tmp_path / "own.json"
+    own.write_text(json.dumps({"env": {"1": {"step_us": 1.0}}}))
+    assert parse(["--json", str(own)]).json == own
+
+
+# --------------------------------------------------------------------------- demo
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["--video", "x.gif", "--video-every", "0"], "--video-every: must be a positive integer"),
+        (["--seed", "-1"], "--seed: must be an integer >= 0"),
+        (["--duration", "0.001"], "--duration must be at least one control period"),
+        (["--duration", "0"], "--duration: must be a positive number"),
+        (["--robots", "9"], "--robots must be in 1..8"),
+        (["--out-dir", "/dev/null/x"], "--out-dir: cannot create folder"),
+        (["--video", "/dev/null/x.gif"], "--video's folder: cannot create folder"),
+        (["--video", "out.mp4"], "--video must end in .gif"),
+        (["--noise", "loud"], "invalid choice"),
+    ],
+)
+def test_demo_rejects(scripts, capsys, tmp_path, monkeypatch, argv, message):
+    monkeypatch.chdir(tmp_path)
+    assert message in parser_error(scripts["demo"].parse_args, argv, capsys)
+
+
+def test_demo_creates_its_folders_first_and_keeps_the_video_path(scripts, tmp_path):
+    out, video = tmp_path / "a" / "b", tmp_path / "elsewhere" / "x.gif"
+    args = scripts["demo"].parse_args(["--out-dir", str(out), "--video", str(video)])
+    assert out.is_dir() and video.parent.is_dir()
+    assert Path(args.video) == video
+
+
+# --------------------------------------------------------------------------- soak, train, evaluate
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["--duration", "-5"], "--duration: must be a positive number"),
+        (["--duration", "5"], "--duration must be at least 10 s"),
+        (["--duration", "20", "--check-every", "2000"], "must cover at least one check"),
+        (["--check-every", "0"], "--check-every: must be a positive integer"),
+        (["--trace-steps", "0"], "--trace-steps: must be a positive integer"),
+        (["--robots", "0"], "--robots must be in 1.."),
+        (["--noise", "loud"], "invalid choice"),
+        (["--json", "/dev/null/x.json"], "--json's folder: cannot create folder"),
+    ],
+)
+def test_soak_rejects(scripts, capsys, argv, message):
+    assert message in parser_error(scripts["soak"].parse_args, argv, capsys)
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["--timesteps", "0"], "--timesteps"),
+        (["--copies", "0"], "--copies: must be a positive integer"),
+        (["--seed", "-1"], "--seed: must be an integer >= 0"),
+        (["--robots", "9"], "--robots must be in 1..8"),
+        (["--control-hz", "0"], "--control-hz: must be a positive number"),
+        (["--env-runners", "-1"], "--env-runners: must be an integer >= 0"),
+        (["--trajectory", "circle"], "invalid choice"),
+        (["--log-dir", "/dev/null/x"], "--log-dir: cannot create folder"),
+        (["--backend", "rllib", "--algo", "sac"], "--backend rllib trains PPO"),
+        (["--hyperparams", "gamma"], "expected KEY=VALUE"),
+    ],
+)
+def test_train_rejects(scripts, capsys, argv, message):
+    assert message in parser_error(scripts["train"].parse_args, argv, capsys)
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        ([], "give --policy or --curve"),
+        (["--policy", "no/such/run"], "--policy: policy must be 'zero', 'scripted' or a run"),
+        (["--policy", "zero", "--episodes", "0"], "--episodes: must be a positive integer"),
+        (["--policy", "zero", "--seed", "-1"], "--seed: must be an integer >= 0"),
+        (["--policy", "zero", "--robots", "0"], "--robots must be in 1.."),
+        (["--policy", "zero", "--plot", "c.png"], "--plot draws the learning curves"),
+        (["--curve", "no/such/run"], "--curve: no/such/run is not a run folder"),
+        (["--policy", "zero", "--json", "/dev/null/x.json"], "--json's folder"),
+    ],
+)
+def test_evaluate_rejects(scripts, capsys, argv, message):
+    assert message in parser_error(scripts["evaluate"].parse_args, argv, capsys)
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["--robots", "0"], "--robots must be in 1.."),
+        (["--width", "5000"], "--width must be in 1..1280"),
+        (["--out", "scene.jpg"], "--out must end in .png"),
+    ],
+)
+def test_render_scene_rejects(scripts, capsys, argv, message):
+    assert message in parser_error(scripts["render_scene"].main, argv, capsys)
+
+
+@pytest.mark.parametrize(
+    "name", ["demo", "benchmark_estimation", "benchmark_performance", "soak", "train", "evaluate"]
+)
+def test_help_shows_every_default(scripts, capsys, name):
+    module = scripts[name]
+    with pytest.raises(SystemExit) as exc:
+        module.parse_args(["--help"])
+    assert exc.value.code == 0
+    out = capsys.readouterr().out
+    parser = module.build_parser()
+    for action in parser._actions:
+        if action.option_strings and action.default is not argparse.SUPPRESS:
+            shown = " ".join(out.split())  # help lines are wrapped
+            assert f"(default: {action.default})" in shown, (name, action.dest)
+
+
+def test_render_scene_help_shows_defaults(scripts, capsys):
+    with pytest.raises(SystemExit):
+        scripts["render_scene"].main(["--help"])
+    assert "(default: 960)" in capsys.readouterr().out
+
+
+def test_evaluate_parses_without_torch():
+    """evaluate.py --help answers at once: torch and SB3 load after parsing."""
+    code = (
+        "import runpy, sys; sys.argv = ['evaluate.py', '--help']\n"
+        "try:\n    runpy.run_path(sys.argv[0].replace('evaluate.py', r'"
+        + str(SCRIPTS / "evaluate.py")
+        + "'), run_name='__main__')\nexcept SystemExit:\n    pass\n"
+        "assert 'torch' not in sys.modules and 'stable_baselines3' not in sys.modules\n"
+    )
+    subprocess.run([sys.executable, "-c", code], check=True, timeout=120, capture_output=True)
