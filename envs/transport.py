@@ -13,7 +13,7 @@ import mujoco
 import numpy as np
 from numba import njit
 
-from astrocargo.agents.trajectories import Reference, ReferenceValues, Trajectory
+from astrocargo.agents.trajectories import Reference, Trajectory
 from astrocargo.envs.cargo import CARGO_COM_SPREAD_M, CargoDraw  # noqa: F401
 from astrocargo.envs.comms import CommChannel
 from astrocargo.envs.config import (
@@ -522,13 +522,6 @@ class CargoTransport:
     # ------------------------------------------------------------------ observations
     def reference(self) -> Reference:
         """The cargo reference at the current time (evaluated once per time)."""
-        cache = self._reference_cache()
-        if cache[2] is None:
-            cache[2] = cache[1].to_reference()
-        return cache[2]
-
-    def _reference_values(self) -> ReferenceValues:
-        """The reference at the current time on floats (evaluated once per time)."""
         return self._reference_cache()[1]
 
     def _reference_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -536,20 +529,17 @@ class CargoTransport:
         acceleration, angular velocity and angular acceleration (5, 3), world; pan angle and
         rate (2,)."""
         cache = self._reference_cache()
-        if cache[3] is None:
+        if cache[2] is None:
             ref = cache[1]
-            cache[3] = (
-                np.array(ref.rot, dtype=float),
-                np.array((ref.pos, ref.vel, ref.acc, ref.w, ref.wd), dtype=float),
-                np.array((ref.pan, ref.pan_rate), dtype=float),
-            )
-        return cache[3]
+            vecs = np.array((ref.pos, ref.vel, ref.acc, ref.w, ref.wd), dtype=float)
+            cache[2] = (ref.rot, vecs, np.array((ref.pan, ref.pan_rate), dtype=float))
+        return cache[2]
 
     def _reference_cache(self) -> list:
-        """[time, its ReferenceValues, its Reference and its arrays once asked for]."""
+        """[time, its Reference, its arrays once asked for]."""
         t = float(self.data.time)
         if self._ref_cache is None or self._ref_cache[0] != t:
-            self._ref_cache = [t, self.trajectory.values(t), None, None]
+            self._ref_cache = [t, self.trajectory(t), None]
         return self._ref_cache
 
     def _get_obs(self, robots: tuple[int, ...]) -> np.ndarray:
@@ -686,7 +676,7 @@ class CargoTransport:
             ref.pos,
             ref.vel,
             ref.acc,
-            mat_to_quat(np.array(ref.rot)),
+            mat_to_quat(ref.rot),
             ref.w,
             ref.wd,
             np.array([ref.pan, ref.pan_rate]),
