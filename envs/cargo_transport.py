@@ -276,7 +276,11 @@ its qpos, qvel, body and arm-target entries are zeros (its quaternions too: neve
 - v0: first version. Later additions, compatible: `faults`; argument bounds (cargo mass 0.1-100
   kg, centre of mass within the bag, inertia at most m d^2, control rate 10-1000 Hz, latency at
   most 60 s, channel noise at most (10 N, 1 N m), reward weights at most 1e6 in size);
-  `release_at`, with the holding flags appended to `state()` (n_robots more entries).
+  `release_at`, with the holding flags appended to `state()` (n_robots more entries); the
+  arguments as one validated `EnvConfig` (`AstrobeeCargoEnv(config)` or the keyword arguments
+  above); the env deep-copies and pickles (a live renderer is not copied); `render_mode="human"`
+  without a display raises `RuntimeError`; importing `astrocargo.envs` registers the Gymnasium
+  form `astrocargo/AstrobeeCargo-v0`.
 """
 
 from __future__ import annotations
