@@ -1,9 +1,10 @@
 """What each robot senses, and the seeded noise on it.
 
-Readings come from the MJCF sensors of each robot (``imu_accel``, ``imu_gyro`` at the IMU site,
-``base_pos`` / ``base_quat`` of the base body, ``tilt_pos`` / ``pan_pos`` encoders) and must be read
-after ``mj_forward`` so they describe the current state (pitfalls: after ``mj_step`` they lag one
-step). The MJCF ``noise`` attribute does nothing at run time, so noise is added here from the env's
+Readings come from the MJCF sensors of each robot (``base_pos`` / ``base_quat`` of the base body,
+``tilt_pos`` / ``pan_pos`` encoders) and the IMU site's motion, and must be read after
+``mj_forward`` (or its position and velocity stages) so they describe the current state
+(pitfalls: after ``mj_step`` they lag one step).
+The MJCF ``noise`` attribute does nothing at run time, so noise is added here from the env's
 ``np.random.Generator``. Nothing of the cargo is sensed.
 
 IMU readings are averages over the control period (``begin_period`` marks its start): the change of
@@ -16,23 +17,25 @@ Frames: accelerometer (specific force = acceleration in microgravity, m/s^2) and
 the IMU frame; localization pose of the base frame in the module (world) frame, quaternion
 (w, x, y, z); joint angles in rad.
 
-Noise profiles (white, per 62.5 Hz sample, after the IMU's internal filtering). ``nominal`` uses the
-floors of DESIGN.md "Estimation model": accelerometer 1e-3 m/s^2 and gyro 2e-4 rad/s (Epson
-G362-class MEMS IMU; the Astrobee IMU is an Epson G362P, facts file section 4.1), localization 5 mm
-and 0.2 deg at 62.5 / 20 = 3.125 Hz (the simulator's sparse-map features arrive at 3 Hz, facts
-section 4.2), encoders 1e-3 rad, actuation 0.005 N + 2 % of the command and 5e-4 N m + 2 %.
+Noise profiles (white, per 62.5 Hz sample, after the IMU's internal filtering). ``nominal`` uses
+the floors of docs/design.md ("Noise model and its sources"): accelerometer 1e-3 m/s^2 and gyro
+2e-4 rad/s (Epson G362-class MEMS IMU; the Astrobee IMU is an Epson G362P, facts file section
+4.1), localization 5 mm and 0.2 deg at 62.5 / 20 = 3.125 Hz (the simulator's sparse-map features
+arrive at 3 Hz, facts section 4.2), encoders 1e-3 rad, actuation 0.005 N + 2 % of the command
+and 5e-4 N m + 2 %.
 ``ideal``: no noise at all; ``actuation_only``: perfect sensors with ``nominal``'s actuation noise.
 """
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, replace
 
 import mujoco
 import numpy as np
+from numba import njit
 
 from astrocargo.envs.world import World
+from astrocargo.estimator.geometry import exp_so3, log_so3, quat_mul, rotvec_to_quat
 
 
 @dataclass(frozen=True)
@@ -109,26 +112,38 @@ class SensorPacket:
 
 
 def _perturb_quat(quat: np.ndarray, rotvec: np.ndarray) -> np.ndarray:
-    dq = np.empty(4)
-    mujoco.mju_axisAngle2Quat(
-        dq, rotvec / max(np.linalg.norm(rotvec), 1e-300), np.linalg.norm(rotvec)
-    )
-    out = np.empty(4)
-    mujoco.mju_mulQuat(out, quat, dq)
+    """The attitude ``quat`` (w, x, y, z) perturbed in its body frame by ``rotvec``:
+    q exp(rotvec)."""
+    return quat_mul(np.ascontiguousarray(quat), rotvec_to_quat(np.ascontiguousarray(rotvec)))
+
+
+@njit(cache=True)
+def imu_site_velocity(cvel, site_xpos, subtree_com, bodies, roots, sites):
+    """Linear velocity (n, 3), world axes, of each site: its body's spatial velocity (MuJoCo's
+    ``cvel``: angular, linear at the root's subtree centre of mass c) moved to the site's point
+    p, v_p = v_c - (p - c) x w (as ``mj_objectVelocity`` with world axes)."""
+    out = np.empty((sites.shape[0], 3))
+    for k in range(sites.shape[0]):
+        w, v = cvel[bodies[k], :3], cvel[bodies[k], 3:]
+        out[k] = v - np.cross(site_xpos[sites[k]] - subtree_com[roots[k]], w)
     return out
 
 
-def _rotvec_quat(rotvec: tuple[float, float, float]) -> np.ndarray:
-    """Quaternion of a rotation vector: ``mju_axisAngle2Quat`` of its axis and angle, on floats."""
-    x, y, z = rotvec
-    angle = math.sqrt(x * x + y * y + z * z)
-    if angle == 0:
-        return np.array([1.0, 0.0, 0.0, 0.0])
-    s = math.sin(angle * 0.5)
-    return np.array((math.cos(angle * 0.5), x / angle * s, y / angle * s, z / angle * s))
+@njit(cache=True)
+def imu_period_means(v0, r0, v1, r1, dt_s):
+    """Mean specific force and angular rate of each IMU over a period of ``dt_s``, IMU frame
+    (n, 3) each, from its velocity (world axes) and rotation at the period's start and end:
+    phi = log(R0^T R1), gyro = phi / dt, accel = (R0 exp(phi / 2))^T (v1 - v0) / dt (the
+    velocity change in the mid-period frame)."""
+    n = v0.shape[0]
+    accel, gyro = np.empty((n, 3)), np.empty((n, 3))
+    for k in range(n):
+        rotvec = log_so3(np.ascontiguousarray(r0[k].T) @ r1[k])
+        r_mid = r0[k] @ exp_so3(0.5 * rotvec)
+        accel[k] = np.ascontiguousarray(r_mid.T) @ (v1[k] - v0[k]) / dt_s
+        gyro[k] = rotvec / dt_s
+    return accel, gyro
 
-
-_SITE = mujoco.mjtObj.mjOBJ_SITE
 
 # Noise draws per robot and reading, in the order they are drawn: (name, size).
 _NOISE_DRAWS = (("accel", 3), ("gyro", 3), ("joints", 2))
@@ -148,7 +163,10 @@ class SensorSuite:
         self.profile = profile
         self.rng = rng
         robots = world.robots
-        self._imu_sites = np.array([h.imu_site for h in robots], dtype=int)
+        model = world.model
+        self._imu_sites = np.array([h.imu_site for h in robots], dtype=np.int64)
+        self._imu_bodies = model.site_bodyid[self._imu_sites].astype(np.int64)
+        self._imu_roots = model.body_rootid[self._imu_bodies].astype(np.int64)
         adr = [h.sensor_adr for h in robots]
         self._joint_adr = np.array([[a["tilt_pos"], a["pan_pos"]] for a in adr], dtype=int)
         self._pos_adr = np.array([a["base_pos"] + np.arange(3) for a in adr], dtype=int)
@@ -168,12 +186,12 @@ class SensorSuite:
     def _imu_state(self, data: mujoco.MjData) -> tuple[np.ndarray, np.ndarray, float]:
         """Every robot's IMU site: linear velocity (n, 3) in world axes, rotation (n, 3, 3) in
         the world, and the time."""
-        vel = np.empty((len(self._imu_sites), 6))
-        model = self.world.model
-        for vel_k, site in zip(vel, self._imu_sites.tolist(), strict=True):
-            mujoco.mj_objectVelocity(model, data, _SITE, site, vel_k, 0)
+        vel = imu_site_velocity(
+            data.cvel, data.site_xpos, data.subtree_com, self._imu_bodies, self._imu_roots,
+            self._imu_sites,
+        )  # fmt: skip
         rot = data.site_xmat[self._imu_sites].reshape(-1, 3, 3)
-        return vel[:, 3:], rot, float(data.time)
+        return vel, rot, float(data.time)
 
     def begin_period(self, data: mujoco.MjData) -> None:
         """Mark the start of a control period (``data`` after ``mj_forward``)."""
@@ -186,19 +204,7 @@ class SensorSuite:
         dt = t1 - t0
         if dt <= 0:
             raise ValueError("read() needs begin_period() at the start of the period")
-        rel = (np.swapaxes(r0, -1, -2) @ r1).reshape(-1, 9)
-        rotvec = np.zeros((len(rel), 3))
-        half = np.zeros((len(rel), 9))
-        quat = np.zeros(4)
-        for rel_k, rotvec_k, half_k in zip(rel, rotvec, half, strict=True):
-            mujoco.mju_mat2Quat(quat, rel_k)
-            mujoco.mju_quat2Vel(rotvec_k, quat, 1.0)
-            x, y, z = rotvec_k.tolist()
-            mujoco.mju_quat2Mat(half_k, _rotvec_quat((0.5 * x, 0.5 * y, 0.5 * z)))
-        r_mid = r0 @ half.reshape(-1, 3, 3)
-        # Rows v @ R are (R^T v)^T: each robot's velocity change into its mid-period frame.
-        accel = (v1 - v0)[:, None, :] @ r_mid
-        return accel[:, 0] / dt, rotvec / dt
+        return imu_period_means(v0, r0, v1, r1, dt)
 
     def read(self, data: mujoco.MjData, step: int) -> list[SensorPacket]:
         """Readings of all robots at the end of control period ``step`` (``data`` after

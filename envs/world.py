@@ -48,6 +48,7 @@ import mujoco
 import numpy as np
 
 from astrocargo.assets import ASSETS_DIR
+from astrocargo.estimator.geometry import quat_to_mat
 from astrocargo.estimator.inertia import (
     check_physical,
     mass_com_inertia_from_params,
@@ -84,15 +85,12 @@ GRASP_BODY = "gripper"  # the robot body that holds the cargo
 ROBOT_SENSORS = ("imu_accel", "imu_gyro", "base_pos", "base_quat", "tilt_pos", "pan_pos")
 
 
-def _quat_to_mat(quat: np.ndarray) -> np.ndarray:
-    mat = np.empty(9)
-    mujoco.mju_quat2Mat(mat, np.asarray(quat, dtype=float))
-    return mat.reshape(3, 3)
-
-
-def _mat_to_quat(mat: np.ndarray) -> np.ndarray:
+def _model_quat(rot: np.ndarray) -> np.ndarray:
+    """Quaternion (w, x, y, z) of a rotation matrix for the model (MJCF frames, inertia axes),
+    with MuJoCo's own sign convention (``mju_mat2Quat``): q and -q are one rotation, but the sign
+    written into the model is the sign of the body quaternions ``state()`` reports."""
     quat = np.empty(4)
-    mujoco.mju_mat2Quat(quat, np.ascontiguousarray(mat, dtype=float).reshape(9))
+    mujoco.mju_mat2Quat(quat, np.ascontiguousarray(rot, dtype=float).reshape(9))
     return quat
 
 
@@ -152,11 +150,11 @@ def _robot_held_xml(robot_model: mujoco.MjModel) -> str:
         el.set("childclass", "astrobee")
     for child, parent in zip(path[:-1], path[1:], strict=True):
         b = robot_model.body(child).id
-        rot_c = _quat_to_mat(robot_model.body_quat[b])
+        rot_c = quat_to_mat(robot_model.body_quat[b])
         pos_c = robot_model.body_pos[b]
         pel = elems[parent]
         pel.set("pos", _fmt(-rot_c.T @ pos_c))
-        pel.set("quat", _fmt(_mat_to_quat(rot_c.T)))
+        pel.set("quat", _fmt(_model_quat(rot_c.T)))
         joint = joints[child]
         if joint is not None:
             jid = robot_model.joint(joint.get("name")).id
@@ -233,10 +231,12 @@ class World:
         self.holding = self._check_holding(holding)
         self.cargo_pos = cargo_pos
         self.robot_asset_model = mujoco.MjModel.from_xml_path(str(ASSETS_DIR / "astrobee.xml"))
-        self.spec = self._build_spec(cargo_pos)
+        # The spec is not kept: MjSpec does not pickle, and the compiled model is all we need
+        # (a World, and the env holding it, can be deep-copied and sent to other processes).
+        spec = self._build_spec(cargo_pos)
         if timestep_s is not None:
-            self.spec.option.timestep = float(timestep_s)
-        self.model = self.spec.compile()
+            spec.option.timestep = float(timestep_s)
+        self.model = spec.compile()
         self.robots = tuple(self._handles(i) for i in self.holding)
         # Handrail i is on the cargo whether or not robot i holds it (known geometry).
         self.handrail_sites = tuple(
@@ -294,12 +294,12 @@ class World:
         s = m.site("grasp").id
         if m.site_bodyid[s] != m.body(GRASP_BODY).id:
             raise ValueError(f"the grasp site must be on the {GRASP_BODY} body")
-        rot_gs, pos_gs = _quat_to_mat(m.site_quat[s]), m.site_pos[s]
+        rot_gs, pos_gs = quat_to_mat(m.site_quat[s]), m.site_pos[s]
         held_xml = _robot_held_xml(m)
         for i in self.holding:
             rot_cs, pos_cs = cargo_grasp[i]
             rot_cg = rot_cs @ rot_gs.T
-            frame = bag.add_frame(pos=pos_cs - rot_cg @ pos_gs, quat=_mat_to_quat(rot_cg))
+            frame = bag.add_frame(pos=pos_cs - rot_cg @ pos_gs, quat=_model_quat(rot_cg))
             spec.attach(mujoco.MjSpec.from_string(held_xml), prefix=f"astrobee_{i}/", frame=frame)
             for link in ARM_LINK_BODIES:
                 spec.add_exclude(bodyname1=f"astrobee_{i}/{link}", bodyname2="cargo/bag")
@@ -451,7 +451,7 @@ class World:
     def cargo_params(self) -> np.ndarray:
         """True cargo parameters pi (10,) in the cargo frame (origin at the bag's centre)."""
         b = self.cargo_body
-        rot = _quat_to_mat(self.model.body_iquat[b])
+        rot = quat_to_mat(self.model.body_iquat[b])
         inertia = rot @ np.diag(self.model.body_inertia[b]) @ rot.T
         return params_from_mass_com_inertia(
             self.model.body_mass[b], self.model.body_ipos[b].copy(), inertia
@@ -460,7 +460,7 @@ class World:
     def cargo_params_in_grasp_frame(self, i: int) -> np.ndarray:
         """True cargo parameters pi (10,) in robot i's grasp frame (what its estimator finds)."""
         s = self.handrail_sites[i]
-        rot = _quat_to_mat(self.model.site_quat[s])
+        rot = quat_to_mat(self.model.site_quat[s])
         return transform_params(self.cargo_params(), rot.T, -rot.T @ self.model.site_pos[s])
 
     def relative_grasp(self, i: int, j: int) -> tuple[np.ndarray, np.ndarray]:
@@ -469,7 +469,7 @@ class World:
         poses = []
         for k in (i, j):
             s = self.handrail_sites[k]
-            poses.append((_quat_to_mat(self.model.site_quat[s]), self.model.site_pos[s]))
+            poses.append((quat_to_mat(self.model.site_quat[s]), self.model.site_pos[s]))
         (rot_i, pos_i), (rot_j, pos_j) = poses
         return rot_i.T @ rot_j, rot_i.T @ (pos_j - pos_i)
 
@@ -511,7 +511,7 @@ class World:
         self.model.body_mass[b] = mass
         self.model.body_ipos[b] = com
         self.model.body_inertia[b] = moments
-        self.model.body_iquat[b] = _mat_to_quat(axes)
+        self.model.body_iquat[b] = _model_quat(axes)
         # Keep mj_setConst-derived quantities consistent (body_subtreemass is used by sensors).
         mujoco.mj_setConst(self.model, mujoco.MjData(self.model))
 
@@ -538,96 +538,86 @@ def _choose_bag(n_robots: int, name: str | None) -> CargoBag:
     return bags[name]
 
 
-def _read_robot_model(m: mujoco.MjModel) -> RobotDescription:
-    """Read the known model of a robot from the compiled (base-rooted) astrobee.xml."""
-    base_body = m.body("base").id
-    robot_bodies = tuple(b for b in range(m.nbody) if m.body_rootid[b] == base_body)
-    prefix = ""
+def _body_params(m: mujoco.MjModel, b: int) -> np.ndarray:
+    """Inertial parameters pi of body b in its own frame."""
+    rot = quat_to_mat(m.body_iquat[b])
+    inertia = rot @ np.diag(m.body_inertia[b]) @ rot.T
+    return params_from_mass_com_inertia(m.body_mass[b], m.body_ipos[b].copy(), inertia)
 
-    def body_params(b: int) -> np.ndarray:
-        rot = _quat_to_mat(m.body_iquat[b])
-        inertia = rot @ np.diag(m.body_inertia[b]) @ rot.T
-        return params_from_mass_com_inertia(m.body_mass[b], m.body_ipos[b].copy(), inertia)
 
-    def local_pose(b: int) -> tuple[np.ndarray, np.ndarray]:
-        return _quat_to_mat(m.body_quat[b]), m.body_pos[b].copy()
+def _local_pose(m: mujoco.MjModel, b: int) -> tuple[np.ndarray, np.ndarray]:
+    """Body b's frame in its parent's: rotation, position."""
+    return quat_to_mat(m.body_quat[b]), m.body_pos[b].copy()
 
-    # A link is the base or a body with one hinge; bodies without joints merge into their
-    # parent link (their pose relative to it accumulated through the tree).
+
+def _hinge_link(m: mujoco.MjModel, b: int, parent_link: int, pose_in_parent: tuple) -> dict:
+    """The link of body b, which has one hinge at its origin, in its parent link's frame."""
+    j = m.body_jntadr[b]
+    if m.jnt_type[j] != mujoco.mjtJoint.mjJNT_HINGE:
+        raise ValueError(f"body {m.body(b).name}: only hinge joints supported")
+    if np.linalg.norm(m.jnt_pos[j]) > 1e-12:
+        raise ValueError(f"joint {m.joint(j).name} must sit at its body origin")
+    prot, ppos = pose_in_parent
+    rot, pos = _local_pose(m, b)
+    return dict(
+        name=m.body(b).name,
+        parent=parent_link,
+        joint_axis=m.jnt_axis[j].copy(),
+        rot_in_parent=prot @ rot,
+        pos_in_parent=prot @ pos + ppos,
+    )
+
+
+def _robot_links(
+    m: mujoco.MjModel, base_body: int, robot_bodies: tuple[int, ...]
+) -> tuple[list[LinkDescription], dict[int, int], dict[int, tuple]]:
+    """The robot's links (the base, then one per hinged body; bodies without joints merge into
+    their parent link, their pose relative to it accumulated through the tree), with the link
+    of each body and each body's pose in its link."""
+    base = dict(name="base", parent=-1, joint_axis=None, rot_in_parent=np.eye(3))
+    base["pos_in_parent"] = np.zeros(3)
     link_of: dict[int, int] = {}
     pose_in_link: dict[int, tuple[np.ndarray, np.ndarray]] = {}
     params: list[np.ndarray] = []
     links: list[dict] = []
     for b in robot_bodies:  # bodies are numbered parent before child
-        njnt = m.body_jntnum[b]
+        njnt, parent = m.body_jntnum[b], m.body_parentid[b]
         if b == base_body or njnt == 1:
-            if b != base_body:
-                j = m.body_jntadr[b]
-                if m.jnt_type[j] != mujoco.mjtJoint.mjJNT_HINGE:
-                    raise ValueError(f"body {m.body(b).name}: only hinge joints supported")
-                if np.linalg.norm(m.jnt_pos[j]) > 1e-12:
-                    raise ValueError(f"joint {m.joint(j).name} must sit at its body origin")
-                parent = m.body_parentid[b]
-                prot, ppos = pose_in_link[parent]
-                rot, pos = local_pose(b)
-                links.append(
-                    dict(
-                        name=m.body(b).name.removeprefix(prefix),
-                        parent=link_of[parent],
-                        joint_axis=m.jnt_axis[j].copy(),
-                        rot_in_parent=prot @ rot,
-                        pos_in_parent=prot @ pos + ppos,
-                    )
-                )
-            else:
-                links.append(
-                    dict(
-                        name="base",
-                        parent=-1,
-                        joint_axis=None,
-                        rot_in_parent=np.eye(3),
-                        pos_in_parent=np.zeros(3),
-                    )
-                )
+            links.append(
+                base
+                if b == base_body
+                else _hinge_link(m, b, link_of[parent], pose_in_link[parent])
+            )
             link_of[b] = len(links) - 1
             pose_in_link[b] = (np.eye(3), np.zeros(3))
-            params.append(body_params(b))
+            params.append(_body_params(m, b))
         elif njnt == 0:
-            parent = m.body_parentid[b]
             prot, ppos = pose_in_link[parent]
-            rot, pos = local_pose(b)
+            rot, pos = _local_pose(m, b)
             link_of[b] = link_of[parent]
             pose_in_link[b] = (prot @ rot, prot @ pos + ppos)
             params[link_of[b]] = params[link_of[b]] + transform_params(
-                body_params(b), *pose_in_link[b]
+                _body_params(m, b), *pose_in_link[b]
             )
         else:
             raise ValueError(f"body {m.body(b).name}: at most one joint per arm body")
-
-    link_descs = []
+    descriptions = []
     for link, pi in zip(links, params, strict=True):
         mass, com, inertia = mass_com_inertia_from_params(pi)
-        link_descs.append(
-            LinkDescription(
-                name=link["name"],
-                parent=link["parent"],
-                joint_axis=link["joint_axis"],
-                rot_in_parent=link["rot_in_parent"],
-                pos_in_parent=link["pos_in_parent"],
-                mass=float(mass),
-                com=com,
-                inertia_com=inertia,
-            )
-        )
+        descriptions.append(LinkDescription(mass=float(mass), com=com, inertia_com=inertia, **link))
+    return descriptions, link_of, pose_in_link
+
+
+def _read_robot_model(m: mujoco.MjModel) -> RobotDescription:
+    """Read the known model of a robot from the compiled (base-rooted) astrobee.xml."""
+    base_body = m.body("base").id
+    robot_bodies = tuple(b for b in range(m.nbody) if m.body_rootid[b] == base_body)
+    links, link_of, pose_in_link = _robot_links(m, base_body, robot_bodies)
 
     def site_in_link(s: int) -> tuple[int, np.ndarray, np.ndarray]:
         b = m.site_bodyid[s]
         prot, ppos = pose_in_link[b]
-        return (
-            link_of[b],
-            prot @ _quat_to_mat(m.site_quat[s]),
-            prot @ m.site_pos[s] + ppos,
-        )
+        return link_of[b], prot @ quat_to_mat(m.site_quat[s]), prot @ m.site_pos[s] + ppos
 
     imu_link, imu_rot, imu_pos = site_in_link(m.site("imu").id)
     thrust_link, thrust_rot, thrust_pos = site_in_link(m.site("thrust").id)
@@ -640,7 +630,7 @@ def _read_robot_model(m: mujoco.MjModel) -> RobotDescription:
     if not np.allclose(thrust_gear, np.eye(6)):
         raise ValueError("thrust actuators must be the six unit wrench directions")
     return RobotDescription(
-        links=tuple(link_descs),
+        links=tuple(links),
         imu_rot=imu_rot,
         imu_pos=imu_pos,
         thrust_rot=thrust_rot,

@@ -13,11 +13,18 @@
 - ``CentralizedCargoEnv``: a single-agent ``gymnasium.Env`` in which one policy drives all robots:
   the observation is the robots' observations concatenated in agent order, the action the robots'
   actions concatenated, the reward the robots' mean reward. Registered as ``ENV_ID``
-  (``astrocargo/AstrobeeCargo-v0``); ``gymnasium.make("astrocargo.envs.wrappers:" + ENV_ID)``
-  imports this module and makes it in one call.
+  (``astrocargo/AstrobeeCargo-v0``) when ``astrocargo.envs`` is imported;
+  ``gymnasium.make("astrocargo.envs:" + ENV_ID)`` imports the package and makes it in one call
+  (``"astrocargo.envs.wrappers:" + ENV_ID`` works too).
 
-SuperSuit's ``pettingzoo_env_to_vec_env_v1`` is not used: with SB3 2.9 it reports truncation as
-termination, breaks ``seed=`` and starts every copy identical (shared/reference/pitfalls.md).
+SuperSuit's vector path (``pettingzoo_env_to_vec_env_v1`` then ``concat_vec_envs_v1``) also
+works: the env deep-copies and pickles (a live renderer is not copied), which that path needs to
+build its copies. It is not used here because of its known limits with SB3 2.9 (SuperSuit 3.11):
+truncation at ``max_cycles`` is reported as termination (no ``TimeLimit.truncated``, so SB3 does
+not bootstrap the value at the time limit); ``ConcatVecEnv`` has no ``seed``, so passing
+``seed=`` to an SB3 algorithm fails; and every copy starts from the same deep copy, so without
+explicit per-copy seeds the copies run identical episodes. ``SharedPolicyVecEnv`` reports
+truncation, seeds copy ``c`` with ``s + c`` and implements ``seed``.
 """
 
 from __future__ import annotations
@@ -39,7 +46,8 @@ from stable_baselines3.common.vec_env.base_vec_env import (
     VecEnvStepReturn,
 )
 
-ENV_ID = "astrocargo/AstrobeeCargo-v0"
+from astrocargo.envs import ENV_ID  # noqa: F401  (registered by astrocargo/envs/__init__.py)
+
 # The learning task of scripts/train.py, evaluate.py and the training benchmark: the first 10 s
 # of the figure-eight (the reference starts moving from rest), nominal noise, the policy acting
 # at 12.5 Hz (every fifth GNC period) so that a 10 s episode is 125 decisions.
@@ -401,7 +409,3 @@ class CentralizedCargoEnv(gymnasium.Env):
 
     def _concat(self, obs: dict[str, np.ndarray]) -> np.ndarray:
         return np.concatenate([obs[a] for a in self.agents])
-
-
-if ENV_ID not in gymnasium.registry:
-    gymnasium.register(id=ENV_ID, entry_point="astrocargo.envs.wrappers:CentralizedCargoEnv")

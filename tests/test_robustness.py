@@ -207,7 +207,7 @@ def test_localization_outage(clean):
     def probe(env):
         sim = env.sim
         truth = sim.data.xpos[sim.world.robots[1].base_body]
-        drift.append(np.linalg.norm(sim.navigators[1].base_pos - truth))
+        drift.append(np.linalg.norm(sim.navigator.base_pos[1] - truth))
 
     ep = _run([fault], clean.actions, probe)
     env = ep.env

@@ -1,0 +1,151 @@
+"""The robots' own navigation filter: each robot's base pose and velocity from its own IMU and
+localization fixes (no ground truth), for all robots at once.
+
+Frames: ``rot`` (N, 3, 3) maps each base frame to the world (``estimator.geometry``
+conventions); positions and velocities are in world axes, m and m/s; angular velocities in the
+base frame, rad/s. One compiled kernel (numba) steps every robot.
+
+Per robot and control period of length dt, with the period-mean gyro rate g and specific force
+a (IMU frame, R_bi and r_i the IMU's rotation and position in the base frame):
+
+- dead reckoning of the IMU point: w = R_bi g; R' = R exp(w dt);
+  v' = v + dt R exp(w dt / 2) R_bi a (the force in the mid-period frame); p' = p + dt (v + v') / 2;
+- position-velocity covariance C' = F C F^T + Q, F = [[1, dt], [0, 1]],
+  Q = s_a^2 [[dt^4 / 4, dt^3 / 2], [dt^3 / 2, dt^2]] (isotropic: one 2x2 for all three axes);
+  attitude variance c_att' = c_att + (s_g dt)^2;
+- at a fix (R_fix, p_fix): gains k_att = c_att / (c_att + s_att^2), k_p = C00 / (C00 + s_p^2),
+  k_v = C10 / (C00 + s_p^2); R <- R exp(k_att log(R^T R_fix)); with the innovation
+  e = p_fix + R r_i - p: p <- p + k_p e, v <- v + k_v e;
+- base origin: p_b = p - R r_i, v_b = v - R (w x r_i).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from astrocargo.envs.sensors import NoiseProfile, SensorPacket
+from astrocargo.estimator.geometry import exp_so3, log_so3, quat_to_mat
+from astrocargo.estimator.rne import RobotDescription
+
+# Floors of the navigation filter's noise model, so the ideal profile stays well posed.
+NAV_STD_FLOOR = 1e-9
+
+
+@njit(cache=True)
+def _propagate(rot, pos, vel, gyro, accel, imu_rot, dt_s):
+    """Dead reckoning of one robot's IMU point over one period: R', p', v', w."""
+    w = imu_rot @ gyro
+    rot_mid_imu = rot @ exp_so3(0.5 * dt_s * w) @ imu_rot
+    rot_new = rot @ exp_so3(dt_s * w)
+    vel_new = vel + dt_s * (rot_mid_imu @ accel)
+    return rot_new, pos + 0.5 * dt_s * (vel + vel_new), vel_new, w
+
+
+@njit(cache=True)
+def _blend_fix(rot, pos, vel, fix_quat, fix_pos, imu_pos, gain_att, gain_pos, gain_vel):
+    """One robot's Kalman blend of a localization fix: R, p, v."""
+    fix_rot = quat_to_mat(fix_quat)
+    rot = rot @ exp_so3(gain_att * log_so3(np.ascontiguousarray(rot.T) @ fix_rot))
+    innovation = fix_pos + rot @ imu_pos - pos
+    return rot, pos + gain_pos * innovation, vel + gain_vel * innovation
+
+
+@njit(cache=True)
+def navigate(
+    rot, pos, vel, w, cov, att_cov, gyro, accel, fix_pos, fix_quat, has_fix, acting,
+    imu_rot, imu_pos, dt_s, q, pos_var, att_var, gyro_step_var, base_pos, base_vel,
+):  # fmt: skip
+    """One period of every ``acting`` robot's filter (module docstring), in place: the IMU
+    point's state (rot, pos, vel, w), the covariances (cov (N, 4): C00, C01, C10, C11; att_cov
+    (N,)) and the base origin's position and velocity (base_pos, base_vel)."""
+    for i in range(rot.shape[0]):
+        if not acting[i]:
+            continue
+        rot[i], pos[i], vel[i], w[i] = _propagate(
+            rot[i], pos[i], vel[i], gyro[i], accel[i], imu_rot[i], dt_s
+        )
+        c00, c01, c10, c11 = cov[i, 0], cov[i, 1], cov[i, 2], cov[i, 3]
+        a00, a01 = c00 + dt_s * c10, c01 + dt_s * c11  # first row of F C
+        c00, c01 = a00 + a01 * dt_s + q[0], a01 + q[1]
+        c10, c11 = c10 + c11 * dt_s + q[1], c11 + q[2]
+        att_cov[i] += gyro_step_var
+        if has_fix[i]:
+            gain_att = att_cov[i] / (att_cov[i] + att_var)
+            gain_p, gain_v = c00 / (c00 + pos_var), c10 / (c00 + pos_var)
+            rot[i], pos[i], vel[i] = _blend_fix(
+                rot[i], pos[i], vel[i], fix_quat[i], fix_pos[i], imu_pos[i], gain_att, gain_p,
+                gain_v,
+            )  # fmt: skip
+            att_cov[i] *= 1.0 - gain_att
+            c00, c01, c10, c11 = (
+                c00 - gain_p * c00,
+                c01 - gain_p * c01,
+                c10 - gain_v * c00,
+                (c11 - gain_v * c01),
+            )
+        cov[i, 0], cov[i, 1], cov[i, 2], cov[i, 3] = c00, c01, c10, c11
+        base_pos[i] = pos[i] - rot[i] @ imu_pos[i]
+        base_vel[i] = vel[i] - rot[i] @ np.cross(w[i], imu_pos[i])
+
+
+class BaseNavigator:
+    """Every robot's estimate of its own base pose and velocity, from its own sensors only
+    (module docstring): between localization fixes each dead-reckons with its gyro and
+    accelerometer; at a fix it blends the fix in with Kalman gains from the noise profile the
+    robot knows. Arrays (N, ...) in robot index order: ``rot``, ``base_pos``, ``base_vel``,
+    ``w_base``."""
+
+    def __init__(self, robots: list[RobotDescription], dt_s: float, profile: NoiseProfile) -> None:
+        self.imu_rot = np.array([r.imu_rot for r in robots], dtype=float)
+        self.imu_pos = np.array([r.imu_pos for r in robots], dtype=float)
+        self.dt_s = float(dt_s)
+        acc_var = max(profile.accel_std, NAV_STD_FLOOR) ** 2
+        self.pos_var = max(profile.position_std_m, NAV_STD_FLOOR) ** 2
+        self.att_var = max(profile.attitude_std_rad, NAV_STD_FLOOR) ** 2
+        self.gyro_step_var = (max(profile.gyro_std, NAV_STD_FLOOR) * dt_s) ** 2
+        dt = self.dt_s
+        self._q = acc_var * np.array([dt**4 / 4, dt**3 / 2, dt**2])  # Q00, Q01, Q11
+        n = len(robots)
+        self.rot = np.tile(np.eye(3), (n, 1, 1))
+        self.w_base, self.base_pos, self.base_vel = np.zeros((3, n, 3))
+        self._p, self._v = np.zeros((2, n, 3))
+        self._cov, self.att_cov = np.zeros((n, 4)), np.zeros(n)
+        # The last IMU means (held when a frame is missing) and this period's fix.
+        self._gyro, self._accel, self._fix_pos = np.zeros((3, n, 3))
+        self._fix_quat, self._has_fix = np.zeros((n, 4)), np.zeros(n, dtype=np.bool_)
+
+    def reset(self, packets: list[SensorPacket]) -> None:
+        """Start every robot at rest at its packet's localization fix."""
+        for i, packet in enumerate(packets):
+            if packet.base_pos_world is None or packet.base_quat_world is None:
+                raise ValueError("the navigator starts from a packet with a localization fix")
+            self.rot[i] = quat_to_mat(np.ascontiguousarray(packet.base_quat_world, dtype=float))
+            self._gyro[i] = 0.0 if packet.gyro_imu is None else packet.gyro_imu  # at rest
+            self._accel[i] = 0.0 if packet.accel_imu is None else packet.accel_imu
+            self._p[i] = packet.base_pos_world + self.rot[i] @ self.imu_pos[i]
+        self.w_base[:] = np.einsum("nij,nj->ni", self.imu_rot, self._gyro)
+        self._v[:] = 0.0
+        self._cov[:] = (self.pos_var, 0.0, 0.0, NAV_STD_FLOOR**2)
+        self.att_cov[:] = self.att_var
+        self.base_pos[:] = self._p - np.einsum("nij,nj->ni", self.rot, self.imu_pos)
+        self.base_vel[:] = -np.einsum("nij,nj->ni", self.rot, np.cross(self.w_base, self.imu_pos))
+
+    def update(self, packets: list[SensorPacket | None], acting: np.ndarray) -> None:
+        """Propagate the ``acting`` robots (bool (N,)) over one control period with their
+        packets' IMU means (the previous ones where a frame is missing); blend in their fixes."""
+        for i, packet in enumerate(packets):
+            if packet is None:
+                continue
+            if packet.gyro_imu is not None and packet.accel_imu is not None:
+                self._gyro[i], self._accel[i] = packet.gyro_imu, packet.accel_imu
+            fix = packet.base_pos_world is not None and packet.base_quat_world is not None
+            self._has_fix[i] = fix
+            if fix:
+                self._fix_pos[i], self._fix_quat[i] = packet.base_pos_world, packet.base_quat_world
+        navigate(
+            self.rot, self._p, self._v, self.w_base, self._cov, self.att_cov, self._gyro,
+            self._accel, self._fix_pos, self._fix_quat, self._has_fix, acting, self.imu_rot,
+            self.imu_pos, self.dt_s, self._q, self.pos_var, self.att_var, self.gyro_step_var,
+            self.base_pos, self.base_vel,
+        )  # fmt: skip

@@ -1,0 +1,189 @@
+"""The observations: one table of blocks (name, size) from which the layout, the observation
+space's bounds and every robot's observation row are built (the env docstring's Observation
+Space section describes each block).
+
+Frames: R (3, 3) maps the robot's base frame (its own estimate) to the world; every vector of
+a block is in that base frame, R^T x. The base reference is the pose the base would have if the
+cargo were on its reference with the grasp rigid at the measured arm angles q:
+R_ref = R_c,ref R_ch G(q)^T, p_ref = p_c,ref + R_c,ref p_ch - R_ref g(q),
+v_ref = v_c,ref + w_c,ref x (p_ref - p_c,ref), with (R_ch, p_ch) the handrail in the cargo frame
+and (G(q), g(q)) the grasp frame in the base frame (forward kinematics of the arm chain:
+R_k = R_parent R_k0 exp(a_k q_k), p_k = p_parent + R_parent p_k0).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from astrocargo.estimator.geometry import exp_so3, log_so3
+from astrocargo.estimator.rne import RobotDescription
+
+# The robot's own blocks, in order: (name, size). The kernel below fills them by name through
+# the layout's starts (OWN_BLOCKS order is the order of its `values` list).
+OWN_BLOCKS = (
+    ("base_pos_err", 3),  # base position minus its reference position, m
+    ("base_vel_err", 3),  # base velocity minus its reference velocity, m/s
+    ("base_att_err", 3),  # rotation vector of R_ref^T R, rad
+    ("base_ang_vel", 3),  # gyro, period mean, rad/s
+    ("joint_pos", 2),  # encoders tilt, pan, rad
+    ("joint_target", 2),  # servo targets tilt, pan, rad
+    ("ref_pos_rel", 3),  # cargo reference position minus base position, m
+    ("ref_vel", 3),  # cargo reference velocity, m/s
+    ("ref_acc", 3),  # cargo reference acceleration, m/s^2
+    ("ref_ang_vel", 3),  # cargo reference angular velocity, rad/s
+    ("ref_ang_acc", 3),  # cargo reference angular acceleration, rad/s^2
+    ("ref_pan", 2),  # reference pan angle and rate, rad, rad/s
+)
+# Per peer slot p (peers in increasing index, skipping the robot itself): "peer{p}_" + name.
+PEER_BLOCKS = (("wrench", 6), ("age", 1), ("valid", 1))
+ESTIMATE_BLOCKS = (("estimate_mean", 10), ("estimate_std", 10))
+
+
+def observation_layout(n_robots: int, observe_estimates: bool = True) -> dict[str, slice]:
+    """Index slices of each observation block (see the module docstring's table)."""
+    sizes = list(OWN_BLOCKS)
+    for p in range(n_robots - 1):
+        sizes += [(f"peer{p}_{name}", size) for name, size in PEER_BLOCKS]
+    if observe_estimates:
+        sizes += list(ESTIMATE_BLOCKS)
+    out, start = {}, 0
+    for name, size in sizes:
+        out[name] = slice(start, start + size)
+        start += size
+    out["all"] = slice(0, start)
+    return out
+
+
+def observation_bounds(layout: dict[str, slice]) -> tuple[np.ndarray, np.ndarray]:
+    """Lower and upper bounds of the observation space: the valid flags in [0, 1], the rest
+    unbounded."""
+    size = layout["all"].stop
+    low, high = np.full(size, -np.inf), np.full(size, np.inf)
+    for name, sl in layout.items():
+        if name.endswith("_valid"):
+            low[sl], high[sl] = 0.0, 1.0
+    return low, high
+
+
+@njit(cache=True)
+def grasp_pose(link_parent, link_rot, link_pos, link_axis, grasp_link, grasp_rot, grasp_pos, q):
+    """Grasp frame in the base frame at joint angles q (module docstring's chain): rotation
+    (3, 3) and position (3,). Links: parents before children, link 0 the base."""
+    n_links = link_parent.shape[0]
+    rots, poss = np.zeros((n_links, 3, 3)), np.zeros((n_links, 3))
+    rots[0] = np.eye(3)
+    for k in range(1, n_links):
+        rot_p = rots[link_parent[k]]
+        rots[k] = rot_p @ link_rot[k] @ exp_so3(link_axis[k] * q[k - 1])
+        poss[k] = poss[link_parent[k]] + rot_p @ link_pos[k]
+    rot_g = rots[grasp_link]
+    return rot_g @ grasp_rot, poss[grasp_link] + rot_g @ grasp_pos
+
+
+@njit(cache=True)
+def _own_blocks(out, starts, rot, base_pos, base_vel, w, q, target, rot_ref, pos_ref, vel_ref,
+                ref_vecs, ref_pan):  # fmt: skip
+    """Write the OWN_BLOCKS of one row at ``starts``; ref_vecs rows: the cargo reference's
+    position, velocity, acceleration, angular velocity and angular acceleration (world)."""
+    rot_t = np.ascontiguousarray(rot.T)
+    values = [
+        rot_t @ (base_pos - pos_ref),
+        rot_t @ (base_vel - vel_ref),
+        log_so3(np.ascontiguousarray(rot_ref.T) @ rot),
+        w,
+        q,
+        target,
+        rot_t @ (ref_vecs[0] - base_pos),
+        rot_t @ ref_vecs[1],
+        rot_t @ ref_vecs[2],
+        rot_t @ ref_vecs[3],
+        rot_t @ ref_vecs[4],
+        ref_pan,
+    ]
+    for block, value in enumerate(values):
+        out[starts[block] : starts[block] + value.shape[0]] = value
+
+
+@njit(cache=True)
+def assemble(out, acting, own_starts, peer_starts, estimate_start, rot, base_pos, base_vel, w,
+             q, target, link_parent, link_rot, link_pos, link_axis, grasp_link, grasp_rot,
+             grasp_pos, handrail_rot, handrail_pos, ref_rot, ref_vecs, ref_pan, peer_wrench,
+             peer_age, peer_valid, estimates):  # fmt: skip
+    """Every acting robot's observation row into ``out`` (N, obs_dim); the others' rows are left
+    as they are. Robots are rows of the (N, ...) inputs; peer_* (N, P, ...) hold the latest
+    message of each peer slot (wrench in world axes); estimates (N, 20) or (N, 0)."""
+    for i in range(out.shape[0]):
+        if not acting[i]:
+            continue
+        g_rot, g_pos = grasp_pose(
+            link_parent, link_rot[i], link_pos[i], link_axis[i], grasp_link[i], grasp_rot[i],
+            grasp_pos[i], q[i],
+        )  # fmt: skip
+        rot_ref = ref_rot @ handrail_rot[i] @ np.ascontiguousarray(g_rot.T)
+        pos_ref = ref_vecs[0] + ref_rot @ handrail_pos[i] - rot_ref @ g_pos
+        vel_ref = ref_vecs[1] + np.cross(ref_vecs[3], pos_ref - ref_vecs[0])
+        row = out[i]
+        _own_blocks(
+            row, own_starts, rot[i], base_pos[i], base_vel[i], w[i], q[i], target[i], rot_ref,
+            pos_ref, vel_ref, ref_vecs, ref_pan,
+        )  # fmt: skip
+        rot_t = np.ascontiguousarray(rot[i].T)
+        for p in range(peer_starts.shape[0]):
+            s_wrench, s_age, s_valid = peer_starts[p, 0], peer_starts[p, 1], peer_starts[p, 2]
+            row[s_wrench : s_wrench + 3] = rot_t @ peer_wrench[i, p, :3]
+            row[s_wrench + 3 : s_wrench + 6] = rot_t @ peer_wrench[i, p, 3:]
+            row[s_age] = peer_age[i, p]
+            row[s_valid] = peer_valid[i, p]
+        if estimates.shape[1] > 0:
+            row[estimate_start : estimate_start + estimates.shape[1]] = estimates[i]
+
+
+class ObservationBuilder:
+    """The team's observations from the layout: the robots' known arm models and handrails are
+    packed once; ``build`` fills the rows of the acting robots each step."""
+
+    def __init__(
+        self,
+        layout: dict[str, slice],
+        robots: list[RobotDescription],
+        handrail_pose: list[tuple[np.ndarray, np.ndarray]],
+    ) -> None:
+        n = len(robots)
+        self.layout, self.obs_dim = layout, layout["all"].stop
+        self.own_starts = np.array([layout[name].start for name, _ in OWN_BLOCKS])
+        self.peer_starts = np.array(
+            [[layout[f"peer{p}_{name}"].start for name, _ in PEER_BLOCKS] for p in range(n - 1)],
+            dtype=np.int64,
+        ).reshape(n - 1, len(PEER_BLOCKS))
+        self.estimate_start = layout["estimate_mean"].start if "estimate_mean" in layout else 0
+        links = robots[0].links
+        self.link_parent = np.array([link.parent for link in links], dtype=np.int64)
+        self.link_rot = np.array([[k.rot_in_parent for k in r.links] for r in robots], dtype=float)
+        self.link_pos = np.array([[k.pos_in_parent for k in r.links] for r in robots], dtype=float)
+        self.link_axis = np.array(  # the base (link 0) has no joint: a zero axis
+            [
+                [np.zeros(3) if k.joint_axis is None else k.joint_axis for k in r.links]
+                for r in robots
+            ],
+            dtype=float,
+        )
+        self.grasp_link = np.array([r.grasp_link for r in robots], dtype=np.int64)
+        self.grasp_rot = np.array([r.grasp_rot for r in robots], dtype=float)
+        self.grasp_pos = np.array([r.grasp_pos for r in robots], dtype=float)
+        self.handrail_rot = np.array([rot for rot, _ in handrail_pose], dtype=float)
+        self.handrail_pos = np.array([pos for _, pos in handrail_pose], dtype=float)
+
+    def build(self, acting, rot, base_pos, base_vel, w, q, target, ref_rot, ref_vecs, ref_pan,
+              peer_wrench, peer_age, peer_valid, estimates) -> np.ndarray:  # fmt: skip
+        """(N, obs_dim) observations: the rows of the ``acting`` robots (bool (N,)), zeros
+        elsewhere."""
+        out = np.zeros((len(acting), self.obs_dim))
+        assemble(
+            out, acting, self.own_starts, self.peer_starts, self.estimate_start, rot, base_pos,
+            base_vel, w, q, target, self.link_parent, self.link_rot, self.link_pos,
+            self.link_axis, self.grasp_link, self.grasp_rot, self.grasp_pos, self.handrail_rot,
+            self.handrail_pos, ref_rot, ref_vecs, ref_pan, peer_wrench, peer_age, peer_valid,
+            estimates,
+        )  # fmt: skip
+        return out

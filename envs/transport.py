@@ -1,0 +1,686 @@
+"""The physics, sensing, estimation and rewards of the cargo transport, with no multi-agent API
+(``CargoTransport``); ``AstrobeeCargoEnv`` in ``astrocargo.envs.cargo_transport`` is the
+PettingZoo layer on top, and its docstring describes both."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import mujoco
+import numpy as np
+from numba import njit
+
+from astrocargo.agents.trajectories import Reference, Trajectory
+from astrocargo.envs.cargo import CARGO_COM_SPREAD_M, CargoDraw  # noqa: F401
+from astrocargo.envs.comms import CommChannel
+from astrocargo.envs.config import (
+    REWARD_TERMS,
+    EnvConfig,
+)
+from astrocargo.envs.faults import (
+    FAULT_COUNTERS,
+    NO_FAULT_COUNTS,
+    Fault,
+    parse_release_at,
+)
+from astrocargo.envs.navigation import BaseNavigator
+from astrocargo.envs.observations import ObservationBuilder, observation_layout
+from astrocargo.envs.rewards import ROTATION_WEIGHT_M_PER_RAD, reward_terms
+from astrocargo.envs.sensors import SensorPacket, SensorSuite, estimator_noise_kwargs
+from astrocargo.envs.sensors import noise_profile as get_noise_profile
+from astrocargo.envs.world import ARM_DEPLOYED_RAD, MAX_TIMESTEP_S, World
+from astrocargo.estimator.cargo_estimator import CargoEstimator
+from astrocargo.estimator.geometry import log_so3, mat_to_quat, quat_to_mat
+from astrocargo.estimator.inertia import (
+    com_error_m,
+    mass_rel_error,
+    principal_rel_errors,
+)
+
+ACTION_DIM = 8
+ARM_DEPLOYED = np.asarray(ARM_DEPLOYED_RAD, dtype=float)
+ARM_OFFSET_RAD = 0.5  # reach of the arm actions around the deployed pose
+ARM_SPEED_RADPS = 0.12  # URDF joint velocity limit (facts file section 5)
+LOG_STD_FLOOR = 1e-12
+REWARD_KEYS = tuple(f"reward_{t}" for t in REWARD_TERMS)  # their names in infos
+_BAD_QACC = int(mujoco.mjtWarning.mjWARN_BADQACC)
+TERMINATION_REASONS = ("wall_contact", "non_finite", "released")  # "released": one agent
+
+
+@njit(cache=True)
+def tracking_errors(pos, rot, ref_pos, ref_rot):
+    """Position error |p - p_ref| (m) and rotation angle error |log(R_ref^T R)| (rad)."""
+    angle = log_so3(np.ascontiguousarray(ref_rot.T) @ rot)
+    return np.linalg.norm(pos - ref_pos), np.linalg.norm(angle)
+
+
+@dataclass(frozen=True)
+class StepResult:
+    """What one control step returns, per robot (index order); the rows of robots that let go
+    of the cargo at an earlier step are zeros."""
+
+    observations: np.ndarray  # (n_robots, obs_dim) float64
+    rewards: np.ndarray  # (n_robots,)
+    terminated: bool  # the episode ended for every robot (termination_reason)
+    termination_reason: str | None
+    infos: list[dict[str, Any] | None]  # None for a robot that let go at an earlier step
+    released: tuple[int, ...] = ()  # the robots that let go of the cargo at this step
+
+
+class CargoTransport:
+    """The world, sensors, channel, estimators and the robots' own navigation, with no
+    multi-agent API: ``reset(rng)`` then ``step(actions)`` with an (n_robots, 8) array.
+
+    Takes an ``EnvConfig`` (or its keyword arguments); the rendering and ``max_cycles`` fields
+    are the PettingZoo layer's. The checks that need the world are made here.
+    """
+
+    def __init__(self, config: EnvConfig | None = None, **kwargs: Any) -> None:
+        if config is None:
+            config = EnvConfig(**kwargs)
+        elif kwargs:
+            raise ValueError("give either an EnvConfig or keyword arguments, not both")
+        self.config = c = config
+        self.n_robots = c.n_robots
+        self.faults = c.faults
+        self.trajectory_name = c.trajectory
+        self.fast = c.fast
+        self.noise = c.noise
+        self.profile = get_noise_profile(c.noise)
+        self.observe_estimates = c.observe_estimates
+        self.use_estimators = c.estimators
+        self.world = World(self.n_robots)
+        self.cargo_draw = CargoDraw.from_args(
+            self.world, c.cargo_mass_kg, c.cargo_com_m, c.cargo_inertia
+        )
+        self.control_hz = c.control_hz
+        self.dt_s = 1.0 / c.control_hz
+        self.frame_skip = self._check_frame_skip(c.frame_skip)
+        # The control period is exact: the physics step is the period over frame_skip.
+        self.world.model.opt.timestep = self.dt_s / self.frame_skip
+        # The world with every robot holding: each episode starts in it (a release rebuilds the
+        # world without the robot, see _release), and state() keeps its layout.
+        self._full_world = self.world
+        self._full_data = mujoco.MjData(self.world.model)
+        # Each fault with the control steps [first, end) it is active at.
+        self._fault_windows = [(f, *f.steps(self.dt_s)) for f in self.faults]
+        self.release_steps = parse_release_at(c.release_at, self.n_robots, self.dt_s)
+        self.comm_args = (c.comm_latency, c.comm_drop, c.comm_noise)
+        CommChannel(self.n_robots, *self.comm_args, self.dt_s, np.random.default_rng(0))
+        self.weights = c.weights
+        self._weights = np.array([self.weights[t] for t in REWARD_TERMS])
+        self.shared_reward = c.shared_reward
+        self.estimator_kwargs = {
+            **estimator_noise_kwargs(self.profile),
+            "peer_noise_std": c.comm_noise,
+            **(c.estimator_kwargs or {}),
+        }
+        self.trajectory = Trajectory(c.trajectory, fast=self.fast)
+        self.robots = [self.world.robot_model(i) for i in range(self.n_robots)]
+        self.thrust_limits = np.array([r.thrust_limit for r in self.robots])
+        self.joint_ranges = np.array([r.joint_range for r in self.robots])
+        self._joint_low, self._joint_high = self.joint_ranges[..., 0], self.joint_ranges[..., 1]
+        self._bind_world(self._full_world, self._full_data)
+        self._init_layouts()
+        if self.use_estimators:  # fail early on bad estimator settings
+            self._make_estimators()
+        self.step_count = 0
+        self._ready = False
+        self._ref_cache: list | None = None
+
+    def _check_frame_skip(self, frame_skip: int | None) -> int:
+        """Physics steps per control step: None gives the MJCF's timestep (or less)."""
+        mjcf_timestep = float(self.world.model.opt.timestep)
+        if frame_skip is None:
+            frame_skip = max(1, math.ceil(self.dt_s / mjcf_timestep - 1e-9))
+        if frame_skip < 1 or self.dt_s / frame_skip > MAX_TIMESTEP_S:
+            raise ValueError(
+                f"frame_skip must be a positive integer with control period / frame_skip <= "
+                f"{MAX_TIMESTEP_S} s, got {frame_skip} at {self.control_hz} Hz"
+            )
+        return int(frame_skip)
+
+    def _init_layouts(self) -> None:
+        """Handrail poses, the observation layout, the peer slots and the state's size."""
+        # Robot i's handrail (its grasp site on the cargo) in the cargo frame: known geometry.
+        self.handrail_pose = [
+            (quat_to_mat(self.model.site_quat[site]), self.model.site_pos[site].copy())
+            for site in self.world.handrail_sites
+        ]
+        self.obs_layout = observation_layout(self.n_robots, self.observe_estimates)
+        self._observations = ObservationBuilder(self.obs_layout, self.robots, self.handrail_pose)
+        # Per robot: the peer in each of its peer slots (increasing index, skipping itself).
+        self._peer_slots = [
+            [j for j in range(self.n_robots) if j != i] for i in range(self.n_robots)
+        ]
+        self.obs_dim = self.obs_layout["all"].stop
+        full = self._full_world.model
+        self.state_dim = 1 + full.nq + full.nv + 13 * (full.nbody - 1)
+        self.state_dim += 10 + 21 + 2 * self.n_robots + self.n_robots
+
+    def _make_estimators(self) -> list[CargoEstimator]:
+        out = []
+        for i in range(self.n_robots):
+            peers = [j for j in range(self.n_robots) if j != i]
+            # The grasp layout (which handrails the team holds) is known geometry, like the
+            # handrail poses the observations use; estimating it from fixes biases early updates.
+            kwargs = {
+                "relative_grasps": {j: self.world.relative_grasp(i, j) for j in peers},
+                **self.estimator_kwargs,
+            }
+            try:
+                est = CargoEstimator(self.robots[i], i, peers, self.dt_s, **kwargs)
+            except TypeError as err:
+                raise ValueError(f"bad estimator_kwargs {self.estimator_kwargs!r}: {err}") from err
+            out.append(est)
+        return out
+
+    def _bind_world(self, world: World, data: mujoco.MjData) -> None:
+        """Simulate ``world`` (with its state in ``data``): the robots it holds act, and the
+        indices into its model are refreshed."""
+        self.world, self.model, self.data = world, world.model, data
+        self._bind_views()
+        self.holding = world.holding
+        self._acting_mask = np.zeros(self.n_robots, dtype=np.bool_)
+        self._acting_mask[list(self.holding)] = True
+        # Index of the holding robots' rows in per-robot arrays: a slice (no copy) for all.
+        everyone = len(self.holding) == self.n_robots
+        self._rows: slice | list[int] = slice(None) if everyone else list(self.holding)
+        self._thrust_ctrl = np.array([h.thrust_actuators for h in world.robots], dtype=int)
+        self._arm_ctrl = np.array([h.arm_actuators for h in world.robots], dtype=int)
+        # Which robot (index), the cargo (n_robots) or the module (-1) each geom belongs to.
+        self._geom_owner = np.full(self.model.ngeom, -1)
+        for h in world.robots:
+            self._geom_owner[list(h.robot_geoms)] = h.index
+        self._geom_owner[self.model.geom_bodyid == world.cargo_body] = self.n_robots
+        self._wall_geom = np.zeros(self.model.ngeom, dtype=bool)
+        self._wall_geom[list(world.wall_geoms)] = True
+        # Where this world's qpos, qvel and bodies go in state()'s fixed layout.
+        self._state_qpos, self._state_qvel, self._state_body = world.layout_in(self._full_world)
+
+    _VIEWS = ("_qpos", "_qvel", "_ctrl", "_xpos", "_xmat", "_warnings")
+
+    def _bind_views(self) -> None:
+        """Views of the data's arrays used every step (each property access builds a new one)."""
+        data = self.data
+        self._qpos, self._qvel, self._ctrl = data.qpos, data.qvel, data.ctrl
+        self._xpos, self._xmat, self._warnings = data.xpos, data.xmat, data.warning.number
+
+    # A copy (copy.deepcopy, pickle) gets its own MjData: the views are rebound to it, not copied
+    # as detached arrays.
+    def __getstate__(self) -> dict[str, Any]:
+        return {k: v for k, v in self.__dict__.items() if k not in self._VIEWS}
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update(state)
+        self._bind_views()
+
+    # ------------------------------------------------------------------ episode
+    def reset(self, rng: np.random.Generator) -> tuple[np.ndarray, list[dict[str, Any]]]:
+        """Start an episode; sensor, channel and cargo generators are spawned from ``rng``.
+        Returns the observations (n_robots, obs_dim) and infos."""
+        sensor_rng, comm_rng, cargo_rng = rng.spawn(3)
+        # Spawned only with faults, so that a run without them draws as it always did.
+        self.fault_rng = rng.spawn(1)[0] if self.faults else None
+        self.fault_counts = {k: np.zeros(self.n_robots, dtype=np.int64) for k in FAULT_COUNTERS}
+        self.cargo = self.cargo_draw.sample(cargo_rng, self.world)
+        if self.world is not self._full_world:  # robots let go last episode
+            self._bind_world(self._full_world, self._full_data)
+        self.released_at_s: dict[int, float] = {}
+        self.released_momentum: dict[int, np.ndarray] = {}
+        self.world.set_cargo(*self.cargo)
+        self.world.reset_data(self.data)
+        self.true_params = self.world.cargo_params()
+        self.true_params_grasp = [
+            self.world.cargo_params_in_grasp_frame(i) for i in range(self.n_robots)
+        ]
+        self.sensors = SensorSuite(self.world, self.profile, sensor_rng)
+        self.channel = CommChannel(
+            self.n_robots, *self.comm_args, self.dt_s, comm_rng, fault_rng=self.fault_rng
+        )
+        for fault, first, end in self._fault_windows:
+            if fault.kind == "comm_burst":
+                self.channel.add_burst(fault.robot, first, end, fault.prob)
+            elif fault.kind == "comm_delay":
+                self.channel.add_delay(fault.robot, first, end, fault.delay_s)
+        self.estimators = self._make_estimators() if self.use_estimators else []
+        self.navigator = BaseNavigator(self.robots, self.dt_s, self.profile)
+        self.arm_targets = np.tile(np.asarray(ARM_DEPLOYED_RAD), (self.n_robots, 1))
+        self.peer_msgs: list[dict[int, Any]] = [{} for _ in range(self.n_robots)]
+        self.step_count = 0
+        self._ready = True
+
+        packets = self._read_at_rest()
+        self._update_estimators(packets, np.zeros((self.n_robots, 6)), 0)
+        self.navigator.reset(packets)
+        self.packets = packets
+        self._refresh_estimates()
+        self._log_std_sum = self._estimate_log_std_sums()
+        everyone = self.holding
+        obs = self._get_obs(everyone)
+        zero_terms = {t: [0.0] * self.n_robots for t in REWARD_TERMS}
+        none = np.zeros(self.n_robots, dtype=int)
+        infos = self._get_infos(zero_terms, none, none, None, everyone, ())
+        return obs, infos
+
+    def _read_at_rest(self) -> list[SensorPacket]:
+        """The first reading: the robots rest for one period before the episode starts, so the
+        IMU reads its noise only, and a localization fix and the encoders come with it."""
+        t0 = float(self.data.time)
+        self.sensors.begin_period(self.data)
+        self.data.time = t0 + self.dt_s
+        try:
+            packets = self.sensors.read(self.data, 0)
+        finally:
+            self.data.time = t0
+        return packets  # every robot holds at reset: one packet per robot, in index order
+
+    def step(self, actions: np.ndarray) -> StepResult:
+        """Advance one control period with ``actions`` (n_robots, 8) in [-1, 1] (clipped); the
+        rows of robots that have let go of the cargo are ignored."""
+        if not self._ready:
+            raise RuntimeError("call reset() before step(), and again after the episode ended")
+        actions = np.asarray(actions, dtype=float)
+        if actions.shape != (self.n_robots, ACTION_DIM):
+            raise ValueError(
+                f"actions must have shape {(self.n_robots, ACTION_DIM)}, got {actions.shape}"
+            )
+        acting = self.holding  # the robots of this step, those letting go at its end included
+        rows = self._rows  # their rows: every row (a slice) or a list
+        acting_actions = actions[rows]
+        if not np.isfinite(acting_actions).all():
+            finite_rows = np.isfinite(acting_actions).all(axis=1)
+            raise ValueError(
+                f"actions of robot {acting[int(np.argmin(finite_rows))]} are not all finite"
+            )
+        acting_clipped = np.minimum(np.maximum(acting_actions, -1.0), 1.0)  # np.clip, faster
+        clipped = np.zeros_like(actions)
+        clipped[rows] = acting_clipped
+        n_clipped = np.zeros(self.n_robots, dtype=int)
+        n_clipped[rows] = (acting_clipped != acting_actions).sum(axis=1)
+        self.step_count += 1
+        k = self.step_count
+
+        commands = self._apply_actions(clipped)
+        mujoco.mj_step(self.model, self.data, nstep=self.frame_skip)
+        self._forward_kinematics()
+        finite = self._physics_finite()
+        packets = self._read_sensors(k)
+        self._update_estimators(packets, commands, k)
+        self.navigator.update(packets, self._acting_mask)
+        self.packets = packets
+
+        robot_contacts, cargo_contacts = self._wall_contacts()
+        # A release due with a non-finite state does not happen: the episode ends (non_finite).
+        released = ()
+        if self.release_steps and finite:
+            released = tuple(i for i in acting if self.release_steps.get(i) == k)
+        if released:
+            self._release(released)
+        obs = self._get_obs(acting)
+        if not np.isfinite(obs).all():
+            finite = False
+            obs = np.nan_to_num(obs, nan=0.0, posinf=0.0, neginf=0.0)
+        reason = None
+        if not finite:
+            reason = "non_finite"
+        elif robot_contacts.sum() + cargo_contacts > 0:
+            reason = "wall_contact"
+        terms, rewards = self._get_rewards(clipped, robot_contacts, cargo_contacts, finite, acting)
+        infos = self._get_infos(
+            terms, n_clipped, robot_contacts + cargo_contacts, reason, acting, released
+        )
+        if reason is not None or not self.holding:
+            self._ready = False
+        return StepResult(obs, rewards, reason is not None, reason, infos, released)
+
+    def _release(self, released: tuple[int, ...]) -> None:
+        """The robots ``released`` let go of the cargo now (end of a control step): the world is
+        rebuilt without them, the others' state carried over unchanged (``World.load_state``);
+        they leave the channel, and the others' estimators stop expecting their messages."""
+        for i in released:
+            bodies = self.world.handle(i).robot_bodies
+            self.released_momentum[i] = self.world.momentum(self.data, bodies)
+            self.released_at_s[i] = float(self.data.time)
+        world = self.world.without_robots(released)
+        data = mujoco.MjData(world.model)
+        world.load_state(self.world, self.data, data)
+        self._bind_world(world, data)
+        self.sensors = SensorSuite(world, self.profile, self.sensors.rng)
+        for i in released:
+            self.channel.disconnect(i)
+        for i in self.holding:
+            for j in released:
+                self.peer_msgs[i].pop(j, None)
+            if self.estimators:
+                self.estimators[i].set_peers([j for j in self.holding if j != i])
+
+    # ------------------------------------------------------------------ one step, in order
+    def _apply_actions(self, clipped: np.ndarray) -> np.ndarray:
+        """Scale to commands, write d.ctrl (thrust with actuation noise) of the robots holding
+        the cargo, start the period. Returns the thrust commands (n_robots, 6) each robot knows
+        it sent (zeros for those that have let go)."""
+        commands = clipped[:, :6] * self.thrust_limits
+        # The servo targets: the requested ones approached by at most max_move, within range.
+        max_move = ARM_SPEED_RADPS * self.dt_s
+        wanted = ARM_DEPLOYED + ARM_OFFSET_RAD * clipped[:, 6:]
+        move = np.minimum(np.maximum(wanted - self.arm_targets, -max_move), max_move)
+        self.arm_targets = np.minimum(
+            np.maximum(self.arm_targets + move, self._joint_low), self._joint_high
+        )
+        rows = self._rows
+        delivered = self.sensors.actuate(commands[rows])  # row k: robot holding[k]
+        weakened = set()
+        for fault in self._active_faults("propulsion", self.step_count):
+            if fault.robot in self.holding:
+                delivered[self.holding.index(fault.robot)] *= fault.scale
+                weakened.add(fault.robot)
+        if weakened:
+            self.fault_counts["propulsion_steps"][list(weakened)] += 1
+        self._ctrl[self._thrust_ctrl] = delivered
+        self._ctrl[self._arm_ctrl] = self.arm_targets[rows]
+        self.sensors.begin_period(self.data)
+        return commands
+
+    def _forward_kinematics(self) -> None:
+        """The stages of ``mj_forward`` that the step reads after ``mj_step``: positions,
+        contacts and position sensors, then velocities. The acceleration stage (qacc,
+        constraint forces, acceleration sensors) is left as ``mj_step`` computed it, for the
+        state before its last integration: nothing here reads it, and the next ``mj_step``
+        recomputes it from qpos, qvel, ctrl and the solver's warm start."""
+        mujoco.mj_fwdPosition(self.model, self.data)
+        mujoco.mj_sensorPos(self.model, self.data)
+        mujoco.mj_fwdVelocity(self.model, self.data)
+
+    def _physics_finite(self) -> bool:
+        unstable = self._warnings[_BAD_QACC] > 0
+        return bool(
+            np.isfinite(self._qpos).all() and np.isfinite(self._qvel).all() and not unstable
+        )
+
+    def _read_sensors(self, k: int) -> list[SensorPacket]:
+        """Every robot's packet (None for a robot that has let go), with the faults of step ``k``
+        applied (after the sensor noise draws, so a run with faults draws the same noise as one
+        without)."""
+        packets: list[SensorPacket | None] = [None] * self.n_robots
+        for h, packet in zip(self.world.robots, self.sensors.read(self.data, k), strict=True):
+            packets[h.index] = packet
+        for fault in self._active_faults("imu_dropout", k):
+            i = fault.robot
+            if packets[i] is None or packets[i].accel_imu is None:
+                continue  # let go, or two overlapping dropouts
+            if fault.prob < 1.0 and self.fault_rng.random() >= fault.prob:
+                continue
+            packets[i] = dataclasses.replace(packets[i], accel_imu=None, gyro_imu=None)
+            self.fault_counts["imu_frames_missing"][i] += 1
+        for fault in self._active_faults("localization_outage", k):
+            i = fault.robot
+            if packets[i] is not None and packets[i].base_pos_world is not None:
+                packets[i] = dataclasses.replace(
+                    packets[i], base_pos_world=None, base_quat_world=None
+                )
+                self.fault_counts["fixes_missing"][i] += 1
+        return packets
+
+    def _active_faults(self, kind: str, k: int) -> list[Fault]:
+        """The faults of ``kind`` active at control step ``k``."""
+        if not self._fault_windows:
+            return []
+        return [f for f, first, end in self._fault_windows if f.kind == kind and first <= k < end]
+
+    def _fault_infos(self) -> list[dict[str, Any]]:
+        """Every robot's injected-fault counters (episode totals) and the kinds active now."""
+        if not self._fault_windows:  # none injected: every counter stays 0
+            return [{**NO_FAULT_COUNTS, "active": []} for _ in range(self.n_robots)]
+        counts = {k: v.tolist() for k, v in self.fault_counts.items()}
+        counts.update({f"messages_{k}": v.tolist() for k, v in self.channel.fault_stats.items()})
+        active: list[list[str]] = [[] for _ in range(self.n_robots)]
+        k = self.step_count
+        for f, first, end in self._fault_windows:
+            if first <= k < end:
+                active[f.robot].append(f.kind)
+        return [
+            {**{name: c[i] for name, c in counts.items()}, "active": active[i]}
+            for i in range(self.n_robots)
+        ]
+
+    def _update_estimators(self, packets: list[SensorPacket], commands: np.ndarray, k: int) -> None:
+        """Each estimator ingests its own packet and command; messages go through the channel;
+        what is due is delivered; each estimator updates with its complete instants."""
+        if not self.estimators:
+            return
+        for i in self.holding:
+            est, packet, command = self.estimators[i], packets[i], commands[i]
+            msg = est.step(
+                k,
+                packet.accel_imu,
+                packet.gyro_imu,
+                packet.joint_pos_rad,
+                command,
+                packet.base_pos_world,
+                packet.base_quat_world,
+            )
+            if msg is not None:
+                self.channel.send(msg, k)
+        for receiver, msgs in self.channel.deliver(k).items():
+            for msg in msgs:
+                self.estimators[receiver].receive(msg)
+                latest = self.peer_msgs[receiver].get(msg.sender)
+                if latest is None or msg.stamp > latest.stamp:
+                    self.peer_msgs[receiver][msg.sender] = msg
+        updated = [self.estimators[i].process() > 0 for i in self.holding]
+        if any(updated):
+            self._refresh_estimates()
+
+    def _refresh_estimates(self) -> None:
+        if not self.estimators:
+            self.est_mean, self.est_std, self.est_errors = [], [], []
+            self._estimates = np.zeros((self.n_robots, 0))
+            return
+        self.est_mean = [est.params_mean() for est in self.estimators]
+        self.est_std = [est.params_std() for est in self.estimators]
+        # The observation's estimate blocks (N, 20), or none (N, 0).
+        observed = (self.est_mean, self.est_std) if self.observe_estimates else ()
+        self._estimates = np.concatenate((*observed, np.zeros((self.n_robots, 0))), axis=1)
+        self._log_std_now = np.log(np.maximum(np.array(self.est_std), LOG_STD_FLOOR)).sum(axis=1)
+        # Every robot's errors in one call per kind (the same values robot by robot).
+        means, truths = np.array(self.est_mean), np.array(self.true_params_grasp)
+        self.est_errors = [
+            {"mass_rel_err": mass, "com_err_m": com, "principal_rel_err": principal}
+            for mass, com, principal in zip(
+                mass_rel_error(means, truths).tolist(),
+                com_error_m(means, truths).tolist(),
+                principal_rel_errors(means, truths).tolist(),
+                strict=True,
+            )
+        ]
+
+    def _estimate_log_std_sums(self) -> np.ndarray:
+        """Sum of the log standard deviations of each robot's estimate (as of the last refresh)."""
+        if not self.estimators:
+            return np.zeros(self.n_robots)
+        return self._log_std_now
+
+    def _wall_contacts(self) -> tuple[np.ndarray, int]:
+        """Contacts with the module per robot, and those of the cargo."""
+        ncon = self.data.ncon
+        per_robot = np.zeros(self.n_robots, dtype=int)
+        if ncon == 0:
+            return per_robot, 0
+        geoms = self.data.contact.geom[:ncon]
+        wall = self._wall_geom[geoms]
+        owner = self._geom_owner[geoms]
+        # The module is static: a wall contact is one with exactly one wall geom.
+        hit = wall[:, 0] ^ wall[:, 1]
+        other = np.where(wall[:, 0], owner[:, 1], owner[:, 0])[hit]
+        per_robot += np.bincount(other[other < self.n_robots], minlength=self.n_robots)
+        return per_robot, int(np.sum(other == self.n_robots))
+
+    # ------------------------------------------------------------------ observations
+    def reference(self) -> Reference:
+        """The cargo reference at the current time (evaluated once per time)."""
+        return self._reference_cache()[1]
+
+    def _reference_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The reference at the current time as arrays: rotation (3, 3); position, velocity,
+        acceleration, angular velocity and angular acceleration (5, 3), world; pan angle and
+        rate (2,)."""
+        cache = self._reference_cache()
+        if cache[2] is None:
+            ref = cache[1]
+            vecs = np.array((ref.pos, ref.vel, ref.acc, ref.w, ref.wd), dtype=float)
+            cache[2] = (ref.rot, vecs, np.array((ref.pan, ref.pan_rate), dtype=float))
+        return cache[2]
+
+    def _reference_cache(self) -> list:
+        """[time, its Reference, its arrays once asked for]."""
+        t = float(self.data.time)
+        if self._ref_cache is None or self._ref_cache[0] != t:
+            self._ref_cache = [t, self.trajectory(t), None]
+        return self._ref_cache
+
+    def _get_obs(self, robots: tuple[int, ...]) -> np.ndarray:
+        """Observations of ``robots`` (the others' rows zeros), assembled from the layout
+        (``envs.observations``). A peer that has let go of the cargo has its slot zeroed: its
+        messages are forgotten (``_release``)."""
+        ref_rot, ref_vecs, ref_pan = self._reference_arrays()
+        n, nav = self.n_robots, self.navigator
+        acting = np.zeros(n, dtype=np.bool_)
+        acting[list(robots)] = True
+        joint_pos = np.zeros((n, 2))
+        for i in robots:
+            joint_pos[i] = self.packets[i].joint_pos_rad
+        peer_wrench, peer_age, peer_valid = self._peer_slot_values(robots)
+        return self._observations.build(
+            acting, nav.rot, nav.base_pos, nav.base_vel, nav.w_base, joint_pos, self.arm_targets,
+            ref_rot, ref_vecs, ref_pan, peer_wrench, peer_age, peer_valid,
+            self._estimates,
+        )  # fmt: skip
+
+    def _peer_slot_values(self, robots: tuple[int, ...]) -> tuple[np.ndarray, ...]:
+        """Each robot's peer slots: the latest message's wrench (world axes) (N, P, 6), its age
+        in s and whether one has arrived (N, P); zeros before the first message."""
+        n = self.n_robots
+        wrench, age, valid = np.zeros((n, n - 1, 6)), np.zeros((n, n - 1)), np.zeros((n, n - 1))
+        step_count, dt = self.step_count, self.dt_s
+        for i in robots:
+            latest = self.peer_msgs[i]
+            for p, j in enumerate(self._peer_slots[i]):
+                msg = latest.get(j)
+                if msg is not None:
+                    wrench[i, p] = msg.wrench_world
+                    age[i, p] = (step_count - msg.stamp) * dt
+                    valid[i, p] = 1.0
+        return wrench, age, valid
+
+    # ------------------------------------------------------------------ rewards, infos
+    def tracking_error(self) -> tuple[float, float]:
+        """True cargo frame position error (m) and rotation angle error (rad)."""
+        b = self.world.cargo_body
+        ref_rot, ref_vecs, _ = self._reference_arrays()
+        return tracking_errors(self._xpos[b], self._xmat[b].reshape(3, 3), ref_vecs[0], ref_rot)
+
+    def _get_rewards(
+        self,
+        clipped: np.ndarray,
+        robot_contacts: np.ndarray,
+        cargo_contacts: int,
+        finite: bool,
+        robots: tuple[int, ...],
+    ) -> tuple[dict[str, list[float]], np.ndarray]:
+        """Every reward term per robot, weighted and mixed (team vs individual), and their sum
+        per robot; the team of this step is ``robots`` (the others' rows zeros)."""
+        if finite:
+            pos_err, angle_err = self.tracking_error()
+            track = -(pos_err + ROTATION_WEIGHT_M_PER_RAD * angle_err)
+        else:
+            track = 0.0
+        effort = -(clipped**2).sum(axis=1)
+        log_std = self._estimate_log_std_sums()
+        info = self._log_std_sum - log_std
+        self._log_std_sum = log_std
+        if not np.isfinite(info).all():
+            info = np.zeros(self.n_robots)
+        acting = np.zeros(self.n_robots, dtype=np.bool_)
+        acting[list(robots)] = True
+        return reward_terms(
+            track, effort, info, robot_contacts, cargo_contacts, acting, self._weights,
+            self.shared_reward,
+        )  # fmt: skip
+
+    def _get_infos(
+        self,
+        terms: dict[str, list[float]],
+        n_clipped: np.ndarray,
+        wall_contacts: np.ndarray,
+        reason: str | None,
+        robots: tuple[int, ...],
+        released: tuple[int, ...],
+    ) -> list[dict[str, Any] | None]:
+        """Infos of ``robots`` (None for the others); ``released``: those letting go now."""
+        infos: list[dict[str, Any] | None] = [None] * self.n_robots
+        comm = dict(self.channel.stats)
+        rewards = [terms[t] for t in REWARD_TERMS]
+        n_clipped, wall_contacts = n_clipped.tolist(), wall_contacts.tolist()
+        faults = self._fault_infos()
+        time_s = float(self.data.time)
+        for i in robots:
+            info: dict[str, Any] = {key: r[i] for key, r in zip(REWARD_KEYS, rewards, strict=True)}
+            if i in released:
+                info["released_momentum"] = self.released_momentum[i].copy()
+            info.update(
+                termination_reason=reason or ("released" if i in released else None),
+                releases=len(self.released_at_s),
+                holding=list(self.holding),
+                time_s=time_s,
+                clipped_actions=n_clipped[i],
+                wall_contacts=wall_contacts[i],
+                true_params=self.true_params_grasp[i].copy(),
+                comm=comm,
+                faults=faults[i],
+            )
+            if self.estimators:
+                info.update(
+                    estimate=self.est_mean[i].copy(),
+                    estimate_std=self.est_std[i].copy(),
+                    estimator=self.estimators[i].counters,
+                    **self.est_errors[i],
+                )
+            infos[i] = info
+        return infos
+
+    def state(self) -> np.ndarray:
+        """The full true state (see the module docstring, section State)."""
+        m, d = self.model, self.data
+        full = self._full_world.model
+        qpos, qvel = np.zeros(full.nq), np.zeros(full.nv)
+        qpos[self._state_qpos] = d.qpos
+        qvel[self._state_qvel] = d.qvel
+        bodies = np.zeros((full.nbody, 13))
+        vel = np.zeros(6)
+        for b in range(1, m.nbody):
+            mujoco.mj_objectVelocity(m, d, mujoco.mjtObj.mjOBJ_XBODY, b, vel, 0)
+            bodies[self._state_body[b]] = np.concatenate((d.xpos[b], d.xquat[b], vel[3:], vel[:3]))
+        holding = np.zeros(self.n_robots)
+        holding[list(self.holding)] = 1.0
+        ref = self.reference()
+        parts = [
+            np.array([d.time]),
+            qpos,
+            qvel,
+            bodies[1:].ravel(),
+            self.true_params,
+            ref.pos,
+            ref.vel,
+            ref.acc,
+            mat_to_quat(ref.rot),
+            ref.w,
+            ref.wd,
+            np.array([ref.pan, ref.pan_rate]),
+            (self.arm_targets * holding[:, None]).ravel(),
+            holding,
+        ]
+        return np.concatenate(parts).astype(np.float64)

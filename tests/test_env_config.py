@@ -1,0 +1,150 @@
+"""The env's one configuration (envs/config.py) and the compiled per-robot kernels behind the
+observations and the navigation filter, against their textbook forms written plainly here."""
+
+from __future__ import annotations
+
+import dataclasses
+import re
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from astrocargo.envs import cargo_transport
+from astrocargo.envs.cargo_transport import AstrobeeCargoEnv, EnvConfig, observation_layout
+from astrocargo.envs.navigation import BaseNavigator
+from astrocargo.envs.observations import OWN_BLOCKS, PEER_BLOCKS, grasp_pose
+from astrocargo.envs.sensors import SensorPacket, noise_profile
+from astrocargo.envs.transport import CargoTransport
+from astrocargo.envs.world import World
+from astrocargo.estimator.rne import link_poses
+
+SMALL = {"n_robots": 2, "control_hz": 12.5, "max_cycles": 20}
+
+
+def test_arguments_table_mirrors_the_config():
+    doc = cargo_transport.__doc__
+    table = doc[doc.index("## Arguments") : doc.index("## Version History")]
+    names = re.findall(r"^\| `(\w+)`", table, flags=re.MULTILINE)
+    assert names == [f.name for f in dataclasses.fields(EnvConfig)]
+    defaults = {f.name: f.default for f in dataclasses.fields(EnvConfig)}
+    assert defaults["n_robots"] == 2 and defaults["noise"] == "nominal"
+
+
+def test_config_or_keywords_build_the_same_env():
+    config = EnvConfig(**SMALL, estimators=False, observe_estimates=False)
+    by_config = AstrobeeCargoEnv(config)
+    by_kwargs = AstrobeeCargoEnv(**SMALL, estimators=False, observe_estimates=False)
+    assert by_config.config == by_kwargs.config
+    obs_a, _ = by_config.reset(seed=3)
+    obs_b, _ = by_kwargs.reset(seed=3)
+    for agent in obs_a:
+        assert np.array_equal(obs_a[agent], obs_b[agent])
+    assert isinstance(by_config.sim, CargoTransport) and by_config.sim.config is config
+    with pytest.raises(ValueError, match="either an EnvConfig or keyword"):
+        AstrobeeCargoEnv(config, n_robots=3)
+    with pytest.raises(TypeError, match="n_robot"):
+        AstrobeeCargoEnv(n_robot=2)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"n_robots": 9}, "n_robots"),
+        ({"control_hz": 5.0}, "control_hz"),
+        ({"w_info": float("nan")}, "w_info"),
+        ({"comm_noise": (0.1, -1.0)}, "comm_noise"),
+        ({"max_cycles": 0}, "max_cycles"),
+        ({"render_width": 2000}, "render_width"),
+        ({"render_mode": "video"}, "render_mode"),
+        ({"faults": [{"kind": "imu_dropout", "robot": 5, "start_s": 1, "duration_s": 1}]}, "robot"),
+    ],
+)
+def test_config_checks_each_argument_once(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        EnvConfig(**kwargs)
+
+
+def test_config_normalises_and_replaces():
+    config = EnvConfig(comm_noise=[0.1, 0.01], control_hz=25, faults=[])
+    assert config.comm_noise == (0.1, 0.01) and isinstance(config.control_hz, float)
+    assert config.faults == ()
+    assert config.replace(n_robots=3).n_robots == 3
+    with pytest.raises(ValueError, match="n_robots"):
+        config.replace(n_robots=0)
+
+
+def test_layout_is_built_from_the_block_tables():
+    layout = observation_layout(3, observe_estimates=True)
+    own = sum(size for _, size in OWN_BLOCKS)
+    peer = sum(size for _, size in PEER_BLOCKS)
+    assert layout["all"].stop == own + 2 * peer + 20
+    assert [name for name, _ in OWN_BLOCKS] == list(layout)[: len(OWN_BLOCKS)]
+    assert layout["peer1_valid"] == slice(own + 2 * peer - 1, own + 2 * peer)
+
+
+@pytest.mark.parametrize("q", [(0.0, 0.0), (-1.2, 0.4), (-np.pi / 2, -0.7)])
+def test_compiled_grasp_pose_matches_the_estimators_kinematics(q):
+    robot = World(1).robot_model(0)
+    rots, poss = link_poses(robot, np.asarray(q))
+    g = robot.grasp_link
+    want_rot, want_pos = rots[g] @ robot.grasp_rot, poss[g] + rots[g] @ robot.grasp_pos
+    rot, pos = grasp_pose(
+        np.array([link.parent for link in robot.links]),
+        np.array([link.rot_in_parent for link in robot.links]),
+        np.array([link.pos_in_parent for link in robot.links]),
+        np.array([np.zeros(3) if k.joint_axis is None else k.joint_axis for k in robot.links]),
+        robot.grasp_link,
+        np.ascontiguousarray(robot.grasp_rot),
+        np.ascontiguousarray(robot.grasp_pos),
+        np.asarray(q, dtype=float),
+    )
+    np.testing.assert_allclose(rot, want_rot, rtol=0, atol=1e-14)
+    np.testing.assert_allclose(pos, want_pos, rtol=0, atol=1e-14)
+
+
+def _packet(gyro, accel, pos=None, quat=None) -> SensorPacket:
+    fix = (None, None) if pos is None else (np.asarray(pos, float), np.asarray(quat, float))
+    return SensorPacket(0.0, np.asarray(accel, float), np.asarray(gyro, float), np.zeros(2), *fix)
+
+
+def test_navigator_dead_reckons_and_blends_as_written():
+    """Two robots, one step without a fix then one at rest with a fix: the batched kernel against
+    the equations of envs/navigation.py written out with scipy's rotations."""
+    world = World(2)
+    robots = [world.robot_model(i) for i in range(2)]
+    profile = noise_profile("nominal")
+    dt = 0.016
+    nav = BaseNavigator(robots, dt, profile)
+    quat0 = np.array([np.cos(0.2), 0.0, 0.0, np.sin(0.2)])
+    start = [_packet(np.zeros(3), np.zeros(3), [0.1, 0.0, 0.0], quat0) for _ in range(2)]
+    nav.reset(start)
+    r_i, p_i = robots[0].imu_rot, robots[0].imu_pos
+    rot = Rotation.from_quat(quat0[[1, 2, 3, 0]]).as_matrix()
+    p, v = np.array([0.1, 0.0, 0.0]) + rot @ p_i, np.zeros(3)
+    gyro, accel = np.array([0.01, -0.02, 0.03]), np.array([0.002, 0.001, -0.003])
+    acting = np.array([True, False])
+    resting = (nav.rot[1].copy(), nav.base_pos[1].copy(), nav.base_vel[1].copy())
+    nav.update([_packet(gyro, accel), None], acting)
+    w = r_i @ gyro
+    rot_mid = rot @ Rotation.from_rotvec(0.5 * dt * w).as_matrix() @ r_i
+    rot = rot @ Rotation.from_rotvec(dt * w).as_matrix()
+    v_new = v + dt * rot_mid @ accel
+    p, v = p + 0.5 * dt * (v + v_new), v_new
+    np.testing.assert_allclose(nav.rot[0], rot, atol=1e-15)
+    np.testing.assert_allclose(nav.base_pos[0], p - rot @ p_i, atol=1e-15)
+    np.testing.assert_allclose(nav.base_vel[0], v - rot @ np.cross(w, p_i), atol=1e-15)
+    for now, before in zip((nav.rot[1], nav.base_pos[1], nav.base_vel[1]), resting, strict=True):
+        np.testing.assert_array_equal(now, before)  # robot 1 does not act: untouched
+    # A fix: the attitude moves by the gain times log(R^T R_fix), the IMU point by the
+    # position gains times the innovation.
+    att_cov = nav.att_cov[0] + nav.gyro_step_var
+    fix_quat = np.array([np.cos(0.21), 0.0, 0.0, np.sin(0.21)])
+    fix_pos = np.array([0.1005, 0.0, 0.0])
+    before = nav.rot[0].copy()
+    nav.update([_packet(np.zeros(3), np.zeros(3), fix_pos, fix_quat), None], acting)
+    gain_att = att_cov / (att_cov + nav.att_var)
+    fix_rot = Rotation.from_quat(fix_quat[[1, 2, 3, 0]]).as_matrix()
+    err = Rotation.from_matrix(before.T @ fix_rot).as_rotvec()
+    want = before @ Rotation.from_rotvec(gain_att * err).as_matrix()
+    np.testing.assert_allclose(nav.rot[0], want, atol=1e-12)
