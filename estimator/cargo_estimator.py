@@ -748,7 +748,3 @@ class CargoEstimator:
 
 
 # ---------------------------------------------------------------------------------------------
-# Temporary: removed when envs/ and agents/ are rewritten (#14). envs/cargo_transport.py imports
-# it; use ``geometry.exp_so3``.
-def exp_so3_rows(rotvec) -> tuple:
-    return tuple(map(tuple, exp_so3(np.asarray(rotvec, dtype=float)).tolist()))
