@@ -46,7 +46,9 @@ __all__ = ["cholesky_lower", "cholesky_solve", "constrained_mode", "is_physical"
 N_PARAMS = 10
 
 # J(pi) = pi @ PSEUDO_INERTIA_BASIS reshaped to (4, 4): row k is E_k = J(e_k), flattened.
-PSEUDO_INERTIA_BASIS = np.ascontiguousarray(params_to_pseudo_inertia(np.eye(N_PARAMS)).reshape(10, 16))
+PSEUDO_INERTIA_BASIS = np.ascontiguousarray(
+    params_to_pseudo_inertia(np.eye(N_PARAMS)).reshape(-1, 16)
+)
 
 # Barrier weight schedule and stopping rules (see the module docstring).
 _T_START = 1.0
@@ -131,12 +133,11 @@ def _barrier_derivatives(j: np.ndarray, j_derivs: np.ndarray) -> tuple[np.ndarra
     j_inv = cholesky_solve(lower, np.eye(4))
     a = np.empty_like(j_derivs)
     a_transposed = np.empty_like(j_derivs)
-    for l in range(n):
-        a[l] = j_inv @ j_derivs[l]
-        a_transposed[l] = a[l].T
     grad = np.empty(n)
-    for l in range(n):
-        grad[l] = np.trace(a[l])
+    for k in range(n):
+        a[k] = j_inv @ j_derivs[k]
+        a_transposed[k] = a[k].T
+        grad[k] = np.trace(a[k])
     # tr(A_l A_m) = vec(A_l) . vec(A_m^T)
     hess = a.reshape(n, 16) @ a_transposed.reshape(n, 16).T
     return grad, hess

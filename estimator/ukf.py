@@ -1,10 +1,17 @@
 """Unscented Kalman filters on a rigid body's inertial parameters, as in filterpy's UKF.py.
 
-Model. The state is constant with a random walk, x_(k+1) = x_k + w, w ~ N(0, Q), and a measurement
-is z = h(x) + v, v ~ N(0, R). One step is filterpy's: sigma points -> unscented transform -> gain.
+Parameters and frames. `InertialParamUKF` filters the ten standard inertial parameters
+pi = [m, h_x, h_y, h_z, I_xx, I_yy, I_zz, I_xy, I_xz, I_yz] (kg, kg m, kg m^2; h = m c with c the
+centre of mass, I the inertia about the origin of the body frame the measurements are expressed
+in: the grasp frame, for the cargo estimator). The measurement, the wrench balance z = A pi + b
+(``estimator.rne``; z and b in N and N m), is linear in pi.
 
-Merwe scaled sigma points (filterpy's `MerweScaledSigmaPoints`, whose weights are used as they are),
-for n states with parameters alpha, beta, kappa:
+Model. The state is constant with a random walk, x_(k+1) = x_k + w, w ~ N(0, Q), and a
+measurement is z = h(x) + v, v ~ N(0, R). One step is filterpy's: sigma points -> unscented
+transform -> gain (``estimator.unscented`` holds the compiled pieces).
+
+Merwe scaled sigma points (filterpy's `MerweScaledSigmaPoints`; its weights are used as they are)
+for n states and parameters alpha, beta, kappa:
 
     lambda = alpha^2 (n + kappa) - n,   P = L L^T (lower Cholesky factor)
     X_0 = x,   X_(1+k) = x + sqrt(n + lambda) L[:, k],   X_(1+n+k) = x - sqrt(n + lambda) L[:, k]
@@ -13,34 +20,39 @@ for n states with parameters alpha, beta, kappa:
 
 Predict. Through the identity map the unscented transform of the sigma points is exactly (x, P),
 so `predict` is its closed form: x unchanged, P <- P + Q (filterpy's route gives the same to
-rounding and redraws the sigma points from the predicted (x, P), which `update` does too).
+rounding, then redraws the sigma points from the predicted (x, P), which `update` does too).
 
-Update (filterpy's `unscented_transform` and `UnscentedKalmanFilter.update`), with Z_i = h(X_i):
+Update (filterpy's `unscented_transform` and `UnscentedKalmanFilter.update`), Z_i = h(X_i):
 
     z_pred = sum_i Wm_i Z_i,    S = sum_i Wc_i (Z_i - z_pred)(Z_i - z_pred)^T + R
     P_xz = sum_i Wc_i (X_i - x)(Z_i - z_pred)^T
     K = P_xz S^-1,    y = z - z_pred,    NIS = y^T S^-1 y
-    x <- x + K y,     P <- P - K S K^T = P - K P_xz^T   (the standard form, symmetrised)
+    x <- x + K y,     P <- P - K S K^T   (the standard form, symmetrised)
 
-S^-1 is applied through the Cholesky factor of S, which also checks that S is positive definite;
-log-likelihood = -0.5 (NIS + log det S + m log 2 pi). Beyond filterpy: inputs are shape-checked
-(ValueError naming the expected shape); an update with NaN or inf in z, R or h(X) is skipped and
-counted; an update whose P, S or posterior P is not positive definite is rejected and counted;
-an innovation with NIS above ``gate_nis`` is rejected and counted. A skipped or rejected update
-leaves x and P as they were.
+S^-1 is applied through the Cholesky factor S = L_S L_S^T: with W = L_S^-1 P_zx and w = L_S^-1 y,
+K y = W^T w, K S K^T = W^T W and NIS = w.w. Log-likelihood = -0.5 (NIS + log det S + m log 2 pi).
+Because the measurement of `InertialParamUKF` is linear, the unscented transform is exact and
+the filter equals the linear Kalman filter of that model (the tests hold it to a closed-form
+Kalman filter and to filterpy's stock UnscentedKalmanFilter).
 
-`InertialParamUKF` filters the ten standard inertial parameters
-pi = [m, h_x, h_y, h_z, I_xx, I_yy, I_zz, I_xy, I_xz, I_yz] (kg, kg m, kg m^2; h = m c with c the
-centre of mass, I about the origin of the body frame the measurements are expressed in). Its
-measurement, the wrench balance z = A pi + b (``estimator.rne``), is linear, so the unscented
-transform is exact and the filter equals the linear Kalman filter of that model. It reports the
-physically consistent body of highest posterior density (``estimator.constrained``).
+Beyond filterpy: inputs are shape-checked (ValueError naming the expected shape); an update with
+NaN or inf in z, R or h(X) is skipped and counted; one whose P, S or posterior P is not positive
+definite is rejected and counted; one with NIS above ``gate_nis`` is rejected and counted. A
+skipped or rejected update leaves x and P as they were.
+
+Physical consistency (``estimator.constrained``). What `InertialParamUKF` reports is the body of
+highest posterior density among the realisable ones, those with a positive definite pseudo-inertia
+J(pi) = [[0.5 tr(I) 1 - I, h], [h^T, m]]: with P = L L^T and pi = x + L v, minimise 0.5 |v|^2
+subject to J(x + L v) > 0, by Newton steps on the log-det barrier 0.5 |v|^2 - t log det J for
+decreasing t (the objective, constraint and Newton step are spelled out there).
+
 `LogCholeskyUKF` filters log-Cholesky coordinates instead; it is kept as the measured reference
 for that choice (see its docstring).
 
-The sigma points, the transform, the gain and the linear measurement are numba-compiled kernels
-(``@njit(cache=True)``); `update_linear` is one call into them, `update` two around the Python
-measurement function. Run with OPENBLAS_NUM_THREADS=1: BLAS threads only slow matrices this small.
+Speed: an update is one compiled call (`update_linear`) or two around the Python measurement
+function (`update`), on a filter whose arrays live in one buffer updated in place; `predict` only
+marks the addition of Q, which the next update's compiled call makes first (or reading P does).
+Run with OPENBLAS_NUM_THREADS=1: BLAS threads only slow matrices this small.
 """
 
 from __future__ import annotations
@@ -50,16 +62,18 @@ from collections.abc import Callable
 from typing import NamedTuple
 
 import numpy as np
-from filterpy.kalman import MerweScaledSigmaPoints, unscented_transform as _filterpy_ut
-from numba import njit
+from filterpy.kalman import MerweScaledSigmaPoints
+from filterpy.kalman import unscented_transform as filterpy_unscented_transform
 
-from .constrained import cholesky_lower, cholesky_solve, constrained_mode
+from . import unscented
+from .constrained import cholesky_lower, constrained_mode
 from .inertia import (
     log_cholesky_to_params,
     mass_com_inertia_from_params,
     params_to_log_cholesky,
     physical_violation,
 )
+from .unscented import merwe_sigma_points, unscented_transform
 
 __all__ = [
     "BatchedUKF",
@@ -83,19 +97,17 @@ DEFAULT_KAPPA = 0.0
 
 N_INERTIAL_PARAMS = 10
 
-# Outcomes of an update, as the kernels return them, and per outcome: (reason, counter, whether
-# the innovation's y, S, K, NIS and log-likelihood are kept).
-_OK, _BAD_R, _BAD_P, _BAD_H, _BAD_S, _BAD_Z, _BAD_NIS, _GATED, _BAD_POSTERIOR = range(9)
+# Per outcome of ``estimator.unscented`` (in the order of its codes): reason and counter.
 _OUTCOMES = (
-    ("ok", "n_updates", True),
-    ("non-finite", "n_skipped_nonfinite", False),
-    ("not-positive-definite", "n_rejected_not_pd", False),
-    ("non-finite", "n_skipped_nonfinite", False),
-    ("not-positive-definite", "n_rejected_not_pd", False),
-    ("non-finite", "n_skipped_nonfinite", True),
-    ("not-positive-definite", "n_rejected_not_pd", True),
-    ("gated", "n_gated", True),
-    ("not-positive-definite", "n_rejected_not_pd", True),
+    ("ok", "n_updates"),
+    ("non-finite", "n_skipped_nonfinite"),  # R
+    ("not-positive-definite", "n_rejected_not_pd"),  # P
+    ("non-finite", "n_skipped_nonfinite"),  # h(X)
+    ("not-positive-definite", "n_rejected_not_pd"),  # S
+    ("non-finite", "n_skipped_nonfinite"),  # z
+    ("not-positive-definite", "n_rejected_not_pd"),  # NIS not finite with finite inputs
+    ("gated", "n_gated"),
+    ("not-positive-definite", "n_rejected_not_pd"),  # posterior P
 )
 
 
@@ -113,126 +125,8 @@ class UpdateResult(NamedTuple):
     nis: float
 
 
-# --------------------------------------------------------------------------- compiled kernels
-
-
-@njit(cache=True)
-def merwe_sigma_points(x: np.ndarray, P: np.ndarray, scale: float) -> tuple[np.ndarray, bool]:
-    """Merwe sigma points (2n + 1, n) of (x, P) in filterpy's order, scale = sqrt(n + lambda),
-    and whether P is positive definite (the points are not usable when it is not)."""
-    n = x.size
-    lower, definite = cholesky_lower(P)
-    offsets = scale * lower.T  # row k: sqrt(n + lambda) times column k of L
-    sigmas = np.empty((2 * n + 1, n))
-    sigmas[0] = x
-    sigmas[1 : n + 1] = x + offsets
-    sigmas[n + 1 :] = x - offsets
-    return sigmas, definite
-
-
-@njit(cache=True)
-def unscented_transform(
-    sigmas_h: np.ndarray, Wm: np.ndarray, Wc: np.ndarray, noise_cov: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """Weighted mean and covariance (plus noise_cov) of transformed sigma points (filterpy's)."""
-    mean = Wm @ sigmas_h
-    residuals = sigmas_h - mean
-    cov = (residuals.T * Wc) @ residuals + noise_cov
-    return mean, cov
-
-
-@njit(cache=True)
-def cross_covariance(
-    x: np.ndarray, z_pred: np.ndarray, sigmas: np.ndarray, sigmas_h: np.ndarray, Wc: np.ndarray
-) -> np.ndarray:
-    """P_xz = sum_i Wc_i (X_i - x)(Z_i - z_pred)^T (n, m)."""
-    return ((sigmas - x).T * Wc) @ (sigmas_h - z_pred)
-
-
-@njit(cache=True)
-def filter_arrays(state: np.ndarray, n: int, m: int):
-    """Views (x, P, sigmas, sigmas_h, y, S, K) of a filter's one flat state buffer, in that order:
-    the mean (n,), its covariance (n, n), the last sigma points (2n + 1, n) and their images
-    (2n + 1, m), innovation (m,), its covariance (m, m) and the gain (n, m)."""
-    x = state[:n]
-    start = n
-    P = state[start : start + n * n].reshape(n, n)
-    start += n * n
-    sigmas = state[start : start + (2 * n + 1) * n].reshape(2 * n + 1, n)
-    start += (2 * n + 1) * n
-    sigmas_h = state[start : start + (2 * n + 1) * m].reshape(2 * n + 1, m)
-    start += (2 * n + 1) * m
-    y = state[start : start + m]
-    start += m
-    S = state[start : start + m * m].reshape(m, m)
-    start += m * m
-    K = state[start : start + n * m].reshape(n, m)
-    return x, P, sigmas, sigmas_h, y, S, K
-
-
-def state_size(n: int, m: int) -> int:
-    """Length of the state buffer of `filter_arrays`."""
-    return n + n * n + (2 * n + 1) * (n + m) + m + m * m + n * m
-
-
-@njit(cache=True)
-def unscented_update(state, n, m, z, R, Wm, Wc, gate_nis):
-    """Unscented transform, Kalman gain and posterior of one update, in place on ``state``
-    (`filter_arrays`), from the sigma points and their images already there.
-
-    y, S and K are written once the NIS is computed; x and P only when the update is accepted.
-    Returns (outcome, NIS, log-likelihood).
-    """
-    x, P, sigmas, sigmas_h, y_out, S_out, K_out = filter_arrays(state, n, m)
-    if not np.isfinite(sigmas_h).all():
-        return _BAD_H, math.nan, -math.inf
-    z_pred, S = unscented_transform(sigmas_h, Wm, Wc, R)
-    P_xz = cross_covariance(x, z_pred, sigmas, sigmas_h, Wc)
-    S_lower, definite = cholesky_lower(S)
-    if not definite:
-        return _BAD_S, math.nan, -math.inf
-    K = cholesky_solve(S_lower, np.ascontiguousarray(P_xz.T)).T  # P_xz S^-1
-    y = z - z_pred
-    nis = y @ cholesky_solve(S_lower, y.reshape(-1, 1)).ravel()
-    y_out[:], S_out[:], K_out[:] = y, S, K
-    if not math.isfinite(nis):
-        return (_BAD_NIS if np.isfinite(z).all() else _BAD_Z), nis, -math.inf
-    log_det_S = 2.0 * np.log(np.diag(S_lower)).sum()
-    log_likelihood = -0.5 * (nis + log_det_S + m * math.log(2.0 * math.pi))
-    if nis > gate_nis:
-        return _GATED, nis, log_likelihood
-    P_post = P - K @ P_xz.T  # K S K^T = P_xz S^-1 P_zx
-    P_post = 0.5 * (P_post + P_post.T)  # exactly symmetric
-    if not cholesky_lower(P_post)[1]:
-        return _BAD_POSTERIOR, nis, log_likelihood
-    x += K @ y
-    P[:] = P_post
-    return _OK, nis, log_likelihood
-
-
-@njit(cache=True)
-def _update_linear(state, n, m, z, A, b, R, Wm, Wc, scale, gate_nis):
-    """`unscented_update` with the linear measurement h(X) = A X + b, all in compiled code."""
-    x, P, sigmas, sigmas_h, _, _, _ = filter_arrays(state, n, m)
-    if not np.isfinite(R).all():
-        return _BAD_R, math.nan, -math.inf
-    new_sigmas, definite = merwe_sigma_points(x, P, scale)
-    if not definite:
-        return _BAD_P, math.nan, -math.inf
-    sigmas[:] = new_sigmas
-    sigmas_h[:] = new_sigmas @ np.ascontiguousarray(A.T) + b
-    return unscented_update(state, n, m, z, R, Wm, Wc, gate_nis)
-
-
-@njit(cache=True)
-def _update_given_images(state, n, m, new_sigmas, new_sigmas_h, z, R, Wm, Wc, gate_nis):
-    """`unscented_update` with sigma points and their images computed outside."""
-    _, _, sigmas, sigmas_h, _, _, _ = filter_arrays(state, n, m)
-    sigmas[:], sigmas_h[:] = new_sigmas, new_sigmas_h
-    return unscented_update(state, n, m, z, R, Wm, Wc, gate_nis)
-
-
-# --------------------------------------------------------------------------- filters
+# NamedTuple's own __new__ is a Python function; tuple.__new__ builds the same object faster.
+_new_tuple = tuple.__new__
 
 
 def _as_float_array(value: object, shape: tuple[int, ...], name: str) -> np.ndarray:
@@ -276,11 +170,13 @@ class BatchedUKF:
         gate_nis: reject updates whose NIS exceeds this (e.g. ``scipy.stats.chi2.ppf(0.999, m)``);
             None disables gating.
 
-    Attributes: x, P (current mean and covariance); y, S, K, nis, log_likelihood (innovation, its
-    covariance, the gain, the NIS and the Gaussian log-likelihood of the last update that got that
-    far, gated or not); sigmas, sigmas_h (the last sigma points and their images); counters
-    n_updates (accepted), n_skipped_nonfinite, n_gated, n_rejected_not_pd; points (the filterpy
-    sigma-point object), Wm, Wc (its weights).
+    Attributes: x, P, Q (mean, covariance, process noise: the filter's own arrays, updated in
+    place, so copy them to keep a value; assigning copies into them); y, S, P_xz, K, nis,
+    log_likelihood (innovation, its covariance, the cross-covariance, the gain, the NIS and the
+    Gaussian log-likelihood of the last update that got that far, gated or not); sigmas,
+    sigmas_h (the last sigma points and their images); counters n_updates (accepted),
+    n_skipped_nonfinite, n_gated, n_rejected_not_pd; points (the filterpy sigma-point object),
+    Wm, Wc (its weights).
     """
 
     def __init__(
@@ -299,36 +195,34 @@ class BatchedUKF:
             raise ValueError(f"dim_x and dim_z must be >= 1, got {dim_x} and {dim_z}")
         if gate_nis is not None and not gate_nis > 0.0:
             raise ValueError(f"gate_nis must be positive or None, got {gate_nis}")
-        self.dim_x, self.dim_z = int(dim_x), int(dim_z)
-        lambda_ = alpha**2 * (self.dim_x + kappa) - self.dim_x
-        if not self.dim_x + lambda_ > 0.0:
+        n, m = self.dim_x, self.dim_z = int(dim_x), int(dim_z)
+        lambda_ = alpha**2 * (n + kappa) - n
+        if not n + lambda_ > 0.0:
             raise ValueError(
                 f"alpha^2 (n + kappa) must be positive, got alpha={alpha}, kappa={kappa}"
             )
-        self.points = MerweScaledSigmaPoints(self.dim_x, alpha=alpha, beta=beta, kappa=kappa)
-        self.Wm = np.ascontiguousarray(self.points.Wm, dtype=float)
-        self.Wc = np.ascontiguousarray(self.points.Wc, dtype=float)
-        self.n_sigma = 2 * self.dim_x + 1
-        self._sigma_scale = math.sqrt(self.dim_x + lambda_)
+        self.points = MerweScaledSigmaPoints(n, alpha=alpha, beta=beta, kappa=kappa)
+        self.n_sigma = 2 * n + 1
         self.gate_nis = gate_nis
-        self._gate = math.inf if gate_nis is None else float(gate_nis)
-
-        x0 = _as_float_array(x0, (self.dim_x,), "x0")
-        P0 = _as_float_array(P0, (self.dim_x, self.dim_x), "P0")
+        x0 = _as_float_array(x0, (n,), "x0")
+        P0 = _as_float_array(P0, (n, n), "P0")
         if not (np.isfinite(x0).all() and np.isfinite(P0).all()):
             raise ValueError("x0 and P0 must be finite")
         P0 = 0.5 * (P0 + P0.T)
         if not cholesky_lower(P0)[1]:
             raise ValueError("P0 must be symmetric positive definite")
-        # x, P and what the last update computed live in one buffer that the kernels update in
-        # place (`filter_arrays`); the attributes are views of it.
-        self._state = np.zeros(state_size(self.dim_x, self.dim_z))
-        arrays = filter_arrays(self._state, self.dim_x, self.dim_z)
-        self._x, self._P, self.sigmas, self.sigmas_h, self.y, self.S, self.K = arrays
-        self._x[:], self._P[:] = x0, P0
-        self.Q = self._checked_Q(Q)
-        self.nis = math.nan
-        self.log_likelihood = -math.inf
+
+        # The filter's arrays live in one buffer that the compiled kernels update in place
+        # (`unscented.filter_arrays`); the attributes are views of it.
+        self._state = np.zeros(unscented.state_size(n, m))
+        arrays = unscented.filter_arrays(self._state, n, m)
+        self._x, self._P, self._Q, self.sigmas, self.sigmas_h = arrays[:5]
+        self.y, self.S, self.P_xz, self.Wm, self.Wc, self._scalars = arrays[5:]
+        self._x[:], self._P[:], self._Q[:] = x0, P0, self._checked_Q(Q)
+        self.Wm[:], self.Wc[:] = self.points.Wm, self.points.Wc
+        gate = math.inf if gate_nis is None else float(gate_nis)
+        self._scalars[:] = (math.sqrt(n + lambda_), gate, math.nan, -math.inf)
+        self._predict_pending = False  # a `predict` whose P += Q is not yet made
         self.n_updates = 0
         self.n_skipped_nonfinite = 0
         self.n_gated = 0
@@ -340,19 +234,9 @@ class BatchedUKF:
             raise ValueError("Q must be finite")
         return 0.5 * (Q + Q.T)  # a symmetric Q keeps P exactly symmetric through predict
 
-    def sigma_points(self) -> np.ndarray:
-        """Merwe sigma points of the current (x, P), shape (2n + 1, n), filterpy's ordering.
-
-        Raises np.linalg.LinAlgError if P is not positive definite.
-        """
-        sigmas, definite = merwe_sigma_points(self.x, self.P, self._sigma_scale)
-        if not definite:
-            raise np.linalg.LinAlgError("P is not positive definite")
-        return sigmas
-
     @property
     def x(self) -> np.ndarray:
-        """The mean (n,): the filter's own array, updated in place (copy it to keep a value)."""
+        """Mean (n,)."""
         return self._x
 
     @x.setter
@@ -361,22 +245,64 @@ class BatchedUKF:
 
     @property
     def P(self) -> np.ndarray:
-        """The covariance (n, n): the filter's own array, updated in place (copy it to keep a
-        value)."""
+        """Covariance (n, n), after every `predict` made so far."""
+        if self._predict_pending:
+            self._P += self._Q
+            self._predict_pending = False
         return self._P
 
     @P.setter
     def P(self, value: np.ndarray) -> None:
         self._P[:] = _as_float_array(value, (self.dim_x, self.dim_x), "P")
+        self._predict_pending = False
+
+    @property
+    def Q(self) -> np.ndarray:
+        """Process noise covariance per `predict` (n, n), symmetric."""
+        return self._Q
+
+    @Q.setter
+    def Q(self, value: np.ndarray) -> None:
+        self.P  # noqa: B018 (a pending predict adds the old Q)
+        self._Q[:] = self._checked_Q(value)
+
+    @property
+    def nis(self) -> float:
+        """NIS of the last update that computed one (NaN before any)."""
+        return float(self._scalars[2])
+
+    @property
+    def log_likelihood(self) -> float:
+        """Gaussian log-likelihood of the last innovation y under N(0, S) (-inf before any)."""
+        return float(self._scalars[3])
+
+    @property
+    def K(self) -> np.ndarray:
+        """Kalman gain P_xz S^-1 (n, m) of the last update that computed an innovation."""
+        if not self.S.any():
+            return np.zeros((self.dim_x, self.dim_z))
+        return np.linalg.solve(self.S, self.P_xz.T).T
+
+    def sigma_points(self) -> np.ndarray:
+        """Merwe sigma points of the current (x, P), shape (2n + 1, n), filterpy's ordering.
+
+        Raises np.linalg.LinAlgError if P is not positive definite.
+        """
+        sigmas, definite = merwe_sigma_points(self.x, self.P, self._scalars[0])
+        if not definite:
+            raise np.linalg.LinAlgError("P is not positive definite")
+        return sigmas
 
     def predict(self, Q: np.ndarray | None = None) -> None:
         """Propagate through x_(k+1) = x_k + w: x is unchanged, P grows by Q (or by `self.Q`):
-        the unscented transform of the identity map in closed form."""
-        self._P += self.Q if Q is None else self._checked_Q(Q)
-
-    def _checked_z_R(self, z: np.ndarray, R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        m = self.dim_z
-        return _as_float_array(z, (m,), "z"), _as_float_array(R, (m, m), "R")
+        the unscented transform of the identity map in closed form. With the filter's own Q the
+        addition is made by the next update's compiled call (or when P is read)."""
+        if Q is not None:
+            self.P += self._checked_Q(Q)
+            return
+        if self._predict_pending:  # the previous predict first: P + Q + Q, in that order
+            self._P += self._Q
+        self._predict_pending = True
 
     def update(
         self,
@@ -393,33 +319,27 @@ class BatchedUKF:
 
         Returns an `UpdateResult`; when it is not accepted, x and P are unchanged.
         """
-        z, R = self._checked_z_R(z, R)
-        if not np.isfinite(R).all():
-            return self._record(_BAD_R, math.nan, -math.inf)
-        sigmas, definite = merwe_sigma_points(self.x, self.P, self._sigma_scale)
-        if not definite:
-            return self._record(_BAD_P, math.nan, -math.inf)
+        n, m = self.dim_x, self.dim_z
+        z, R = _as_float_array(z, (m,), "z"), _as_float_array(R, (m, m), "R")
+        outcome, sigmas = unscented.draw_sigma_points(self._state, n, m, R, self._predict_pending)
+        self._predict_pending = False
+        if outcome != unscented.OK:
+            return self._result(outcome, math.nan)
         sigmas_h = np.asarray(hx_batch(sigmas), dtype=float)
-        if sigmas_h.shape != (self.n_sigma, self.dim_z):
+        if sigmas_h.shape != (self.n_sigma, m):
             raise ValueError(
-                f"hx_batch must return shape ({self.n_sigma}, {self.dim_z}) for sigma points of "
+                f"hx_batch must return shape ({self.n_sigma}, {m}) for sigma points of "
                 f"shape {sigmas.shape}, got {sigmas_h.shape}"
             )
-        outcome = _update_given_images(
-            self._state, self.dim_x, self.dim_z, sigmas, np.ascontiguousarray(sigmas_h), z, R,
-            self.Wm, self.Wc, self._gate,
-        )  # fmt: skip
-        return self._record(*outcome)
+        sigmas_h = np.ascontiguousarray(sigmas_h)
+        return self._result(*unscented.update_from_images(self._state, n, m, sigmas_h, z, R))
 
-    def _record(self, outcome: int, nis: float, log_likelihood: float) -> UpdateResult:
-        """Count an update's outcome and keep its NIS and log-likelihood if it got that far."""
-        if outcome == _OK:
-            self.nis, self.log_likelihood = nis, log_likelihood
+    def _result(self, outcome: int, nis: float) -> UpdateResult:
+        """Count an update's outcome and say what it was."""
+        if outcome == unscented.OK:
             self.n_updates += 1
-            return UpdateResult(True, "ok", nis)
-        reason, counter, keep_innovation = _OUTCOMES[outcome]
-        if keep_innovation:
-            self.nis, self.log_likelihood = nis, log_likelihood
+            return _new_tuple(UpdateResult, (True, "ok", nis))
+        reason, counter = _OUTCOMES[outcome]
         setattr(self, counter, getattr(self, counter) + 1)
         return UpdateResult(False, reason, nis)
 
@@ -483,15 +403,29 @@ class InertialParamUKF(BatchedUKF):
         self, z: np.ndarray, A: np.ndarray, b: np.ndarray, R: np.ndarray
     ) -> UpdateResult:
         """Fuse z = A pi + b + v, v ~ N(0, R), with A (m, 10), b (m,), R (m, m)."""
+        n, m = self.dim_x, self.dim_z
+        try:
+            outcome, nis = unscented.update_linear(
+                self._state, n, m, z, A, b, R, self._predict_pending
+            )
+        except TypeError:  # not C-contiguous float64 arrays: convert them, checking shapes
+            z, A, b, R = self._checked_linear_inputs(z, A, b, R)
+            outcome, nis = unscented.update_linear(
+                self._state, n, m, z, A, b, R, self._predict_pending
+            )
+        if outcome == unscented.BAD_SHAPE:
+            self._checked_linear_inputs(z, A, b, R)  # raises the ValueError that names it
+        self._predict_pending = False
+        return self._result(outcome, nis)
+
+    def _checked_linear_inputs(self, z, A, b, R) -> tuple[np.ndarray, ...]:
         m = self.dim_z
-        z, R = self._checked_z_R(z, R)
-        A = _as_float_array(A, (m, N_INERTIAL_PARAMS), "A")
-        b = _as_float_array(b, (m,), "b")
-        outcome = _update_linear(
-            self._state, self.dim_x, m, z, A, b, R, self.Wm, self.Wc, self._sigma_scale,
-            self._gate,
-        )  # fmt: skip
-        return self._record(*outcome)
+        return (
+            _as_float_array(z, (m,), "z"),
+            _as_float_array(A, (m, N_INERTIAL_PARAMS), "A"),
+            _as_float_array(b, (m,), "b"),
+            _as_float_array(R, (m, m), "R"),
+        )
 
     def params_mean(self) -> np.ndarray:
         """The reported estimate: the physically consistent body of highest posterior density
@@ -608,7 +542,7 @@ class LogCholeskyUKF(BatchedUKF):
     def params_cov(self) -> np.ndarray:
         """Covariance (10, 10) of pi: unscented transform of the sigma points of (eta, P)."""
         params_sigmas = log_cholesky_to_params(self.sigma_points())
-        _, cov = _filterpy_ut(params_sigmas, self.Wm, self.Wc)
+        _, cov = filterpy_unscented_transform(params_sigmas, self.Wm, self.Wc)
         return 0.5 * (cov + cov.T)
 
     def params_std(self) -> np.ndarray:
