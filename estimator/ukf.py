@@ -413,9 +413,12 @@ class InertialParamUKF(BatchedUKF):
             outcome, nis = unscented.update_linear(
                 self._state, n, m, z, A, b, R, self._predict_pending
             )
-        if outcome == unscented.BAD_SHAPE:
+        if outcome == unscented.BAD_SHAPE:  # nothing was done
             self._checked_linear_inputs(z, A, b, R)  # raises the ValueError that names it
         self._predict_pending = False
+        if outcome == unscented.OK:  # `_result`, inline on the common path
+            self.n_updates += 1
+            return _new_tuple(UpdateResult, (True, "ok", nis))
         return self._result(outcome, nis)
 
     def _checked_linear_inputs(self, z, A, b, R) -> tuple[np.ndarray, ...]:

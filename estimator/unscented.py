@@ -105,14 +105,14 @@ def _all_finite(a: np.ndarray) -> bool:
 
 
 @njit(cache=True)
-def unscented_update(state: np.ndarray, n: int, m: int, z: np.ndarray, R: np.ndarray):
-    """Unscented transform, gain and posterior of one update, in place on a filter's buffer
+def unscented_update(arrays: tuple, z: np.ndarray, R: np.ndarray):
+    """Unscented transform, gain and posterior of one update, in place on a filter's arrays
     (`filter_arrays`), from the sigma points and their images already there.
 
     y, S, P_xz, the NIS and the log-likelihood are written once the NIS is computed; x and P
     only when the update is accepted. Returns (outcome, NIS).
     """
-    x, P, _, sigmas, sigmas_h, y_out, S_out, P_xz_out, Wm, Wc, scalars = filter_arrays(state, n, m)
+    x, P, _, sigmas, sigmas_h, y_out, S_out, P_xz_out, Wm, Wc, scalars = arrays
     if not _all_finite(sigmas_h):
         return BAD_H, math.nan
     z_pred, S = unscented_transform(sigmas_h, Wm, Wc, R)
@@ -127,7 +127,7 @@ def unscented_update(state: np.ndarray, n: int, m: int, z: np.ndarray, R: np.nda
     w = solve_lower(S_lower, y.reshape(-1, 1)).ravel()
     nis = w @ w
     log_det_S = 2.0 * np.log(np.diag(S_lower)).sum()
-    log_likelihood = -0.5 * (nis + log_det_S + m * math.log(2.0 * math.pi))
+    log_likelihood = -0.5 * (nis + log_det_S + z.size * math.log(2.0 * math.pi))
     y_out[:], S_out[:], P_xz_out[:] = y, S, P_xz
     scalars[2] = nis
     scalars[3] = log_likelihood if math.isfinite(nis) else -math.inf
@@ -145,10 +145,10 @@ def unscented_update(state: np.ndarray, n: int, m: int, z: np.ndarray, R: np.nda
 
 
 @njit(cache=True)
-def _predict_and_draw(state: np.ndarray, n: int, m: int, R: np.ndarray, predict_first: bool):
+def _predict_and_draw(arrays: tuple, R: np.ndarray, predict_first: bool):
     """The pending predict (P += Q) if any, the checks of R and P, and the sigma points of (x, P)
-    into the buffer; returns OK or the outcome that ends the update."""
-    x, P, Q, sigmas, _, _, _, _, _, _, scalars = filter_arrays(state, n, m)
+    into the filter's arrays; returns OK or the outcome that ends the update."""
+    x, P, Q, sigmas, _, _, _, _, _, _, scalars = arrays
     if predict_first:
         P += Q
     if not _all_finite(R):
@@ -169,24 +169,26 @@ def update_linear(state, n, m, z, A, b, R, predict_first):
     their images, `unscented_update`; after the pending predict if ``predict_first``."""
     if z.shape != (m,) or A.shape != (m, n) or b.shape != (m,) or R.shape != (m, m):
         return BAD_SHAPE, math.nan
-    outcome = _predict_and_draw(state, n, m, R, predict_first)
+    arrays = filter_arrays(state, n, m)
+    outcome = _predict_and_draw(arrays, R, predict_first)
     if outcome != OK:
         return outcome, math.nan
-    _, _, _, sigmas, sigmas_h, _, _, _, _, _, _ = filter_arrays(state, n, m)
+    sigmas, sigmas_h = arrays[3], arrays[4]
     sigmas_h[:] = sigmas @ A.T + b
-    return unscented_update(state, n, m, z, R)
+    return unscented_update(arrays, z, R)
 
 
 @njit(types.Tuple((int64, _MATRIX))(_VECTOR, int64, int64, _MATRIX, boolean), cache=True)
 def draw_sigma_points(state, n, m, R, predict_first):
     """First half of an update with a measurement function evaluated outside: the pending
     predict, the checks of R and P, and a copy of the sigma points drawn into the buffer."""
-    outcome = _predict_and_draw(state, n, m, R, predict_first)
-    return outcome, filter_arrays(state, n, m)[3].copy()
+    arrays = filter_arrays(state, n, m)
+    return _predict_and_draw(arrays, R, predict_first), arrays[3].copy()
 
 
 @njit(_OUTCOME(_VECTOR, int64, int64, _MATRIX, _VECTOR, _MATRIX), cache=True)
 def update_from_images(state, n, m, sigmas_h, z, R):
     """Second half: `unscented_update` with the images of the sigma points computed outside."""
-    filter_arrays(state, n, m)[4][:] = sigmas_h
-    return unscented_update(state, n, m, z, R)
+    arrays = filter_arrays(state, n, m)
+    arrays[4][:] = sigmas_h
+    return unscented_update(arrays, z, R)

@@ -650,7 +650,8 @@ def reference_update(x, P, z, hx_batch, R, alpha, beta, kappa, gate_nis):
         return "not-positive-definite", x, P, None, None, None, math.nan
     K = np.linalg.solve(S, P_xz.T).T
     y = z - z_pred
-    nis = float(y @ np.linalg.solve(S, y))
+    with np.errstate(invalid="ignore"):  # NaN in z
+        nis = float(y @ np.linalg.solve(S, y))
     if not math.isfinite(nis):
         reason = "non-finite" if not np.isfinite(z).all() else "not-positive-definite"
         return reason, x, P, y, S, K, nis
@@ -770,9 +771,12 @@ def test_update_linear_takes_any_float_arrays():
         plain.update_linear(np.zeros(DIM_Z + 1), A, b, R)
     with pytest.raises(ValueError, match=r"R must have shape \(6, 6\)"):
         plain.update_linear(z, A, b, np.eye(DIM_Z - 1))
+    plain.predict()
+    P_predicted = plain._P + plain.Q  # (the predict is made by the next update)
     with pytest.raises(ValueError, match=r"b must have shape \(6,\)"):
         plain.update_linear(z, A, b.tolist()[:5], R)
     assert plain.n_updates == 1
+    np.testing.assert_array_equal(plain.P, P_predicted)  # a rejected call keeps the predict
 
 
 def test_linear_params_hx_maps_one_point_or_many():
