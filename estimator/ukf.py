@@ -193,8 +193,6 @@ class BatchedUKF:
     ) -> None:
         if dim_x < 1 or dim_z < 1:
             raise ValueError(f"dim_x and dim_z must be >= 1, got {dim_x} and {dim_z}")
-        if gate_nis is not None and not gate_nis > 0.0:
-            raise ValueError(f"gate_nis must be positive or None, got {gate_nis}")
         n, m = self.dim_x, self.dim_z = int(dim_x), int(dim_z)
         lambda_ = alpha**2 * (n + kappa) - n
         if not n + lambda_ > 0.0:
@@ -203,7 +201,6 @@ class BatchedUKF:
             )
         self.points = MerweScaledSigmaPoints(n, alpha=alpha, beta=beta, kappa=kappa)
         self.n_sigma = 2 * n + 1
-        self.gate_nis = gate_nis
         x0 = _as_float_array(x0, (n,), "x0")
         P0 = _as_float_array(P0, (n, n), "P0")
         if not (np.isfinite(x0).all() and np.isfinite(P0).all()):
@@ -220,8 +217,8 @@ class BatchedUKF:
         self.y, self.S, self.P_xz, self.Wm, self.Wc, self._scalars = arrays[5:]
         self._x[:], self._P[:], self._Q[:] = x0, P0, self._checked_Q(Q)
         self.Wm[:], self.Wc[:] = self.points.Wm, self.points.Wc
-        gate = math.inf if gate_nis is None else float(gate_nis)
-        self._scalars[:] = (math.sqrt(n + lambda_), gate, math.nan, -math.inf)
+        self._scalars[:] = (math.sqrt(n + lambda_), math.inf, math.nan, -math.inf)
+        self.gate_nis = gate_nis
         self._predict_pending = False  # a `predict` whose P += Q is not yet made
         self.n_updates = 0
         self.n_skipped_nonfinite = 0
@@ -265,6 +262,18 @@ class BatchedUKF:
     def Q(self, value: np.ndarray) -> None:
         self.P  # noqa: B018 (a pending predict adds the old Q)
         self._Q[:] = self._checked_Q(value)
+
+    @property
+    def gate_nis(self) -> float | None:
+        """NIS above which an update is rejected (None: no gating)."""
+        gate = float(self._scalars[1])
+        return None if gate == math.inf else gate
+
+    @gate_nis.setter
+    def gate_nis(self, value: float | None) -> None:
+        if value is not None and not value > 0.0:
+            raise ValueError(f"gate_nis must be positive or None, got {value}")
+        self._scalars[1] = math.inf if value is None else float(value)
 
     @property
     def nis(self) -> float:

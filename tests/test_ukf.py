@@ -376,10 +376,15 @@ def test_gross_outlier_is_gated():
     assert ukf.n_gated == 1 and ukf.n_updates == 1
     np.testing.assert_array_equal(ukf.x, x_before)
     np.testing.assert_array_equal(ukf.P, P_before)
-    # The same outlier passes when gating is off.
+    # The same outlier passes when gating is off, or is turned off.
     ungated, hx_batch, R = linear_filter(gate_nis=None)
     ungated.predict()
     assert ungated.update(np.full(DIM_Z, 1e3), hx_batch, R).accepted
+    assert ukf.gate_nis == gate
+    ukf.gate_nis = None
+    assert ukf.update(np.full(DIM_Z, 1e3), hx_batch, R).accepted
+    with pytest.raises(ValueError, match="gate_nis"):
+        ukf.gate_nis = -1.0
 
 
 def _bumped_linear_hx(slope: float, bump: float):
