@@ -29,7 +29,7 @@ lambda^2 = -(gradient . u) falls below gap / 10. The barrier's bound on the rema
 gap / 4. Where the iterate stops depends on the path, so the path is part of the result.
 
 Every kernel here is compiled with numba (``@njit(cache=True)``); `cholesky_lower` and
-`solve_lower` are the small factorisation kernels the UKF in ``estimator.ukf`` shares.
+`solve_lower` are the small factorisation kernels the UKF (``estimator.unscented``) shares.
 """
 
 from __future__ import annotations
