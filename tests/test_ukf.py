@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 from scipy.stats import chi2, multivariate_normal
 
-from astrocargo.estimator import ukf as ukf_module
+from astrocargo.estimator import constrained as constrained_module
 from astrocargo.estimator.inertia import (
     log_cholesky_to_params,
     params_from_mass_com_inertia,
@@ -376,10 +376,15 @@ def test_gross_outlier_is_gated():
     assert ukf.n_gated == 1 and ukf.n_updates == 1
     np.testing.assert_array_equal(ukf.x, x_before)
     np.testing.assert_array_equal(ukf.P, P_before)
-    # The same outlier passes when gating is off.
+    # The same outlier passes when gating is off, or is turned off.
     ungated, hx_batch, R = linear_filter(gate_nis=None)
     ungated.predict()
     assert ungated.update(np.full(DIM_Z, 1e3), hx_batch, R).accepted
+    assert ukf.gate_nis == gate
+    ukf.gate_nis = None
+    assert ukf.update(np.full(DIM_Z, 1e3), hx_batch, R).accepted
+    with pytest.raises(ValueError, match="gate_nis"):
+        ukf.gate_nis = -1.0
 
 
 def _bumped_linear_hx(slope: float, bump: float):
@@ -626,7 +631,41 @@ def test_constrained_mode_falls_back_to_a_consistent_body():
     assert ukf.n_mode_fallbacks == 1
 
 
-# --- fast paths against their plain references -----------------------------------------------
+# --- the one update path against plain references --------------------------------------------
+
+
+def reference_update(x, P, z, hx_batch, R, alpha, beta, kappa, gate_nis):
+    """filterpy's update written out with numpy (sigma points, filterpy's unscented_transform,
+    K = P_xz S^-1, x + K y, P - K S K^T), with the outcomes of `BatchedUKF.update`. Returns
+    (reason, x, P, y, S, K, nis)."""
+    n = len(x)
+    points = MerweScaledSigmaPoints(n, alpha=alpha, beta=beta, kappa=kappa)
+    if not np.isfinite(R).all():
+        return "non-finite", x, P, None, None, None, math.nan
+    try:
+        sigmas = points.sigma_points(x, P)
+    except np.linalg.LinAlgError:
+        return "not-positive-definite", x, P, None, None, None, math.nan
+    sigmas_h = hx_batch(sigmas)
+    if not np.isfinite(sigmas_h).all():
+        return "non-finite", x, P, None, None, None, math.nan
+    z_pred, S = unscented_transform(sigmas_h, points.Wm, points.Wc, R)
+    P_xz = (points.Wc[:, None] * (sigmas - x)).T @ (sigmas_h - z_pred)
+    if np.linalg.eigvalsh(S).min() <= 0.0:
+        return "not-positive-definite", x, P, None, None, None, math.nan
+    K = np.linalg.solve(S, P_xz.T).T
+    y = z - z_pred
+    with np.errstate(invalid="ignore"):  # NaN in z
+        nis = float(y @ np.linalg.solve(S, y))
+    if not math.isfinite(nis):
+        reason = "non-finite" if not np.isfinite(z).all() else "not-positive-definite"
+        return reason, x, P, y, S, K, nis
+    if gate_nis is not None and nis > gate_nis:
+        return "gated", x, P, y, S, K, nis
+    P_post = P - K @ S @ K.T
+    if np.linalg.eigvalsh(0.5 * (P_post + P_post.T)).min() <= 0.0:
+        return "not-positive-definite", x, P, y, S, K, nis
+    return "ok", x + K @ y, P_post, y, S, K, nis
 
 
 @settings(max_examples=40, deadline=None)
@@ -636,19 +675,18 @@ def test_constrained_mode_falls_back_to_a_consistent_body():
     alpha_kappa=st.sampled_from([(0.5, 0.0), (1.0, 0.0), (0.8, 1.0), (0.3, 2.0)]),
     beta=st.sampled_from([2.0, 0.0]),
 )
-def test_update_matches_its_step_by_step_path(seed, dims, alpha_kappa, beta):
-    """`update` takes S, P_xz, the gain and the NIS from one Cholesky factorisation of a joint
-    matrix; `BatchedUKF._update_checked` (which also sorts out every update that fails) forms
-    them one at a time, as filterpy does. From the same state they agree to rounding, and on
-    every outcome: accepted, non-finite input, gated, S not positive definite."""
+def test_update_matches_a_plain_reference_on_every_outcome(seed, dims, alpha_kappa, beta):
+    """The compiled update (sigma points -> transform -> gain through the Cholesky factor of S)
+    against filterpy's equations written out with numpy, on a mildly nonlinear measurement and
+    on every outcome: accepted, non-finite input, gated, S not positive definite."""
     rng = np.random.default_rng(seed)
     n, m = dims
     alpha, kappa = alpha_kappa
-    P0 = random_spd(rng, n)
-    x0 = rng.normal(scale=3.0, size=n)
-    kwargs = dict(alpha=alpha, beta=beta, kappa=kappa, gate_nis=chi2.ppf(0.999, m))
-    fast = BatchedUKF(n, m, x0, P0, 1e-3 * np.eye(n), **kwargs)
-    plain = BatchedUKF(n, m, x0, P0, 1e-3 * np.eye(n), **kwargs)
+    gate = chi2.ppf(0.999, m)
+    ukf = BatchedUKF(
+        n, m, rng.normal(scale=3.0, size=n), random_spd(rng, n), 1e-3 * np.eye(n),
+        alpha=alpha, beta=beta, kappa=kappa, gate_nis=gate,
+    )  # fmt: skip
     reasons = set()
     for _ in range(15):
         H = rng.normal(size=(m, n))
@@ -658,7 +696,7 @@ def test_update_matches_its_step_by_step_path(seed, dims, alpha_kappa, beta):
 
         G = rng.normal(size=(m, m))
         R = 0.05 * G @ G.T + 1e-2 * np.eye(m)
-        z = hx_batch(fast.x[None])[0] + np.linalg.cholesky(R) @ rng.normal(size=m)
+        z = hx_batch(ukf.x[None])[0] + np.linalg.cholesky(R) @ rng.normal(size=m)
         case = rng.integers(8)
         if case == 0:
             z[rng.integers(m)] = rng.choice([np.nan, np.inf])
@@ -668,22 +706,82 @@ def test_update_matches_its_step_by_step_path(seed, dims, alpha_kappa, beta):
             z = z + 1e3
         elif case == 3:
             R = -R
-        plain.x, plain.P = fast.x.copy(), fast.P.copy()
-        result = fast.update(z, hx_batch, R)
-        expected = plain._update_checked(z, hx_batch, R)
-        reasons.add(expected.reason)
-        assert (result.accepted, result.reason) == (expected.accepted, expected.reason)
-        for counter in ("n_updates", "n_skipped_nonfinite", "n_gated", "n_rejected_not_pd"):
-            assert getattr(fast, counter) == getattr(plain, counter)
-        assert_state_close(fast.x, fast.P, plain.x, plain.P)
-        np.testing.assert_array_equal(fast.P, fast.P.T)
-        if math.isfinite(expected.nis):
-            assert result.nis == pytest.approx(expected.nis, rel=TOL)
-            for ours, ref in [(fast.y, plain.y), (fast.S, plain.S), (fast.K, plain.K)]:
+        ukf.predict()
+        x, P = ukf.x.copy(), ukf.P.copy()
+        reason, x_ref, P_ref, y, S, K, nis = reference_update(
+            x, P, z, hx_batch, R, alpha, beta, kappa, gate
+        )
+        result = ukf.update(z, hx_batch, R)
+        reasons.add(reason)
+        assert (result.accepted, result.reason) == (reason == "ok", reason)
+        assert_state_close(ukf.x, ukf.P, x_ref, P_ref)
+        np.testing.assert_array_equal(ukf.P, ukf.P.T)
+        if y is not None and math.isfinite(nis):
+            assert result.nis == pytest.approx(nis, rel=TOL)
+            for ours, ref in [(ukf.y, y), (ukf.S, S), (ukf.K, K)]:
                 np.testing.assert_allclose(ours, ref, rtol=TOL, atol=TOL * np.abs(ref).max())
-            assert fast.log_likelihood == pytest.approx(plain.log_likelihood, rel=TOL)
-        np.testing.assert_array_equal(fast.sigmas, plain.sigmas)
+            log_likelihood = multivariate_normal(mean=np.zeros(m), cov=S).logpdf(y)
+            assert ukf.log_likelihood == pytest.approx(log_likelihood, rel=TOL)
+    counted = ukf.n_updates + ukf.n_skipped_nonfinite + ukf.n_gated + ukf.n_rejected_not_pd
+    assert counted == 15
     assert "ok" in reasons
+
+
+def test_predict_is_made_before_the_next_update_or_when_P_is_read():
+    """`predict` marks P += Q; the next compiled update makes it first, in order with any other
+    predict, and reading or assigning P settles it."""
+    rng = np.random.default_rng(31)
+    P0 = random_spd(rng, scale=0.05)
+    Q = np.diag(rng.uniform(1e-4, 1e-3, DIM_X))
+    A, b = random_measurement(rng)
+    R = 0.01 * np.eye(DIM_Z)
+    z = A @ TRUE_PARAMS + b
+    ours = InertialParamUKF(WRONG_PRIOR, P0, Q)
+    ours.predict()
+    ours.predict()
+    assert ours.update_linear(z, A, b, R).accepted
+    x_ref, P_ref = linear_kalman_step(WRONG_PRIOR, (P0 + Q) + Q, z - b, A, R, np.zeros_like(Q))
+    assert_state_close(ours.x, ours.P, x_ref, P_ref)
+    P_updated = ours.P.copy()
+    ours.predict()
+    np.testing.assert_array_equal(ours.P, P_updated + Q)
+    np.testing.assert_array_equal(ours.P, P_updated + Q)  # made once
+    ours.predict()
+    ours.P = P0  # an assignment replaces P, predicted or not
+    np.testing.assert_array_equal(ours.P, P0)
+    assert ours.update_linear(z, A, b, R).accepted
+    x_ref, P_ref = linear_kalman_step(x_ref, P0, z - b, A, R, np.zeros_like(Q))
+    assert_state_close(ours.x, ours.P, x_ref, P_ref)
+
+
+def test_update_linear_takes_any_float_arrays():
+    """Lists and non-contiguous arrays are converted (the compiled call takes
+    C-contiguous float64 arrays) and give the same update; wrong shapes raise ValueError."""
+    rng = np.random.default_rng(32)
+    A, b = random_measurement(rng)
+    R = np.diag(rng.uniform(0.01, 0.05, DIM_Z))
+    z = A @ TRUE_PARAMS + b
+    plain = InertialParamUKF(WRONG_PRIOR, random_spd(rng, scale=0.05), 1e-8 * np.eye(DIM_X))
+    other = InertialParamUKF(WRONG_PRIOR, plain.P.copy(), plain.Q.copy())
+    assert plain.update_linear(z, A, b, R).accepted
+    A_fortran = np.asfortranarray(A)
+    R_strided = np.zeros((DIM_Z, 2 * DIM_Z))
+    R_strided[:, ::2] = R
+    assert other.update_linear(
+        z.tolist(), A_fortran, np.repeat(b, 2)[::2], R_strided[:, ::2]
+    ).accepted
+    np.testing.assert_array_equal(other.x, plain.x)
+    np.testing.assert_array_equal(other.P, plain.P)
+    with pytest.raises(ValueError, match=r"z must have shape \(6,\)"):
+        plain.update_linear(np.zeros(DIM_Z + 1), A, b, R)
+    with pytest.raises(ValueError, match=r"R must have shape \(6, 6\)"):
+        plain.update_linear(z, A, b, np.eye(DIM_Z - 1))
+    plain.predict()
+    P_predicted = plain._P + plain.Q  # (the predict is made by the next update)
+    with pytest.raises(ValueError, match=r"b must have shape \(6,\)"):
+        plain.update_linear(z, A, b.tolist()[:5], R)
+    assert plain.n_updates == 1
+    np.testing.assert_array_equal(plain.P, P_predicted)  # a rejected call keeps the predict
 
 
 def test_linear_params_hx_maps_one_point_or_many():
@@ -703,39 +801,93 @@ def inconsistent_body(rng: np.random.Generator) -> np.ndarray:
     return params_from_mass_com_inertia(rng.uniform(1, 5), rng.normal(scale=0.1, size=3), inertia)
 
 
+def reference_barrier_mode(mean, cov, start, gap=1e-4):
+    """The barrier method of `constrained_mode` computed plainly: J from pi, its inverse,
+    einsums, np.linalg.solve."""
+    lower = np.linalg.cholesky(cov)
+    basis = pseudo_inertia(np.eye(DIM_X))  # E_k = J(e_k)
+    basis_l = np.einsum("kij,kl->lij", basis, lower)  # dJ / dv_l
+
+    def barrier_terms(pi):
+        """log det J, its gradient and (minus) Hessian in v; None where J is not definite."""
+        j = pseudo_inertia(pi)
+        try:
+            chol = np.linalg.cholesky(j)
+        except np.linalg.LinAlgError:
+            return None
+        a = np.einsum("ij,ljk->lik", np.linalg.inv(j), basis_l)  # J^-1 dJ/dv_l
+        return (
+            2.0 * np.log(np.diag(chol)).sum(),
+            np.einsum("lii->l", a),
+            np.einsum("lij,mji->lm", a, a),
+        )
+
+    clipped = project_physical(mean, min_eig=1e-3)
+    v, t = np.linalg.solve(lower, clipped - mean), 1.0
+    if start is not None:
+        v_start = np.linalg.solve(lower, start - mean)
+        if v_start @ v_start < v @ v:
+            v, t = v_start, 1e-2
+    terms = barrier_terms(mean + lower @ v)
+    while True:
+        for _ in range(50):
+            log_det, grad_b, hess_b = terms
+            grad = v - t * grad_b
+            step = -np.linalg.solve(np.eye(DIM_X) + t * hess_b, grad)
+            decrement = -grad @ step
+            if decrement < 0.1 * gap:
+                break
+            value = 0.5 * v @ v - t * log_det
+            scale = 1.0
+            while scale > 1e-12:
+                trial = v + scale * step
+                trial_terms = barrier_terms(mean + lower @ trial)
+                if trial_terms is not None:
+                    if 0.5 * trial @ trial - t * trial_terms[0] <= value - 0.25 * scale * decrement:
+                        break
+                scale *= 0.5
+            else:
+                break
+            v, terms = trial, trial_terms
+        if 4.0 * t <= gap:
+            break
+        t = max(0.02 * t, 0.25 * gap)
+    return mean + lower @ v
+
+
 @settings(max_examples=40, deadline=None)
 @given(seed=st.integers(0, 2**32 - 1), with_start=st.booleans())
-def test_constrained_mode_follows_its_plain_computation(seed, with_start):
-    """The interior-point iteration keeps its path step for step (where it stops depends on the
-    path, some 1e-6 relative from the exact minimiser of the last barrier problem): the fast
-    iteration (J updated in place, closed-form barrier derivatives, LAPACK) and the plain one
-    (J from pi, its inverse, einsums, np.linalg.solve) return the same body to rounding."""
+def test_constrained_mode_follows_a_plain_barrier_computation(seed, with_start):
+    """Where the iteration stops depends on its path (some 1e-6 relative from the exact
+    minimiser of the last barrier problem), so the compiled Newton method must keep the path of
+    the plain one step for step: both return the same body to rounding."""
     rng = np.random.default_rng(seed)
     bad = inconsistent_body(rng)
     cov = random_spd(rng, scale=10 ** rng.uniform(-5, -1))
     start = TRUE_PARAMS if with_start else None
-    clipped = project_physical(bad, min_eig=1e-3)
-    with np.errstate(over="raise", divide="raise", invalid="raise"):
-        fast = ukf_module._barrier_mode(bad, cov, clipped, start, 1e-4)
-        plain = ukf_module._barrier_mode_reference(bad, cov, clipped, start, 1e-4)
-    np.testing.assert_allclose(fast, plain, rtol=TOL, atol=TOL * np.abs(plain).max())
+    plain = reference_barrier_mode(bad, cov, start)
     mode, solved = constrained_mode(bad, cov, start=start)
-    assert solved
-    np.testing.assert_array_equal(mode, fast)
+    assert solved and is_physically_consistent(mode)
+    np.testing.assert_allclose(mode, plain, rtol=TOL, atol=TOL * np.abs(plain).max())
 
 
-def test_constrained_mode_falls_back_on_the_plain_iteration(monkeypatch):
-    """Should the fast iteration break down, the plain one decides."""
+def test_constrained_mode_reports_a_breakdown(monkeypatch):
+    """Should the Newton iteration break down numerically, the report is the eigenvalue-clipped
+    body (consistent), flagged as not solved and counted by the filter."""
     rng = np.random.default_rng(22)
     bad = inconsistent_body(rng)
     cov = random_spd(rng, scale=1e-3)
-    expected, solved = constrained_mode(bad, cov)
-    assert solved
-
-    def broken(*args):
-        raise np.linalg.LinAlgError("broken on purpose")
-
-    monkeypatch.setattr(ukf_module, "_barrier_mode", broken)
     mode, solved = constrained_mode(bad, cov)
     assert solved
-    np.testing.assert_allclose(mode, expected, rtol=TOL, atol=TOL * np.abs(expected).max())
+
+    def broken(mean, lower, v, t, gap):
+        return v, False
+
+    monkeypatch.setattr(constrained_module, "barrier_newton", broken)
+    mode, solved = constrained_mode(bad, cov)
+    assert not solved and is_physically_consistent(mode)
+    np.testing.assert_allclose(mode, project_physical(bad, min_eig=1e-3), rtol=1e-12)
+    ukf = InertialParamUKF(TRUE_PARAMS, cov, np.zeros((DIM_X, DIM_X)))
+    ukf.x = bad
+    assert is_physically_consistent(ukf.params_mean())
+    assert ukf.n_mode_fallbacks == 1

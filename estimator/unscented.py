@@ -1,0 +1,194 @@
+"""Compiled pieces of the unscented Kalman filter of ``estimator.ukf``, one per step of filterpy's
+UKF: Merwe sigma points -> unscented transform (and cross-covariance) -> gain and posterior.
+
+The equations are those of the ``estimator.ukf`` docstring. Every kernel is compiled with numba
+(``@njit(cache=True)``). A filter keeps its arrays in one flat float64 buffer (`filter_arrays`
+gives the views), so that an update is one call that passes a handful of arrays and updates the
+filter in place; the kernels called from Python are compiled for C-contiguous float64 arrays
+when this module is imported (or loaded from numba's cache) and raise TypeError for anything
+else, which the filters convert.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import boolean, float64, int64, njit, types
+
+from .constrained import cholesky_lower, solve_lower
+
+__all__ = [
+    "cross_covariance",
+    "filter_arrays",
+    "merwe_sigma_points",
+    "state_size",
+    "unscented_transform",
+    "unscented_update",
+]
+
+# Outcomes of an update. `BAD_SHAPE` is raised as a ValueError by the filters.
+OK, BAD_R, BAD_P, BAD_H, BAD_S, BAD_Z, BAD_NIS, GATED, BAD_POSTERIOR, BAD_SHAPE = range(10)
+
+_VECTOR = float64[::1]
+_MATRIX = float64[:, ::1]
+_OUTCOME = types.Tuple((int64, float64))  # (outcome, NIS)
+
+
+@njit(cache=True)
+def merwe_sigma_points(x: np.ndarray, P: np.ndarray, scale: float) -> tuple[np.ndarray, bool]:
+    """Merwe sigma points (2n + 1, n) of (x, P) in filterpy's order, scale = sqrt(n + lambda):
+    X_0 = x, X_(1+k) = x + scale L[:, k], X_(1+n+k) = x - scale L[:, k] with P = L L^T; and
+    whether P is positive definite (the points are not usable when it is not)."""
+    n = x.size
+    lower, definite = cholesky_lower(P)
+    offsets = scale * lower.T  # row k: scale times column k of L
+    sigmas = np.empty((2 * n + 1, n))
+    sigmas[0] = x
+    sigmas[1 : n + 1] = x + offsets
+    sigmas[n + 1 :] = x - offsets
+    return sigmas, definite
+
+
+@njit(cache=True)
+def unscented_transform(
+    sigmas_h: np.ndarray, Wm: np.ndarray, Wc: np.ndarray, noise_cov: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Weighted mean z = sum_i Wm_i Z_i and covariance sum_i Wc_i (Z_i - z)(Z_i - z)^T plus
+    noise_cov of transformed sigma points Z (2n + 1, m), as filterpy's `unscented_transform`."""
+    mean = Wm @ sigmas_h
+    residuals = sigmas_h - mean
+    cov = (Wc.reshape(-1, 1) * residuals).T @ residuals + noise_cov
+    return mean, cov
+
+
+@njit(cache=True)
+def cross_covariance(
+    x: np.ndarray, z_pred: np.ndarray, sigmas: np.ndarray, sigmas_h: np.ndarray, Wc: np.ndarray
+) -> np.ndarray:
+    """P_xz = sum_i Wc_i (X_i - x)(Z_i - z_pred)^T (n, m)."""
+    return (sigmas - x).T @ (Wc.reshape(-1, 1) * (sigmas_h - z_pred))
+
+
+def state_size(n: int, m: int) -> int:
+    """Length of the buffer of `filter_arrays` for n states and m measurements."""
+    return n + 2 * n * n + (2 * n + 1) * (n + m + 2) + m + m * m + n * m + 4
+
+
+@njit(cache=True)
+def filter_arrays(state: np.ndarray, n: int, m: int):
+    """Views of a filter's flat buffer, in this order: x (n,), P (n, n), Q (n, n), the last sigma
+    points (2n + 1, n) and their images (2n + 1, m), the last innovation y (m,), its covariance
+    S (m, m) and cross-covariance P_xz (n, m), the weights Wm and Wc (2n + 1,), and the scalars
+    [sqrt(n + lambda), NIS gate, last NIS, last log-likelihood] (4,)."""
+    k = 2 * n + 1
+    x, start = state[:n], n
+    P, start = state[start : start + n * n].reshape(n, n), start + n * n
+    Q, start = state[start : start + n * n].reshape(n, n), start + n * n
+    sigmas, start = state[start : start + k * n].reshape(k, n), start + k * n
+    sigmas_h, start = state[start : start + k * m].reshape(k, m), start + k * m
+    y, start = state[start : start + m], start + m
+    S, start = state[start : start + m * m].reshape(m, m), start + m * m
+    P_xz, start = state[start : start + n * m].reshape(n, m), start + n * m
+    Wm, start = state[start : start + k], start + k
+    Wc, start = state[start : start + k], start + k
+    scalars = state[start : start + 4]
+    return x, P, Q, sigmas, sigmas_h, y, S, P_xz, Wm, Wc, scalars
+
+
+@njit(cache=True)
+def _all_finite(a: np.ndarray) -> bool:
+    for value in a.flat:
+        if not math.isfinite(value):
+            return False
+    return True
+
+
+@njit(cache=True)
+def unscented_update(arrays: tuple, z: np.ndarray, R: np.ndarray):
+    """Unscented transform, gain and posterior of one update, in place on a filter's arrays
+    (`filter_arrays`), from the sigma points and their images already there.
+
+    y, S, P_xz, the NIS and the log-likelihood are written once the NIS is computed; x and P
+    only when the update is accepted. Returns (outcome, NIS).
+    """
+    x, P, _, sigmas, sigmas_h, y_out, S_out, P_xz_out, Wm, Wc, scalars = arrays
+    if not _all_finite(sigmas_h):
+        return BAD_H, math.nan
+    z_pred, S = unscented_transform(sigmas_h, Wm, Wc, R)
+    P_xz = cross_covariance(x, z_pred, sigmas, sigmas_h, Wc)
+    S_lower, definite = cholesky_lower(S)
+    if not definite:
+        return BAD_S, math.nan
+    # With S = L_S L_S^T, W = L_S^-1 P_zx and w = L_S^-1 y: K = P_xz S^-1 = W^T L_S^-1,
+    # NIS = y^T S^-1 y = w.w, K y = W^T w and K S K^T = W^T W.
+    y = z - z_pred
+    W = solve_lower(S_lower, np.ascontiguousarray(P_xz.T))
+    w = solve_lower(S_lower, y.reshape(-1, 1)).ravel()
+    nis = w @ w
+    log_det_S = 2.0 * np.log(np.diag(S_lower)).sum()
+    log_likelihood = -0.5 * (nis + log_det_S + z.size * math.log(2.0 * math.pi))
+    y_out[:], S_out[:], P_xz_out[:] = y, S, P_xz
+    scalars[2] = nis
+    scalars[3] = log_likelihood if math.isfinite(nis) else -math.inf
+    if not math.isfinite(nis):
+        return (BAD_NIS if _all_finite(z) else BAD_Z), nis
+    if nis > scalars[1]:
+        return GATED, nis
+    P_post = P - W.T @ W
+    P_post = 0.5 * (P_post + P_post.T)  # exactly symmetric
+    if not cholesky_lower(P_post)[1]:
+        return BAD_POSTERIOR, nis
+    x += W.T @ w
+    P[:] = P_post
+    return OK, nis
+
+
+@njit(cache=True)
+def _predict_and_draw(arrays: tuple, R: np.ndarray, predict_first: bool):
+    """The pending predict (P += Q) if any, the checks of R and P, and the sigma points of (x, P)
+    into the filter's arrays; returns OK or the outcome that ends the update."""
+    x, P, Q, sigmas, _, _, _, _, _, _, scalars = arrays
+    if predict_first:
+        P += Q
+    if not _all_finite(R):
+        return BAD_R
+    new_sigmas, definite = merwe_sigma_points(x, P, scalars[0])
+    if not definite:
+        return BAD_P
+    sigmas[:] = new_sigmas
+    return OK
+
+
+@njit(
+    _OUTCOME(_VECTOR, int64, int64, _VECTOR, _MATRIX, _VECTOR, _MATRIX, boolean),
+    cache=True,
+)
+def update_linear(state, n, m, z, A, b, R, predict_first):
+    """One update with the linear measurement h(X) = A X + b (A (m, n), b (m,)): sigma points,
+    their images, `unscented_update`; after the pending predict if ``predict_first``."""
+    if z.shape != (m,) or A.shape != (m, n) or b.shape != (m,) or R.shape != (m, m):
+        return BAD_SHAPE, math.nan
+    arrays = filter_arrays(state, n, m)
+    outcome = _predict_and_draw(arrays, R, predict_first)
+    if outcome != OK:
+        return outcome, math.nan
+    sigmas, sigmas_h = arrays[3], arrays[4]
+    sigmas_h[:] = sigmas @ A.T + b
+    return unscented_update(arrays, z, R)
+
+
+@njit(types.Tuple((int64, _MATRIX))(_VECTOR, int64, int64, _MATRIX, boolean), cache=True)
+def draw_sigma_points(state, n, m, R, predict_first):
+    """First half of an update with a measurement function evaluated outside: the pending
+    predict, the checks of R and P, and a copy of the sigma points drawn into the buffer."""
+    arrays = filter_arrays(state, n, m)
+    return _predict_and_draw(arrays, R, predict_first), arrays[3].copy()
+
+
+@njit(_OUTCOME(_VECTOR, int64, int64, _MATRIX, _VECTOR, _MATRIX), cache=True)
+def update_from_images(state, n, m, sigmas_h, z, R):
+    """Second half: `unscented_update` with the images of the sigma points computed outside."""
+    arrays = filter_arrays(state, n, m)
+    arrays[4][:] = sigmas_h
+    return unscented_update(arrays, z, R)
