@@ -212,9 +212,7 @@ class BatchedUKF:
         # The filter's arrays live in one buffer that the compiled kernels update in place
         # (`unscented.filter_arrays`); the attributes are views of it.
         self._state = np.zeros(unscented.state_size(n, m))
-        arrays = unscented.filter_arrays(self._state, n, m)
-        self._x, self._P, self._Q, self.sigmas, self.sigmas_h = arrays[:5]
-        self.y, self.S, self.P_xz, self.Wm, self.Wc, self._scalars = arrays[5:]
+        self._bind_views()
         self._x[:], self._P[:], self._Q[:] = x0, P0, self._checked_Q(Q)
         self.Wm[:], self.Wc[:] = self.points.Wm, self.points.Wc
         self._scalars[:] = (math.sqrt(n + lambda_), math.inf, math.nan, -math.inf)
@@ -224,6 +222,22 @@ class BatchedUKF:
         self.n_skipped_nonfinite = 0
         self.n_gated = 0
         self.n_rejected_not_pd = 0
+
+    _VIEWS = ("_x", "_P", "_Q", "sigmas", "sigmas_h", "y", "S", "P_xz", "Wm", "Wc", "_scalars")
+
+    def _bind_views(self) -> None:
+        arrays = unscented.filter_arrays(self._state, self.dim_x, self.dim_z)
+        for name, array in zip(self._VIEWS, arrays, strict=True):
+            setattr(self, name, array)
+
+    def __getstate__(self) -> dict:
+        # A copy (pickle, deepcopy) would give each view its own memory, detached from the
+        # buffer the kernels update: copy the buffer alone and take the views again.
+        return {k: v for k, v in self.__dict__.items() if k not in self._VIEWS}
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        self._bind_views()
 
     def _checked_Q(self, Q: np.ndarray) -> np.ndarray:
         Q = _as_float_array(Q, (self.dim_x, self.dim_x), "Q")

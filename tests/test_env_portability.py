@@ -42,17 +42,9 @@ def _run_alongside(envs, first_step: int, n_steps: int) -> None:
             assert np.array_equal(s, states[0]), k
 
 
-# The estimators' UKF keeps preallocated buffers as views of one another
-# (estimator/ukf.py, BatchedUKF._init_update_buffers); a copy detaches them, so a copy with
-# estimators drifts from the original at the first filter update. That is the estimator's to
-# fix (a __setstate__ that rebuilds the views); this strict xfail turns red once it is.
 ESTIMATORS = [
     pytest.param({"estimators": False, "observe_estimates": False}, id="no-estimators"),
-    pytest.param(
-        {},
-        id="estimators",
-        marks=pytest.mark.xfail(strict=True, reason="UKF buffer views are detached by a copy"),
-    ),
+    pytest.param({}, id="estimators"),
 ]
 
 

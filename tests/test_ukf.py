@@ -891,3 +891,26 @@ def test_constrained_mode_reports_a_breakdown(monkeypatch):
     ukf.x = bad
     assert is_physically_consistent(ukf.params_mean())
     assert ukf.n_mode_fallbacks == 1
+
+
+@pytest.mark.parametrize("how", ["deepcopy", "pickle"])
+def test_a_copied_filter_updates_its_own_buffer_like_the_original(how):
+    """The filter's arrays are views of one buffer the kernels update in place: a copy must
+    rebuild its views on its own buffer, then follow the original bit for bit."""
+    import copy
+    import pickle
+
+    ukf, hx, R = linear_filter()
+    rng = np.random.default_rng(9)
+    ukf.predict()
+    ukf.update(rng.normal(size=DIM_Z), hx, R)
+    twin = copy.deepcopy(ukf) if how == "deepcopy" else pickle.loads(pickle.dumps(ukf))
+    for _ in range(5):
+        z = rng.normal(size=DIM_Z)
+        for f in (ukf, twin):
+            f.predict()
+            f.update(z, hx, R)
+        np.testing.assert_array_equal(twin.x, ukf.x)
+        np.testing.assert_array_equal(twin.P, ukf.P)
+    assert not np.shares_memory(twin.x, ukf.x)
+    assert np.shares_memory(twin.x, twin._state) and np.shares_memory(twin.S, twin._state)
