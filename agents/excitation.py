@@ -31,24 +31,29 @@ planned motion needs about the composite centre of mass, M (a + wd x r + w x (w 
 I_c wd + w x I_c w (cargo axes), is shared by ``CooperativeController``'s allocation (minimum norm
 weighted by each robot's limits) on the design cargo, at the planned pan.
 
-Objective: the soft maximum (log-sum-exp, sharpness ``beta``) of log(bound_i / target_i) over the
-three principal moments (relative), the mass (relative) and the centre of mass (norm of the
-per-axis bounds, m). Constraints, sampled on a time grid: every robot's command per axis within
-(1 - ``thrust_margin``) of its limit (the rest is left to the feedback), every point of the
-assembly's collision hull ``clearance_m`` inside the aisle's walls, pan within its range and its
-rate within ``pan_rate_margin`` of the servo's 0.12 rad/s. Solved by L-BFGS-B on the objective
-plus a quadratic penalty of the normalised violations, from several random starts; the best
-design is then scaled down, if need be, until every constraint holds (the motion's amplitude
-scales every command and clearance monotonically).
+Objective: the worst of log(bound_i / target_i) over the three principal moments (relative),
+the mass (relative) and the centre of mass (norm of the per-axis bounds, m), minimised in
+epigraph form (minimise z subject to log(bound_i / target_i) <= z), a minimax. Constraints, at
+every sample of a time grid: every robot's command per axis within (1 - ``thrust_margin``) of
+its limit (the rest is left to the feedback), every point of the assembly's collision hull
+``clearance_m`` inside the aisle's walls, pan within its range and its rate within
+``pan_rate_margin`` of the servo's 0.12 rad/s. Solved by SLSQP (scipy) with forward-difference
+Jacobians from several random starts, each first scaled down until it is feasible; the best
+design is scaled down, if need be, until every constraint holds on a 0.1 s grid.
+
+Spins: besides the series, each attitude angle may carry a secular rate Omega_d windowed like
+the series (angle += Omega_d S(t), S the window's integral): a spin that starts and ends at
+rest (not at the start attitude).
 """
 
 from __future__ import annotations
 
 import copy
+import hashlib
 import json
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 
 import numpy as np
@@ -468,7 +473,9 @@ class ExcitationModel:
                 robot.thrust_rot, robot.thrust_pos
             )
             noise_maps.append(to_grasp if j == 0 else est._relative[j].known @ to_grasp)
-        lever0 = float(np.linalg.norm(grasp_pose(self.robots[0], np.array([TILT_DEPLOYED_RAD, pan]))[1]))
+        lever0 = float(
+            np.linalg.norm(grasp_pose(self.robots[0], np.array([TILT_DEPLOYED_RAD, pan]))[1])
+        )
         return {
             "mass": mass,
             "com": com,
@@ -544,14 +551,15 @@ class ExcitationModel:
         act = np.einsum("nkij,nkj,nklj->nil", team["noise"], std**2, team["noise"])
         return est.meas_cov + act / est.update_every + team["sensor_cov"]
 
-    def update_times(self, duration_s: float, every: int = 1) -> tuple[np.ndarray, float]:
-        """Times of every ``every``-th update instant of the estimator within the flight, and
-        the weight (``every``) that makes their sum stand for all instants."""
+    def update_times(
+        self, duration_s: float, every: int = 1
+    ) -> tuple[np.ndarray, float, np.ndarray]:
+        """Every ``every``-th update instant of the estimator from the start of the flight to
+        its end: times, the weight (``every``) that makes a sum over them stand for all
+        instants, and which of them the estimator uses (after its warm-up)."""
         est = self.estimator
-        step = est.update_every * every
-        first = int(math.ceil(est.warmup_steps / est.update_every) * est.update_every)
-        stamps = np.arange(first, int(round(duration_s / self.dt_s)) + 1, step)
-        return stamps * self.dt_s, float(every)
+        stamps = np.arange(0, int(round(duration_s / self.dt_s)) + 1, est.update_every * every)
+        return stamps * self.dt_s, float(every), stamps >= est.warmup_steps
 
     def fisher(
         self, motion: Motion, weight: float = 1.0, commands: np.ndarray | None = None
@@ -592,7 +600,9 @@ class ExcitationModel:
             out[k] = filt.step(np.concatenate((np.zeros(12), row)))[0][12:]
         keep = (stamps % est.update_every == 0) & (stamps >= est.warmup_steps)
         a = out[keep].reshape(-1, 6, 10)
-        est._grasp_lever = float(np.linalg.norm(grasp_pose(self.robots[0], np.array([TILT_DEPLOYED_RAD, 0.0]))[1]))
+        est._grasp_lever = float(
+            np.linalg.norm(grasp_pose(self.robots[0], np.array([TILT_DEPLOYED_RAD, 0.0]))[1])
+        )
         excited = np.array([est._excited(x) for x in a])
         sub = trajectory.motion(stamps[keep] * self.dt_s)
         r = self.measurement_cov(sub, self.commands(sub))
@@ -630,7 +640,6 @@ class DesignSettings:
     ramp_s: float = 10.0
     starts: int = 4
     seed: int = 0
-    n_windows: int = 15  # stretches of the flight over which each constraint's worst counts
     fd_step: float = 1e-5  # forward-difference step of the (scaled) variables
     start_std: float = 0.2  # random starts: normal variables of this spread
     sample_updates: int = 3  # Fisher and limits on every 3rd update instant (0.48 s)
@@ -654,7 +663,7 @@ class ExcitationDesigner:
         if s.n_harmonics < 1 or s.duration_s < 2 * s.ramp_s:
             raise ValueError("need n_harmonics >= 1 and duration_s >= 2 ramp_s")
         self.period_s = s.period_s or s.duration_s / 2
-        self.times, self.weight = model.update_times(s.duration_s, s.sample_updates)
+        self.times, self.weight, self.used = model.update_times(s.duration_s, s.sample_updates)
         k_w = 2 * np.pi / self.period_s * np.tile(np.arange(1, s.n_harmonics + 1), 2)
         self._cache: dict = {}
         self._scale = np.vstack(
@@ -694,9 +703,12 @@ class ExcitationDesigner:
         traj = DesignedTrajectory(design)
         motion = traj.motion(self.times if times is None else times)
         cmd = self.model.commands(motion)
-        weight = self.weight if times is None else 1.0
-        bounds = self.model.bounds(self.model.fisher(motion, weight, cmd))
         viol = self.model.violations(motion, cmd)
+        # The information on the estimator's instants (a grid from ``update_times``) only.
+        used = self.used if times is None else np.ones(len(motion.t), dtype=bool)
+        weight = self.weight if times is None else 1.0
+        sub = Motion(*(getattr(motion, f.name)[used] for f in fields(Motion)))
+        bounds = self.model.bounds(self.model.fisher(sub, weight, cmd[used]))
         return {
             "bounds": bounds,
             "ratios": self._ratios(bounds),
@@ -713,17 +725,14 @@ class ExcitationDesigner:
         )
 
     def objective_and_constraints(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """log(bound_i / target_i) (5,) and the constraints (>= 0 where satisfied): per
-        constraint column (robot and axis, wall axis, pan, pan rate) the worst normalised
-        value within each of ``n_windows`` stretches of the flight, negated."""
+        """log(bound_i / target_i) (5,) and the constraints (>= 0 where satisfied): every
+        sample's normalised values (robot and axis, wall axis, pan, pan rate), negated."""
         key = np.asarray(x, float).tobytes()
         if key in self._cache:
             return self._cache[key]
         ev = self.evaluate(self.design_of(x))
         cols = np.concatenate(list(ev["viol"].values()), axis=1)  # (N, C)
-        edges = np.linspace(0, cols.shape[0], self.s.n_windows + 1).astype(int)
-        worst = np.stack([cols[i:j].max(axis=0) for i, j in zip(edges[:-1], edges[1:])])
-        out = (np.log(ev["ratios"]), -worst.ravel())
+        out = (np.log(ev["ratios"]), -cols.ravel())
         if len(self._cache) > 4 * self.n_vars:
             self._cache.clear()
         self._cache[key] = out
@@ -770,21 +779,16 @@ class ExcitationDesigner:
         self.last_result = res
         return res.x[:n] * self.free()
 
-    def _feasible_scale(self, x: np.ndarray) -> tuple[np.ndarray, float]:
-        """Scale x down (bisection) until no constraint is violated on a dense grid."""
+    def _feasible_scale(self, x: np.ndarray, step: float = 0.005) -> tuple[np.ndarray, float]:
+        """The largest c in 1, 1 - step, ... for which c x violates no constraint on a 0.1 s
+        grid. (A search from 1 down, not a bisection: with spins the attitude, and so the
+        commands, change with c, so feasibility need not be monotone in c.)"""
         dense = np.arange(0.0, self.s.duration_s + 1e-9, 0.1)
-
-        def worst(c):
+        for c in np.arange(1.0, 0.0, -step):
             ev = self.evaluate(self.design_of(c * x), dense)
-            return max(ev["max_violation"].values())
-
-        if worst(1.0) <= 0:
-            return x, 1.0
-        lo, hi = 0.0, 1.0
-        for _ in range(30):
-            mid = 0.5 * (lo + hi)
-            lo, hi = (mid, hi) if worst(mid) <= 0 else (lo, mid)
-        return lo * x, lo
+            if max(ev["max_violation"].values()) <= 0:
+                return c * x, float(c)
+        return 0.0 * x, 0.0
 
     def run(self, verbose: bool = False) -> ExcitationDesign:
         s = self.s
@@ -793,7 +797,7 @@ class ExcitationDesigner:
         start = time.perf_counter()
         best = None
         for k in range(s.starts):
-            x0 = rng.normal(0.0, s.start_std, self.n_vars) * free
+            x0, _ = self._feasible_scale(rng.normal(0.0, s.start_std, self.n_vars) * free)
             x = self._solve(x0)
             x, shrink = self._feasible_scale(x)
             ev = self.evaluate(self.design_of(x))
@@ -813,7 +817,9 @@ class ExcitationDesigner:
         design = self.design_of(best[1])
         return self.describe(design, runtime)
 
-    def describe(self, design: ExcitationDesign, runtime_s: float | None = None) -> ExcitationDesign:
+    def describe(
+        self, design: ExcitationDesign, runtime_s: float | None = None
+    ) -> ExcitationDesign:
         """The design with its predicted bounds, binding constraints and settings in ``info``."""
         dense = np.arange(0.0, design.duration_s + 1e-9, self.model.dt_s)
         ev = self.evaluate(design, dense)
@@ -934,3 +940,64 @@ def model_for_world(
         aisle_half_extents(world),
         limits,
     )
+
+
+# ------------------------------------------------------------------------------- for the env
+EXCITE = "excite"
+DESIGN_CACHE_DIR = Path.home() / ".cache" / "astrocargo" / "designs"
+
+
+def is_trajectory_name(name: object) -> bool:
+    """Whether ``name`` names a reference: one of ``Trajectory.NAMES``, "excite", or the path of
+    a design JSON file (``*.json``)."""
+    from .trajectories import Trajectory
+
+    return isinstance(name, str) and (
+        name in Trajectory.NAMES or name == EXCITE or name.endswith(".json")
+    )
+
+
+def make_trajectory(
+    name: str,
+    n_robots: int,
+    fast: bool = False,
+    world=None,
+    estimator_kwargs: dict | None = None,
+    settings: DesignSettings | None = None,
+):
+    """The reference a name stands for: ``Trajectory(name, fast)`` for the analytic ones; for
+    "excite" the design shipped for ``n_robots`` (``shipped_design``), else one designed for
+    ``world`` (an ``envs.world.World``) with ``estimator_kwargs`` and cached under
+    ``DESIGN_CACHE_DIR``; for a path ending in ``.json`` that design. ``fast`` does not apply
+    to designs (ValueError)."""
+    from .trajectories import Trajectory
+
+    if not is_trajectory_name(name):
+        raise ValueError(
+            f"unknown trajectory {name!r}; allowed: {list(Trajectory.NAMES) + [EXCITE]} or the "
+            f"path of a design JSON file"
+        )
+    if name in Trajectory.NAMES:
+        return Trajectory(name, fast=fast)
+    if fast:
+        raise ValueError("fast=True applies to the figure-eight trajectories, not to designs")
+    if name.endswith(".json"):
+        design = ExcitationDesign.load(name)
+        if design.n_robots != n_robots:
+            raise ValueError(f"{name} was designed for {design.n_robots} robots, not {n_robots}")
+        return DesignedTrajectory(design)
+    try:
+        return DesignedTrajectory(shipped_design(n_robots))
+    except ValueError:
+        if world is None:
+            raise
+    noise_key = hashlib.sha1(
+        json.dumps(estimator_kwargs or {}, sort_keys=True, default=str).encode()
+    ).hexdigest()[:10]
+    cached = DESIGN_CACHE_DIR / f"excite_{n_robots}robots_{world.cargo_bag.name}_{noise_key}.json"
+    if cached.exists():
+        return DesignedTrajectory(ExcitationDesign.load(cached))
+    model = model_for_world(world, estimator_kwargs=estimator_kwargs)
+    design = ExcitationDesigner(model, settings).run()
+    design.save(cached)
+    return DesignedTrajectory(design)

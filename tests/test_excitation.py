@@ -19,6 +19,7 @@ from astrocargo.agents.excitation import (
 from astrocargo.envs.sensors import estimator_noise_kwargs, noise_profile
 from astrocargo.envs.world import World
 from astrocargo.estimator.cargo_estimator import default_prior
+from astrocargo.estimator.geometry import quat_to_mat
 from astrocargo.estimator.inertia import transform_params
 from astrocargo.estimator.rne import body_regressor, grasp_from_base, grasp_pose, wrench_transform
 
@@ -108,7 +109,9 @@ def _controller_commands(model, ref, pan: float) -> list[np.ndarray]:
     for i in range(model.n_robots):
         rot_cb, pos_cb = model.base_in_cargo(i, pan)
         states.append(
-            RobotState(ref.rot @ rot_cb, ref.pos + ref.rot @ pos_cb, np.array([TILT_DEPLOYED_RAD, pan]))
+            RobotState(
+                ref.rot @ rot_cb, ref.pos + ref.rot @ pos_cb, np.array([TILT_DEPLOYED_RAD, pan])
+            )
         )
     cargo = CargoState(ref.rot, ref.pos, ref.vel, ref.w)
     controller = CooperativeController(model.robots)
@@ -170,12 +173,16 @@ def test_predicted_fisher_equals_the_regressor_on_the_designs_motion(model):
             )
             if j:
                 rot_j, pos_j = model.handrails[j]
-                to_grasp = wrench_transform(rot_ch.T @ rot_j, rot_ch.T @ (pos_j - pos_ch)) @ to_grasp
+                to_grasp = (
+                    wrench_transform(rot_ch.T @ rot_j, rot_ch.T @ (pos_j - pos_ch)) @ to_grasp
+                )
             std = np.repeat(est.actuation_noise[[0, 2]], 3) + np.repeat(
                 est.actuation_noise[[1, 3]], 3
             ) * np.abs(u)
             cov += to_grasp @ np.diag(std**2) @ to_grasp.T
-        lever = np.linalg.norm(grasp_pose(model.robots[0], np.array([TILT_DEPLOYED_RAD, ref.pan]))[1])
+        lever = np.linalg.norm(
+            grasp_pose(model.robots[0], np.array([TILT_DEPLOYED_RAD, ref.pan]))[1]
+        )
         r = est.meas_cov + cov / est.update_every + model.sensor_cov(lever)
         fisher += a.T @ np.linalg.solve(r, a)
     predicted = model.fisher(traj.motion(times))
@@ -189,11 +196,7 @@ def test_sensor_covariance_is_the_estimators():
 
     world = World(2)
     robot = world.robot_model(0)
-    rot_ch, pos_ch = world.relative_grasp(0, 0)  # identity: only to exercise the call
-    del rot_ch, pos_ch
     site = world.handrail_sites[0]
-    from astrocargo.estimator.geometry import quat_to_mat
-
     rot = quat_to_mat(np.asarray(world.model.site_quat[site], dtype=float))
     pos = world.model.site_pos[site].copy()
     prior_grasp = default_prior(robot)
@@ -208,15 +211,15 @@ def test_sensor_covariance_is_the_estimators():
 
 
 def test_designer_improves_on_its_start(model):
-    """A short design run lowers the objective from its random start and ends feasible."""
-    settings = DesignSettings(duration_s=40.0, n_harmonics=2, ramp_s=8.0, starts=1, maxiter=8)
+    """A short design run ends feasible on a dense grid and beats its own random start made
+    feasible by scaling."""
+    settings = DesignSettings(duration_s=40.0, n_harmonics=2, ramp_s=8.0, starts=1, maxiter=15)
     designer = ExcitationDesigner(model, settings)
-    x0 = np.random.default_rng(settings.seed).normal(0.0, 0.3, designer.n_vars)
+    x0 = np.random.default_rng(settings.seed).normal(0.0, settings.start_std, designer.n_vars)
+    x0_feasible, _ = designer._feasible_scale(x0 * designer.free())
+    start_worst = np.max(designer.evaluate(designer.design_of(x0_feasible))["ratios"])
     design = designer.run()
-    x_found = np.concatenate(
-        (design.coeffs.ravel() / np.where(designer._scale.ravel() > 0, designer._scale.ravel(), 1),
-         np.asarray(design.spin_radps) / settings.spin_scale_radps)
-    )
-    assert designer.cost(x_found, settings.penalty) < designer.cost(x0, settings.penalty)
-    assert max(design.info["max_violation"].values()) <= 1e-6
+    assert max(design.info["max_violation"].values()) <= 1e-9
+    found_worst = np.max(designer.evaluate(design)["ratios"])
+    assert found_worst < 0.9 * start_worst
     assert set(design.info["predicted_bounds"]) >= {"mass_rel", "com_m", "principal_rel"}
