@@ -642,7 +642,8 @@ class DesignSettings:
     seed: int = 0
     fd_step: float = 1e-5  # forward-difference step of the (scaled) variables
     start_std: float = 0.2  # random starts: normal variables of this spread
-    sample_updates: int = 3  # Fisher and limits on every 3rd update instant (0.48 s)
+    safety: float = 0.01  # the optimiser's constraints are this much (normalised) tighter
+    sample_updates: int = 3  # information on every 3rd update instant (0.48 s)
     maxiter: int = 200
     pan: bool = True  # design the pan; False keeps the arms deployed
     # The optimiser's variables are per harmonic k the amplitudes of the acceleration
@@ -663,7 +664,11 @@ class ExcitationDesigner:
         if s.n_harmonics < 1 or s.duration_s < 2 * s.ramp_s:
             raise ValueError("need n_harmonics >= 1 and duration_s >= 2 ramp_s")
         self.period_s = s.period_s or s.duration_s / 2
-        self.times, self.weight, self.used = model.update_times(s.duration_s, s.sample_updates)
+        # Limits on every update instant from t = 0; information on every
+        # ``sample_updates``-th instant after the warm-up, weighted to stand for all.
+        self.times, _, used = model.update_times(s.duration_s)
+        self.used = used & (np.arange(self.times.size) % s.sample_updates == 0)
+        self.weight = float(s.sample_updates)
         k_w = 2 * np.pi / self.period_s * np.tile(np.arange(1, s.n_harmonics + 1), 2)
         self._cache: dict = {}
         self._scale = np.vstack(
@@ -726,13 +731,16 @@ class ExcitationDesigner:
 
     def objective_and_constraints(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """log(bound_i / target_i) (5,) and the constraints (>= 0 where satisfied): every
-        sample's normalised values (robot and axis, wall axis, pan, pan rate), negated."""
+        sample's normalised values (robot and axis, wall axis, pan, pan rate) plus ``safety``,
+        negated."""
         key = np.asarray(x, float).tobytes()
         if key in self._cache:
             return self._cache[key]
         ev = self.evaluate(self.design_of(x))
         cols = np.concatenate(list(ev["viol"].values()), axis=1)  # (N, C)
-        out = (np.log(ev["ratios"]), -cols.ravel())
+        # A little inside the limits, so that an iterate within SLSQP's tolerance, checked on
+        # a finer grid, still holds them.
+        out = (np.log(ev["ratios"]), -(cols.ravel() + self.s.safety))
         if len(self._cache) > 4 * self.n_vars:
             self._cache.clear()
         self._cache[key] = out
@@ -780,15 +788,25 @@ class ExcitationDesigner:
         return res.x[:n] * self.free()
 
     def _feasible_scale(self, x: np.ndarray, step: float = 0.005) -> tuple[np.ndarray, float]:
-        """The largest c in 1, 1 - step, ... for which c x violates no constraint on a 0.1 s
-        grid. (A search from 1 down, not a bisection: with spins the attitude, and so the
-        commands, change with c, so feasibility need not be monotone in c.)"""
+        """x with every constraint satisfied on a 0.1 s grid: the pan's series scaled into its
+        range and rate (both linear in it), then the cargo's motion by the largest c in 1,
+        1 - step, ... that satisfies the rest. (A search from 1 down, not a bisection: the
+        commands need not fall monotonically with c, since the attitude changes with it.)
+        Returns x and c."""
         dense = np.arange(0.0, self.s.duration_s + 1e-9, 0.1)
+        x = np.asarray(x, float).copy()
+        pan = np.zeros(x.size, dtype=bool)
+        n_per_dof = self._scale.shape[1]
+        pan[PAN_DOF * n_per_dof : (PAN_DOF + 1) * n_per_dof] = True
+        viol = self.evaluate(self.design_of(x), dense)["max_violation"]
+        over = max(viol["pan"], viol["pan_rate"], 0.0)
+        x[pan] *= (1.0 - 1e-9) / (1.0 + over)
         for c in np.arange(1.0, 0.0, -step):
-            ev = self.evaluate(self.design_of(c * x), dense)
+            scaled = np.where(pan, x, c * x)
+            ev = self.evaluate(self.design_of(scaled), dense)
             if max(ev["max_violation"].values()) <= 0:
-                return c * x, float(c)
-        return 0.0 * x, 0.0
+                return scaled, float(c)
+        return np.where(pan, x, 0.0), 0.0
 
     def run(self, verbose: bool = False) -> ExcitationDesign:
         s = self.s

@@ -223,3 +223,24 @@ def test_designer_improves_on_its_start(model):
     found_worst = np.max(designer.evaluate(design)["ratios"])
     assert found_worst < 0.9 * start_worst
     assert set(design.info["predicted_bounds"]) >= {"mass_rel", "com_m", "principal_rel"}
+
+
+def test_make_trajectory_names(tmp_path):
+    from astrocargo.agents.excitation import make_trajectory
+    from astrocargo.agents.trajectories import Trajectory
+
+    assert isinstance(make_trajectory("figure8_tumble", 2), Trajectory)
+    excite = make_trajectory("excite", 2)
+    assert isinstance(excite, DesignedTrajectory) and excite.design.n_robots == 2
+    path = tmp_path / "mine.json"
+    _random_design().save(path)
+    mine = make_trajectory(str(path), 2)
+    np.testing.assert_array_equal(mine.design.coeffs, _random_design().coeffs)
+    with pytest.raises(ValueError, match="designed for 2 robots"):
+        make_trajectory(str(path), 3)
+    with pytest.raises(ValueError, match="unknown trajectory"):
+        make_trajectory("loop", 2)
+    with pytest.raises(ValueError, match="fast"):
+        make_trajectory("excite", 2, fast=True)
+    with pytest.raises(ValueError, match="no excitation design shipped"):
+        make_trajectory("excite", 7)  # none shipped, and no world to design one for
