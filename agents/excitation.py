@@ -363,7 +363,7 @@ def derived_jacobian(pi: np.ndarray, step: float = 1e-7) -> np.ndarray:
 class Limits:
     """What the design must respect (module docstring)."""
 
-    thrust_margin: float = 0.15  # fraction of every axis's limit left to the feedback
+    thrust_margin: float = 0.25  # fraction of every axis's limit left to the feedback
     clearance_m: float = 0.15  # hull to walls
     pan_range_rad: float = PAN_RANGE_RAD
     pan_rate_radps: float = SERVO_RATE_RADPS
@@ -820,6 +820,8 @@ class ExcitationDesigner:
             x, shrink = self._feasible_scale(x)
             ev = self.evaluate(self.design_of(x))
             score = float(np.max(ev["ratios"]))
+            if not np.isfinite(score):  # scaled to nothing: no information
+                score = np.inf
             if verbose:
                 print(
                     f"start {k}: worst bound/target {score:.3f} (shrink {shrink:.3f}), "
