@@ -1,0 +1,246 @@
+"""The excitation designer (agents/excitation.py): rest at both ends, the analytic derivatives,
+the limits checked through the controller's own allocation, the predicted Fisher information
+against an independent per-sample computation, and the JSON round trip."""
+
+import numpy as np
+import pytest
+
+from astrocargo.agents.controllers import CargoState, CooperativeController, RobotState
+from astrocargo.agents.excitation import (
+    TILT_DEPLOYED_RAD,
+    DesignedTrajectory,
+    DesignSettings,
+    ExcitationDesign,
+    ExcitationDesigner,
+    shipped_design,
+    window,
+    window_integral,
+)
+from astrocargo.envs.sensors import estimator_noise_kwargs, noise_profile
+from astrocargo.envs.world import World
+from astrocargo.estimator.cargo_estimator import default_prior
+from astrocargo.estimator.geometry import quat_to_mat
+from astrocargo.estimator.inertia import transform_params
+from astrocargo.estimator.rne import body_regressor, grasp_from_base, grasp_pose, wrench_transform
+
+DT = 1.0 / 62.5
+
+
+def _random_design(seed: int = 1, n_harm: int = 3, spin=(0.03, -0.02, 0.04)) -> ExcitationDesign:
+    rng = np.random.default_rng(seed)
+    coeffs = rng.normal(0.0, 0.05, (7, 2 * n_harm))
+    return ExcitationDesign(coeffs, 30.0, 60.0, 8.0, 2, (0.1, -0.05, 0.0), spin_radps=spin)
+
+
+@pytest.fixture(scope="module")
+def model():
+    from astrocargo.agents.excitation import model_for_world
+
+    kwargs = estimator_noise_kwargs(noise_profile("nominal"))
+    return model_for_world(World(2), estimator_kwargs=kwargs)
+
+
+def test_design_starts_and_ends_at_rest():
+    design = _random_design()
+    traj = DesignedTrajectory(design)
+    for t in (0.0, design.duration_s, design.duration_s + 5.0):
+        ref = traj(t)
+        for v in (ref.vel, ref.acc, ref.w, ref.wd):
+            np.testing.assert_allclose(v, 0.0, atol=1e-12)
+        assert abs(ref.pan) < 1e-12 and abs(ref.pan_rate) < 1e-12
+        np.testing.assert_allclose(ref.pos, design.center_m, atol=1e-12)
+    np.testing.assert_allclose(traj(0.0).rot, np.eye(3), atol=1e-12)
+    # In between it moves.
+    assert np.linalg.norm(traj(design.duration_s / 2).w) > 1e-3
+
+
+def test_window_and_its_integral():
+    t = np.linspace(-1.0, 61.0, 62001)
+    s, sd, sdd = window(t, 60.0, 8.0)
+    dt = t[1] - t[0]
+    np.testing.assert_allclose(np.gradient(s, dt)[1:-1], sd[1:-1], atol=1e-4)
+    np.testing.assert_allclose(np.gradient(sd, dt)[1:-1], sdd[1:-1], atol=1e-3)
+    integral = np.concatenate(([0.0], np.cumsum(0.5 * (s[1:] + s[:-1]) * dt)))
+    np.testing.assert_allclose(window_integral(t, 60.0, 8.0), integral, atol=1e-6)
+    assert window_integral(np.array([60.0]), 60.0, 8.0)[0] == pytest.approx(52.0)
+
+
+def test_analytic_rates_match_finite_differences():
+    traj = DesignedTrajectory(_random_design())
+    h = 1e-4
+    for t in (7.0, 23.3, 41.9):
+        m = traj.motion(np.array([t - h, t, t + h]))
+        np.testing.assert_allclose((m.pos[2] - m.pos[0]) / (2 * h), m.vel[1], atol=1e-7)
+        np.testing.assert_allclose((m.vel[2] - m.vel[0]) / (2 * h), m.acc[1], atol=1e-7)
+        np.testing.assert_allclose((m.w[2] - m.w[0]) / (2 * h), m.wd[1], atol=1e-7)
+        np.testing.assert_allclose((m.pan[2] - m.pan[0]) / (2 * h), m.pan_rate[1], atol=1e-7)
+        # R' R^T = skew(w), world axes.
+        rdot = (m.rot[2] - m.rot[0]) / (2 * h)
+        sk = rdot @ m.rot[1].T
+        np.testing.assert_allclose([sk[2, 1], sk[0, 2], sk[1, 0]], m.w[1], atol=1e-7)
+        values = traj.values(t)
+        np.testing.assert_allclose(values.rot, m.rot[1], atol=1e-15)
+        np.testing.assert_allclose(values.wd, m.wd[1], atol=1e-15)
+
+
+def test_json_round_trip(tmp_path):
+    design = _random_design()
+    design = ExcitationDesign(
+        design.coeffs, 30.0, 60.0, 8.0, 2, (0.1, -0.05, 0.0), {"predicted": [0.1]}, (0.1, 0, 0)
+    )
+    path = tmp_path / "d.json"
+    design.save(path)
+    back = ExcitationDesign.load(path)
+    np.testing.assert_array_equal(back.coeffs, design.coeffs)
+    assert (back.period_s, back.duration_s, back.ramp_s, back.n_robots) == (30.0, 60.0, 8.0, 2)
+    assert back.center_m == design.center_m and back.spin_radps == design.spin_radps
+    assert back.info == design.info
+    path.write_text('{"kind": "other"}')
+    with pytest.raises(ValueError, match="not an excitation design"):
+        ExcitationDesign.load(path)
+    with pytest.raises(ValueError, match="coeffs"):
+        ExcitationDesign(np.zeros((6, 4)), 30.0, 60.0, 8.0, 2)
+
+
+def _controller_commands(model, ref, pan: float) -> list[np.ndarray]:
+    """Feed-forward commands through CooperativeController itself (no error, the design cargo),
+    before its uniform scaling at saturation."""
+    states = []
+    for i in range(model.n_robots):
+        rot_cb, pos_cb = model.base_in_cargo(i, pan)
+        states.append(
+            RobotState(
+                ref.rot @ rot_cb, ref.pos + ref.rot @ pos_cb, np.array([TILT_DEPLOYED_RAD, pan])
+            )
+        )
+    cargo = CargoState(ref.rot, ref.pos, ref.vel, ref.w)
+    controller = CooperativeController(model.robots)
+    commands = controller.commands(ref, cargo, states, model.cargo_params)
+    return [u * max(controller.last_ratio, 1.0) for u in commands]
+
+
+def test_shipped_design_respects_limits_through_the_allocation(model):
+    design = shipped_design(2)
+    traj = DesignedTrajectory(design)
+    lim = model.limits
+    # Servo range and rate at the control rate.
+    m = traj.motion(np.arange(0.0, design.duration_s + DT, DT))
+    assert np.max(np.abs(m.pan)) <= lim.pan_range_rad + 1e-9
+    assert np.max(np.abs(m.pan_rate)) <= lim.pan_rate_radps * (1 - lim.pan_rate_margin) + 1e-9
+    # Thrust per axis through the controller's own allocation, every 0.25 s.
+    worst = 0.0
+    for t in np.arange(0.0, design.duration_s, 0.25):
+        ref = traj(t)
+        for u, robot in zip(_controller_commands(model, ref, ref.pan), model.robots, strict=True):
+            worst = max(worst, float(np.max(np.abs(u) / robot.thrust_limit)))
+    assert 0.3 < worst <= (1 - lim.thrust_margin) * 1.01
+    # Wall clearance of the assembly's hull.
+    reach = np.abs(m.pos[:, :, None] + m.rot @ model.hull.T).max(axis=2)
+    assert np.all(reach + lim.clearance_m <= model.aisle_half * (1 + 1e-6))
+
+
+def test_tabulated_allocation_matches_the_controller(model):
+    traj = DesignedTrajectory(_random_design(n_harm=2))
+    times = np.array([5.0, 17.0, 33.0, 49.0])
+    cmd = model.commands(traj.motion(times))
+    for k, t in enumerate(times):
+        ref = traj(t)
+        expected = np.stack(_controller_commands(model, ref, ref.pan))
+        np.testing.assert_allclose(cmd[k], expected, rtol=2e-3, atol=2e-3 * np.abs(expected).max())
+
+
+def test_predicted_fisher_equals_the_regressor_on_the_designs_motion(model):
+    """The model's F against a per-sample computation from the Reference, the controller's
+    commands and the estimator's noise pieces."""
+    est = model.estimator
+    traj = DesignedTrajectory(_random_design(n_harm=2))
+    times = np.arange(4.0, 60.0, 0.8)
+    rot_ch, pos_ch = model.handrails[0]
+    fisher = np.zeros((10, 10))
+    for t in times:
+        ref = traj(t)
+        rot_wg = ref.rot @ rot_ch
+        p = ref.rot @ pos_ch
+        acc = ref.acc + np.cross(ref.wd, p) + np.cross(ref.w, np.cross(ref.w, p))
+        a = body_regressor(rot_wg.T @ acc, rot_wg.T @ ref.w, rot_wg.T @ ref.wd)
+        cov = np.zeros((6, 6))
+        for j, (robot, u) in enumerate(
+            zip(model.robots, _controller_commands(model, ref, ref.pan), strict=True)
+        ):
+            rot_bg, pos_bg = grasp_pose(robot, np.array([TILT_DEPLOYED_RAD, ref.pan]))
+            to_grasp = grasp_from_base(rot_bg, pos_bg) @ wrench_transform(
+                robot.thrust_rot, robot.thrust_pos
+            )
+            if j:
+                rot_j, pos_j = model.handrails[j]
+                to_grasp = (
+                    wrench_transform(rot_ch.T @ rot_j, rot_ch.T @ (pos_j - pos_ch)) @ to_grasp
+                )
+            std = np.repeat(est.actuation_noise[[0, 2]], 3) + np.repeat(
+                est.actuation_noise[[1, 3]], 3
+            ) * np.abs(u)
+            cov += to_grasp @ np.diag(std**2) @ to_grasp.T
+        lever = np.linalg.norm(
+            grasp_pose(model.robots[0], np.array([TILT_DEPLOYED_RAD, ref.pan]))[1]
+        )
+        r = est.meas_cov + cov / est.update_every + model.sensor_cov(lever)
+        fisher += a.T @ np.linalg.solve(r, a)
+    predicted = model.fisher(traj.motion(times))
+    np.testing.assert_allclose(predicted, fisher, rtol=5e-3, atol=5e-3 * np.abs(fisher).max())
+
+
+def test_sensor_covariance_is_the_estimators():
+    """With the estimator's own prior as the design cargo, the model's errors-in-variables
+    covariance equals CargoEstimator._sensor_cov at that estimate."""
+    from astrocargo.agents.excitation import model_for_world
+
+    world = World(2)
+    robot = world.robot_model(0)
+    site = world.handrail_sites[0]
+    rot = quat_to_mat(np.asarray(world.model.site_quat[site], dtype=float))
+    pos = world.model.site_pos[site].copy()
+    prior_grasp = default_prior(robot)
+    cargo = transform_params(prior_grasp, rot, pos)  # grasp frame -> cargo frame
+    kwargs = estimator_noise_kwargs(noise_profile("nominal"))
+    model = model_for_world(world, cargo, kwargs)
+    np.testing.assert_allclose(model.cargo_grasp, prior_grasp, atol=1e-12)
+    est = model.estimator
+    lever = 0.3
+    est._grasp_lever = lever
+    np.testing.assert_allclose(model.sensor_cov(lever), est._sensor_cov(), rtol=1e-12)
+
+
+def test_designer_improves_on_its_start(model):
+    """A short design run ends feasible on a dense grid and beats its own random start made
+    feasible by scaling."""
+    settings = DesignSettings(duration_s=40.0, n_harmonics=2, ramp_s=8.0, starts=1, maxiter=15)
+    designer = ExcitationDesigner(model, settings)
+    x0 = np.random.default_rng(settings.seed).normal(0.0, settings.start_std, designer.n_vars)
+    x0_feasible, _ = designer._feasible_scale(x0 * designer.free())
+    start_worst = np.max(designer.evaluate(designer.design_of(x0_feasible))["ratios"])
+    design = designer.run()
+    assert max(design.info["max_violation"].values()) <= 1e-9
+    found_worst = np.max(designer.evaluate(design)["ratios"])
+    assert found_worst < 0.9 * start_worst
+    assert set(design.info["predicted_bounds"]) >= {"mass_rel", "com_m", "principal_rel"}
+
+
+def test_make_trajectory_names(tmp_path):
+    from astrocargo.agents.excitation import make_trajectory
+    from astrocargo.agents.trajectories import Trajectory
+
+    assert isinstance(make_trajectory("figure8_tumble", 2), Trajectory)
+    excite = make_trajectory("excite", 2)
+    assert isinstance(excite, DesignedTrajectory) and excite.design.n_robots == 2
+    path = tmp_path / "mine.json"
+    _random_design().save(path)
+    mine = make_trajectory(str(path), 2)
+    np.testing.assert_array_equal(mine.design.coeffs, _random_design().coeffs)
+    with pytest.raises(ValueError, match="designed for 2 robots"):
+        make_trajectory(str(path), 3)
+    with pytest.raises(ValueError, match="unknown trajectory"):
+        make_trajectory("loop", 2)
+    with pytest.raises(ValueError, match="fast"):
+        make_trajectory("excite", 2, fast=True)
+    with pytest.raises(ValueError, match="no excitation design shipped"):
+        make_trajectory("excite", 7)  # none shipped, and no world to design one for
