@@ -47,7 +47,7 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit
 
-from astrocargo.estimator.geometry import exp_so3
+from astrocargo.estimator.geometry import exp_so3, matmul3
 
 NOMINAL_SPEED_MPS = 0.2
 NOMINAL_ACCEL_MPS2 = 0.0175
@@ -218,8 +218,8 @@ def _attitude_zxy(
     de_y/dt = (yaw' e_z + roll' e_x) x e_y give w'."""
     e_z = np.array([0.0, 0.0, 1.0])
     rot_z = exp_so3(yaw[0] * e_z)
-    rot_zx = rot_z @ exp_so3(np.array([roll[0], 0.0, 0.0]))
-    rot = rot_zx @ exp_so3(np.array([0.0, pitch[0], 0.0]))
+    rot_zx = matmul3(rot_z, exp_so3(np.array([roll[0], 0.0, 0.0])))
+    rot = matmul3(rot_zx, exp_so3(np.array([0.0, pitch[0], 0.0])))
     e_x = rot_z[:, 0].copy()
     e_y = rot_zx[:, 1].copy()
     w_z = yaw[1] * e_z

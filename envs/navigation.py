@@ -25,7 +25,7 @@ import numpy as np
 from numba import njit
 
 from astrocargo.envs.sensors import NoiseProfile, SensorPacket
-from astrocargo.estimator.geometry import exp_so3, log_so3, quat_to_mat
+from astrocargo.estimator.geometry import exp_so3, log_so3, matmul3, matvec3, quat_to_mat
 from astrocargo.estimator.rne import RobotDescription
 
 # Floors of the navigation filter's noise model, so the ideal profile stays well posed.
@@ -35,10 +35,10 @@ NAV_STD_FLOOR = 1e-9
 @njit(cache=True)
 def _propagate(rot, pos, vel, gyro, accel, imu_rot, dt_s):
     """Dead reckoning of one robot's IMU point over one period: R', p', v', w."""
-    w = imu_rot @ gyro
-    rot_mid_imu = rot @ exp_so3(0.5 * dt_s * w) @ imu_rot
-    rot_new = rot @ exp_so3(dt_s * w)
-    vel_new = vel + dt_s * (rot_mid_imu @ accel)
+    w = matvec3(imu_rot, gyro)
+    rot_mid_imu = matmul3(matmul3(rot, exp_so3(0.5 * dt_s * w)), imu_rot)
+    rot_new = matmul3(rot, exp_so3(dt_s * w))
+    vel_new = vel + dt_s * matvec3(rot_mid_imu, accel)
     return rot_new, pos + 0.5 * dt_s * (vel + vel_new), vel_new, w
 
 
@@ -46,8 +46,8 @@ def _propagate(rot, pos, vel, gyro, accel, imu_rot, dt_s):
 def _blend_fix(rot, pos, vel, fix_quat, fix_pos, imu_pos, gain_att, gain_pos, gain_vel):
     """One robot's Kalman blend of a localization fix: R, p, v."""
     fix_rot = quat_to_mat(fix_quat)
-    rot = rot @ exp_so3(gain_att * log_so3(np.ascontiguousarray(rot.T) @ fix_rot))
-    innovation = fix_pos + rot @ imu_pos - pos
+    rot = matmul3(rot, exp_so3(gain_att * log_so3(matmul3(rot.T, fix_rot))))
+    innovation = fix_pos + matvec3(rot, imu_pos) - pos
     return rot, pos + gain_pos * innovation, vel + gain_vel * innovation
 
 
@@ -85,8 +85,8 @@ def navigate(
                 (c11 - gain_v * c01),
             )
         cov[i, 0], cov[i, 1], cov[i, 2], cov[i, 3] = c00, c01, c10, c11
-        base_pos[i] = pos[i] - rot[i] @ imu_pos[i]
-        base_vel[i] = vel[i] - rot[i] @ np.cross(w[i], imu_pos[i])
+        base_pos[i] = pos[i] - matvec3(rot[i], imu_pos[i])
+        base_vel[i] = vel[i] - matvec3(rot[i], np.cross(w[i], imu_pos[i]))
 
 
 class BaseNavigator:

@@ -35,7 +35,14 @@ import numpy as np
 from numba import njit
 
 from astrocargo.envs.world import World
-from astrocargo.estimator.geometry import exp_so3, log_so3, quat_mul, rotvec_to_quat
+from astrocargo.estimator.geometry import (
+    exp_so3,
+    log_so3,
+    matmul3,
+    matvec3,
+    quat_mul,
+    rotvec_to_quat,
+)
 
 
 @dataclass(frozen=True)
@@ -138,9 +145,9 @@ def imu_period_means(v0, r0, v1, r1, dt_s):
     n = v0.shape[0]
     accel, gyro = np.empty((n, 3)), np.empty((n, 3))
     for k in range(n):
-        rotvec = log_so3(np.ascontiguousarray(r0[k].T) @ r1[k])
-        r_mid = r0[k] @ exp_so3(0.5 * rotvec)
-        accel[k] = np.ascontiguousarray(r_mid.T) @ (v1[k] - v0[k]) / dt_s
+        rotvec = log_so3(matmul3(r0[k].T, r1[k]))
+        r_mid = matmul3(r0[k], exp_so3(0.5 * rotvec))
+        accel[k] = matvec3(r_mid.T, v1[k] - v0[k]) / dt_s
         gyro[k] = rotvec / dt_s
     return accel, gyro
 

@@ -33,7 +33,7 @@ from astrocargo.envs.sensors import SensorPacket, SensorSuite, estimator_noise_k
 from astrocargo.envs.sensors import noise_profile as get_noise_profile
 from astrocargo.envs.world import ARM_DEPLOYED_RAD, MAX_TIMESTEP_S, World
 from astrocargo.estimator.cargo_estimator import CargoEstimator
-from astrocargo.estimator.geometry import log_so3, mat_to_quat, quat_to_mat
+from astrocargo.estimator.geometry import log_so3, mat_to_quat, matmul3, quat_to_mat
 from astrocargo.estimator.inertia import (
     com_error_m,
     mass_rel_error,
@@ -53,7 +53,7 @@ TERMINATION_REASONS = ("wall_contact", "non_finite", "released")  # "released": 
 @njit(cache=True)
 def tracking_errors(pos, rot, ref_pos, ref_rot):
     """Position error |p - p_ref| (m) and rotation angle error |log(R_ref^T R)| (rad)."""
-    angle = log_so3(np.ascontiguousarray(ref_rot.T) @ rot)
+    angle = log_so3(matmul3(ref_rot.T, rot))
     return np.linalg.norm(pos - ref_pos), np.linalg.norm(angle)
 
 

@@ -10,8 +10,9 @@ Conventions, used everywhere in astrocargo:
 
 Every function here takes and returns float64 numpy arrays of fixed shape and is compiled with
 numba (``@njit(cache=True)``), so compiled kernels elsewhere call them directly and Python callers
-pay one dispatch (~0.3 us). Batched forms, where a caller needs them, are numpy one-liners on top
-(``rotation_matrices``).
+pay one dispatch. ``matmul3`` and ``matvec3`` are the 3x3 products for compiled kernels (see
+their docstrings for why they exist). Batched forms, where a caller needs them, are numpy
+one-liners on top (``rotation_matrices``).
 
 Equations:
 - Rodrigues: ``exp(phi) = I + sin(a) K + (1 - cos(a)) K^2``, ``a = |phi|``, ``K = skew(phi / a)``.
@@ -30,6 +31,8 @@ from numba import njit
 
 __all__ = [
     "exp_so3",
+    "matmul3",
+    "matvec3",
     "log_so3",
     "mat_to_quat",
     "quat_conj",
@@ -42,6 +45,30 @@ __all__ = [
 ]
 
 _SMALL_ANGLE_RAD = 1e-12
+
+
+@njit(cache=True)
+def matmul3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The product a b (3, 3) of two 3x3 matrices, C_ij = sum_k A_ik B_kj, any strides (a.T too).
+
+    Inside numba, ``@`` on float64 arrays is a BLAS call whose fixed cost is several times the 27
+    multiply-adds of a 3x3 product (and it needs contiguous operands); the small-matrix kernels
+    of the step use this loop instead. Equal to ``a @ b`` to rounding."""
+    out = np.empty((3, 3))
+    for i in range(3):
+        for j in range(3):
+            out[i, j] = a[i, 0] * b[0, j] + a[i, 1] * b[1, j] + a[i, 2] * b[2, j]
+    return out
+
+
+@njit(cache=True)
+def matvec3(a: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """The product a v (3,) of a 3x3 matrix and a 3-vector, any strides; ``matmul3``'s reason
+    (a loop, not BLAS) holds here too. Equal to ``a @ v`` to rounding."""
+    out = np.empty(3)
+    for i in range(3):
+        out[i] = a[i, 0] * v[0] + a[i, 1] * v[1] + a[i, 2] * v[2]
+    return out
 
 
 @njit(cache=True)
@@ -61,7 +88,7 @@ def exp_so3(rotvec: np.ndarray) -> np.ndarray:
     if angle < _SMALL_ANGLE_RAD:
         return np.eye(3) + skew(rotvec)
     k = skew(rotvec / angle)
-    return np.eye(3) + math.sin(angle) * k + (1.0 - math.cos(angle)) * (k @ k)
+    return np.eye(3) + math.sin(angle) * k + (1.0 - math.cos(angle)) * matmul3(k, k)
 
 
 @njit(cache=True)
@@ -94,7 +121,7 @@ def quat_to_mat(quat: np.ndarray) -> np.ndarray:
     """Rotation matrix (3, 3) of a quaternion (w, x, y, z); the quaternion is normalised first."""
     q = quat / math.sqrt(quat[0] ** 2 + quat[1] ** 2 + quat[2] ** 2 + quat[3] ** 2)
     w, v = q[0], q[1:4]
-    return (w * w - v @ v) * np.eye(3) + 2.0 * np.outer(v, v) + 2.0 * w * skew(v)
+    return (w * w - np.sum(v * v)) * np.eye(3) + 2.0 * np.outer(v, v) + 2.0 * w * skew(v)
 
 
 @njit(cache=True)
