@@ -24,7 +24,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from astrocargo.envs.sensors import NoiseProfile, SensorPacket
+from astrocargo.envs.sensors import NoiseProfile, SensorReadings
 from astrocargo.estimator.geometry import exp_so3, log_so3, matmul3, matvec3, quat_to_mat
 from astrocargo.estimator.rne import RobotDescription
 
@@ -111,19 +111,19 @@ class BaseNavigator:
         self.w_base, self.base_pos, self.base_vel = np.zeros((3, n, 3))
         self._p, self._v = np.zeros((2, n, 3))
         self._cov, self.att_cov = np.zeros((n, 4)), np.zeros(n)
-        # The last IMU means (held when a frame is missing) and this period's fix.
-        self._gyro, self._accel, self._fix_pos = np.zeros((3, n, 3))
-        self._fix_quat, self._has_fix = np.zeros((n, 4)), np.zeros(n, dtype=np.bool_)
+        # The last IMU means (held when a frame is missing).
+        self._gyro, self._accel = np.zeros((2, n, 3))
 
-    def reset(self, packets: list[SensorPacket]) -> None:
-        """Start every robot at rest at its packet's localization fix."""
-        for i, packet in enumerate(packets):
-            if packet.base_pos_world is None or packet.base_quat_world is None:
-                raise ValueError("the navigator starts from a packet with a localization fix")
-            self.rot[i] = quat_to_mat(np.ascontiguousarray(packet.base_quat_world, dtype=float))
-            self._gyro[i] = 0.0 if packet.gyro_imu is None else packet.gyro_imu  # at rest
-            self._accel[i] = 0.0 if packet.accel_imu is None else packet.accel_imu
-            self._p[i] = packet.base_pos_world + self.rot[i] @ self.imu_pos[i]
+    def reset(self, readings: SensorReadings) -> None:
+        """Start every robot at rest at its localization fix (each row must have one)."""
+        if not readings.has_fix.all():
+            raise ValueError("the navigator starts from readings with a localization fix")
+        for i in range(len(self.rot)):
+            self.rot[i] = quat_to_mat(np.ascontiguousarray(readings.base_quat_world[i]))
+        # At rest: the IMU means, where the frame arrived.
+        self._gyro[:] = np.where(readings.has_imu[:, None], readings.gyro_imu, 0.0)
+        self._accel[:] = np.where(readings.has_imu[:, None], readings.accel_imu, 0.0)
+        self._p[:] = readings.base_pos_world + np.einsum("nij,nj->ni", self.rot, self.imu_pos)
         self.w_base[:] = np.einsum("nij,nj->ni", self.imu_rot, self._gyro)
         self._v[:] = 0.0
         self._cov[:] = (self.pos_var, 0.0, 0.0, NAV_STD_FLOOR**2)
@@ -131,21 +131,15 @@ class BaseNavigator:
         self.base_pos[:] = self._p - np.einsum("nij,nj->ni", self.rot, self.imu_pos)
         self.base_vel[:] = -np.einsum("nij,nj->ni", self.rot, np.cross(self.w_base, self.imu_pos))
 
-    def update(self, packets: list[SensorPacket | None], acting: np.ndarray) -> None:
-        """Propagate the ``acting`` robots (bool (N,)) over one control period with their
-        packets' IMU means (the previous ones where a frame is missing); blend in their fixes."""
-        for i, packet in enumerate(packets):
-            if packet is None:
-                continue
-            if packet.gyro_imu is not None and packet.accel_imu is not None:
-                self._gyro[i], self._accel[i] = packet.gyro_imu, packet.accel_imu
-            fix = packet.base_pos_world is not None and packet.base_quat_world is not None
-            self._has_fix[i] = fix
-            if fix:
-                self._fix_pos[i], self._fix_quat[i] = packet.base_pos_world, packet.base_quat_world
+    def update(self, readings: SensorReadings, acting: np.ndarray) -> None:
+        """Propagate the ``acting`` robots (bool (N,)) over one control period with their IMU
+        means (the previous ones where a frame is missing); blend in their fixes. ``readings``
+        has one row per robot index."""
+        np.copyto(self._gyro, readings.gyro_imu, where=readings.has_imu[:, None])
+        np.copyto(self._accel, readings.accel_imu, where=readings.has_imu[:, None])
         navigate(
             self.rot, self._p, self._v, self.w_base, self._cov, self.att_cov, self._gyro,
-            self._accel, self._fix_pos, self._fix_quat, self._has_fix, acting, self.imu_rot,
-            self.imu_pos, self.dt_s, self._q, self.pos_var, self.att_var, self.gyro_step_var,
-            self.base_pos, self.base_vel,
+            self._accel, readings.base_pos_world, readings.base_quat_world, readings.has_fix,
+            acting, self.imu_rot, self.imu_pos, self.dt_s, self._q, self.pos_var, self.att_var,
+            self.gyro_step_var, self.base_pos, self.base_vel,
         )  # fmt: skip

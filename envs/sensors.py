@@ -28,6 +28,7 @@ and 5e-4 N m + 2 %.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, replace
 
 import mujoco
@@ -118,10 +119,45 @@ class SensorPacket:
     base_quat_world: np.ndarray | None  # (4,) w x y z, only at a localization fix
 
 
-def _perturb_quat(quat: np.ndarray, rotvec: np.ndarray) -> np.ndarray:
-    """The attitude ``quat`` (w, x, y, z) perturbed in its body frame by ``rotvec``:
-    q exp(rotvec)."""
-    return quat_mul(np.ascontiguousarray(quat), rotvec_to_quat(np.ascontiguousarray(rotvec)))
+@dataclass(frozen=True)
+class SensorReadings:
+    """Every robot's readings at one control step as arrays, one row per robot; a row's IMU
+    frame and fix count only where ``has_imu`` / ``has_fix`` (the other entries are zeros or
+    stale). ``packet(k)`` is row k as a ``SensorPacket``."""
+
+    time_s: float
+    accel_imu: np.ndarray  # (n, 3) m/s^2, IMU frame
+    gyro_imu: np.ndarray  # (n, 3) rad/s, IMU frame
+    joint_pos_rad: np.ndarray  # (n, n_joints)
+    base_pos_world: np.ndarray  # (n, 3) m
+    base_quat_world: np.ndarray  # (n, 4) w x y z
+    has_imu: np.ndarray  # (n,) bool: the IMU frame arrived
+    has_fix: np.ndarray  # (n,) bool: a localization fix (at every localization_every-th step)
+
+    def packet(self, k: int) -> SensorPacket:
+        """Row k, with None for a missing IMU frame or fix."""
+        imu = (self.accel_imu[k], self.gyro_imu[k]) if self.has_imu[k] else (None, None)
+        fix = (self.base_pos_world[k], self.base_quat_world[k]) if self.has_fix[k] else (None,) * 2
+        return SensorPacket(self.time_s, *imu, self.joint_pos_rad[k], *fix)
+
+    def in_rows(self, rows: list[int], n_rows: int) -> SensorReadings:
+        """These readings as rows ``rows`` of ``n_rows`` (the others: zeros, nothing valid)."""
+        out = []
+        for value in dataclasses.astuple(self)[1:]:
+            full = np.zeros((n_rows, *value.shape[1:]), dtype=value.dtype)
+            full[rows] = value
+            out.append(full)
+        return SensorReadings(self.time_s, *out)
+
+
+@njit(cache=True)
+def perturb_quats(quats, rotvecs):
+    """Each attitude ``quats[k]`` (w, x, y, z) perturbed in its body frame by ``rotvecs[k]``:
+    q exp(rotvec), (n, 4)."""
+    out = np.empty((quats.shape[0], 4))
+    for k in range(quats.shape[0]):
+        out[k] = quat_mul(quats[k], rotvec_to_quat(rotvecs[k]))
+    return out
 
 
 @njit(cache=True)
@@ -216,6 +252,11 @@ class SensorSuite:
     def read(self, data: mujoco.MjData, step: int) -> list[SensorPacket]:
         """Readings of all robots at the end of control period ``step`` (``data`` after
         ``mj_forward``, with ``begin_period`` called at the period's start)."""
+        readings = self.read_arrays(data, step)
+        return [readings.packet(k) for k in range(len(readings.has_imu))]
+
+    def read_arrays(self, data: mujoco.MjData, step: int) -> SensorReadings:
+        """``read``'s readings as arrays, one row per robot (the same numbers)."""
         p = self.profile
         fix = step % p.localization_every == 0
         if self._start is None or len(self._start[0]) != len(self.world.robots):
@@ -227,16 +268,13 @@ class SensorSuite:
         accel = accel_mean + noise[:, 0:3]
         gyro = gyro_mean + noise[:, 3:6]
         joints = s[self._joint_adr] + noise[:, 6:8]
-        pos = quat = [None] * len(accel)
+        n = len(accel)
+        pos, quat = np.zeros((n, 3)), np.zeros((n, 4))
         if fix:
             pos = s[self._pos_adr] + noise[:, 8:11]
-            att = noise[:, 11:14]
-            quat = [_perturb_quat(q, a) for q, a in zip(s[self._quat_adr], att, strict=True)]
-        time_s = float(data.time)
-        return [
-            SensorPacket(time_s, *readings)
-            for readings in zip(accel, gyro, joints, pos, quat, strict=True)
-        ]
+            quat = perturb_quats(s[self._quat_adr], np.ascontiguousarray(noise[:, 11:14]))
+        has_imu, has_fix = np.ones(n, dtype=np.bool_), np.full(n, fix)
+        return SensorReadings(float(data.time), accel, gyro, joints, pos, quat, has_imu, has_fix)
 
     def actuate(self, command: np.ndarray) -> np.ndarray:
         """The propulsion wrench actually delivered for a commanded one (..., 6): command plus

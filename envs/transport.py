@@ -4,7 +4,6 @@ PettingZoo layer on top, and its docstring describes both."""
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from dataclasses import dataclass
 from typing import Any
@@ -29,7 +28,7 @@ from astrocargo.envs.faults import (
 from astrocargo.envs.navigation import BaseNavigator
 from astrocargo.envs.observations import ObservationBuilder, observation_layout
 from astrocargo.envs.rewards import ROTATION_WEIGHT_M_PER_RAD, reward_terms
-from astrocargo.envs.sensors import SensorPacket, SensorSuite, estimator_noise_kwargs
+from astrocargo.envs.sensors import SensorReadings, SensorSuite, estimator_noise_kwargs
 from astrocargo.envs.sensors import noise_profile as get_noise_profile
 from astrocargo.envs.world import ARM_DEPLOYED_RAD, MAX_TIMESTEP_S, World
 from astrocargo.estimator.cargo_estimator import CargoEstimator
@@ -253,10 +252,10 @@ class CargoTransport:
         self.step_count = 0
         self._ready = True
 
-        packets = self._read_at_rest()
-        self._update_estimators(packets, np.zeros((self.n_robots, 6)), 0)
-        self.navigator.reset(packets)
-        self.packets = packets
+        readings = self._read_at_rest()
+        self._update_estimators(readings, np.zeros((self.n_robots, 6)), 0)
+        self.navigator.reset(readings)
+        self.readings = readings
         self._refresh_estimates()
         self._log_std_sum = self._estimate_log_std_sums()
         everyone = self.holding
@@ -266,17 +265,17 @@ class CargoTransport:
         infos = self._get_infos(zero_terms, none, none, None, everyone, ())
         return obs, infos
 
-    def _read_at_rest(self) -> list[SensorPacket]:
+    def _read_at_rest(self) -> SensorReadings:
         """The first reading: the robots rest for one period before the episode starts, so the
         IMU reads its noise only, and a localization fix and the encoders come with it."""
         t0 = float(self.data.time)
         self.sensors.begin_period(self.data)
         self.data.time = t0 + self.dt_s
         try:
-            packets = self.sensors.read(self.data, 0)
+            readings = self.sensors.read_arrays(self.data, 0)
         finally:
             self.data.time = t0
-        return packets  # every robot holds at reset: one packet per robot, in index order
+        return readings  # every robot holds at reset: one row per robot, in index order
 
     def step(self, actions: np.ndarray) -> StepResult:
         """Advance one control period with ``actions`` (n_robots, 8) in [-1, 1] (clipped); the
@@ -308,10 +307,10 @@ class CargoTransport:
         mujoco.mj_step(self.model, self.data, nstep=self.frame_skip)
         self._forward_kinematics()
         finite = self._physics_finite()
-        packets = self._read_sensors(k)
-        self._update_estimators(packets, commands, k)
-        self.navigator.update(packets, self._acting_mask)
-        self.packets = packets
+        readings = self._read_sensors(k)
+        self._update_estimators(readings, commands, k)
+        self.navigator.update(readings, self._acting_mask)
+        self.readings = readings
 
         robot_contacts, cargo_contacts = self._wall_contacts()
         # A release due with a non-finite state does not happen: the episode ends (non_finite).
@@ -401,29 +400,27 @@ class CargoTransport:
             np.isfinite(self._qpos).all() and np.isfinite(self._qvel).all() and not unstable
         )
 
-    def _read_sensors(self, k: int) -> list[SensorPacket]:
-        """Every robot's packet (None for a robot that has let go), with the faults of step ``k``
-        applied (after the sensor noise draws, so a run with faults draws the same noise as one
-        without)."""
-        packets: list[SensorPacket | None] = [None] * self.n_robots
-        for h, packet in zip(self.world.robots, self.sensors.read(self.data, k), strict=True):
-            packets[h.index] = packet
+    def _read_sensors(self, k: int) -> SensorReadings:
+        """Every robot's readings, one row per robot index (nothing valid in the rows of robots
+        that have let go), with the faults of step ``k`` applied (after the sensor noise draws,
+        so a run with faults draws the same noise as one without)."""
+        readings = self.sensors.read_arrays(self.data, k)
+        if not isinstance(self._rows, slice):  # some robots let go: their rows stay empty
+            readings = readings.in_rows(self._rows, self.n_robots)
         for fault in self._active_faults("imu_dropout", k):
             i = fault.robot
-            if packets[i] is None or packets[i].accel_imu is None:
+            if not readings.has_imu[i]:
                 continue  # let go, or two overlapping dropouts
             if fault.prob < 1.0 and self.fault_rng.random() >= fault.prob:
                 continue
-            packets[i] = dataclasses.replace(packets[i], accel_imu=None, gyro_imu=None)
+            readings.has_imu[i] = False
             self.fault_counts["imu_frames_missing"][i] += 1
         for fault in self._active_faults("localization_outage", k):
             i = fault.robot
-            if packets[i] is not None and packets[i].base_pos_world is not None:
-                packets[i] = dataclasses.replace(
-                    packets[i], base_pos_world=None, base_quat_world=None
-                )
+            if readings.has_fix[i]:
+                readings.has_fix[i] = False
                 self.fault_counts["fixes_missing"][i] += 1
-        return packets
+        return readings
 
     def _active_faults(self, kind: str, k: int) -> list[Fault]:
         """The faults of ``kind`` active at control step ``k``."""
@@ -447,13 +444,13 @@ class CargoTransport:
             for i in range(self.n_robots)
         ]
 
-    def _update_estimators(self, packets: list[SensorPacket], commands: np.ndarray, k: int) -> None:
+    def _update_estimators(self, readings: SensorReadings, commands: np.ndarray, k: int) -> None:
         """Each estimator ingests its own packet and command; messages go through the channel;
         what is due is delivered; each estimator updates with its complete instants."""
         if not self.estimators:
             return
         for i in self.holding:
-            est, packet, command = self.estimators[i], packets[i], commands[i]
+            est, packet, command = self.estimators[i], readings.packet(i), commands[i]
             msg = est.step(
                 k,
                 packet.accel_imu,
@@ -550,13 +547,10 @@ class CargoTransport:
         n, nav = self.n_robots, self.navigator
         acting = np.zeros(n, dtype=np.bool_)
         acting[list(robots)] = True
-        joint_pos = np.zeros((n, 2))
-        for i in robots:
-            joint_pos[i] = self.packets[i].joint_pos_rad
         peer_wrench, peer_age, peer_valid = self._peer_slot_values(robots)
         return self._observations.build(
-            acting, nav.rot, nav.base_pos, nav.base_vel, nav.w_base, joint_pos, self.arm_targets,
-            ref_rot, ref_vecs, ref_pan, peer_wrench, peer_age, peer_valid,
+            acting, nav.rot, nav.base_pos, nav.base_vel, nav.w_base, self.readings.joint_pos_rad,
+            self.arm_targets, ref_rot, ref_vecs, ref_pan, peer_wrench, peer_age, peer_valid,
             self._estimates,
         )  # fmt: skip
 
