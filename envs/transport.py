@@ -13,6 +13,14 @@ import numpy as np
 from numba import njit
 
 from astrocargo.agents.trajectories import Reference, Trajectory
+from astrocargo.envs.actions import (  # noqa: F401 (re-exported)
+    ACTION_DIM,
+    ARM_DEPLOYED,
+    ARM_OFFSET_RAD,
+    ARM_SPEED_RADPS,
+    first_non_finite,
+    scale_actions,
+)
 from astrocargo.envs.cargo import CARGO_COM_SPREAD_M, CargoDraw  # noqa: F401
 from astrocargo.envs.comms import CommChannel
 from astrocargo.envs.config import (
@@ -39,10 +47,6 @@ from astrocargo.estimator.inertia import (
     principal_rel_errors,
 )
 
-ACTION_DIM = 8
-ARM_DEPLOYED = np.asarray(ARM_DEPLOYED_RAD, dtype=float)
-ARM_OFFSET_RAD = 0.5  # reach of the arm actions around the deployed pose
-ARM_SPEED_RADPS = 0.12  # URDF joint velocity limit (facts file section 5)
 LOG_STD_FLOOR = 1e-12
 REWARD_KEYS = tuple(f"reward_{t}" for t in REWARD_TERMS)  # their names in infos
 _BAD_QACC = int(mujoco.mjtWarning.mjWARN_BADQACC)
@@ -259,7 +263,7 @@ class CargoTransport:
         self._refresh_estimates()
         self._log_std_sum = self._estimate_log_std_sums()
         everyone = self.holding
-        obs = self._get_obs(everyone)
+        obs = self._get_obs(self._acting_mask)
         zero_terms = {t: [0.0] * self.n_robots for t in REWARD_TERMS}
         none = np.zeros(self.n_robots, dtype=int)
         infos = self._get_infos(zero_terms, none, none, None, everyone, ())
@@ -288,22 +292,18 @@ class CargoTransport:
                 f"actions must have shape {(self.n_robots, ACTION_DIM)}, got {actions.shape}"
             )
         acting = self.holding  # the robots of this step, those letting go at its end included
-        rows = self._rows  # their rows: every row (a slice) or a list
-        acting_actions = actions[rows]
-        if not np.isfinite(acting_actions).all():
-            finite_rows = np.isfinite(acting_actions).all(axis=1)
-            raise ValueError(
-                f"actions of robot {acting[int(np.argmin(finite_rows))]} are not all finite"
-            )
-        acting_clipped = np.minimum(np.maximum(acting_actions, -1.0), 1.0)  # np.clip, faster
-        clipped = np.zeros_like(actions)
-        clipped[rows] = acting_clipped
-        n_clipped = np.zeros(self.n_robots, dtype=int)
-        n_clipped[rows] = (acting_clipped != acting_actions).sum(axis=1)
+        acting_mask = self._acting_mask
+        bad = first_non_finite(actions, acting_mask)
+        if bad >= 0:
+            raise ValueError(f"actions of robot {bad} are not all finite")
+        clipped, n_clipped, effort, commands, self.arm_targets = scale_actions(
+            actions, acting_mask, self.thrust_limits, self.arm_targets, self._joint_low,
+            self._joint_high, ARM_SPEED_RADPS * self.dt_s, ARM_DEPLOYED, ARM_OFFSET_RAD,
+        )  # fmt: skip
         self.step_count += 1
         k = self.step_count
 
-        commands = self._apply_actions(clipped)
+        self._apply_commands(commands)
         mujoco.mj_step(self.model, self.data, nstep=self.frame_skip)
         self._forward_kinematics()
         finite = self._physics_finite()
@@ -319,7 +319,7 @@ class CargoTransport:
             released = tuple(i for i in acting if self.release_steps.get(i) == k)
         if released:
             self._release(released)
-        obs = self._get_obs(acting)
+        obs = self._get_obs(acting_mask)
         if not np.isfinite(obs).all():
             finite = False
             obs = np.nan_to_num(obs, nan=0.0, posinf=0.0, neginf=0.0)
@@ -328,7 +328,9 @@ class CargoTransport:
             reason = "non_finite"
         elif robot_contacts.sum() + cargo_contacts > 0:
             reason = "wall_contact"
-        terms, rewards = self._get_rewards(clipped, robot_contacts, cargo_contacts, finite, acting)
+        terms, rewards = self._get_rewards(
+            -effort, robot_contacts, cargo_contacts, finite, acting_mask
+        )
         infos = self._get_infos(
             terms, n_clipped, robot_contacts + cargo_contacts, reason, acting, released
         )
@@ -358,18 +360,9 @@ class CargoTransport:
                 self.estimators[i].set_peers([j for j in self.holding if j != i])
 
     # ------------------------------------------------------------------ one step, in order
-    def _apply_actions(self, clipped: np.ndarray) -> np.ndarray:
-        """Scale to commands, write d.ctrl (thrust with actuation noise) of the robots holding
-        the cargo, start the period. Returns the thrust commands (n_robots, 6) each robot knows
-        it sent (zeros for those that have let go)."""
-        commands = clipped[:, :6] * self.thrust_limits
-        # The servo targets: the requested ones approached by at most max_move, within range.
-        max_move = ARM_SPEED_RADPS * self.dt_s
-        wanted = ARM_DEPLOYED + ARM_OFFSET_RAD * clipped[:, 6:]
-        move = np.minimum(np.maximum(wanted - self.arm_targets, -max_move), max_move)
-        self.arm_targets = np.minimum(
-            np.maximum(self.arm_targets + move, self._joint_low), self._joint_high
-        )
+    def _apply_commands(self, commands: np.ndarray) -> None:
+        """Write d.ctrl of the robots holding the cargo: the thrust ``commands`` (n_robots, 6)
+        with actuation noise and the servo targets; start the period."""
         rows = self._rows
         delivered = self.sensors.actuate(commands[rows])  # row k: robot holding[k]
         weakened = set()
@@ -382,7 +375,6 @@ class CargoTransport:
         self._ctrl[self._thrust_ctrl] = delivered
         self._ctrl[self._arm_ctrl] = self.arm_targets[rows]
         self.sensors.begin_period(self.data)
-        return commands
 
     def _forward_kinematics(self) -> None:
         """The stages of ``mj_forward`` that the step reads after ``mj_step``: positions,
@@ -539,29 +531,29 @@ class CargoTransport:
             self._ref_cache = [t, self.trajectory(t), None]
         return self._ref_cache
 
-    def _get_obs(self, robots: tuple[int, ...]) -> np.ndarray:
-        """Observations of ``robots`` (the others' rows zeros), assembled from the layout
-        (``envs.observations``). A peer that has let go of the cargo has its slot zeroed: its
+    def _get_obs(self, acting: np.ndarray) -> np.ndarray:
+        """Observations of the ``acting`` robots (bool (N,); the others' rows zeros), from the
+        layout (``envs.observations``). A peer that has let go of the cargo has its slot zeroed: its
         messages are forgotten (``_release``)."""
         ref_rot, ref_vecs, ref_pan = self._reference_arrays()
-        n, nav = self.n_robots, self.navigator
-        acting = np.zeros(n, dtype=np.bool_)
-        acting[list(robots)] = True
-        peer_wrench, peer_age, peer_valid = self._peer_slot_values(robots)
+        nav = self.navigator
+        peer_wrench, peer_age, peer_valid = self._peer_slot_values(acting)
         return self._observations.build(
             acting, nav.rot, nav.base_pos, nav.base_vel, nav.w_base, self.readings.joint_pos_rad,
             self.arm_targets, ref_rot, ref_vecs, ref_pan, peer_wrench, peer_age, peer_valid,
             self._estimates,
         )  # fmt: skip
 
-    def _peer_slot_values(self, robots: tuple[int, ...]) -> tuple[np.ndarray, ...]:
+    def _peer_slot_values(self, acting: np.ndarray) -> tuple[np.ndarray, ...]:
         """Each robot's peer slots: the latest message's wrench (world axes) (N, P, 6), its age
         in s and whether one has arrived (N, P); zeros before the first message."""
         n = self.n_robots
         wrench, age, valid = np.zeros((n, n - 1, 6)), np.zeros((n, n - 1)), np.zeros((n, n - 1))
         step_count, dt = self.step_count, self.dt_s
-        for i in robots:
+        for i in range(n):
             latest = self.peer_msgs[i]
+            if not acting[i] or not latest:
+                continue
             for p, j in enumerate(self._peer_slots[i]):
                 msg = latest.get(j)
                 if msg is not None:
@@ -579,27 +571,25 @@ class CargoTransport:
 
     def _get_rewards(
         self,
-        clipped: np.ndarray,
+        effort: np.ndarray,
         robot_contacts: np.ndarray,
         cargo_contacts: int,
         finite: bool,
-        robots: tuple[int, ...],
+        acting: np.ndarray,
     ) -> tuple[dict[str, list[float]], np.ndarray]:
         """Every reward term per robot, weighted and mixed (team vs individual), and their sum
-        per robot; the team of this step is ``robots`` (the others' rows zeros)."""
+        per robot; ``effort`` is -|a|^2 per robot; the team of this step is the ``acting``
+        robots (bool (N,); the others' rows zeros)."""
         if finite:
             pos_err, angle_err = self.tracking_error()
             track = -(pos_err + ROTATION_WEIGHT_M_PER_RAD * angle_err)
         else:
             track = 0.0
-        effort = -(clipped**2).sum(axis=1)
         log_std = self._estimate_log_std_sums()
         info = self._log_std_sum - log_std
         self._log_std_sum = log_std
         if not np.isfinite(info).all():
             info = np.zeros(self.n_robots)
-        acting = np.zeros(self.n_robots, dtype=np.bool_)
-        acting[list(robots)] = True
         return reward_terms(
             track, effort, info, robot_contacts, cargo_contacts, acting, self._weights,
             self.shared_reward,
