@@ -272,6 +272,16 @@ def _evaluate(t: float, shape: _Shape) -> tuple:
     return pos, vel, acc, rot, w, wd, pan, pan_rate
 
 
+@njit(cache=True)
+def _evaluate_arrays(t: float, shape: _Shape) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The reference at t as three arrays: rot (3, 3); pos, vel, acc, w, wd as the rows of a
+    (5, 3); (pan, pan_rate) (2,)."""
+    pos, vel, acc, rot, w, wd, pan, pan_rate = _evaluate(t, shape)
+    vecs = np.empty((5, 3))
+    vecs[0], vecs[1], vecs[2], vecs[3], vecs[4] = pos, vel, acc, w, wd
+    return rot, vecs, np.array([pan, pan_rate])
+
+
 class Trajectory:
     """A named reference: ``Trajectory(name, fast=False)(t)`` -> ``Reference`` at t (s).
 
@@ -320,6 +330,11 @@ class Trajectory:
 
     def __call__(self, t: float) -> Reference:
         return Reference(*_evaluate(float(t), self._shape))
+
+    def arrays(self, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The reference at ``t`` as arrays (the same numbers as ``self(t)``): rotation (3, 3);
+        pos, vel, acc, w, wd as the rows of a (5, 3), world axes; (pan, pan_rate) (2,)."""
+        return _evaluate_arrays(float(t), self._shape)
 
     def values(self, t: float) -> ReferenceValues:
         """The reference at ``t`` as Python floats (the same numbers as ``self(t)``)."""

@@ -161,15 +161,18 @@ def perturb_quats(quats, rotvecs):
 
 
 @njit(cache=True)
-def imu_site_velocity(cvel, site_xpos, subtree_com, bodies, roots, sites):
-    """Linear velocity (n, 3), world axes, of each site: its body's spatial velocity (MuJoCo's
-    ``cvel``: angular, linear at the root's subtree centre of mass c) moved to the site's point
-    p, v_p = v_c - (p - c) x w (as ``mj_objectVelocity`` with world axes)."""
-    out = np.empty((sites.shape[0], 3))
-    for k in range(sites.shape[0]):
+def imu_site_state(cvel, site_xpos, site_xmat, subtree_com, bodies, roots, sites):
+    """Linear velocity (n, 3), world axes, and rotation (n, 3, 3) of each site: its body's
+    spatial velocity (MuJoCo's ``cvel``: angular, linear at the root's subtree centre of mass c)
+    moved to the site's point p, v_p = v_c - (p - c) x w (as ``mj_objectVelocity`` with world
+    axes); the rotation is MuJoCo's ``site_xmat``."""
+    n = sites.shape[0]
+    vel, rot = np.empty((n, 3)), np.empty((n, 3, 3))
+    for k in range(n):
         w, v = cvel[bodies[k], :3], cvel[bodies[k], 3:]
-        out[k] = v - np.cross(site_xpos[sites[k]] - subtree_com[roots[k]], w)
-    return out
+        vel[k] = v - np.cross(site_xpos[sites[k]] - subtree_com[roots[k]], w)
+        rot[k] = site_xmat[sites[k]].reshape(3, 3)
+    return vel, rot
 
 
 @njit(cache=True)
@@ -229,11 +232,10 @@ class SensorSuite:
     def _imu_state(self, data: mujoco.MjData) -> tuple[np.ndarray, np.ndarray, float]:
         """Every robot's IMU site: linear velocity (n, 3) in world axes, rotation (n, 3, 3) in
         the world, and the time."""
-        vel = imu_site_velocity(
-            data.cvel, data.site_xpos, data.subtree_com, self._imu_bodies, self._imu_roots,
-            self._imu_sites,
+        vel, rot = imu_site_state(
+            data.cvel, data.site_xpos, data.site_xmat, data.subtree_com, self._imu_bodies,
+            self._imu_roots, self._imu_sites,
         )  # fmt: skip
-        rot = data.site_xmat[self._imu_sites].reshape(-1, 3, 3)
         return vel, rot, float(data.time)
 
     def begin_period(self, data: mujoco.MjData) -> None:

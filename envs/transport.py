@@ -511,24 +511,22 @@ class CargoTransport:
     # ------------------------------------------------------------------ observations
     def reference(self) -> Reference:
         """The cargo reference at the current time (evaluated once per time)."""
-        return self._reference_cache()[1]
+        cache = self._reference_cache()
+        if cache[2] is None:
+            cache[2] = self.trajectory(cache[0])
+        return cache[2]
 
     def _reference_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The reference at the current time as arrays: rotation (3, 3); position, velocity,
         acceleration, angular velocity and angular acceleration (5, 3), world; pan angle and
         rate (2,)."""
-        cache = self._reference_cache()
-        if cache[2] is None:
-            ref = cache[1]
-            vecs = np.array((ref.pos, ref.vel, ref.acc, ref.w, ref.wd), dtype=float)
-            cache[2] = (ref.rot, vecs, np.array((ref.pan, ref.pan_rate), dtype=float))
-        return cache[2]
+        return self._reference_cache()[1]
 
     def _reference_cache(self) -> list:
-        """[time, its Reference, its arrays once asked for]."""
+        """[time, the reference's arrays, its Reference once asked for]."""
         t = float(self.data.time)
         if self._ref_cache is None or self._ref_cache[0] != t:
-            self._ref_cache = [t, self.trajectory(t), None]
+            self._ref_cache = [t, self.trajectory.arrays(t), None]
         return self._ref_cache
 
     def _get_obs(self, acting: np.ndarray) -> np.ndarray:
