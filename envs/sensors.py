@@ -151,16 +151,6 @@ class SensorReadings:
 
 
 @njit(cache=True)
-def perturb_quats(quats, rotvecs):
-    """Each attitude ``quats[k]`` (w, x, y, z) perturbed in its body frame by ``rotvecs[k]``:
-    q exp(rotvec), (n, 4)."""
-    out = np.empty((quats.shape[0], 4))
-    for k in range(quats.shape[0]):
-        out[k] = quat_mul(quats[k], rotvec_to_quat(rotvecs[k]))
-    return out
-
-
-@njit(cache=True)
 def imu_site_state(cvel, site_xpos, site_xmat, subtree_com, bodies, roots, sites):
     """Linear velocity (n, 3), world axes, and rotation (n, 3, 3) of each site: its body's
     spatial velocity (MuJoCo's ``cvel``: angular, linear at the root's subtree centre of mass c)
@@ -191,6 +181,23 @@ def imu_period_means(v0, r0, v1, r1, dt_s):
     return accel, gyro
 
 
+@njit(cache=True)
+def noisy_readings(accel_mean, gyro_mean, sensordata, joint_adr, pos_adr, quat_adr, noise, fix):
+    """Every robot's readings: the IMU means and the MJCF sensors (``sensordata`` at the
+    addresses, (n, k) each) plus the drawn ``noise`` (n, draws) in ``_NOISE_DRAWS`` then
+    ``_FIX_DRAWS`` order; at a fix the pose too, the attitude perturbed in the body frame:
+    q exp(noise). Returns accel, gyro, joints, pos, quat (zeros without a fix)."""
+    n = accel_mean.shape[0]
+    accel, gyro = accel_mean + noise[:, 0:3], gyro_mean + noise[:, 3:6]
+    joints, pos, quat = np.empty((n, joint_adr.shape[1])), np.zeros((n, 3)), np.zeros((n, 4))
+    for k in range(n):
+        joints[k] = sensordata[joint_adr[k]] + noise[k, 6:8]
+        if fix:
+            pos[k] = sensordata[pos_adr[k]] + noise[k, 8:11]
+            quat[k] = quat_mul(sensordata[quat_adr[k]], rotvec_to_quat(noise[k, 11:14]))
+    return accel, gyro, joints, pos, quat
+
+
 # Noise draws per robot and reading, in the order they are drawn: (name, size).
 _NOISE_DRAWS = (("accel", 3), ("gyro", 3), ("joints", 2))
 _FIX_DRAWS = (("position", 3), ("attitude", 3))
@@ -214,9 +221,9 @@ class SensorSuite:
         self._imu_bodies = model.site_bodyid[self._imu_sites].astype(np.int64)
         self._imu_roots = model.body_rootid[self._imu_bodies].astype(np.int64)
         adr = [h.sensor_adr for h in robots]
-        self._joint_adr = np.array([[a["tilt_pos"], a["pan_pos"]] for a in adr], dtype=int)
-        self._pos_adr = np.array([a["base_pos"] + np.arange(3) for a in adr], dtype=int)
-        self._quat_adr = np.array([a["base_quat"] + np.arange(4) for a in adr], dtype=int)
+        self._joint_adr = np.array([[a["tilt_pos"], a["pan_pos"]] for a in adr], dtype=np.int64)
+        self._pos_adr = np.array([a["base_pos"] + np.arange(3) for a in adr], dtype=np.int64)
+        self._quat_adr = np.array([a["base_quat"] + np.arange(4) for a in adr], dtype=np.int64)
         p = profile
         draws = _NOISE_DRAWS + _FIX_DRAWS
         self._noise_std = np.repeat(
@@ -266,17 +273,13 @@ class SensorSuite:
         accel_mean, gyro_mean = self._imu_means(data)
         n_draws = self._n_draws_fix if fix else self._n_draws
         noise = self._noise_std[:n_draws] * self.rng.standard_normal((len(accel_mean), n_draws))
-        s = data.sensordata
-        accel = accel_mean + noise[:, 0:3]
-        gyro = gyro_mean + noise[:, 3:6]
-        joints = s[self._joint_adr] + noise[:, 6:8]
-        n = len(accel)
-        pos, quat = np.zeros((n, 3)), np.zeros((n, 4))
-        if fix:
-            pos = s[self._pos_adr] + noise[:, 8:11]
-            quat = perturb_quats(s[self._quat_adr], np.ascontiguousarray(noise[:, 11:14]))
+        readings = noisy_readings(
+            accel_mean, gyro_mean, data.sensordata, self._joint_adr, self._pos_adr,
+            self._quat_adr, noise, fix,
+        )  # fmt: skip
+        n = len(accel_mean)
         has_imu, has_fix = np.ones(n, dtype=np.bool_), np.full(n, fix)
-        return SensorReadings(float(data.time), accel, gyro, joints, pos, quat, has_imu, has_fix)
+        return SensorReadings(float(data.time), *readings, has_imu, has_fix)
 
     def actuate(self, command: np.ndarray) -> np.ndarray:
         """The propulsion wrench actually delivered for a commanded one (..., 6): command plus
