@@ -53,15 +53,19 @@ def _blend_fix(rot, pos, vel, fix_quat, fix_pos, imu_pos, gain_att, gain_pos, ga
 
 @njit(cache=True)
 def navigate(
-    rot, pos, vel, w, cov, att_cov, gyro, accel, fix_pos, fix_quat, has_fix, acting,
-    imu_rot, imu_pos, dt_s, q, pos_var, att_var, gyro_step_var, base_pos, base_vel,
+    rot, pos, vel, w, cov, att_cov, gyro, accel, gyro_now, accel_now, has_imu, fix_pos,
+    fix_quat, has_fix, acting, imu_rot, imu_pos, dt_s, q, pos_var, att_var, gyro_step_var,
+    base_pos, base_vel,
 ):  # fmt: skip
     """One period of every ``acting`` robot's filter (module docstring), in place: the IMU
     point's state (rot, pos, vel, w), the covariances (cov (N, 4): C00, C01, C10, C11; att_cov
-    (N,)) and the base origin's position and velocity (base_pos, base_vel)."""
+    (N,)) and the base origin's position and velocity (base_pos, base_vel). ``gyro``, ``accel``
+    hold the last IMU means: this period's (``gyro_now``, ``accel_now``) where ``has_imu``."""
     for i in range(rot.shape[0]):
         if not acting[i]:
             continue
+        if has_imu[i]:
+            gyro[i], accel[i] = gyro_now[i], accel_now[i]
         rot[i], pos[i], vel[i], w[i] = _propagate(
             rot[i], pos[i], vel[i], gyro[i], accel[i], imu_rot[i], dt_s
         )
@@ -135,11 +139,10 @@ class BaseNavigator:
         """Propagate the ``acting`` robots (bool (N,)) over one control period with their IMU
         means (the previous ones where a frame is missing); blend in their fixes. ``readings``
         has one row per robot index."""
-        np.copyto(self._gyro, readings.gyro_imu, where=readings.has_imu[:, None])
-        np.copyto(self._accel, readings.accel_imu, where=readings.has_imu[:, None])
         navigate(
             self.rot, self._p, self._v, self.w_base, self._cov, self.att_cov, self._gyro,
-            self._accel, readings.base_pos_world, readings.base_quat_world, readings.has_fix,
-            acting, self.imu_rot, self.imu_pos, self.dt_s, self._q, self.pos_var, self.att_var,
+            self._accel, readings.gyro_imu, readings.accel_imu, readings.has_imu,
+            readings.base_pos_world, readings.base_quat_world, readings.has_fix, acting,
+            self.imu_rot, self.imu_pos, self.dt_s, self._q, self.pos_var, self.att_var,
             self.gyro_step_var, self.base_pos, self.base_vel,
         )  # fmt: skip

@@ -119,11 +119,12 @@ class SensorPacket:
     base_quat_world: np.ndarray | None  # (4,) w x y z, only at a localization fix
 
 
-@dataclass(frozen=True)
+@dataclass(slots=True)
 class SensorReadings:
     """Every robot's readings at one control step as arrays, one row per robot; a row's IMU
     frame and fix count only where ``has_imu`` / ``has_fix`` (the other entries are zeros or
-    stale). ``packet(k)`` is row k as a ``SensorPacket``."""
+    stale; the env clears the masks of faulted rows in place). ``packet(k)`` is row k as a
+    ``SensorPacket``."""
 
     time_s: float
     accel_imu: np.ndarray  # (n, 3) m/s^2, IMU frame
