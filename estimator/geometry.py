@@ -15,7 +15,8 @@ their docstrings for why they exist). Batched forms, where a caller needs them, 
 one-liners on top (``rotation_matrices``).
 
 Equations:
-- Rodrigues: ``exp(phi) = I + sin(a) K + (1 - cos(a)) K^2``, ``a = |phi|``, ``K = skew(phi / a)``.
+- Rodrigues: ``exp(phi) = I + sin(a) K + (1 - cos(a)) K^2 = cos(a) I + sin(a) K + (1 - cos(a))
+  u u^T``, ``a = |phi|``, ``u = phi / a``, ``K = skew(u)``.
 - log: through the quaternion, ``phi = 2 atan2(|q_v|, q_w) q_v / |q_v|`` with ``q_w >= 0``, which is
   accurate at every angle including near 0 and pi (no division by sin(a)).
 - quaternion to matrix: ``R = (w^2 - v.v) I + 2 v v^T + 2 w skew(v)`` for the normalised q.
@@ -87,8 +88,15 @@ def exp_so3(rotvec: np.ndarray) -> np.ndarray:
     angle = math.sqrt(rotvec[0] ** 2 + rotvec[1] ** 2 + rotvec[2] ** 2)
     if angle < _SMALL_ANGLE_RAD:
         return np.eye(3) + skew(rotvec)
-    k = skew(rotvec / angle)
-    return np.eye(3) + math.sin(angle) * k + (1.0 - math.cos(angle)) * matmul3(k, k)
+    axis = rotvec / angle
+    sin_a, cos_a = math.sin(angle), math.cos(angle)
+    k = skew(axis)
+    out = np.empty((3, 3))
+    for i in range(3):  # cos(a) I + sin(a) K + (1 - cos(a)) u u^T, since K^2 = u u^T - I
+        for j in range(3):
+            out[i, j] = sin_a * k[i, j] + (1.0 - cos_a) * axis[i] * axis[j]
+        out[i, i] += cos_a
+    return out
 
 
 @njit(cache=True)
@@ -121,7 +129,13 @@ def quat_to_mat(quat: np.ndarray) -> np.ndarray:
     """Rotation matrix (3, 3) of a quaternion (w, x, y, z); the quaternion is normalised first."""
     q = quat / math.sqrt(quat[0] ** 2 + quat[1] ** 2 + quat[2] ** 2 + quat[3] ** 2)
     w, v = q[0], q[1:4]
-    return (w * w - np.sum(v * v)) * np.eye(3) + 2.0 * np.outer(v, v) + 2.0 * w * skew(v)
+    k = skew(v)
+    out = np.empty((3, 3))
+    for i in range(3):  # the equation of the module docstring, entry by entry
+        for j in range(3):
+            out[i, j] = 2.0 * v[i] * v[j] + 2.0 * w * k[i, j]
+        out[i, i] += w * w - (v[0] ** 2 + v[1] ** 2 + v[2] ** 2)
+    return out
 
 
 @njit(cache=True)
