@@ -583,11 +583,13 @@ class CargoTransport:
             track = -(pos_err + ROTATION_WEIGHT_M_PER_RAD * angle_err)
         else:
             track = 0.0
-        log_std = self._estimate_log_std_sums()
-        info = self._log_std_sum - log_std
-        self._log_std_sum = log_std
-        if not np.isfinite(info).all():
-            info = np.zeros(self.n_robots)
+        info = np.zeros(self.n_robots)  # without estimators: no information gained
+        if self.estimators:
+            log_std = self._estimate_log_std_sums()
+            gain = self._log_std_sum - log_std
+            self._log_std_sum = log_std
+            if np.isfinite(gain).all():
+                info = gain
         return reward_terms(
             track, effort, info, robot_contacts, cargo_contacts, acting, self._weights,
             self.shared_reward,
