@@ -183,11 +183,16 @@ def imu_period_means(v0, r0, v1, r1, dt_s):
 
 
 @njit(cache=True)
-def noisy_readings(accel_mean, gyro_mean, sensordata, joint_adr, pos_adr, quat_adr, noise, fix):
-    """Every robot's readings: the IMU means and the MJCF sensors (``sensordata`` at the
-    addresses, (n, k) each) plus the drawn ``noise`` (n, draws) in ``_NOISE_DRAWS`` then
-    ``_FIX_DRAWS`` order; at a fix the pose too, the attitude perturbed in the body frame:
-    q exp(noise). Returns accel, gyro, joints, pos, quat (zeros without a fix)."""
+def noisy_readings(v0, r0, dt_s, cvel, site_xpos, site_xmat, subtree_com, bodies, roots, sites,
+                   sensordata, joint_adr, pos_adr, quat_adr, noise, fix):  # fmt: skip
+    """Every robot's readings at the end of a period of ``dt_s`` that started with the IMU
+    velocities ``v0`` and rotations ``r0``: the IMU means (``imu_site_state`` now, then
+    ``imu_period_means``) and the MJCF sensors (``sensordata`` at the addresses, (n, k) each),
+    plus the drawn ``noise`` (n, draws) in ``_NOISE_DRAWS`` then ``_FIX_DRAWS`` order; at a fix
+    the pose too, the attitude perturbed in the body frame: q exp(noise). Returns accel, gyro,
+    joints, pos, quat (zeros without a fix)."""
+    v1, r1 = imu_site_state(cvel, site_xpos, site_xmat, subtree_com, bodies, roots, sites)
+    accel_mean, gyro_mean = imu_period_means(v0, r0, v1, r1, dt_s)
     n = accel_mean.shape[0]
     accel, gyro = accel_mean + noise[:, 0:3], gyro_mean + noise[:, 3:6]
     joints, pos, quat = np.empty((n, joint_adr.shape[1])), np.zeros((n, 3)), np.zeros((n, 4))
@@ -250,15 +255,6 @@ class SensorSuite:
         """Mark the start of a control period (``data`` after ``mj_forward``)."""
         self._start = self._imu_state(data)
 
-    def _imu_means(self, data: mujoco.MjData) -> tuple[np.ndarray, np.ndarray]:
-        """Mean specific force and angular rate over the period, IMU frame, (n, 3) each."""
-        v0, r0, t0 = self._start
-        v1, r1, t1 = self._imu_state(data)
-        dt = t1 - t0
-        if dt <= 0:
-            raise ValueError("read() needs begin_period() at the start of the period")
-        return imu_period_means(v0, r0, v1, r1, dt)
-
     def read(self, data: mujoco.MjData, step: int) -> list[SensorPacket]:
         """Readings of all robots at the end of control period ``step`` (``data`` after
         ``mj_forward``, with ``begin_period`` called at the period's start)."""
@@ -269,18 +265,23 @@ class SensorSuite:
         """``read``'s readings as arrays, one row per robot (the same numbers)."""
         p = self.profile
         fix = step % p.localization_every == 0
-        if self._start is None or len(self._start[0]) != len(self.world.robots):
+        n = len(self._imu_sites)
+        if self._start is None or len(self._start[0]) != n:
             raise ValueError("read() needs begin_period() at the start of the period")
-        accel_mean, gyro_mean = self._imu_means(data)
+        v0, r0, t0 = self._start
+        time_s = float(data.time)
+        if time_s <= t0:
+            raise ValueError("read() needs begin_period() at the start of the period")
         n_draws = self._n_draws_fix if fix else self._n_draws
-        noise = self._noise_std[:n_draws] * self.rng.standard_normal((len(accel_mean), n_draws))
+        noise = self._noise_std[:n_draws] * self.rng.standard_normal((n, n_draws))
         readings = noisy_readings(
-            accel_mean, gyro_mean, data.sensordata, self._joint_adr, self._pos_adr,
-            self._quat_adr, noise, fix,
+            v0, r0, time_s - t0, data.cvel, data.site_xpos, data.site_xmat, data.subtree_com,
+            self._imu_bodies, self._imu_roots, self._imu_sites, data.sensordata,
+            self._joint_adr, self._pos_adr, self._quat_adr, noise, fix,
         )  # fmt: skip
-        n = len(accel_mean)
-        has_imu, has_fix = np.ones(n, dtype=np.bool_), np.full(n, fix)
-        return SensorReadings(float(data.time), *readings, has_imu, has_fix)
+        has_imu = np.ones(n, dtype=np.bool_)
+        has_fix = has_imu.copy() if fix else np.zeros(n, dtype=np.bool_)
+        return SensorReadings(time_s, *readings, has_imu, has_fix)
 
     def actuate(self, command: np.ndarray) -> np.ndarray:
         """The propulsion wrench actually delivered for a commanded one (..., 6): command plus
