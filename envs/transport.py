@@ -49,8 +49,21 @@ from astrocargo.estimator.inertia import (
 
 LOG_STD_FLOOR = 1e-12
 REWARD_KEYS = tuple(f"reward_{t}" for t in REWARD_TERMS)  # their names in infos
-_BAD_QACC = int(mujoco.mjtWarning.mjWARN_BADQACC)
+# MuJoCo's instability warnings: on a bad qpos, qvel or qacc it resets the state to the model's
+# initial one (and counts the warning), so after one the physics no longer continues.
+_UNSTABLE = np.array(
+    [int(getattr(mujoco.mjtWarning, f"mjWARN_BAD{x}")) for x in ("QPOS", "QVEL", "QACC")]
+)
 TERMINATION_REASONS = ("wall_contact", "non_finite", "released")  # "released": one agent
+
+
+@njit(cache=True)
+def all_finite(values):
+    """Whether every entry of a contiguous array is finite (no temporary, unlike np.isfinite)."""
+    for x in values.ravel():
+        if not math.isfinite(x):
+            return False
+    return True
 
 
 @njit(cache=True)
@@ -320,7 +333,7 @@ class CargoTransport:
         if released:
             self._release(released)
         obs = self._get_obs(acting_mask)
-        if not np.isfinite(obs).all():
+        if not all_finite(obs):
             finite = False
             obs = np.nan_to_num(obs, nan=0.0, posinf=0.0, neginf=0.0)
         reason = None
@@ -387,9 +400,9 @@ class CargoTransport:
         mujoco.mj_fwdVelocity(self.model, self.data)
 
     def _physics_finite(self) -> bool:
-        unstable = self._warnings[_BAD_QACC] > 0
+        unstable = self._warnings[_UNSTABLE].any()
         return bool(
-            np.isfinite(self._qpos).all() and np.isfinite(self._qvel).all() and not unstable
+            all_finite(self._qpos) and all_finite(self._qvel) and not unstable
         )
 
     def _read_sensors(self, k: int) -> SensorReadings:
