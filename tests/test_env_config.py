@@ -155,3 +155,27 @@ def test_navigator_dead_reckons_and_blends_as_written():
     err = Rotation.from_matrix(before.T @ fix_rot).as_rotvec()
     want = before @ Rotation.from_rotvec(gain_att * err).as_matrix()
     np.testing.assert_allclose(nav.rot[0], want, atol=1e-12)
+
+
+def test_action_map_is_the_clip_and_rate_limit_as_written():
+    """envs.actions.scale_actions against its docstring's equations in numpy, with one robot
+    not acting (its row ignored, its targets drifting back toward the deployed pose)."""
+    from astrocargo.envs.actions import ARM_DEPLOYED, ARM_OFFSET_RAD, scale_actions
+
+    rng = np.random.default_rng(5)
+    actions = rng.uniform(-2.0, 2.0, (3, 8))
+    acting = np.array([True, False, True])
+    limits = rng.uniform(0.1, 1.0, (3, 6))
+    targets = ARM_DEPLOYED + rng.uniform(-0.3, 0.3, (3, 2))
+    low, high = np.full((3, 2), -1.0), np.full((3, 2), 1.0)
+    clipped, n_clipped, effort, commands, new_targets = scale_actions(
+        actions, acting, limits, targets, low, high, 0.01, ARM_DEPLOYED, ARM_OFFSET_RAD
+    )
+    want = np.where(acting[:, None], np.clip(actions, -1.0, 1.0), 0.0)
+    np.testing.assert_array_equal(clipped, want)
+    np.testing.assert_array_equal(n_clipped, ((want != actions) & acting[:, None]).sum(axis=1))
+    np.testing.assert_allclose(effort, (want**2).sum(axis=1), rtol=1e-15)
+    np.testing.assert_array_equal(commands, want[:, :6] * limits)
+    wanted = ARM_DEPLOYED + ARM_OFFSET_RAD * want[:, 6:]
+    step = np.clip(wanted - targets, -0.01, 0.01)
+    np.testing.assert_array_equal(new_targets, np.clip(targets + step, low, high))
