@@ -36,7 +36,7 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit
 
-from astrocargo.estimator.geometry import exp_so3, skew
+from astrocargo.estimator.geometry import exp_so3, matmul3, matvec3, skew
 from astrocargo.estimator.rne import RobotDescription
 
 
@@ -110,8 +110,8 @@ def link_frames(team: TeamModel, m: int, q: np.ndarray) -> tuple[np.ndarray, np.
     for k in range(1, n_links):
         p = team.parent[m, k]
         joint = exp_so3(team.joint_axis[m, k] * q[k - 1])
-        rots[k] = rots[p] @ team.rot_in_parent[m, k] @ joint
-        poss[k] = poss[p] + rots[p] @ team.pos_in_parent[m, k]
+        rots[k] = matmul3(matmul3(rots[p], team.rot_in_parent[m, k]), joint)
+        poss[k] = poss[p] + matvec3(rots[p], team.pos_in_parent[m, k])
     return rots, poss
 
 
@@ -138,12 +138,12 @@ def robot_body(team: TeamModel, m: int, q: np.ndarray) -> tuple:
     n_links = len(rots)
     coms, inertias = np.empty((n_links, 3)), np.empty((n_links, 3, 3))
     for k in range(n_links):
-        coms[k] = rots[k] @ team.link_com[m, k] + poss[k]
-        inertias[k] = rots[k] @ team.link_inertia[m, k] @ rots[k].T
+        coms[k] = matvec3(rots[k], team.link_com[m, k]) + poss[k]
+        inertias[k] = matmul3(matmul3(rots[k], team.link_inertia[m, k]), rots[k].T)
     mass, com, inertia = composite_body(team.link_mass[m], coms, inertias)
     g = team.grasp_link[m]
-    rot_grasp = rots[g] @ team.grasp_rot[m]
-    pos_grasp = poss[g] + rots[g] @ team.grasp_pos[m]
+    rot_grasp = matmul3(rots[g], team.grasp_rot[m])
+    pos_grasp = poss[g] + matvec3(rots[g], team.grasp_pos[m])
     return mass, com, inertia, rot_grasp, pos_grasp
 
 
@@ -153,7 +153,7 @@ def place_body(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Centre of mass and inertia about it of a body given in frame A, expressed in W, A's pose
     in W being (rot, pos): c_W = R c + p, I_W = R I R^T."""
-    return rot @ com + pos, rot @ inertia @ rot.T
+    return matvec3(rot, com) + pos, matmul3(matmul3(rot, inertia), rot.T)
 
 
 @njit(cache=True)
@@ -203,7 +203,7 @@ def team_wrench(
     tau = I_c w' + w x I_c w."""
     r = com - origin
     force = mass * (acc + np.cross(wd, r) + np.cross(w, np.cross(w, r)))
-    torque = inertia @ wd + np.cross(w, inertia @ w)
+    torque = matvec3(inertia, wd) + np.cross(w, matvec3(inertia, w))
     return np.concatenate((force, torque))
 
 
@@ -214,7 +214,7 @@ def wrench_map(rot: np.ndarray, pos: np.ndarray) -> np.ndarray:
     g = np.zeros((6, 6))
     g[:3, :3] = rot
     g[3:, 3:] = rot
-    g[3:, :3] = skew(pos) @ rot
+    g[3:, :3] = matmul3(skew(pos), rot)
     return g
 
 

@@ -47,7 +47,7 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit
 
-from astrocargo.estimator.geometry import exp_so3
+from astrocargo.estimator.geometry import exp_so3, matmul3
 
 NOMINAL_SPEED_MPS = 0.2
 NOMINAL_ACCEL_MPS2 = 0.0175
@@ -218,8 +218,8 @@ def _attitude_zxy(
     de_y/dt = (yaw' e_z + roll' e_x) x e_y give w'."""
     e_z = np.array([0.0, 0.0, 1.0])
     rot_z = exp_so3(yaw[0] * e_z)
-    rot_zx = rot_z @ exp_so3(np.array([roll[0], 0.0, 0.0]))
-    rot = rot_zx @ exp_so3(np.array([0.0, pitch[0], 0.0]))
+    rot_zx = matmul3(rot_z, exp_so3(np.array([roll[0], 0.0, 0.0])))
+    rot = matmul3(rot_zx, exp_so3(np.array([0.0, pitch[0], 0.0])))
     e_x = rot_z[:, 0].copy()
     e_y = rot_zx[:, 1].copy()
     w_z = yaw[1] * e_z
@@ -272,6 +272,16 @@ def _evaluate(t: float, shape: _Shape) -> tuple:
     return pos, vel, acc, rot, w, wd, pan, pan_rate
 
 
+@njit(cache=True)
+def _evaluate_arrays(t: float, shape: _Shape) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The reference at t as three arrays: rot (3, 3); pos, vel, acc, w, wd as the rows of a
+    (5, 3); (pan, pan_rate) (2,)."""
+    pos, vel, acc, rot, w, wd, pan, pan_rate = _evaluate(t, shape)
+    vecs = np.empty((5, 3))
+    vecs[0], vecs[1], vecs[2], vecs[3], vecs[4] = pos, vel, acc, w, wd
+    return rot, vecs, np.array([pan, pan_rate])
+
+
 class Trajectory:
     """A named reference: ``Trajectory(name, fast=False)(t)`` -> ``Reference`` at t (s).
 
@@ -320,6 +330,11 @@ class Trajectory:
 
     def __call__(self, t: float) -> Reference:
         return Reference(*_evaluate(float(t), self._shape))
+
+    def arrays(self, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The reference at ``t`` as arrays (the same numbers as ``self(t)``): rotation (3, 3);
+        pos, vel, acc, w, wd as the rows of a (5, 3), world axes; (pan, pan_rate) (2,)."""
+        return _evaluate_arrays(float(t), self._shape)
 
     def values(self, t: float) -> ReferenceValues:
         """The reference at ``t`` as Python floats (the same numbers as ``self(t)``)."""

@@ -464,6 +464,19 @@ class AstrobeeCargoEnv(ParallelEnv):
             if agent not in self._index:
                 raise ValueError(f"action for unknown agent {agent!r}; agents: {self.agents}")
         out = np.zeros((self.sim.n_robots, ACTION_DIM))
+        # Every live agent's action at once; anything off (missing, ragged, not finite) takes
+        # the agent-by-agent checks below, which say what is wrong.
+        try:
+            stacked = np.array([actions[a] for a in self.agents], dtype=np.float64)
+        except (KeyError, TypeError, ValueError):
+            stacked = None
+        if (
+            stacked is not None
+            and stacked.shape == (len(self.agents), ACTION_DIM)
+            and np.isfinite(stacked).all()
+        ):
+            out[self._live_rows()] = stacked
+            return out
         for agent in self.agents:
             i = self._index[agent]
             if agent not in actions:
@@ -480,6 +493,12 @@ class AstrobeeCargoEnv(ParallelEnv):
                 raise ValueError(f"action of agent {agent!r} is not finite: {a}")
             out[i] = a
         return out
+
+    def _live_rows(self) -> list[int] | slice:
+        """The rows of the live agents: a slice while every agent is live."""
+        if len(self.agents) == len(self.possible_agents):
+            return slice(None)
+        return [self._index[a] for a in self.agents]
 
     def _by_agent(self, values: Any, agents: list[str] | None = None) -> dict[str, Any]:
         """``values`` (indexed by robot) for ``agents`` (default: every possible agent)."""

@@ -24,8 +24,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from astrocargo.envs.sensors import NoiseProfile, SensorPacket
-from astrocargo.estimator.geometry import exp_so3, log_so3, quat_to_mat
+from astrocargo.envs.sensors import NoiseProfile, SensorReadings
+from astrocargo.estimator.geometry import exp_so3, log_so3, matmul3, matvec3, quat_to_mat
 from astrocargo.estimator.rne import RobotDescription
 
 # Floors of the navigation filter's noise model, so the ideal profile stays well posed.
@@ -35,10 +35,10 @@ NAV_STD_FLOOR = 1e-9
 @njit(cache=True)
 def _propagate(rot, pos, vel, gyro, accel, imu_rot, dt_s):
     """Dead reckoning of one robot's IMU point over one period: R', p', v', w."""
-    w = imu_rot @ gyro
-    rot_mid_imu = rot @ exp_so3(0.5 * dt_s * w) @ imu_rot
-    rot_new = rot @ exp_so3(dt_s * w)
-    vel_new = vel + dt_s * (rot_mid_imu @ accel)
+    w = matvec3(imu_rot, gyro)
+    rot_mid_imu = matmul3(matmul3(rot, exp_so3(0.5 * dt_s * w)), imu_rot)
+    rot_new = matmul3(rot, exp_so3(dt_s * w))
+    vel_new = vel + dt_s * matvec3(rot_mid_imu, accel)
     return rot_new, pos + 0.5 * dt_s * (vel + vel_new), vel_new, w
 
 
@@ -46,22 +46,26 @@ def _propagate(rot, pos, vel, gyro, accel, imu_rot, dt_s):
 def _blend_fix(rot, pos, vel, fix_quat, fix_pos, imu_pos, gain_att, gain_pos, gain_vel):
     """One robot's Kalman blend of a localization fix: R, p, v."""
     fix_rot = quat_to_mat(fix_quat)
-    rot = rot @ exp_so3(gain_att * log_so3(np.ascontiguousarray(rot.T) @ fix_rot))
-    innovation = fix_pos + rot @ imu_pos - pos
+    rot = matmul3(rot, exp_so3(gain_att * log_so3(matmul3(rot.T, fix_rot))))
+    innovation = fix_pos + matvec3(rot, imu_pos) - pos
     return rot, pos + gain_pos * innovation, vel + gain_vel * innovation
 
 
 @njit(cache=True)
 def navigate(
-    rot, pos, vel, w, cov, att_cov, gyro, accel, fix_pos, fix_quat, has_fix, acting,
-    imu_rot, imu_pos, dt_s, q, pos_var, att_var, gyro_step_var, base_pos, base_vel,
+    rot, pos, vel, w, cov, att_cov, gyro, accel, gyro_now, accel_now, has_imu, fix_pos,
+    fix_quat, has_fix, acting, imu_rot, imu_pos, dt_s, q, pos_var, att_var, gyro_step_var,
+    base_pos, base_vel,
 ):  # fmt: skip
     """One period of every ``acting`` robot's filter (module docstring), in place: the IMU
     point's state (rot, pos, vel, w), the covariances (cov (N, 4): C00, C01, C10, C11; att_cov
-    (N,)) and the base origin's position and velocity (base_pos, base_vel)."""
+    (N,)) and the base origin's position and velocity (base_pos, base_vel). ``gyro``, ``accel``
+    hold the last IMU means: this period's (``gyro_now``, ``accel_now``) where ``has_imu``."""
     for i in range(rot.shape[0]):
         if not acting[i]:
             continue
+        if has_imu[i]:
+            gyro[i], accel[i] = gyro_now[i], accel_now[i]
         rot[i], pos[i], vel[i], w[i] = _propagate(
             rot[i], pos[i], vel[i], gyro[i], accel[i], imu_rot[i], dt_s
         )
@@ -85,8 +89,8 @@ def navigate(
                 (c11 - gain_v * c01),
             )
         cov[i, 0], cov[i, 1], cov[i, 2], cov[i, 3] = c00, c01, c10, c11
-        base_pos[i] = pos[i] - rot[i] @ imu_pos[i]
-        base_vel[i] = vel[i] - rot[i] @ np.cross(w[i], imu_pos[i])
+        base_pos[i] = pos[i] - matvec3(rot[i], imu_pos[i])
+        base_vel[i] = vel[i] - matvec3(rot[i], np.cross(w[i], imu_pos[i]))
 
 
 class BaseNavigator:
@@ -111,19 +115,19 @@ class BaseNavigator:
         self.w_base, self.base_pos, self.base_vel = np.zeros((3, n, 3))
         self._p, self._v = np.zeros((2, n, 3))
         self._cov, self.att_cov = np.zeros((n, 4)), np.zeros(n)
-        # The last IMU means (held when a frame is missing) and this period's fix.
-        self._gyro, self._accel, self._fix_pos = np.zeros((3, n, 3))
-        self._fix_quat, self._has_fix = np.zeros((n, 4)), np.zeros(n, dtype=np.bool_)
+        # The last IMU means (held when a frame is missing).
+        self._gyro, self._accel = np.zeros((2, n, 3))
 
-    def reset(self, packets: list[SensorPacket]) -> None:
-        """Start every robot at rest at its packet's localization fix."""
-        for i, packet in enumerate(packets):
-            if packet.base_pos_world is None or packet.base_quat_world is None:
-                raise ValueError("the navigator starts from a packet with a localization fix")
-            self.rot[i] = quat_to_mat(np.ascontiguousarray(packet.base_quat_world, dtype=float))
-            self._gyro[i] = 0.0 if packet.gyro_imu is None else packet.gyro_imu  # at rest
-            self._accel[i] = 0.0 if packet.accel_imu is None else packet.accel_imu
-            self._p[i] = packet.base_pos_world + self.rot[i] @ self.imu_pos[i]
+    def reset(self, readings: SensorReadings) -> None:
+        """Start every robot at rest at its localization fix (each row must have one)."""
+        if not readings.has_fix.all():
+            raise ValueError("the navigator starts from readings with a localization fix")
+        for i in range(len(self.rot)):
+            self.rot[i] = quat_to_mat(np.ascontiguousarray(readings.base_quat_world[i]))
+        # At rest: the IMU means, where the frame arrived.
+        self._gyro[:] = np.where(readings.has_imu[:, None], readings.gyro_imu, 0.0)
+        self._accel[:] = np.where(readings.has_imu[:, None], readings.accel_imu, 0.0)
+        self._p[:] = readings.base_pos_world + np.einsum("nij,nj->ni", self.rot, self.imu_pos)
         self.w_base[:] = np.einsum("nij,nj->ni", self.imu_rot, self._gyro)
         self._v[:] = 0.0
         self._cov[:] = (self.pos_var, 0.0, 0.0, NAV_STD_FLOOR**2)
@@ -131,21 +135,14 @@ class BaseNavigator:
         self.base_pos[:] = self._p - np.einsum("nij,nj->ni", self.rot, self.imu_pos)
         self.base_vel[:] = -np.einsum("nij,nj->ni", self.rot, np.cross(self.w_base, self.imu_pos))
 
-    def update(self, packets: list[SensorPacket | None], acting: np.ndarray) -> None:
-        """Propagate the ``acting`` robots (bool (N,)) over one control period with their
-        packets' IMU means (the previous ones where a frame is missing); blend in their fixes."""
-        for i, packet in enumerate(packets):
-            if packet is None:
-                continue
-            if packet.gyro_imu is not None and packet.accel_imu is not None:
-                self._gyro[i], self._accel[i] = packet.gyro_imu, packet.accel_imu
-            fix = packet.base_pos_world is not None and packet.base_quat_world is not None
-            self._has_fix[i] = fix
-            if fix:
-                self._fix_pos[i], self._fix_quat[i] = packet.base_pos_world, packet.base_quat_world
+    def update(self, readings: SensorReadings, acting: np.ndarray) -> None:
+        """Propagate the ``acting`` robots (bool (N,)) over one control period with their IMU
+        means (the previous ones where a frame is missing); blend in their fixes. ``readings``
+        has one row per robot index."""
         navigate(
             self.rot, self._p, self._v, self.w_base, self._cov, self.att_cov, self._gyro,
-            self._accel, self._fix_pos, self._fix_quat, self._has_fix, acting, self.imu_rot,
-            self.imu_pos, self.dt_s, self._q, self.pos_var, self.att_var, self.gyro_step_var,
-            self.base_pos, self.base_vel,
+            self._accel, readings.gyro_imu, readings.accel_imu, readings.has_imu,
+            readings.base_pos_world, readings.base_quat_world, readings.has_fix, acting,
+            self.imu_rot, self.imu_pos, self.dt_s, self._q, self.pos_var, self.att_var,
+            self.gyro_step_var, self.base_pos, self.base_vel,
         )  # fmt: skip

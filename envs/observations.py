@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from astrocargo.estimator.geometry import exp_so3, log_so3
+from astrocargo.estimator.geometry import exp_so3, log_so3, matmul3, matvec3
 from astrocargo.estimator.rne import RobotDescription
 
 # The robot's own blocks, in order: (name, size). The kernel below fills them by name through
@@ -75,10 +75,10 @@ def grasp_pose(link_parent, link_rot, link_pos, link_axis, grasp_link, grasp_rot
     rots[0] = np.eye(3)
     for k in range(1, n_links):
         rot_p = rots[link_parent[k]]
-        rots[k] = rot_p @ link_rot[k] @ exp_so3(link_axis[k] * q[k - 1])
-        poss[k] = poss[link_parent[k]] + rot_p @ link_pos[k]
+        rots[k] = matmul3(matmul3(rot_p, link_rot[k]), exp_so3(link_axis[k] * q[k - 1]))
+        poss[k] = poss[link_parent[k]] + matvec3(rot_p, link_pos[k])
     rot_g = rots[grasp_link]
-    return rot_g @ grasp_rot, poss[grasp_link] + rot_g @ grasp_pos
+    return matmul3(rot_g, grasp_rot), poss[grasp_link] + matvec3(rot_g, grasp_pos)
 
 
 @njit(cache=True)
@@ -86,19 +86,19 @@ def _own_blocks(out, starts, rot, base_pos, base_vel, w, q, target, rot_ref, pos
                 ref_vecs, ref_pan):  # fmt: skip
     """Write the OWN_BLOCKS of one row at ``starts``; ref_vecs rows: the cargo reference's
     position, velocity, acceleration, angular velocity and angular acceleration (world)."""
-    rot_t = np.ascontiguousarray(rot.T)
+    rot_t = rot.T
     values = [
-        rot_t @ (base_pos - pos_ref),
-        rot_t @ (base_vel - vel_ref),
-        log_so3(np.ascontiguousarray(rot_ref.T) @ rot),
+        matvec3(rot_t, base_pos - pos_ref),
+        matvec3(rot_t, base_vel - vel_ref),
+        log_so3(matmul3(rot_ref.T, rot)),
         w,
         q,
         target,
-        rot_t @ (ref_vecs[0] - base_pos),
-        rot_t @ ref_vecs[1],
-        rot_t @ ref_vecs[2],
-        rot_t @ ref_vecs[3],
-        rot_t @ ref_vecs[4],
+        matvec3(rot_t, ref_vecs[0] - base_pos),
+        matvec3(rot_t, ref_vecs[1]),
+        matvec3(rot_t, ref_vecs[2]),
+        matvec3(rot_t, ref_vecs[3]),
+        matvec3(rot_t, ref_vecs[4]),
         ref_pan,
     ]
     for block, value in enumerate(values):
@@ -120,19 +120,19 @@ def assemble(out, acting, own_starts, peer_starts, estimate_start, rot, base_pos
             link_parent, link_rot[i], link_pos[i], link_axis[i], grasp_link[i], grasp_rot[i],
             grasp_pos[i], q[i],
         )  # fmt: skip
-        rot_ref = ref_rot @ handrail_rot[i] @ np.ascontiguousarray(g_rot.T)
-        pos_ref = ref_vecs[0] + ref_rot @ handrail_pos[i] - rot_ref @ g_pos
+        rot_ref = matmul3(matmul3(ref_rot, handrail_rot[i]), g_rot.T)
+        pos_ref = ref_vecs[0] + matvec3(ref_rot, handrail_pos[i]) - matvec3(rot_ref, g_pos)
         vel_ref = ref_vecs[1] + np.cross(ref_vecs[3], pos_ref - ref_vecs[0])
         row = out[i]
         _own_blocks(
             row, own_starts, rot[i], base_pos[i], base_vel[i], w[i], q[i], target[i], rot_ref,
             pos_ref, vel_ref, ref_vecs, ref_pan,
         )  # fmt: skip
-        rot_t = np.ascontiguousarray(rot[i].T)
+        rot_t = rot[i].T
         for p in range(peer_starts.shape[0]):
             s_wrench, s_age, s_valid = peer_starts[p, 0], peer_starts[p, 1], peer_starts[p, 2]
-            row[s_wrench : s_wrench + 3] = rot_t @ peer_wrench[i, p, :3]
-            row[s_wrench + 3 : s_wrench + 6] = rot_t @ peer_wrench[i, p, 3:]
+            row[s_wrench : s_wrench + 3] = matvec3(rot_t, peer_wrench[i, p, :3])
+            row[s_wrench + 3 : s_wrench + 6] = matvec3(rot_t, peer_wrench[i, p, 3:])
             row[s_age] = peer_age[i, p]
             row[s_valid] = peer_valid[i, p]
         if estimates.shape[1] > 0:

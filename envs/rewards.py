@@ -13,16 +13,18 @@ ROTATION_WEIGHT_M_PER_RAD = 0.5  # tracking term: metres of position error per r
 
 
 @njit(cache=True)
-def mix_rewards(track, team_contact, effort, info, contact, acting, weights, shared):
+def mix_rewards(track, effort, info, robot_contacts, cargo_contacts, acting, weights, shared):
     """Weighted, mixed terms (4, N) in ``REWARD_TERMS`` order and their sum per robot (N,).
 
-    ``track`` (the team's tracking term, the same for every robot) and ``team_contact`` are
-    scalars; ``effort``, ``info`` and ``contact`` (N,) are individual. The team value of
-    effort and info is their mean over the ``acting`` robots; the others' entries are 0."""
+    ``track`` (the team's tracking term, the same for every robot) is a scalar; ``effort`` and
+    ``info`` (N,) are individual; the contact term is -(a robot's own contacts + the cargo's),
+    its team value -(every contact). The team value of effort and info is their mean over the
+    ``acting`` robots; the others' entries are 0."""
     n = effort.shape[0]
     individual = np.empty((4, n))
     individual[0, :] = track
-    individual[1], individual[2], individual[3] = effort, info, contact
+    individual[1], individual[2] = effort, info
+    individual[3] = -(robot_contacts + cargo_contacts).astype(np.float64)
     count = 0
     for i in range(n):
         count += acting[i]
@@ -33,7 +35,7 @@ def mix_rewards(track, team_contact, effort, info, contact, acting, weights, sha
             if acting[i]:
                 total += individual[t, i]
         team[t] = total / count
-    team[0], team[3] = track, team_contact
+    team[0], team[3] = track, -float(robot_contacts.sum() + cargo_contacts)
     mixed, rewards = np.zeros((4, n)), np.zeros(n)
     for i in range(n):
         if not acting[i]:
@@ -56,9 +58,8 @@ def reward_terms(
 ) -> tuple[dict[str, list[float]], np.ndarray]:
     """Every term per robot by name, weighted and mixed, and the reward per robot; the contact
     term counts a robot's own contacts plus the cargo's (team: every contact)."""
-    contact = -(robot_contacts + cargo_contacts).astype(float)
-    team_contact = -float(robot_contacts.sum() + cargo_contacts)
     mixed, rewards = mix_rewards(
-        float(track), team_contact, effort, info, contact, acting, weights, float(shared)
-    )
+        float(track), effort, info, robot_contacts, int(cargo_contacts), acting, weights,
+        float(shared),
+    )  # fmt: skip
     return dict(zip(REWARD_TERMS, mixed.tolist(), strict=True)), rewards

@@ -28,6 +28,7 @@ and 5e-4 N m + 2 %.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, replace
 
 import mujoco
@@ -35,7 +36,14 @@ import numpy as np
 from numba import njit
 
 from astrocargo.envs.world import World
-from astrocargo.estimator.geometry import exp_so3, log_so3, quat_mul, rotvec_to_quat
+from astrocargo.estimator.geometry import (
+    exp_so3,
+    log_so3,
+    matmul3,
+    matvec3,
+    quat_mul,
+    rotvec_to_quat,
+)
 
 
 @dataclass(frozen=True)
@@ -111,22 +119,51 @@ class SensorPacket:
     base_quat_world: np.ndarray | None  # (4,) w x y z, only at a localization fix
 
 
-def _perturb_quat(quat: np.ndarray, rotvec: np.ndarray) -> np.ndarray:
-    """The attitude ``quat`` (w, x, y, z) perturbed in its body frame by ``rotvec``:
-    q exp(rotvec)."""
-    return quat_mul(np.ascontiguousarray(quat), rotvec_to_quat(np.ascontiguousarray(rotvec)))
+@dataclass(slots=True)
+class SensorReadings:
+    """Every robot's readings at one control step as arrays, one row per robot; a row's IMU
+    frame and fix count only where ``has_imu`` / ``has_fix`` (the other entries are zeros or
+    stale; the env clears the masks of faulted rows in place). ``packet(k)`` is row k as a
+    ``SensorPacket``."""
+
+    time_s: float
+    accel_imu: np.ndarray  # (n, 3) m/s^2, IMU frame
+    gyro_imu: np.ndarray  # (n, 3) rad/s, IMU frame
+    joint_pos_rad: np.ndarray  # (n, n_joints)
+    base_pos_world: np.ndarray  # (n, 3) m
+    base_quat_world: np.ndarray  # (n, 4) w x y z
+    has_imu: np.ndarray  # (n,) bool: the IMU frame arrived
+    has_fix: np.ndarray  # (n,) bool: a localization fix (at every localization_every-th step)
+
+    def packet(self, k: int) -> SensorPacket:
+        """Row k, with None for a missing IMU frame or fix."""
+        imu = (self.accel_imu[k], self.gyro_imu[k]) if self.has_imu[k] else (None, None)
+        fix = (self.base_pos_world[k], self.base_quat_world[k]) if self.has_fix[k] else (None,) * 2
+        return SensorPacket(self.time_s, *imu, self.joint_pos_rad[k], *fix)
+
+    def in_rows(self, rows: list[int], n_rows: int) -> SensorReadings:
+        """These readings as rows ``rows`` of ``n_rows`` (the others: zeros, nothing valid)."""
+        out = []
+        for value in dataclasses.astuple(self)[1:]:
+            full = np.zeros((n_rows, *value.shape[1:]), dtype=value.dtype)
+            full[rows] = value
+            out.append(full)
+        return SensorReadings(self.time_s, *out)
 
 
 @njit(cache=True)
-def imu_site_velocity(cvel, site_xpos, subtree_com, bodies, roots, sites):
-    """Linear velocity (n, 3), world axes, of each site: its body's spatial velocity (MuJoCo's
-    ``cvel``: angular, linear at the root's subtree centre of mass c) moved to the site's point
-    p, v_p = v_c - (p - c) x w (as ``mj_objectVelocity`` with world axes)."""
-    out = np.empty((sites.shape[0], 3))
-    for k in range(sites.shape[0]):
+def imu_site_state(cvel, site_xpos, site_xmat, subtree_com, bodies, roots, sites):
+    """Linear velocity (n, 3), world axes, and rotation (n, 3, 3) of each site: its body's
+    spatial velocity (MuJoCo's ``cvel``: angular, linear at the root's subtree centre of mass c)
+    moved to the site's point p, v_p = v_c - (p - c) x w (as ``mj_objectVelocity`` with world
+    axes); the rotation is MuJoCo's ``site_xmat``."""
+    n = sites.shape[0]
+    vel, rot = np.empty((n, 3)), np.empty((n, 3, 3))
+    for k in range(n):
         w, v = cvel[bodies[k], :3], cvel[bodies[k], 3:]
-        out[k] = v - np.cross(site_xpos[sites[k]] - subtree_com[roots[k]], w)
-    return out
+        vel[k] = v - np.cross(site_xpos[sites[k]] - subtree_com[roots[k]], w)
+        rot[k] = site_xmat[sites[k]].reshape(3, 3)
+    return vel, rot
 
 
 @njit(cache=True)
@@ -138,11 +175,33 @@ def imu_period_means(v0, r0, v1, r1, dt_s):
     n = v0.shape[0]
     accel, gyro = np.empty((n, 3)), np.empty((n, 3))
     for k in range(n):
-        rotvec = log_so3(np.ascontiguousarray(r0[k].T) @ r1[k])
-        r_mid = r0[k] @ exp_so3(0.5 * rotvec)
-        accel[k] = np.ascontiguousarray(r_mid.T) @ (v1[k] - v0[k]) / dt_s
+        rotvec = log_so3(matmul3(r0[k].T, r1[k]))
+        r_mid = matmul3(r0[k], exp_so3(0.5 * rotvec))
+        accel[k] = matvec3(r_mid.T, v1[k] - v0[k]) / dt_s
         gyro[k] = rotvec / dt_s
     return accel, gyro
+
+
+@njit(cache=True)
+def noisy_readings(v0, r0, dt_s, cvel, site_xpos, site_xmat, subtree_com, bodies, roots, sites,
+                   sensordata, joint_adr, pos_adr, quat_adr, noise, fix):  # fmt: skip
+    """Every robot's readings at the end of a period of ``dt_s`` that started with the IMU
+    velocities ``v0`` and rotations ``r0``: the IMU means (``imu_site_state`` now, then
+    ``imu_period_means``) and the MJCF sensors (``sensordata`` at the addresses, (n, k) each),
+    plus the drawn ``noise`` (n, draws) in ``_NOISE_DRAWS`` then ``_FIX_DRAWS`` order; at a fix
+    the pose too, the attitude perturbed in the body frame: q exp(noise). Returns accel, gyro,
+    joints, pos, quat (zeros without a fix)."""
+    v1, r1 = imu_site_state(cvel, site_xpos, site_xmat, subtree_com, bodies, roots, sites)
+    accel_mean, gyro_mean = imu_period_means(v0, r0, v1, r1, dt_s)
+    n = accel_mean.shape[0]
+    accel, gyro = accel_mean + noise[:, 0:3], gyro_mean + noise[:, 3:6]
+    joints, pos, quat = np.empty((n, joint_adr.shape[1])), np.zeros((n, 3)), np.zeros((n, 4))
+    for k in range(n):
+        joints[k] = sensordata[joint_adr[k]] + noise[k, 6:8]
+        if fix:
+            pos[k] = sensordata[pos_adr[k]] + noise[k, 8:11]
+            quat[k] = quat_mul(sensordata[quat_adr[k]], rotvec_to_quat(noise[k, 11:14]))
+    return accel, gyro, joints, pos, quat
 
 
 # Noise draws per robot and reading, in the order they are drawn: (name, size).
@@ -168,9 +227,9 @@ class SensorSuite:
         self._imu_bodies = model.site_bodyid[self._imu_sites].astype(np.int64)
         self._imu_roots = model.body_rootid[self._imu_bodies].astype(np.int64)
         adr = [h.sensor_adr for h in robots]
-        self._joint_adr = np.array([[a["tilt_pos"], a["pan_pos"]] for a in adr], dtype=int)
-        self._pos_adr = np.array([a["base_pos"] + np.arange(3) for a in adr], dtype=int)
-        self._quat_adr = np.array([a["base_quat"] + np.arange(4) for a in adr], dtype=int)
+        self._joint_adr = np.array([[a["tilt_pos"], a["pan_pos"]] for a in adr], dtype=np.int64)
+        self._pos_adr = np.array([a["base_pos"] + np.arange(3) for a in adr], dtype=np.int64)
+        self._quat_adr = np.array([a["base_quat"] + np.arange(4) for a in adr], dtype=np.int64)
         p = profile
         draws = _NOISE_DRAWS + _FIX_DRAWS
         self._noise_std = np.repeat(
@@ -186,50 +245,43 @@ class SensorSuite:
     def _imu_state(self, data: mujoco.MjData) -> tuple[np.ndarray, np.ndarray, float]:
         """Every robot's IMU site: linear velocity (n, 3) in world axes, rotation (n, 3, 3) in
         the world, and the time."""
-        vel = imu_site_velocity(
-            data.cvel, data.site_xpos, data.subtree_com, self._imu_bodies, self._imu_roots,
-            self._imu_sites,
+        vel, rot = imu_site_state(
+            data.cvel, data.site_xpos, data.site_xmat, data.subtree_com, self._imu_bodies,
+            self._imu_roots, self._imu_sites,
         )  # fmt: skip
-        rot = data.site_xmat[self._imu_sites].reshape(-1, 3, 3)
         return vel, rot, float(data.time)
 
     def begin_period(self, data: mujoco.MjData) -> None:
         """Mark the start of a control period (``data`` after ``mj_forward``)."""
         self._start = self._imu_state(data)
 
-    def _imu_means(self, data: mujoco.MjData) -> tuple[np.ndarray, np.ndarray]:
-        """Mean specific force and angular rate over the period, IMU frame, (n, 3) each."""
-        v0, r0, t0 = self._start
-        v1, r1, t1 = self._imu_state(data)
-        dt = t1 - t0
-        if dt <= 0:
-            raise ValueError("read() needs begin_period() at the start of the period")
-        return imu_period_means(v0, r0, v1, r1, dt)
-
     def read(self, data: mujoco.MjData, step: int) -> list[SensorPacket]:
         """Readings of all robots at the end of control period ``step`` (``data`` after
         ``mj_forward``, with ``begin_period`` called at the period's start)."""
+        readings = self.read_arrays(data, step)
+        return [readings.packet(k) for k in range(len(readings.has_imu))]
+
+    def read_arrays(self, data: mujoco.MjData, step: int) -> SensorReadings:
+        """``read``'s readings as arrays, one row per robot (the same numbers)."""
         p = self.profile
         fix = step % p.localization_every == 0
-        if self._start is None or len(self._start[0]) != len(self.world.robots):
+        n = len(self._imu_sites)
+        if self._start is None or len(self._start[0]) != n:
             raise ValueError("read() needs begin_period() at the start of the period")
-        accel_mean, gyro_mean = self._imu_means(data)
-        n_draws = self._n_draws_fix if fix else self._n_draws
-        noise = self._noise_std[:n_draws] * self.rng.standard_normal((len(accel_mean), n_draws))
-        s = data.sensordata
-        accel = accel_mean + noise[:, 0:3]
-        gyro = gyro_mean + noise[:, 3:6]
-        joints = s[self._joint_adr] + noise[:, 6:8]
-        pos = quat = [None] * len(accel)
-        if fix:
-            pos = s[self._pos_adr] + noise[:, 8:11]
-            att = noise[:, 11:14]
-            quat = [_perturb_quat(q, a) for q, a in zip(s[self._quat_adr], att, strict=True)]
+        v0, r0, t0 = self._start
         time_s = float(data.time)
-        return [
-            SensorPacket(time_s, *readings)
-            for readings in zip(accel, gyro, joints, pos, quat, strict=True)
-        ]
+        if time_s <= t0:
+            raise ValueError("read() needs begin_period() at the start of the period")
+        n_draws = self._n_draws_fix if fix else self._n_draws
+        noise = self._noise_std[:n_draws] * self.rng.standard_normal((n, n_draws))
+        readings = noisy_readings(
+            v0, r0, time_s - t0, data.cvel, data.site_xpos, data.site_xmat, data.subtree_com,
+            self._imu_bodies, self._imu_roots, self._imu_sites, data.sensordata,
+            self._joint_adr, self._pos_adr, self._quat_adr, noise, fix,
+        )  # fmt: skip
+        has_imu = np.ones(n, dtype=np.bool_)
+        has_fix = has_imu.copy() if fix else np.zeros(n, dtype=np.bool_)
+        return SensorReadings(time_s, *readings, has_imu, has_fix)
 
     def actuate(self, command: np.ndarray) -> np.ndarray:
         """The propulsion wrench actually delivered for a commanded one (..., 6): command plus

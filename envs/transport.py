@@ -4,7 +4,6 @@ PettingZoo layer on top, and its docstring describes both."""
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from dataclasses import dataclass
 from typing import Any
@@ -14,6 +13,14 @@ import numpy as np
 from numba import njit
 
 from astrocargo.agents.trajectories import Reference, Trajectory
+from astrocargo.envs.actions import (  # noqa: F401 (re-exported)
+    ACTION_DIM,
+    ARM_DEPLOYED,
+    ARM_OFFSET_RAD,
+    ARM_SPEED_RADPS,
+    first_non_finite,
+    scale_actions,
+)
 from astrocargo.envs.cargo import CARGO_COM_SPREAD_M, CargoDraw  # noqa: F401
 from astrocargo.envs.comms import CommChannel
 from astrocargo.envs.config import (
@@ -29,31 +36,40 @@ from astrocargo.envs.faults import (
 from astrocargo.envs.navigation import BaseNavigator
 from astrocargo.envs.observations import ObservationBuilder, observation_layout
 from astrocargo.envs.rewards import ROTATION_WEIGHT_M_PER_RAD, reward_terms
-from astrocargo.envs.sensors import SensorPacket, SensorSuite, estimator_noise_kwargs
+from astrocargo.envs.sensors import SensorReadings, SensorSuite, estimator_noise_kwargs
 from astrocargo.envs.sensors import noise_profile as get_noise_profile
 from astrocargo.envs.world import ARM_DEPLOYED_RAD, MAX_TIMESTEP_S, World
 from astrocargo.estimator.cargo_estimator import CargoEstimator
-from astrocargo.estimator.geometry import log_so3, mat_to_quat, quat_to_mat
+from astrocargo.estimator.geometry import log_so3, mat_to_quat, matmul3, quat_to_mat
 from astrocargo.estimator.inertia import (
     com_error_m,
     mass_rel_error,
     principal_rel_errors,
 )
 
-ACTION_DIM = 8
-ARM_DEPLOYED = np.asarray(ARM_DEPLOYED_RAD, dtype=float)
-ARM_OFFSET_RAD = 0.5  # reach of the arm actions around the deployed pose
-ARM_SPEED_RADPS = 0.12  # URDF joint velocity limit (facts file section 5)
 LOG_STD_FLOOR = 1e-12
 REWARD_KEYS = tuple(f"reward_{t}" for t in REWARD_TERMS)  # their names in infos
-_BAD_QACC = int(mujoco.mjtWarning.mjWARN_BADQACC)
+# MuJoCo's instability warnings: on a bad qpos, qvel or qacc it resets the state to the model's
+# initial one (and counts the warning), so after one the physics no longer continues.
+_UNSTABLE = np.array(
+    [int(getattr(mujoco.mjtWarning, f"mjWARN_BAD{x}")) for x in ("QPOS", "QVEL", "QACC")]
+)
 TERMINATION_REASONS = ("wall_contact", "non_finite", "released")  # "released": one agent
+
+
+@njit(cache=True)
+def all_finite(values):
+    """Whether every entry of a contiguous array is finite (no temporary, unlike np.isfinite)."""
+    for x in values.ravel():
+        if not math.isfinite(x):
+            return False
+    return True
 
 
 @njit(cache=True)
 def tracking_errors(pos, rot, ref_pos, ref_rot):
     """Position error |p - p_ref| (m) and rotation angle error |log(R_ref^T R)| (rad)."""
-    angle = log_so3(np.ascontiguousarray(ref_rot.T) @ rot)
+    angle = log_so3(matmul3(ref_rot.T, rot))
     return np.linalg.norm(pos - ref_pos), np.linalg.norm(angle)
 
 
@@ -253,30 +269,30 @@ class CargoTransport:
         self.step_count = 0
         self._ready = True
 
-        packets = self._read_at_rest()
-        self._update_estimators(packets, np.zeros((self.n_robots, 6)), 0)
-        self.navigator.reset(packets)
-        self.packets = packets
+        readings = self._read_at_rest()
+        self._update_estimators(readings, np.zeros((self.n_robots, 6)), 0)
+        self.navigator.reset(readings)
+        self.readings = readings
         self._refresh_estimates()
         self._log_std_sum = self._estimate_log_std_sums()
         everyone = self.holding
-        obs = self._get_obs(everyone)
+        obs = self._get_obs(self._acting_mask)
         zero_terms = {t: [0.0] * self.n_robots for t in REWARD_TERMS}
         none = np.zeros(self.n_robots, dtype=int)
         infos = self._get_infos(zero_terms, none, none, None, everyone, ())
         return obs, infos
 
-    def _read_at_rest(self) -> list[SensorPacket]:
+    def _read_at_rest(self) -> SensorReadings:
         """The first reading: the robots rest for one period before the episode starts, so the
         IMU reads its noise only, and a localization fix and the encoders come with it."""
         t0 = float(self.data.time)
         self.sensors.begin_period(self.data)
         self.data.time = t0 + self.dt_s
         try:
-            packets = self.sensors.read(self.data, 0)
+            readings = self.sensors.read_arrays(self.data, 0)
         finally:
             self.data.time = t0
-        return packets  # every robot holds at reset: one packet per robot, in index order
+        return readings  # every robot holds at reset: one row per robot, in index order
 
     def step(self, actions: np.ndarray) -> StepResult:
         """Advance one control period with ``actions`` (n_robots, 8) in [-1, 1] (clipped); the
@@ -289,29 +305,25 @@ class CargoTransport:
                 f"actions must have shape {(self.n_robots, ACTION_DIM)}, got {actions.shape}"
             )
         acting = self.holding  # the robots of this step, those letting go at its end included
-        rows = self._rows  # their rows: every row (a slice) or a list
-        acting_actions = actions[rows]
-        if not np.isfinite(acting_actions).all():
-            finite_rows = np.isfinite(acting_actions).all(axis=1)
-            raise ValueError(
-                f"actions of robot {acting[int(np.argmin(finite_rows))]} are not all finite"
-            )
-        acting_clipped = np.minimum(np.maximum(acting_actions, -1.0), 1.0)  # np.clip, faster
-        clipped = np.zeros_like(actions)
-        clipped[rows] = acting_clipped
-        n_clipped = np.zeros(self.n_robots, dtype=int)
-        n_clipped[rows] = (acting_clipped != acting_actions).sum(axis=1)
+        acting_mask = self._acting_mask
+        bad = first_non_finite(actions, acting_mask)
+        if bad >= 0:
+            raise ValueError(f"actions of robot {bad} are not all finite")
+        clipped, n_clipped, effort, commands, self.arm_targets = scale_actions(
+            actions, acting_mask, self.thrust_limits, self.arm_targets, self._joint_low,
+            self._joint_high, ARM_SPEED_RADPS * self.dt_s, ARM_DEPLOYED, ARM_OFFSET_RAD,
+        )  # fmt: skip
         self.step_count += 1
         k = self.step_count
 
-        commands = self._apply_actions(clipped)
+        self._apply_commands(commands)
         mujoco.mj_step(self.model, self.data, nstep=self.frame_skip)
         self._forward_kinematics()
         finite = self._physics_finite()
-        packets = self._read_sensors(k)
-        self._update_estimators(packets, commands, k)
-        self.navigator.update(packets, self._acting_mask)
-        self.packets = packets
+        readings = self._read_sensors(k)
+        self._update_estimators(readings, commands, k)
+        self.navigator.update(readings, self._acting_mask)
+        self.readings = readings
 
         robot_contacts, cargo_contacts = self._wall_contacts()
         # A release due with a non-finite state does not happen: the episode ends (non_finite).
@@ -320,8 +332,8 @@ class CargoTransport:
             released = tuple(i for i in acting if self.release_steps.get(i) == k)
         if released:
             self._release(released)
-        obs = self._get_obs(acting)
-        if not np.isfinite(obs).all():
+        obs = self._get_obs(acting_mask)
+        if not all_finite(obs):
             finite = False
             obs = np.nan_to_num(obs, nan=0.0, posinf=0.0, neginf=0.0)
         reason = None
@@ -329,7 +341,9 @@ class CargoTransport:
             reason = "non_finite"
         elif robot_contacts.sum() + cargo_contacts > 0:
             reason = "wall_contact"
-        terms, rewards = self._get_rewards(clipped, robot_contacts, cargo_contacts, finite, acting)
+        terms, rewards = self._get_rewards(
+            -effort, robot_contacts, cargo_contacts, finite, acting_mask
+        )
         infos = self._get_infos(
             terms, n_clipped, robot_contacts + cargo_contacts, reason, acting, released
         )
@@ -359,18 +373,9 @@ class CargoTransport:
                 self.estimators[i].set_peers([j for j in self.holding if j != i])
 
     # ------------------------------------------------------------------ one step, in order
-    def _apply_actions(self, clipped: np.ndarray) -> np.ndarray:
-        """Scale to commands, write d.ctrl (thrust with actuation noise) of the robots holding
-        the cargo, start the period. Returns the thrust commands (n_robots, 6) each robot knows
-        it sent (zeros for those that have let go)."""
-        commands = clipped[:, :6] * self.thrust_limits
-        # The servo targets: the requested ones approached by at most max_move, within range.
-        max_move = ARM_SPEED_RADPS * self.dt_s
-        wanted = ARM_DEPLOYED + ARM_OFFSET_RAD * clipped[:, 6:]
-        move = np.minimum(np.maximum(wanted - self.arm_targets, -max_move), max_move)
-        self.arm_targets = np.minimum(
-            np.maximum(self.arm_targets + move, self._joint_low), self._joint_high
-        )
+    def _apply_commands(self, commands: np.ndarray) -> None:
+        """Write d.ctrl of the robots holding the cargo: the thrust ``commands`` (n_robots, 6)
+        with actuation noise and the servo targets; start the period."""
         rows = self._rows
         delivered = self.sensors.actuate(commands[rows])  # row k: robot holding[k]
         weakened = set()
@@ -383,7 +388,6 @@ class CargoTransport:
         self._ctrl[self._thrust_ctrl] = delivered
         self._ctrl[self._arm_ctrl] = self.arm_targets[rows]
         self.sensors.begin_period(self.data)
-        return commands
 
     def _forward_kinematics(self) -> None:
         """The stages of ``mj_forward`` that the step reads after ``mj_step``: positions,
@@ -396,34 +400,32 @@ class CargoTransport:
         mujoco.mj_fwdVelocity(self.model, self.data)
 
     def _physics_finite(self) -> bool:
-        unstable = self._warnings[_BAD_QACC] > 0
+        unstable = self._warnings[_UNSTABLE].any()
         return bool(
-            np.isfinite(self._qpos).all() and np.isfinite(self._qvel).all() and not unstable
+            all_finite(self._qpos) and all_finite(self._qvel) and not unstable
         )
 
-    def _read_sensors(self, k: int) -> list[SensorPacket]:
-        """Every robot's packet (None for a robot that has let go), with the faults of step ``k``
-        applied (after the sensor noise draws, so a run with faults draws the same noise as one
-        without)."""
-        packets: list[SensorPacket | None] = [None] * self.n_robots
-        for h, packet in zip(self.world.robots, self.sensors.read(self.data, k), strict=True):
-            packets[h.index] = packet
+    def _read_sensors(self, k: int) -> SensorReadings:
+        """Every robot's readings, one row per robot index (nothing valid in the rows of robots
+        that have let go), with the faults of step ``k`` applied (after the sensor noise draws,
+        so a run with faults draws the same noise as one without)."""
+        readings = self.sensors.read_arrays(self.data, k)
+        if not isinstance(self._rows, slice):  # some robots let go: their rows stay empty
+            readings = readings.in_rows(self._rows, self.n_robots)
         for fault in self._active_faults("imu_dropout", k):
             i = fault.robot
-            if packets[i] is None or packets[i].accel_imu is None:
+            if not readings.has_imu[i]:
                 continue  # let go, or two overlapping dropouts
             if fault.prob < 1.0 and self.fault_rng.random() >= fault.prob:
                 continue
-            packets[i] = dataclasses.replace(packets[i], accel_imu=None, gyro_imu=None)
+            readings.has_imu[i] = False
             self.fault_counts["imu_frames_missing"][i] += 1
         for fault in self._active_faults("localization_outage", k):
             i = fault.robot
-            if packets[i] is not None and packets[i].base_pos_world is not None:
-                packets[i] = dataclasses.replace(
-                    packets[i], base_pos_world=None, base_quat_world=None
-                )
+            if readings.has_fix[i]:
+                readings.has_fix[i] = False
                 self.fault_counts["fixes_missing"][i] += 1
-        return packets
+        return readings
 
     def _active_faults(self, kind: str, k: int) -> list[Fault]:
         """The faults of ``kind`` active at control step ``k``."""
@@ -447,13 +449,13 @@ class CargoTransport:
             for i in range(self.n_robots)
         ]
 
-    def _update_estimators(self, packets: list[SensorPacket], commands: np.ndarray, k: int) -> None:
+    def _update_estimators(self, readings: SensorReadings, commands: np.ndarray, k: int) -> None:
         """Each estimator ingests its own packet and command; messages go through the channel;
         what is due is delivered; each estimator updates with its complete instants."""
         if not self.estimators:
             return
         for i in self.holding:
-            est, packet, command = self.estimators[i], packets[i], commands[i]
+            est, packet, command = self.estimators[i], readings.packet(i), commands[i]
             msg = est.step(
                 k,
                 packet.accel_imu,
@@ -522,52 +524,47 @@ class CargoTransport:
     # ------------------------------------------------------------------ observations
     def reference(self) -> Reference:
         """The cargo reference at the current time (evaluated once per time)."""
-        return self._reference_cache()[1]
+        cache = self._reference_cache()
+        if cache[2] is None:
+            cache[2] = self.trajectory(cache[0])
+        return cache[2]
 
     def _reference_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The reference at the current time as arrays: rotation (3, 3); position, velocity,
         acceleration, angular velocity and angular acceleration (5, 3), world; pan angle and
         rate (2,)."""
-        cache = self._reference_cache()
-        if cache[2] is None:
-            ref = cache[1]
-            vecs = np.array((ref.pos, ref.vel, ref.acc, ref.w, ref.wd), dtype=float)
-            cache[2] = (ref.rot, vecs, np.array((ref.pan, ref.pan_rate), dtype=float))
-        return cache[2]
+        return self._reference_cache()[1]
 
     def _reference_cache(self) -> list:
-        """[time, its Reference, its arrays once asked for]."""
+        """[time, the reference's arrays, its Reference once asked for]."""
         t = float(self.data.time)
         if self._ref_cache is None or self._ref_cache[0] != t:
-            self._ref_cache = [t, self.trajectory(t), None]
+            self._ref_cache = [t, self.trajectory.arrays(t), None]
         return self._ref_cache
 
-    def _get_obs(self, robots: tuple[int, ...]) -> np.ndarray:
-        """Observations of ``robots`` (the others' rows zeros), assembled from the layout
-        (``envs.observations``). A peer that has let go of the cargo has its slot zeroed: its
+    def _get_obs(self, acting: np.ndarray) -> np.ndarray:
+        """Observations of the ``acting`` robots (bool (N,); the others' rows zeros), from the
+        layout (``envs.observations``). A peer that has let go of the cargo has its slot zeroed: its
         messages are forgotten (``_release``)."""
         ref_rot, ref_vecs, ref_pan = self._reference_arrays()
-        n, nav = self.n_robots, self.navigator
-        acting = np.zeros(n, dtype=np.bool_)
-        acting[list(robots)] = True
-        joint_pos = np.zeros((n, 2))
-        for i in robots:
-            joint_pos[i] = self.packets[i].joint_pos_rad
-        peer_wrench, peer_age, peer_valid = self._peer_slot_values(robots)
+        nav = self.navigator
+        peer_wrench, peer_age, peer_valid = self._peer_slot_values(acting)
         return self._observations.build(
-            acting, nav.rot, nav.base_pos, nav.base_vel, nav.w_base, joint_pos, self.arm_targets,
-            ref_rot, ref_vecs, ref_pan, peer_wrench, peer_age, peer_valid,
+            acting, nav.rot, nav.base_pos, nav.base_vel, nav.w_base, self.readings.joint_pos_rad,
+            self.arm_targets, ref_rot, ref_vecs, ref_pan, peer_wrench, peer_age, peer_valid,
             self._estimates,
         )  # fmt: skip
 
-    def _peer_slot_values(self, robots: tuple[int, ...]) -> tuple[np.ndarray, ...]:
+    def _peer_slot_values(self, acting: np.ndarray) -> tuple[np.ndarray, ...]:
         """Each robot's peer slots: the latest message's wrench (world axes) (N, P, 6), its age
         in s and whether one has arrived (N, P); zeros before the first message."""
         n = self.n_robots
         wrench, age, valid = np.zeros((n, n - 1, 6)), np.zeros((n, n - 1)), np.zeros((n, n - 1))
         step_count, dt = self.step_count, self.dt_s
-        for i in robots:
+        for i in range(n):
             latest = self.peer_msgs[i]
+            if not acting[i] or not latest:
+                continue
             for p, j in enumerate(self._peer_slots[i]):
                 msg = latest.get(j)
                 if msg is not None:
@@ -585,27 +582,27 @@ class CargoTransport:
 
     def _get_rewards(
         self,
-        clipped: np.ndarray,
+        effort: np.ndarray,
         robot_contacts: np.ndarray,
         cargo_contacts: int,
         finite: bool,
-        robots: tuple[int, ...],
+        acting: np.ndarray,
     ) -> tuple[dict[str, list[float]], np.ndarray]:
         """Every reward term per robot, weighted and mixed (team vs individual), and their sum
-        per robot; the team of this step is ``robots`` (the others' rows zeros)."""
+        per robot; ``effort`` is -|a|^2 per robot; the team of this step is the ``acting``
+        robots (bool (N,); the others' rows zeros)."""
         if finite:
             pos_err, angle_err = self.tracking_error()
             track = -(pos_err + ROTATION_WEIGHT_M_PER_RAD * angle_err)
         else:
             track = 0.0
-        effort = -(clipped**2).sum(axis=1)
-        log_std = self._estimate_log_std_sums()
-        info = self._log_std_sum - log_std
-        self._log_std_sum = log_std
-        if not np.isfinite(info).all():
-            info = np.zeros(self.n_robots)
-        acting = np.zeros(self.n_robots, dtype=np.bool_)
-        acting[list(robots)] = True
+        info = np.zeros(self.n_robots)  # without estimators: no information gained
+        if self.estimators:
+            log_std = self._estimate_log_std_sums()
+            gain = self._log_std_sum - log_std
+            self._log_std_sum = log_std
+            if np.isfinite(gain).all():
+                info = gain
         return reward_terms(
             track, effort, info, robot_contacts, cargo_contacts, acting, self._weights,
             self.shared_reward,

@@ -10,11 +10,13 @@ Conventions, used everywhere in astrocargo:
 
 Every function here takes and returns float64 numpy arrays of fixed shape and is compiled with
 numba (``@njit(cache=True)``), so compiled kernels elsewhere call them directly and Python callers
-pay one dispatch (~0.3 us). Batched forms, where a caller needs them, are numpy one-liners on top
-(``rotation_matrices``).
+pay one dispatch. ``matmul3`` and ``matvec3`` are the 3x3 products for compiled kernels (see
+their docstrings for why they exist). Batched forms, where a caller needs them, are numpy
+one-liners on top (``rotation_matrices``).
 
 Equations:
-- Rodrigues: ``exp(phi) = I + sin(a) K + (1 - cos(a)) K^2``, ``a = |phi|``, ``K = skew(phi / a)``.
+- Rodrigues: ``exp(phi) = I + sin(a) K + (1 - cos(a)) K^2 = cos(a) I + sin(a) K + (1 - cos(a))
+  u u^T``, ``a = |phi|``, ``u = phi / a``, ``K = skew(u)``.
 - log: through the quaternion, ``phi = 2 atan2(|q_v|, q_w) q_v / |q_v|`` with ``q_w >= 0``, which is
   accurate at every angle including near 0 and pi (no division by sin(a)).
 - quaternion to matrix: ``R = (w^2 - v.v) I + 2 v v^T + 2 w skew(v)`` for the normalised q.
@@ -30,6 +32,8 @@ from numba import njit
 
 __all__ = [
     "exp_so3",
+    "matmul3",
+    "matvec3",
     "log_so3",
     "mat_to_quat",
     "quat_conj",
@@ -42,6 +46,30 @@ __all__ = [
 ]
 
 _SMALL_ANGLE_RAD = 1e-12
+
+
+@njit(cache=True)
+def matmul3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The product a b (3, 3) of two 3x3 matrices, C_ij = sum_k A_ik B_kj, any strides (a.T too).
+
+    Inside numba, ``@`` on float64 arrays is a BLAS call whose fixed cost is several times the 27
+    multiply-adds of a 3x3 product (and it needs contiguous operands); the small-matrix kernels
+    of the step use this loop instead. Equal to ``a @ b`` to rounding."""
+    out = np.empty((3, 3))
+    for i in range(3):
+        for j in range(3):
+            out[i, j] = a[i, 0] * b[0, j] + a[i, 1] * b[1, j] + a[i, 2] * b[2, j]
+    return out
+
+
+@njit(cache=True)
+def matvec3(a: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """The product a v (3,) of a 3x3 matrix and a 3-vector, any strides; ``matmul3``'s reason
+    (a loop, not BLAS) holds here too. Equal to ``a @ v`` to rounding."""
+    out = np.empty(3)
+    for i in range(3):
+        out[i] = a[i, 0] * v[0] + a[i, 1] * v[1] + a[i, 2] * v[2]
+    return out
 
 
 @njit(cache=True)
@@ -60,8 +88,15 @@ def exp_so3(rotvec: np.ndarray) -> np.ndarray:
     angle = math.sqrt(rotvec[0] ** 2 + rotvec[1] ** 2 + rotvec[2] ** 2)
     if angle < _SMALL_ANGLE_RAD:
         return np.eye(3) + skew(rotvec)
-    k = skew(rotvec / angle)
-    return np.eye(3) + math.sin(angle) * k + (1.0 - math.cos(angle)) * (k @ k)
+    axis = rotvec / angle
+    sin_a, cos_a = math.sin(angle), math.cos(angle)
+    k = skew(axis)
+    out = np.empty((3, 3))
+    for i in range(3):  # cos(a) I + sin(a) K + (1 - cos(a)) u u^T, since K^2 = u u^T - I
+        for j in range(3):
+            out[i, j] = sin_a * k[i, j] + (1.0 - cos_a) * axis[i] * axis[j]
+        out[i, i] += cos_a
+    return out
 
 
 @njit(cache=True)
@@ -94,7 +129,13 @@ def quat_to_mat(quat: np.ndarray) -> np.ndarray:
     """Rotation matrix (3, 3) of a quaternion (w, x, y, z); the quaternion is normalised first."""
     q = quat / math.sqrt(quat[0] ** 2 + quat[1] ** 2 + quat[2] ** 2 + quat[3] ** 2)
     w, v = q[0], q[1:4]
-    return (w * w - v @ v) * np.eye(3) + 2.0 * np.outer(v, v) + 2.0 * w * skew(v)
+    k = skew(v)
+    out = np.empty((3, 3))
+    for i in range(3):  # the equation of the module docstring, entry by entry
+        for j in range(3):
+            out[i, j] = 2.0 * v[i] * v[j] + 2.0 * w * k[i, j]
+        out[i, i] += w * w - (v[0] ** 2 + v[1] ** 2 + v[2] ** 2)
+    return out
 
 
 @njit(cache=True)

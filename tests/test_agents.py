@@ -99,6 +99,17 @@ def test_values_are_the_reference_on_floats(name):
             np.testing.assert_array_equal(getattr(ref, field), np.array(getattr(values, field)))
 
 
+@pytest.mark.parametrize("name", Trajectory.NAMES)
+def test_arrays_are_the_reference_packed(name):
+    """``arrays(t)`` (what the env evaluates each step) holds the very numbers of ``tr(t)``."""
+    tr = Trajectory(name)
+    for t in (0.0, 7.3, 15.0, 42.5, 61.2):
+        ref, (rot, vecs, pan) = tr(t), tr.arrays(t)
+        np.testing.assert_array_equal(rot, ref.rot)
+        np.testing.assert_array_equal(vecs, [ref.pos, ref.vel, ref.acc, ref.w, ref.wd])
+        np.testing.assert_array_equal(pan, [ref.pan, ref.pan_rate])
+
+
 def test_unknown_trajectory():
     with pytest.raises(ValueError, match="allowed"):
         Trajectory("figure9")

@@ -522,3 +522,18 @@ def test_estimators_converge_despite_latency_or_loss(comm, lossless_tumble):
         assert infos[agent]["mass_rel_err"] < 0.001
         assert infos[agent]["com_err_m"] < 0.0005
         assert np.all(np.asarray(infos[agent]["principal_rel_err"]) < 0.02)
+
+
+def test_non_finite_physics_ends_the_episode_with_finite_observations(tmp_path, monkeypatch):
+    """A state that is no longer finite ends the episode (reason non_finite) for every agent,
+    also where MuJoCo resets the state on its bad-qvel warning; the observations handed out stay
+    finite."""
+    monkeypatch.chdir(tmp_path)  # MuJoCo writes its warning to MUJOCO_LOG.TXT in the cwd
+    env = astrobee_cargo_v0.parallel_env(n_robots=2, noise="ideal")
+    env.reset(seed=0)
+    env.sim.data.qvel[:] = np.nan
+    obs, _, terminations, _, infos = env.step(_zero_actions(env))
+    assert all(terminations.values())
+    assert all(info["termination_reason"] == "non_finite" for info in infos.values())
+    assert all(np.isfinite(o).all() for o in obs.values())
+    assert not env.agents

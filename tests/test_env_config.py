@@ -14,7 +14,7 @@ from astrocargo.envs import cargo_transport
 from astrocargo.envs.cargo_transport import AstrobeeCargoEnv, EnvConfig, observation_layout
 from astrocargo.envs.navigation import BaseNavigator
 from astrocargo.envs.observations import OWN_BLOCKS, PEER_BLOCKS, grasp_pose
-from astrocargo.envs.sensors import SensorPacket, noise_profile
+from astrocargo.envs.sensors import SensorReadings, noise_profile
 from astrocargo.envs.transport import CargoTransport
 from astrocargo.envs.world import World
 from astrocargo.estimator.rne import link_poses
@@ -103,9 +103,17 @@ def test_compiled_grasp_pose_matches_the_estimators_kinematics(q):
     np.testing.assert_allclose(pos, want_pos, rtol=0, atol=1e-14)
 
 
-def _packet(gyro, accel, pos=None, quat=None) -> SensorPacket:
-    fix = (None, None) if pos is None else (np.asarray(pos, float), np.asarray(quat, float))
-    return SensorPacket(0.0, np.asarray(accel, float), np.asarray(gyro, float), np.zeros(2), *fix)
+def _readings(gyro, accel, pos=None, quat=None) -> SensorReadings:
+    """Two robots' readings, both rows the same."""
+    fix = pos is not None
+    pos, quat = (np.zeros(3), np.zeros(4)) if not fix else (pos, quat)
+    rows = (np.tile(np.asarray(x, dtype=float), (2, 1)) for x in (accel, gyro, [0, 0], pos, quat))
+    return SensorReadings(
+        0.0,
+        *rows,
+        has_imu=np.ones(2, dtype=bool),
+        has_fix=np.full(2, fix),
+    )
 
 
 def test_navigator_dead_reckons_and_blends_as_written():
@@ -117,15 +125,14 @@ def test_navigator_dead_reckons_and_blends_as_written():
     dt = 0.016
     nav = BaseNavigator(robots, dt, profile)
     quat0 = np.array([np.cos(0.2), 0.0, 0.0, np.sin(0.2)])
-    start = [_packet(np.zeros(3), np.zeros(3), [0.1, 0.0, 0.0], quat0) for _ in range(2)]
-    nav.reset(start)
+    nav.reset(_readings(np.zeros(3), np.zeros(3), [0.1, 0.0, 0.0], quat0))
     r_i, p_i = robots[0].imu_rot, robots[0].imu_pos
     rot = Rotation.from_quat(quat0[[1, 2, 3, 0]]).as_matrix()
     p, v = np.array([0.1, 0.0, 0.0]) + rot @ p_i, np.zeros(3)
     gyro, accel = np.array([0.01, -0.02, 0.03]), np.array([0.002, 0.001, -0.003])
     acting = np.array([True, False])
     resting = (nav.rot[1].copy(), nav.base_pos[1].copy(), nav.base_vel[1].copy())
-    nav.update([_packet(gyro, accel), None], acting)
+    nav.update(_readings(gyro, accel), acting)
     w = r_i @ gyro
     rot_mid = rot @ Rotation.from_rotvec(0.5 * dt * w).as_matrix() @ r_i
     rot = rot @ Rotation.from_rotvec(dt * w).as_matrix()
@@ -142,9 +149,33 @@ def test_navigator_dead_reckons_and_blends_as_written():
     fix_quat = np.array([np.cos(0.21), 0.0, 0.0, np.sin(0.21)])
     fix_pos = np.array([0.1005, 0.0, 0.0])
     before = nav.rot[0].copy()
-    nav.update([_packet(np.zeros(3), np.zeros(3), fix_pos, fix_quat), None], acting)
+    nav.update(_readings(np.zeros(3), np.zeros(3), fix_pos, fix_quat), acting)
     gain_att = att_cov / (att_cov + nav.att_var)
     fix_rot = Rotation.from_quat(fix_quat[[1, 2, 3, 0]]).as_matrix()
     err = Rotation.from_matrix(before.T @ fix_rot).as_rotvec()
     want = before @ Rotation.from_rotvec(gain_att * err).as_matrix()
     np.testing.assert_allclose(nav.rot[0], want, atol=1e-12)
+
+
+def test_action_map_is_the_clip_and_rate_limit_as_written():
+    """envs.actions.scale_actions against its docstring's equations in numpy, with one robot
+    not acting (its row ignored, its targets drifting back toward the deployed pose)."""
+    from astrocargo.envs.actions import ARM_DEPLOYED, ARM_OFFSET_RAD, scale_actions
+
+    rng = np.random.default_rng(5)
+    actions = rng.uniform(-2.0, 2.0, (3, 8))
+    acting = np.array([True, False, True])
+    limits = rng.uniform(0.1, 1.0, (3, 6))
+    targets = ARM_DEPLOYED + rng.uniform(-0.3, 0.3, (3, 2))
+    low, high = np.full((3, 2), -1.0), np.full((3, 2), 1.0)
+    clipped, n_clipped, effort, commands, new_targets = scale_actions(
+        actions, acting, limits, targets, low, high, 0.01, ARM_DEPLOYED, ARM_OFFSET_RAD
+    )
+    want = np.where(acting[:, None], np.clip(actions, -1.0, 1.0), 0.0)
+    np.testing.assert_array_equal(clipped, want)
+    np.testing.assert_array_equal(n_clipped, ((want != actions) & acting[:, None]).sum(axis=1))
+    np.testing.assert_allclose(effort, (want**2).sum(axis=1), rtol=1e-15)
+    np.testing.assert_array_equal(commands, want[:, :6] * limits)
+    wanted = ARM_DEPLOYED + ARM_OFFSET_RAD * want[:, 6:]
+    step = np.clip(wanted - targets, -0.01, 0.01)
+    np.testing.assert_array_equal(new_targets, np.clip(targets + step, low, high))

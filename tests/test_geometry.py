@@ -29,6 +29,16 @@ def test_skew_is_the_cross_product():
         np.testing.assert_allclose(geo.skew(v) @ u, np.cross(v, u), rtol=1e-14, atol=1e-15)
 
 
+def test_small_products_equal_numpy_matmul_for_any_strides():
+    rng = np.random.default_rng(1)
+    for a, b in rng.normal(size=(20, 2, 3, 3)):
+        v = b[:, 1]  # a strided column
+        np.testing.assert_allclose(geo.matmul3(a, b), a @ b, rtol=1e-14, atol=1e-15)
+        np.testing.assert_allclose(geo.matmul3(a.T, b.T), a.T @ b.T, rtol=1e-14, atol=1e-15)
+        np.testing.assert_allclose(geo.matvec3(a, v), a @ v, rtol=1e-14, atol=1e-15)
+        np.testing.assert_allclose(geo.matvec3(a.T, v), a.T @ v, rtol=1e-14, atol=1e-15)
+
+
 @pytest.mark.parametrize("rotvec", list(_rotvecs()))
 def test_exp_log_and_quaternions_agree_with_references(rotvec):
     rot = geo.exp_so3(rotvec)

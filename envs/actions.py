@@ -1,0 +1,54 @@
+"""From the agents' actions to the robots' commands (the env docstring's Action Space section):
+each acting robot's action a (8,) is clipped to [-1, 1]; a[:6] scales the thrust limits to the
+commanded propulsion wrench u = a[:6] * u_max (N, N m, base frame); a[6:] asks for the servo
+targets q_want = q_deployed + ARM_OFFSET_RAD a[6:] (tilt, pan, rad), which the targets approach
+at the servos' speed limit: q' = clip(q + clip(q_want - q, -dq, dq), q_low, q_high) with
+dq = ARM_SPEED_RADPS dt.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from astrocargo.envs.world import ARM_DEPLOYED_RAD
+
+ACTION_DIM = 8
+ARM_DEPLOYED = np.asarray(ARM_DEPLOYED_RAD, dtype=float)
+ARM_OFFSET_RAD = 0.5  # reach of the arm actions around the deployed pose
+ARM_SPEED_RADPS = 0.12  # URDF joint velocity limit (facts file section 5)
+
+
+@njit(cache=True)
+def first_non_finite(actions, acting):
+    """The first acting robot (bool (N,)) whose action row is not all finite, or -1."""
+    for i in range(actions.shape[0]):
+        if acting[i] and not np.isfinite(actions[i]).all():
+            return i
+    return -1
+
+
+@njit(cache=True)
+def scale_actions(actions, acting, thrust_limits, arm_targets, joint_low, joint_high,
+                  max_move_rad, deployed_rad, offset_rad):  # fmt: skip
+    """The module docstring's map for every robot: the clipped actions (N, 8) (zeros for robots
+    not ``acting``), how many entries each robot had clipped (N,), the effort sum(a^2) (N,),
+    the thrust commands (N, 6) and the new servo targets (N, 2) (every robot's, the others'
+    approaching the deployed pose)."""
+    n = actions.shape[0]
+    clipped, n_clipped, effort = np.zeros((n, 8)), np.zeros(n, dtype=np.int64), np.zeros(n)
+    for i in range(n):
+        if not acting[i]:
+            continue
+        for j in range(8):
+            clipped[i, j] = min(max(actions[i, j], -1.0), 1.0)
+            n_clipped[i] += clipped[i, j] != actions[i, j]
+            effort[i] += clipped[i, j] ** 2
+    commands = clipped[:, :6] * thrust_limits
+    targets = np.empty_like(arm_targets)
+    for i in range(n):
+        for j in range(arm_targets.shape[1]):
+            wanted = deployed_rad[j] + offset_rad * clipped[i, 6 + j]
+            move = min(max(wanted - arm_targets[i, j], -max_move_rad), max_move_rad)
+            targets[i, j] = min(max(arm_targets[i, j] + move, joint_low[i, j]), joint_high[i, j])
+    return clipped, n_clipped, effort, commands, targets
