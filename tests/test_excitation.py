@@ -12,6 +12,7 @@ from astrocargo.agents.excitation import (
     DesignSettings,
     ExcitationDesign,
     ExcitationDesigner,
+    estimator_measurement_cov,
     shipped_design,
     window,
     window_integral,
@@ -183,7 +184,7 @@ def test_predicted_fisher_equals_the_regressor_on_the_designs_motion(model):
         lever = np.linalg.norm(
             grasp_pose(model.robots[0], np.array([TILT_DEPLOYED_RAD, ref.pan]))[1]
         )
-        r = est.meas_cov + cov / est.update_every + model.sensor_cov(lever)
+        r = est.meas_cov + cov / est.update_every + _sensor_cov(model, lever)
         fisher += a.T @ np.linalg.solve(r, a)
     predicted = model.fisher(traj.motion(times))
     np.testing.assert_allclose(predicted, fisher, rtol=5e-3, atol=5e-3 * np.abs(fisher).max())
@@ -207,7 +208,21 @@ def test_sensor_covariance_is_the_estimators():
     est = model.estimator
     lever = 0.3
     est._grasp_lever = lever
-    np.testing.assert_allclose(model.sensor_cov(lever), est._sensor_cov(), rtol=1e-12)
+    np.testing.assert_allclose(_sensor_cov(model, lever), est._sensor_cov(), rtol=1e-12)
+
+
+def _sensor_cov(model, lever_m: float) -> np.ndarray:
+    """The errors-in-variables term of ``estimator_measurement_cov``: R minus meas_cov at zero
+    actuation noise maps."""
+    n = model.n_robots
+    r = estimator_measurement_cov(
+        model.estimator,
+        model.cargo_grasp,
+        np.zeros((1, n, 6)),
+        np.zeros((1, n, 6, 6)),
+        np.array([lever_m]),
+    )[0]
+    return r - model.estimator.meas_cov
 
 
 def test_designer_improves_on_its_start(model):
