@@ -1007,6 +1007,51 @@ def is_trajectory_name(name: object) -> bool:
     )
 
 
+def trajectory_choices() -> str:
+    """The accepted trajectory names, for error and help texts."""
+    from .trajectories import Trajectory
+
+    return f"one of {list(Trajectory.NAMES) + [EXCITE]} or the path of a design JSON file"
+
+
+def load_design(path: str | Path, n_robots: int | None = None) -> ExcitationDesign:
+    """The design in the JSON file ``path``, checked for ``n_robots`` if given; ``ValueError``
+    naming the file if it is missing, unreadable, not a design, or for another team size."""
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"trajectory design file {str(path)!r} does not exist (or is not a file)")
+    try:
+        design = ExcitationDesign.from_dict(json.loads(path.read_text()))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError) as err:
+        raise ValueError(f"trajectory design file {str(path)!r} is not a design: {err}") from None
+    except ValueError as err:
+        raise ValueError(f"trajectory design file {str(path)!r}: {err}") from None
+    if n_robots is not None and design.n_robots != n_robots:
+        raise ValueError(f"{path} was designed for {design.n_robots} robots, not {n_robots}")
+    return design
+
+
+def check_trajectory(name: object, n_robots: int, fast: bool = False) -> None:
+    """``ValueError`` unless ``name`` is a reference ``make_trajectory`` can build for a team of
+    ``n_robots`` (a design file is read and checked here; "excite" without a shipped design is
+    designed where the world is built)."""
+    if not is_trajectory_name(name):
+        raise ValueError(f"unknown trajectory {name!r}; allowed: {trajectory_choices()}")
+    from .trajectories import Trajectory
+
+    if name in Trajectory.NAMES:
+        return
+    if fast:
+        raise ValueError("fast=True applies to the figure-eight trajectories, not to designs")
+    if name != EXCITE:
+        load_design(name, n_robots)
+
+
+def has_design(n_robots: int) -> bool:
+    """Whether a design for ``n_robots`` is shipped (``DESIGNS_DIR``)."""
+    return (DESIGNS_DIR / f"excite_{int(n_robots)}robots.json").exists()
+
+
 def make_trajectory(
     name: str,
     n_robots: int,
@@ -1017,37 +1062,32 @@ def make_trajectory(
 ):
     """The reference a name stands for: ``Trajectory(name, fast)`` for the analytic ones; for
     "excite" the design shipped for ``n_robots`` (``shipped_design``), else one designed for
-    ``world`` (an ``envs.world.World``) with ``estimator_kwargs`` and cached under
-    ``DESIGN_CACHE_DIR``; for a path ending in ``.json`` that design. ``fast`` does not apply
-    to designs (ValueError)."""
+    ``world`` (an ``envs.world.World``: its team and bag) with ``estimator_kwargs`` and cached
+    under ``DESIGN_CACHE_DIR``; for a path ending in ``.json`` that design (``load_design``).
+    ``fast`` does not apply to designs (ValueError). A design on the fly that finds no flyable
+    motion (every start scaled to rest) raises ``ValueError``."""
     from .trajectories import Trajectory
 
-    if not is_trajectory_name(name):
-        raise ValueError(
-            f"unknown trajectory {name!r}; allowed: {list(Trajectory.NAMES) + [EXCITE]} or the "
-            f"path of a design JSON file"
-        )
+    check_trajectory(name, n_robots, fast)
     if name in Trajectory.NAMES:
         return Trajectory(name, fast=fast)
-    if fast:
-        raise ValueError("fast=True applies to the figure-eight trajectories, not to designs")
-    if name.endswith(".json"):
-        design = ExcitationDesign.load(name)
-        if design.n_robots != n_robots:
-            raise ValueError(f"{name} was designed for {design.n_robots} robots, not {n_robots}")
-        return DesignedTrajectory(design)
-    try:
+    if name != EXCITE:
+        return DesignedTrajectory(load_design(name, n_robots))
+    if has_design(n_robots) or world is None:
         return DesignedTrajectory(shipped_design(n_robots))
-    except ValueError:
-        if world is None:
-            raise
     noise_key = hashlib.sha1(
         json.dumps(estimator_kwargs or {}, sort_keys=True, default=str).encode()
     ).hexdigest()[:10]
     cached = DESIGN_CACHE_DIR / f"excite_{n_robots}robots_{world.cargo_bag.name}_{noise_key}.json"
     if cached.exists():
-        return DesignedTrajectory(ExcitationDesign.load(cached))
+        return DesignedTrajectory(load_design(cached, n_robots))
     model = model_for_world(world, estimator_kwargs=estimator_kwargs)
     design = ExcitationDesigner(model, settings).run()
+    if not np.any(design.coeffs) and not any(design.spin_radps):
+        raise ValueError(
+            f"the excitation designer found no flyable design for {n_robots} robots (every "
+            f"start had to be scaled to rest to meet the limits; binding: "
+            f"{design.info.get('binding')})"
+        )
     design.save(cached)
     return DesignedTrajectory(design)

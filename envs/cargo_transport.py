@@ -235,7 +235,9 @@ its qpos, qvel, body and arm-target entries are zeros (its quaternions too: neve
 |---------------------|---------------|----------------------------------------------------------|
 | `n_robots`          | 2             | robots holding the cargo, 1 to 8: up to 4 on the half    |
 |                     |               | CTB, 5 to 8 on the single CTB (eight handrails; `World`) |
-| `trajectory`        | "figure8_yaw" | cargo reference: one of `Trajectory.NAMES`               |
+| `trajectory`        | "figure8_yaw" | cargo reference: one of `Trajectory.NAMES`, "excite"     |
+|                     |               | (the team's designed excitation, `agents.excitation`:    |
+|                     |               | shipped, else designed and cached) or a design JSON path |
 | `fast`              | False         | twice the figure-eight speed                             |
 | `noise`             | "nominal"     | sensor and actuation noise: one of `NOISE_PROFILES`      |
 | `cargo_mass_kg`     | 5.0           | mass in [0.1, 100] kg, or (low, high): uniform draw at   |

@@ -13,7 +13,8 @@ import mujoco
 import numpy as np
 from numba import njit
 
-from astrocargo.agents.trajectories import Reference, Trajectory
+from astrocargo.agents.excitation import make_trajectory
+from astrocargo.agents.trajectories import Reference
 from astrocargo.envs.cargo import CARGO_COM_SPREAD_M, CargoDraw  # noqa: F401
 from astrocargo.envs.comms import CommChannel
 from astrocargo.envs.config import (
@@ -118,7 +119,10 @@ class CargoTransport:
             "peer_noise_std": c.comm_noise,
             **(c.estimator_kwargs or {}),
         }
-        self.trajectory = Trajectory(c.trajectory, fast=self.fast)
+        # A named figure-eight, "excite" (the team's design) or a design file (agents.excitation).
+        self.trajectory = make_trajectory(
+            c.trajectory, self.n_robots, self.fast, self.world, self.estimator_kwargs
+        )
         self.robots = [self.world.robot_model(i) for i in range(self.n_robots)]
         self.thrust_limits = np.array([r.thrust_limit for r in self.robots])
         self.joint_ranges = np.array([r.joint_range for r in self.robots])

@@ -51,6 +51,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))  # the sibling cli.py, 
 from cli import (  # noqa: E402
     Formatter,
     VectorAction,
+    check_trajectory,
     join_vector_values,
     nonnegative_float,
     nonnegative_int,
@@ -58,10 +59,10 @@ from cli import (  # noqa: E402
     output_file,
     positive_float,
     positive_int,
+    trajectory,
 )
 from ray_backend import import_ray, ray_connection  # noqa: E402
 
-from astrocargo.agents.trajectories import Trajectory  # noqa: E402
 from astrocargo.envs.sensors import NOISE_PROFILES  # noqa: E402
 from astrocargo.envs.world import MAX_ROBOTS  # noqa: E402
 
@@ -670,7 +671,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--robots", type=int, help=f"1..{MAX_ROBOTS}: run one custom case")
     p.add_argument("--seed", type=nonnegative_int, default=0)
     p.add_argument("--noise", choices=sorted(NOISE_PROFILES), default="nominal")
-    p.add_argument("--trajectory", default="figure8_tumble", choices=Trajectory.NAMES)
+    p.add_argument(
+        "--trajectory",
+        type=trajectory,
+        default="figure8_tumble",
+        help="figure8_yaw, figure8_tumble, hover, excite (the team's designed excitation) or a "
+        "design JSON file",
+    )
     p.add_argument("--cargo-mass", type=positive_float, default=CARGO_MASS, help="kg")
     p.add_argument(
         "--cargo-com",
@@ -708,6 +715,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     if args.robots is not None:
         if not 1 <= args.robots <= MAX_ROBOTS:
             p.error(f"--robots must be in 1..{MAX_ROBOTS}, got {args.robots}")
+        check_trajectory(p, args.trajectory, args.robots)
         if not args.comm_drop < 1:
             p.error(f"--comm-drop must be a probability below 1, got {args.comm_drop:g}")
         output_file(p, Path(args.out or "custom_case.json"), "--out")

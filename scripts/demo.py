@@ -30,15 +30,16 @@ from tqdm import tqdm  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the sibling scripts/cli.py
 from cli import (  # noqa: E402
     Formatter,
+    check_trajectory,
     nonnegative_int,
     output_dir,
     output_file,
     positive_float,
     positive_int,
+    trajectory,
 )
 
 from astrocargo.agents.controllers import ObservationController  # noqa: E402
-from astrocargo.agents.trajectories import Trajectory  # noqa: E402
 from astrocargo.envs import astrobee_cargo_v0  # noqa: E402
 from astrocargo.envs.sensors import NOISE_PROFILES  # noqa: E402
 from astrocargo.envs.world import MAX_ROBOTS  # noqa: E402
@@ -262,7 +263,13 @@ def control_steps(duration_s: float) -> int:
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=Formatter)
     parser.add_argument("--robots", type=int, default=2, help=f"1..{MAX_ROBOTS}")
-    parser.add_argument("--trajectory", default="figure8_yaw", choices=Trajectory.NAMES)
+    parser.add_argument(
+        "--trajectory",
+        type=trajectory,
+        default="figure8_yaw",
+        help="figure8_yaw, figure8_tumble, hover, excite (the team's designed excitation) or a "
+        "design JSON file",
+    )
     parser.add_argument("--noise", default="nominal", choices=sorted(NOISE_PROFILES))
     parser.add_argument("--duration", type=positive_float, default=90.0, help="simulated seconds")
     parser.add_argument("--seed", type=nonnegative_int, default=0)
@@ -289,6 +296,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     args = parser.parse_args(argv)
     if not 1 <= args.robots <= MAX_ROBOTS:
         parser.error(f"--robots must be in 1..{MAX_ROBOTS}, got {args.robots}")
+    check_trajectory(parser, args.trajectory, args.robots)
     if control_steps(args.duration) < 1:
         parser.error(
             f"--duration must be at least one control period ({1 / CONTROL_HZ} s), "

@@ -259,3 +259,43 @@ def test_make_trajectory_names(tmp_path):
         make_trajectory("excite", 2, fast=True)
     with pytest.raises(ValueError, match="no excitation design shipped"):
         make_trajectory("excite", 7)  # none shipped, and no world to design one for
+
+
+def test_env_flies_the_shipped_design_and_a_design_file(tmp_path):
+    """trajectory="excite" gives the shipped design for the team (its reference, pan included,
+    is what the env observes and steps on); a design file path flies that design."""
+    from astrocargo.envs import astrobee_cargo_v0
+
+    env = astrobee_cargo_v0.parallel_env(n_robots=2, trajectory="excite", max_cycles=5)
+    env.reset(seed=0)
+    assert isinstance(env.sim.trajectory, DesignedTrajectory)
+    for _ in range(3):
+        env.step({a: np.zeros(8) for a in env.agents})
+    ref, want = env.sim.reference(), env.sim.trajectory(env.sim.data.time)
+    np.testing.assert_array_equal(ref.pos, want.pos)
+    assert env.sim.data.time > 0
+    path = tmp_path / "mine.json"
+    _random_design().save(path)
+    env = astrobee_cargo_v0.parallel_env(n_robots=2, trajectory=str(path), max_cycles=5)
+    env.reset(seed=0)
+    np.testing.assert_array_equal(env.sim.trajectory.design.coeffs, _random_design().coeffs)
+
+
+@pytest.mark.parametrize(
+    "trajectory, message",
+    [
+        ("nowhere/design.json", "'nowhere/design.json' does not exist"),
+        ("circle", "unknown trajectory 'circle'"),
+    ],
+)
+def test_env_rejects_a_bad_trajectory(tmp_path, trajectory, message):
+    from astrocargo.envs import astrobee_cargo_v0
+
+    with pytest.raises(ValueError, match=message):
+        astrobee_cargo_v0.parallel_env(n_robots=2, trajectory=trajectory)
+    bad = tmp_path / "bad.json"
+    bad.write_text("{not json")
+    with pytest.raises(ValueError, match="is not a design"):
+        astrobee_cargo_v0.parallel_env(n_robots=2, trajectory=str(bad))
+    with pytest.raises(ValueError, match="fast=True"):
+        astrobee_cargo_v0.parallel_env(n_robots=2, trajectory="excite", fast=True)

@@ -14,6 +14,7 @@ from pathlib import Path
 import pytest
 
 SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"
+TWO_ROBOT_DESIGN = SCRIPTS.parent / "agents" / "designs" / "excite_2robots.json"
 
 
 def load(name: str):
@@ -82,7 +83,9 @@ def test_vector_defaults_are_kept(scripts, tmp_path):
         (["--robots", "2", "--seed", "-1"], "--seed: must be an integer >= 0"),
         (["--robots", "2", "--comm-drop", "1"], "--comm-drop must be a probability below 1"),
         (["--robots", "2", "--cargo-mass", "0"], "--cargo-mass: must be a positive number"),
-        (["--trajectory", "circle"], "invalid choice"),
+        (["--trajectory", "circle"], "unknown trajectory 'circle'"),
+        (["--trajectory", "nowhere.json"], "'nowhere.json' does not exist"),
+        (["--robots", "3", "--trajectory", str(TWO_ROBOT_DESIGN)], "designed for 2 robots"),
         (["--out-dir", "/dev/null/x"], "--out-dir: cannot create folder"),
     ],
 )
@@ -137,6 +140,9 @@ def test_benchmark_performance_accepts_a_new_or_its_own_json_file(scripts, tmp_p
         (["--video", "/dev/null/x.gif"], "--video's folder: cannot create folder"),
         (["--video", "out.mp4"], "--video must end in .gif"),
         (["--noise", "loud"], "invalid choice"),
+        (["--trajectory", "circle"], "unknown trajectory 'circle'"),
+        (["--trajectory", "nowhere.json"], "'nowhere.json' does not exist"),
+        (["--robots", "3", "--trajectory", str(TWO_ROBOT_DESIGN)], "designed for 2 robots"),
     ],
 )
 def test_demo_rejects(scripts, capsys, tmp_path, monkeypatch, argv, message):
