@@ -45,6 +45,7 @@ ACTION_DIM = 8
 ARM_DEPLOYED = np.asarray(ARM_DEPLOYED_RAD, dtype=float)
 ARM_OFFSET_RAD = 0.5  # reach of the arm actions around the deployed pose
 ARM_SPEED_RADPS = 0.12  # URDF joint velocity limit (facts file section 5)
+SENT_ARM_KEPT = 1000  # messages' arm states kept per sender (160 s at one per 10 steps)
 LOG_STD_FLOOR = 1e-12
 REWARD_KEYS = tuple(f"reward_{t}" for t in REWARD_TERMS)  # their names in infos
 _BAD_QACC = int(mujoco.mjtWarning.mjWARN_BADQACC)
@@ -52,6 +53,15 @@ TERMINATION_REASONS = ("wall_contact", "non_finite", "released")  # "released": 
 
 
 @njit(cache=True)
+def thrust_saturation(actions: np.ndarray, clipped: np.ndarray) -> np.ndarray:
+    """Per row, the share of the requested thrust a robot could not deliver: 1 - |a_c| / |a|
+    over the six thrust entries of the action a as given and a_c as clipped to [-1, 1] (0 for
+    a zero request), in [0, 1]."""
+    wanted = np.sqrt((actions[:, :6] ** 2).sum(axis=1))
+    delivered = np.sqrt((clipped[:, :6] ** 2).sum(axis=1))
+    return np.where(wanted > 0, 1.0 - delivered / np.maximum(wanted, 1e-300), 0.0)
+
+
 def tracking_errors(pos, rot, ref_pos, ref_rot):
     """Position error |p - p_ref| (m) and rotation angle error |log(R_ref^T R)| (rad)."""
     angle = log_so3(np.ascontiguousarray(ref_rot.T) @ rot)
@@ -253,6 +263,9 @@ class CargoTransport:
         self.estimators = self._make_estimators() if self.use_estimators else []
         self.navigator = BaseNavigator(self.robots, self.dt_s, self.profile)
         self.arm_targets = np.tile(np.asarray(ARM_DEPLOYED_RAD), (self.n_robots, 1))
+        self.arm_rates = np.zeros((self.n_robots, 2))  # the servo targets' rate, rad/s
+        # Per sender: message stamp -> its arm angles and rates then (what the message carries).
+        self._sent_arm: list[dict[int, np.ndarray]] = [{} for _ in range(self.n_robots)]
         self.peer_msgs: list[dict[int, Any]] = [{} for _ in range(self.n_robots)]
         self.step_count = 0
         self._ready = True
@@ -305,6 +318,8 @@ class CargoTransport:
         clipped[rows] = acting_clipped
         n_clipped = np.zeros(self.n_robots, dtype=int)
         n_clipped[rows] = (acting_clipped != acting_actions).sum(axis=1)
+        saturated = np.zeros(self.n_robots)
+        saturated[rows] = thrust_saturation(acting_actions, acting_clipped)
         self.step_count += 1
         k = self.step_count
 
@@ -335,7 +350,7 @@ class CargoTransport:
             reason = "wall_contact"
         terms, rewards = self._get_rewards(clipped, robot_contacts, cargo_contacts, finite, acting)
         infos = self._get_infos(
-            terms, n_clipped, robot_contacts + cargo_contacts, reason, acting, released
+            terms, n_clipped, robot_contacts + cargo_contacts, reason, acting, released, saturated
         )
         if reason is not None or not self.holding:
             self._ready = False
@@ -372,9 +387,9 @@ class CargoTransport:
         max_move = ARM_SPEED_RADPS * self.dt_s
         wanted = ARM_DEPLOYED + ARM_OFFSET_RAD * clipped[:, 6:]
         move = np.minimum(np.maximum(wanted - self.arm_targets, -max_move), max_move)
-        self.arm_targets = np.minimum(
-            np.maximum(self.arm_targets + move, self._joint_low), self._joint_high
-        )
+        targets = np.minimum(np.maximum(self.arm_targets + move, self._joint_low), self._joint_high)
+        self.arm_rates = (targets - self.arm_targets) / self.dt_s
+        self.arm_targets = targets
         rows = self._rows
         delivered = self.sensors.actuate(commands[rows])  # row k: robot holding[k]
         weakened = set()
@@ -468,6 +483,10 @@ class CargoTransport:
                 packet.base_quat_world,
             )
             if msg is not None:
+                sent = self._sent_arm[i]
+                sent[msg.stamp] = np.concatenate((packet.joint_pos_rad, self.arm_rates[i]))
+                if len(sent) > SENT_ARM_KEPT:
+                    del sent[next(iter(sent))]  # the oldest
                 self.channel.send(msg, k)
         for receiver, msgs in self.channel.deliver(k).items():
             for msg in msgs:
@@ -557,18 +576,20 @@ class CargoTransport:
         joint_pos = np.zeros((n, 2))
         for i in robots:
             joint_pos[i] = self.packets[i].joint_pos_rad
-        peer_wrench, peer_age, peer_valid = self._peer_slot_values(robots)
+        peer_wrench, peer_age, peer_valid, peer_arm = self._peer_slot_values(robots)
         return self._observations.build(
             acting, nav.rot, nav.base_pos, nav.base_vel, nav.w_base, joint_pos, self.arm_targets,
             ref_rot, ref_vecs, ref_pan, peer_wrench, peer_age, peer_valid,
-            self._estimates,
+            self._estimates, self.arm_rates, peer_arm,
         )  # fmt: skip
 
     def _peer_slot_values(self, robots: tuple[int, ...]) -> tuple[np.ndarray, ...]:
         """Each robot's peer slots: the latest message's wrench (world axes) (N, P, 6), its age
-        in s and whether one has arrived (N, P); zeros before the first message."""
+        in s and whether one has arrived (N, P), the sender's arm angles and rates when it sent it
+        (N, P, 4); zeros before the first message."""
         n = self.n_robots
         wrench, age, valid = np.zeros((n, n - 1, 6)), np.zeros((n, n - 1)), np.zeros((n, n - 1))
+        arm = np.zeros((n, n - 1, 4))
         step_count, dt = self.step_count, self.dt_s
         for i in robots:
             latest = self.peer_msgs[i]
@@ -578,7 +599,8 @@ class CargoTransport:
                     wrench[i, p] = msg.wrench_world
                     age[i, p] = (step_count - msg.stamp) * dt
                     valid[i, p] = 1.0
-        return wrench, age, valid
+                    arm[i, p] = self._sent_arm[j].get(msg.stamp, arm[i, p])
+        return wrench, age, valid, arm
 
     # ------------------------------------------------------------------ rewards, infos
     def tracking_error(self) -> tuple[float, float]:
@@ -623,12 +645,15 @@ class CargoTransport:
         reason: str | None,
         robots: tuple[int, ...],
         released: tuple[int, ...],
+        saturated: np.ndarray | None = None,
     ) -> list[dict[str, Any] | None]:
-        """Infos of ``robots`` (None for the others); ``released``: those letting go now."""
+        """Infos of ``robots`` (None for the others); ``released``: those letting go now;
+        ``saturated`` (n_robots,): ``thrust_saturation`` of this step (zeros at reset)."""
         infos: list[dict[str, Any] | None] = [None] * self.n_robots
         comm = dict(self.channel.stats)
         rewards = [terms[t] for t in REWARD_TERMS]
         n_clipped, wall_contacts = n_clipped.tolist(), wall_contacts.tolist()
+        saturated = [0.0] * self.n_robots if saturated is None else saturated.tolist()
         faults = self._fault_infos()
         time_s = float(self.data.time)
         for i in robots:
@@ -641,6 +666,7 @@ class CargoTransport:
                 holding=list(self.holding),
                 time_s=time_s,
                 clipped_actions=n_clipped[i],
+                saturated=saturated[i],
                 wall_contacts=wall_contacts[i],
                 true_params=self.true_params_grasp[i].copy(),
                 comm=comm,
