@@ -143,11 +143,19 @@ def test_benchmark_performance_accepts_a_new_or_its_own_json_file(scripts, tmp_p
         (["--trajectory", "circle"], "unknown trajectory 'circle'"),
         (["--trajectory", "nowhere.json"], "'nowhere.json' does not exist"),
         (["--robots", "3", "--trajectory", str(TWO_ROBOT_DESIGN)], "designed for 2 robots"),
+        (["--compare", "circle"], "unknown trajectory 'circle'"),
+        (["--robots", "3", "--compare", str(TWO_ROBOT_DESIGN)], "designed for 2 robots"),
     ],
 )
 def test_demo_rejects(scripts, capsys, tmp_path, monkeypatch, argv, message):
     monkeypatch.chdir(tmp_path)
     assert message in parser_error(scripts["demo"].parse_args, argv, capsys)
+
+
+def test_demo_flies_figure8_yaw_beside_excite_by_default(scripts, tmp_path):
+    args = scripts["demo"].parse_args(["--out-dir", str(tmp_path)])
+    assert (args.compare, args.trajectory) == ("figure8_yaw", "excite")
+    assert scripts["demo"].parse_args(["--out-dir", str(tmp_path), "--compare", "none"]).compare == "none"
 
 
 def test_demo_creates_its_folders_first_and_keeps_the_video_path(scripts, tmp_path):
