@@ -155,7 +155,8 @@ def test_demo_rejects(scripts, capsys, tmp_path, monkeypatch, argv, message):
 def test_demo_flies_figure8_yaw_beside_excite_by_default(scripts, tmp_path):
     args = scripts["demo"].parse_args(["--out-dir", str(tmp_path)])
     assert (args.compare, args.trajectory) == ("figure8_yaw", "excite")
-    assert scripts["demo"].parse_args(["--out-dir", str(tmp_path), "--compare", "none"]).compare == "none"
+    alone = scripts["demo"].parse_args(["--out-dir", str(tmp_path), "--compare", "none"])
+    assert alone.compare == "none"
 
 
 def test_demo_creates_its_folders_first_and_keeps_the_video_path(scripts, tmp_path):
