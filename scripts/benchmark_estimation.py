@@ -837,8 +837,11 @@ def plot_certainty(results: list[dict], path: Path) -> None:
             ax.set_title(f"{n} robot{'s' if n > 1 else ''}: {titles[key]}, 2 sigma", fontsize=9)
             ax.set_xlabel("time [s]")
             ax.grid(alpha=0.3)
-    handles, labels = axes[0, 0].get_legend_handles_labels()
-    fig.legend(handles, labels, fontsize=8, loc="outside lower center", ncols=3)
+    legend = {}  # every trajectory's lines, whichever team flew it
+    for ax in axes[:, 0]:
+        for handle, label in zip(*ax.get_legend_handles_labels(), strict=True):
+            legend.setdefault(label, handle)
+    fig.legend(legend.values(), legend.keys(), fontsize=8, loc="outside lower center", ncols=3)
     fig.suptitle(
         "Time to certainty: Cramer-Rao bound (solid) and the UKF's reported spread (dashed)",
         fontsize=10,
