@@ -1,23 +1,30 @@
 """Cooperative controllers: all robots together track the cargo reference.
 
-The robots and the cargo are treated as one rigid body (the arms move slowly; their own motion
-is a disturbance the feedback absorbs). With the composite mass M, centre of mass c and inertia
-I_c (robots known, cargo from live estimates, the truth, or nothing), a PD law with feed-forward
+The robots and the cargo are treated as one body at the arms' current angles, each robot's arm
+at its own angles, and the arms' motion relative to the cargo (from the joint rates) adds its
+wrench (``team_dynamics.arm_motion_wrench``). With the composite mass M, centre of mass c and
+inertia I_c (robots known, cargo from live estimates, the truth, or nothing), a PD law with
+feed-forward
 gives the desired acceleration of the cargo frame (Astrobee's law, facts file section 3.1:
 F = m (a_ref + Kd (v_ref - v) + Kp e_p), and likewise for attitude with e_R = log(R_ref R^T)),
 hence the total wrench about c:
     F = M (a + wd x (c - p) + w x (w x (c - p))),     tau = I_c wd + w x I_c w.
 The wrench is allocated among the robots through the grasp geometry by the minimum-norm solution
-weighted by each robot's propulsion limits, then scaled down uniformly if any robot saturates (so
-the direction of the total wrench is kept). A robot that has let go of the cargo (its state None)
-is part of neither the composite body nor the allocation: the robots still holding share the
-whole wrench. The equations and their compiled kernels are in ``team_dynamics``.
+weighted by each robot's propulsion limits; ``CooperativeController`` then scales it down
+uniformly if any robot saturates (so the direction of the total wrench is kept), while
+``ObservationController`` by default sends the allocation as it is and the env clips each entry
+to its limit (measured on figure8_tumble with arm oscillations: uniform scaling starves the
+unsaturated axes of feedback and loses the cargo where clipping keeps it), so that the env's
+``infos["saturated"]`` shows the share of the wanted thrust that was not delivered. A robot that
+has let go of the cargo (its state None) is part of neither the composite body nor the
+allocation: the robots still holding share the whole wrench. The equations and their compiled
+kernels are in ``team_dynamics``.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 from numba import njit
@@ -28,13 +35,17 @@ from astrocargo.estimator.rne import RobotDescription
 
 from .team_dynamics import (
     TeamModel,
+    allocate,
+    arm_motion_wrench,
     body_from_params,
+    composite_body,
     pd_accelerations,
     place_body,
     robot_body,
+    team_arm_motion,
     team_commands,
     team_model,
-    thrust_commands,
+    team_wrench,
 )
 from .trajectories import Reference
 
@@ -48,11 +59,13 @@ _NO_CARGO = (0.0, np.zeros(3), np.zeros((3, 3)))
 
 @dataclass(frozen=True)
 class RobotState:
-    """One robot's base pose (rotation base -> world, position m) and arm joint angles (rad)."""
+    """One robot's base pose (rotation base -> world, position m), arm joint angles (rad) and
+    rates (rad/s; None: at rest)."""
 
     rot: np.ndarray
     pos: np.ndarray
     joint_pos: np.ndarray
+    joint_vel: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -114,9 +127,12 @@ class CooperativeController:
             raise ValueError("no robot holds the cargo: every robot state is None")
         rot_base, pos_base = np.zeros((n, 3, 3)), np.zeros((n, 3))
         q = np.zeros((n, self.team.parent.shape[1] - 1))
+        qd = np.zeros_like(q)
         for i in holding:
             st = robot_states[i]
             rot_base[i], pos_base[i], q[i] = st.rot, st.pos, st.joint_pos
+            if st.joint_vel is not None:
+                qd[i] = st.joint_vel
         rot_c, pos_c = _vector(cargo.rot, (3, 3)), _vector(cargo.pos, (3,))
         body = _NO_CARGO
         if cargo_params is not None:
@@ -133,61 +149,58 @@ class CooperativeController:
             _vector(ref.wd, (3,)),
         )
         out, self.last_ratio = team_commands(
-            self.team, holding, rot_base, pos_base, q, body, pos_c, w, acc, wd
+            self.team, holding, rot_base, pos_base, q, body, pos_c, w, acc, wd, qd
         )
         return list(out)
 
 
 class BaseTracking(NamedTuple):
     """The observation blocks the observation controller reads, one row per acting robot, in
-    that robot's base frame (see the env's observation layout)."""
+    that robot's base frame (see the env's observation layout), and the team's arms as that
+    robot sees them (its own encoders and servo-target rates; each peer's from its latest
+    message, moved on by the message's age at its rate; its own for a peer not yet heard)."""
 
-    joint_pos: np.ndarray  # (k, n_joints) rad
+    team_joint_pos: np.ndarray  # (k, n, n_joints) rad, every robot's arm
+    team_joint_vel: np.ndarray  # (k, n, n_joints) rad/s
     base_pos_err: np.ndarray  # (k, 3) m, base minus its reference
     base_vel_err: np.ndarray  # (k, 3) m/s
     base_att_err: np.ndarray  # (k, 3) rad, log(R_ref^T R)
     base_ang_vel: np.ndarray  # (k, 3) rad/s
-    ref_pos_rel: np.ndarray  # (k, 3) m, cargo reference minus base
-    ref_acc: np.ndarray  # (k, 3) m/s^2 of the cargo reference
+    ref_acc: np.ndarray  # (k, 3) m/s^2 of the cargo reference (its origin)
     ref_ang_vel: np.ndarray  # (k, 3) rad/s
     ref_ang_acc: np.ndarray  # (k, 3) rad/s^2
     ref_pan: np.ndarray  # (k, 2) rad, rad/s: pan ramp angle and rate
     cargo_params: np.ndarray  # (k, 10) cargo's standard parameters in the robot's grasp frame
 
 
+# The blocks of ``BaseTracking`` read from the observation as they are.
+_OBSERVED_BLOCKS = BaseTracking._fields[2:-1]
+
+
 @njit(cache=True)
-def _team_in_base(
+def _team_in_cargo(
     team: TeamModel,
     handrail_rot: np.ndarray,
     handrail_pos: np.ndarray,
-    i: int,
     holding: np.ndarray,
     q: np.ndarray,
 ) -> tuple:
-    """Robot i's view of the team in its base frame B_i, every arm at i's angles q: the bases
-    of the robots ``holding`` (rotations (n, 3, 3), origins (n, 3), zeros for the others), the
-    bodies of those robots and one more slot for the cargo (masses, centres, inertias), i's grasp
-    frame (R_bg, p_bg) and the cargo frame's origin p_bc. Cargo frame C in B_i:
-    R_bc = R_bg R_ch^T, p_bc = p_bg - R_bc p_ch (handrail j's pose (R_ch, p_ch) in C); base j in
-    C: R_cb = R_chj R_bgj^T, p_cb = p_chj - R_cb p_bgj; base j in B_i:
-    (R_bc R_cb, p_bc + R_bc p_cb)."""
-    models = [robot_body(team, m, q) for m in range(len(team.parent))]
-    _, _, _, rot_bg, pos_bg = models[team.model_of[i]]
-    rot_bc = rot_bg @ handrail_rot[i].T
-    pos_bc = pos_bg - rot_bc @ handrail_pos[i]
+    """The team in the cargo frame C, robot j's arm at q[j]: the bases of the robots
+    ``holding`` (rotations (n, 3, 3), origins (n, 3), zeros for the others) and the bodies of
+    those robots with one more slot for the cargo (masses, centres, inertias). Base j in C:
+    R_cb = R_ch R_bg^T, p_cb = p_ch - R_cb p_bg (handrail j's pose (R_ch, p_ch) in C, grasp
+    frame (R_bg, p_bg) in base j at q[j])."""
     n, count = len(handrail_rot), len(holding) + 1
     rot_base, pos_base = np.zeros((n, 3, 3)), np.zeros((n, 3))
     masses, coms, inertias = np.zeros(count), np.zeros((count, 3)), np.zeros((count, 3, 3))
     for idx in range(len(holding)):
         j = holding[idx]
-        mass, com, inertia, rot_bgj, pos_bgj = models[team.model_of[j]]
-        rot_cb = handrail_rot[j] @ rot_bgj.T
-        pos_cb = handrail_pos[j] - rot_cb @ pos_bgj
-        rot_base[j] = rot_bc @ rot_cb
-        pos_base[j] = pos_bc + rot_bc @ pos_cb
+        mass, com, inertia, rot_bg, pos_bg = robot_body(team, team.model_of[j], q[j])
+        rot_base[j] = handrail_rot[j] @ rot_bg.T
+        pos_base[j] = handrail_pos[j] - rot_base[j] @ pos_bg
         masses[idx] = mass
         coms[idx], inertias[idx] = place_body(com, inertia, rot_base[j], pos_base[j])
-    return rot_base, pos_base, (masses, coms, inertias), rot_bg, pos_bg, pos_bc
+    return rot_base, pos_base, (masses, coms, inertias)
 
 
 @njit(cache=True)
@@ -201,49 +214,67 @@ def _observation_actions(
     holding: np.ndarray,
     obs: BaseTracking,
     with_cargo: bool,
-) -> np.ndarray:
+    scale_down: bool,
+) -> tuple[np.ndarray, np.ndarray]:
     """Actions (k, 8) of the acting robots (all holding the cargo): thrust u / thrust_limit,
-    tilt offset 0, pan offset clip(ref_pan / arm_scale_rad, -1, 1). Each robot's thrust u is its
-    share of the team wrench worked out in its own base frame, where the cargo is at rest (v = 0)
-    and the reference errors are the base's (the grasp is rigid): e_p = -base_pos_err,
-    v_ref = -base_vel_err, e_R = -base_att_err, and the reference acceleration of the cargo
-    origin seen from the base a_ref = ref_acc + w'_ref x r + w_ref x (w_ref x r),
-    r = -ref_pos_rel."""
+    tilt offset 0, pan offset clip(ref_pan / arm_scale_rad, -1, 1); and each one's saturation
+    ratio (largest |u| / limit of the allocation before scaling). Robot i works in the cargo
+    frame C (its base axes rotated by R_cb, base i's pose in C at its arm angles): every robot
+    at its own arm angles, the cargo's twist is the base's less the base's motion relative to
+    the cargo (``team_arm_motion``): w = R_cb w_base - w_rel,i, velocity error at the base point
+    R_cb base_vel_err - v_rel,i; position and attitude errors are the base's (the grasp is
+    rigid at the measured angles): e_p = -R_cb base_pos_err, e_R = -R_cb base_att_err; the
+    reference acceleration of the cargo origin is ref_acc. The wrench is ``team_wrench`` about
+    the team's centre of mass plus ``arm_motion_wrench`` of the arms' motion, allocated by
+    ``allocate``; with ``scale_down`` False the commands are the allocation's before its
+    scaling (the env then clips each entry to its limit)."""
     out = np.zeros((len(acting), 8))
+    ratios = np.zeros(len(acting))
+    origin = np.zeros(3)
     for a in range(len(acting)):
         i = acting[a]
-        rot_base, pos_base, bodies, rot_bg, pos_bg, pos_bc = _team_in_base(
-            team, handrail_rot, handrail_pos, i, holding, obs.joint_pos[a]
-        )
+        q, qd = obs.team_joint_pos[a], obs.team_joint_vel[a]
+        rot_base, pos_base, bodies = _team_in_cargo(team, handrail_rot, handrail_pos, holding, q)
+        masses, coms, inertias = bodies
         if with_cargo:
             mass, com, inertia = body_from_params(obs.cargo_params[a])
-            masses, coms, inertias = bodies
             masses[-1] = mass
-            coms[-1], inertias[-1] = place_body(com, inertia, rot_bg, pos_bg)
-        w_ref, wd_ref, r = obs.ref_ang_vel[a], obs.ref_ang_acc[a], -obs.ref_pos_rel[a]
-        acc_ref = obs.ref_acc[a] + np.cross(wd_ref, r) + np.cross(w_ref, np.cross(w_ref, r))
-        w = obs.base_ang_vel[a]
+            coms[-1], inertias[-1] = place_body(com, inertia, handrail_rot[i], handrail_pos[i])
+        arms = team_arm_motion(team, holding, handrail_rot, handrail_pos, q, qd)
+        base_vel_rel, base_w_rel = arms[7], arms[8]
+        r = rot_base[i]
+        w = r @ obs.base_ang_vel[a] - base_w_rel[i]
+        vel_err = r @ obs.base_vel_err[a] - base_vel_rel[i]
         acc, wd = pd_accelerations(
-            gains, -obs.base_pos_err[a], -obs.base_vel_err[a], -obs.base_att_err[a],
-            w_ref - w, acc_ref, wd_ref,
+            gains, -(r @ obs.base_pos_err[a]), -vel_err, -(r @ obs.base_att_err[a]),
+            r @ obs.ref_ang_vel[a] - w, r @ obs.ref_acc[a], r @ obs.ref_ang_acc[a],
         )  # fmt: skip
-        commands, _ = thrust_commands(team, holding, rot_base, pos_base, bodies, pos_bc, w, acc, wd)
+        mass, com, inertia = composite_body(masses, coms, inertias)
+        wrench = team_wrench(mass, com, inertia, origin, w, acc, wd)
+        wrench += arm_motion_wrench(*arms[:7], com, w)
+        commands, ratios[a] = allocate(team, holding, rot_base, pos_base, com, wrench)
         out[a, :6] = commands[i] / team.thrust_limit[i]
+        if not scale_down:
+            out[a, :6] *= max(ratios[a], 1.0)
         out[a, 7] = min(max(obs.ref_pan[a, 0] / arm_scale_rad, -1.0), 1.0)
-    return out
+    return out, ratios
 
 
 class ObservationController:
     """The cooperative controller driven by the env's observations only, scored like a policy.
 
-    Each robot works out the team's wrench from its own observation, in its own base frame: its
-    base tracking errors stand for the cargo's (the grasp is rigid), the cargo and the other
-    robots are placed by the known grasp geometry (handrail poses on the cargo; peers' arms
-    assumed at this robot's own angles, since all follow the same pan ramp), and the cargo's
-    inertia comes from ``cargo_model``: "estimate" (this robot's own live estimate, from the
-    observation, in its grasp frame), "none" (no cargo), or "truth" (``truth_params``, cargo
-    frame, for comparison only). It then applies its share of the allocation (the equations of
-    ``CooperativeController``) and sends the arm targets of the reference pan ramp.
+    Each robot works out the team's wrench from its own observation, in the cargo frame: its
+    base tracking errors stand for the cargo's (the grasp is rigid at the measured angles), its
+    base's twist less the base's motion relative to the cargo from its own arm rates is the
+    cargo's, the cargo and the other robots are placed by the known grasp geometry (handrail
+    poses on the cargo; each peer's arm at the angles and rates of its latest message, moved on
+    by the message's age, or at this robot's own before the first), the arms' motion adds its
+    wrench, and the cargo's inertia comes from ``cargo_model``: "estimate" (this robot's own
+    live estimate, from the observation, in its grasp frame), "none" (no cargo), or "truth"
+    (``truth_params``, cargo frame, for comparison only). It then applies its share of the
+    allocation (``_observation_actions``), unscaled unless ``scale_down`` (module docstring),
+    and sends the arm targets of the reference pan ramp. ``last_ratios``: each acting robot's
+    largest command / limit of the last call.
 
     ``predict(obs)`` takes the env's observation dict (agent -> obs) or an array (n_robots,
     obs_dim) in agent order and returns actions of the same form, with SB3's signature. The
@@ -262,6 +293,7 @@ class ObservationController:
         truth_params: np.ndarray | None = None,
         arm_offset_scale_rad: float = 0.5,
         agents: list[str] | None = None,
+        scale_down: bool = False,
     ) -> None:
         if cargo_model not in CARGO_MODELS:
             raise ValueError(f"cargo_model must be one of {CARGO_MODELS}, got {cargo_model!r}")
@@ -277,6 +309,8 @@ class ObservationController:
         self.cargo_model = cargo_model
         self.truth_params = None if truth_params is None else np.asarray(truth_params, float)
         self.arm_scale = float(arm_offset_scale_rad)
+        self.scale_down = bool(scale_down)
+        self.last_ratios = np.zeros(0)
         self.team = CooperativeController(self.robots)
         self._handrail_rot = _vector([r for r, _ in self.handrail_poses], (-1, 3, 3))
         self._handrail_pos = _vector([p for _, p in self.handrail_poses], (-1, 3))
@@ -293,8 +327,9 @@ class ObservationController:
         self.robot_index = {name: i for i, name in enumerate(names)}
 
     @classmethod
-    def for_env(cls, env, cargo_model: str = "estimate") -> ObservationController:
-        """Build from an ``AstrobeeCargoEnv`` (geometry; the truth only for "truth")."""
+    def for_env(cls, env, cargo_model: str = "estimate", **kwargs: Any) -> ObservationController:
+        """Build from an ``AstrobeeCargoEnv`` (geometry; the truth only for "truth");
+        ``kwargs``: the constructor's other arguments (``scale_down``)."""
         sim = env.sim
         truth = sim.world.cargo_params() if cargo_model == "truth" else None
         return cls(
@@ -304,7 +339,28 @@ class ObservationController:
             cargo_model,
             truth,
             agents=list(env.possible_agents),
+            **kwargs,
         )
+
+    def _team_arms(self, acting: np.ndarray, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Every robot's arm angles and rates (k, n, n_joints) as each acting robot sees them:
+        its own from its encoders and servo-target rates; a peer's from the latest message,
+        q + qd * age; its own for a peer not heard from yet (or a layout without peer arms)."""
+        lay, n = self.layout, len(self.robots)
+        q = np.repeat(obs[:, None, lay["joint_pos"]], n, axis=1)
+        qd = np.zeros_like(q)
+        if "joint_vel" in lay:
+            qd = np.repeat(obs[:, None, lay["joint_vel"]], n, axis=1)
+        if "peer0_joint_pos" not in lay:
+            return q, qd
+        for a, i in enumerate(acting.tolist()):
+            for p, j in enumerate(j for j in range(n) if j != i):
+                if obs[a, lay[f"peer{p}_valid"].start] > 0:
+                    rate = obs[a, lay[f"peer{p}_joint_vel"]]
+                    age = obs[a, lay[f"peer{p}_age"].start]
+                    q[a, j] = obs[a, lay[f"peer{p}_joint_pos"]] + rate * age
+                    qd[a, j] = rate
+        return q, qd
 
     def _tracking(self, acting: np.ndarray, obs: np.ndarray) -> BaseTracking:
         """The blocks of the observations ``obs`` (k, obs_dim) of the robots ``acting``."""
@@ -313,13 +369,15 @@ class ObservationController:
             params = obs[:, lay["estimate_mean"]]
         else:
             params = self._truth_in_grasp[acting]
-        blocks = [obs[:, lay[name]] for name in BaseTracking._fields[:-1]]
-        return BaseTracking(*(np.ascontiguousarray(b) for b in (*blocks, params)))
+        blocks = [obs[:, lay[name]] for name in _OBSERVED_BLOCKS]
+        arms = self._team_arms(acting, obs)
+        return BaseTracking(*(np.ascontiguousarray(b) for b in (*arms, *blocks, params)))
 
     def _actions(self, acting: np.ndarray, obs: np.ndarray) -> np.ndarray:
         """Actions (k, 8) of the robots ``acting`` (all holding the cargo) from their
-        observations (k, obs_dim) (``_observation_actions``)."""
-        return _observation_actions(
+        observations (k, obs_dim) (``_observation_actions``); ``last_ratios`` keeps each one's
+        saturation ratio."""
+        actions, self.last_ratios = _observation_actions(
             self.team.team,
             self._handrail_rot,
             self._handrail_pos,
@@ -329,7 +387,9 @@ class ObservationController:
             np.sort(acting),
             self._tracking(acting, obs),
             self.cargo_model != "none",
+            self.scale_down,
         )
+        return actions
 
     def predict(self, observation, state=None, episode_start=None, deterministic=False):
         """SB3's signature: returns (actions, state)."""

@@ -72,7 +72,6 @@ from astrocargo.estimator.inertia import (
 from astrocargo.estimator.rne import (
     RobotDescription,
     body_regressor,
-    cross,
     grasp_from_base,
     grasp_pose,
     link_poses,
@@ -197,9 +196,9 @@ def attitude_zxy(angles: np.ndarray, rates: np.ndarray, accs: np.ndarray) -> tup
     wd = (
         yaw_dd[:, None] * ez
         + roll_dd[:, None] * ex
-        + roll_d[:, None] * cross(w_z, ex)
+        + roll_d[:, None] * np.cross(w_z, ex)
         + pitch_dd[:, None] * ey
-        + pitch_d[:, None] * cross(w_z + w_x, ey)
+        + pitch_d[:, None] * np.cross(w_z + w_x, ey)
     )
     return rot, w, wd
 
@@ -340,8 +339,60 @@ class DesignedTrajectory:
             float(m.pan_rate[0]),
         )
 
+    def arrays(self, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The reference at ``t`` as ``Trajectory.arrays`` gives it: rotation (3, 3); pos, vel,
+        acc, w, wd as the rows of a (5, 3), world axes; (pan, pan_rate) (2,)."""
+        m = self.motion(np.array([float(t)]))
+        vecs = np.stack((m.pos[0], m.vel[0], m.acc[0], m.w[0], m.wd[0]))
+        return np.ascontiguousarray(m.rot[0]), vecs, np.array((m.pan[0], m.pan_rate[0]))
+
     def __call__(self, t: float) -> Reference:
         return self.values(t).to_reference()
+
+
+# ------------------------------------------------------------------------------- ESTIMATOR COUPLING
+# The ONE place that reads CargoEstimator's private noise model (meas_cov, _actuation_abs/_rel,
+# _acc_noise, _ang_acc_noise, _joint_acc_noise, _robot_mass, _robot_inertia, _correlated: the
+# terms of CargoEstimator.process's meas_cov and of CargoEstimator._sensor_cov). When the
+# estimator offers a public method for its per-update measurement covariance, repoint this
+# function to it; nothing else in this module depends on how R is built.
+def estimator_measurement_cov(
+    estimator: CargoEstimator,
+    cargo_grasp: np.ndarray,
+    commands: np.ndarray,
+    noise_maps: np.ndarray,
+    lever_m: np.ndarray,
+) -> np.ndarray:
+    """R_k (N, 6, 6) of the estimator's update at each of N samples, robot 0's grasp frame:
+
+        R_k = meas_cov + (sum_j M_j diag(s_j^2) M_j^T) / update_every + c diag(F, F, F, N, N, N),
+
+    s_j = abs + rel |u_j| robot j's actuation noise per axis at its command ``commands``
+    (N, n, 6) [N; N m], M_j = ``noise_maps`` (N, n, 6, 6) (thrust site -> robot 0's grasp
+    frame), and the errors-in-variables term at the cargo ``cargo_grasp`` (10,) (grasp frame) as
+    its estimate and base-to-grasp lever ``lever_m`` (N,) m: F = (M a)^2 + (m_c L q)^2,
+    N = (J wd)^2 + (M L a)^2 + (m_c |c| L q)^2, with M the robot-plus-cargo mass (kg), J the
+    inertia about the grasp (kg m^2), a, wd, q the accelerometer, angular-acceleration and
+    joint-acceleration noise after the estimator's filters, c its correlation factor."""
+    est = estimator
+    std = est._actuation_abs + est._actuation_rel * np.abs(commands)  # (N, n, 6)
+    act = np.einsum("nkij,nkj,nklj->nil", noise_maps, std**2, noise_maps)
+    m_c, h_x, h_y, h_z, i_xx, i_yy, i_zz = (float(x) for x in cargo_grasp[:7])
+    com = math.sqrt(h_x * h_x + h_y * h_y + h_z * h_z) / m_c
+    lever = np.asarray(lever_m, dtype=float)
+    total = est._robot_mass + m_c
+    inertia = est._robot_inertia + est._robot_mass * lever**2 + max(i_xx, i_yy, i_zz)
+    force = (total * est._acc_noise) ** 2 + (m_c * lever * est._joint_acc_noise) ** 2
+    moment = (
+        (inertia * est._ang_acc_noise) ** 2
+        + (total * lever * est._acc_noise) ** 2
+        + (m_c * com * lever * est._joint_acc_noise) ** 2
+    )
+    sensor = np.zeros((lever.size, 6, 6))
+    idx = np.arange(3)
+    sensor[:, idx, idx] = force[:, None]
+    sensor[:, idx + 3, idx + 3] = moment[:, None]
+    return est.meas_cov + act / est.update_every + est._correlated * sensor
 
 
 # ------------------------------------------------------------------------------- the model
@@ -423,6 +474,8 @@ class ExcitationModel:
             for j, (rot_j, pos_j) in enumerate(self.handrails)
             if j
         }
+        # Peer j's wrench into robot 0's grasp frame, the relative grasp the estimator is given.
+        self.relative_known = {j: wrench_transform(rot, pos) for j, (rot, pos) in relative.items()}
         self.estimator = CargoEstimator(
             self.robots[0],
             0,
@@ -450,7 +503,6 @@ class ExcitationModel:
 
     def _team_at(self, pan: float) -> dict:
         """Composite body, allocation and noise maps at one pan angle (cargo axes)."""
-        est = self.estimator
         total = self.cargo_params.copy()
         poses = [self.base_in_cargo(i, pan) for i in range(self.n_robots)]
         for robot, (rot_cb, pos_cb) in zip(self.robots, poses, strict=True):
@@ -472,7 +524,7 @@ class ExcitationModel:
             to_grasp = grasp_from_base(rot_bg, pos_bg) @ wrench_transform(
                 robot.thrust_rot, robot.thrust_pos
             )
-            noise_maps.append(to_grasp if j == 0 else est._relative[j].known @ to_grasp)
+            noise_maps.append(to_grasp if j == 0 else self.relative_known[j] @ to_grasp)
         lever0 = float(
             np.linalg.norm(grasp_pose(self.robots[0], np.array([TILT_DEPLOYED_RAD, pan]))[1])
         )
@@ -482,7 +534,7 @@ class ExcitationModel:
             "inertia": inertia,
             "alloc": alloc,
             "noise": np.stack(noise_maps),
-            "sensor_cov": self.sensor_cov(lever0),
+            "lever": lever0,
         }
 
     def _tabulate(self) -> None:
@@ -502,22 +554,6 @@ class ExcitationModel:
             out[k] = tab[i] * (1 - frac).reshape(shape) + tab[i + 1] * frac.reshape(shape)
         return out
 
-    def sensor_cov(self, lever_m: float) -> np.ndarray:
-        """The estimator's errors-in-variables covariance (``CargoEstimator._sensor_cov``) with
-        the design cargo as its estimate and grasp lever ``lever_m``."""
-        est = self.estimator
-        m_c, h_x, h_y, h_z, i_xx, i_yy, i_zz = self.cargo_grasp[:7].tolist()
-        com = math.sqrt(h_x * h_x + h_y * h_y + h_z * h_z) / m_c
-        total = est._robot_mass + m_c
-        inertia = est._robot_inertia + est._robot_mass * lever_m**2 + max(i_xx, i_yy, i_zz)
-        force = (total * est._acc_noise) ** 2 + (m_c * lever_m * est._joint_acc_noise) ** 2
-        moment = (
-            (inertia * est._ang_acc_noise) ** 2
-            + (total * lever_m * est._acc_noise) ** 2
-            + (m_c * com * lever_m * est._joint_acc_noise) ** 2
-        )
-        return est._correlated * np.diag([force] * 3 + [moment] * 3)
-
     # -------------------------------------------------------------- predictions
     def commands(self, motion: Motion) -> np.ndarray:
         """Feed-forward commands (N, n_robots, 6) [N; N m] of the planned motion through the
@@ -528,9 +564,9 @@ class ExcitationModel:
         w = np.einsum("nij,nj->ni", rot_t, motion.w)
         wd = np.einsum("nij,nj->ni", rot_t, motion.wd)
         r = team["com"]
-        force = team["mass"][:, None] * (acc + cross(wd, r) + cross(w, cross(w, r)))
+        force = team["mass"][:, None] * (acc + np.cross(wd, r) + np.cross(w, np.cross(w, r)))
         iw = np.einsum("nij,nj->ni", team["inertia"], w)
-        torque = np.einsum("nij,nj->ni", team["inertia"], wd) + cross(w, iw)
+        torque = np.einsum("nij,nj->ni", team["inertia"], wd) + np.cross(w, iw)
         wrench = np.concatenate((force, torque), axis=1)
         return np.einsum("nkij,nj->nki", team["alloc"], wrench)
 
@@ -540,16 +576,15 @@ class ExcitationModel:
         rot_ch, pos_ch = self.handrails[0]
         rot_gw = np.swapaxes(motion.rot @ rot_ch, 1, 2)  # world -> G
         p = np.einsum("nij,j->ni", motion.rot, pos_ch)  # cargo origin -> grasp, world
-        acc = motion.acc + cross(motion.wd, p) + cross(motion.w, cross(motion.w, p))
+        acc = motion.acc + np.cross(motion.wd, p) + np.cross(motion.w, np.cross(motion.w, p))
         return tuple(np.einsum("nij,nj->ni", rot_gw, v) for v in (acc, motion.w, motion.wd))
 
     def measurement_cov(self, motion: Motion, commands: np.ndarray) -> np.ndarray:
         """R (N, 6, 6) of the estimator's update at each sample (module docstring)."""
-        est = self.estimator
         team = self.team(motion.pan)
-        std = est._actuation_abs + est._actuation_rel * np.abs(commands)  # (N, n, 6)
-        act = np.einsum("nkij,nkj,nklj->nil", team["noise"], std**2, team["noise"])
-        return est.meas_cov + act / est.update_every + team["sensor_cov"]
+        return estimator_measurement_cov(
+            self.estimator, self.cargo_grasp, commands, team["noise"], team["lever"]
+        )
 
     def update_times(
         self, duration_s: float, every: int = 1
@@ -600,6 +635,8 @@ class ExcitationModel:
             out[k] = filt.step(np.concatenate((np.zeros(12), row)))[0][12:]
         keep = (stamps % est.update_every == 0) & (stamps >= est.warmup_steps)
         a = out[keep].reshape(-1, 6, 10)
+        # The estimator's own excitation test (CargoEstimator._excited at its grasp lever): a
+        # second, read-only use of its internals, outside the measurement covariance.
         est._grasp_lever = float(
             np.linalg.norm(grasp_pose(self.robots[0], np.array([TILT_DEPLOYED_RAD, 0.0]))[1])
         )
@@ -977,6 +1014,51 @@ def is_trajectory_name(name: object) -> bool:
     )
 
 
+def trajectory_choices() -> str:
+    """The accepted trajectory names, for error and help texts."""
+    from .trajectories import Trajectory
+
+    return f"one of {list(Trajectory.NAMES) + [EXCITE]} or the path of a design JSON file"
+
+
+def load_design(path: str | Path, n_robots: int | None = None) -> ExcitationDesign:
+    """The design in the JSON file ``path``, checked for ``n_robots`` if given; ``ValueError``
+    naming the file if it is missing, unreadable, not a design, or for another team size."""
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"trajectory design file {str(path)!r} does not exist (or is not a file)")
+    try:
+        design = ExcitationDesign.from_dict(json.loads(path.read_text()))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError) as err:
+        raise ValueError(f"trajectory design file {str(path)!r} is not a design: {err}") from None
+    except ValueError as err:
+        raise ValueError(f"trajectory design file {str(path)!r}: {err}") from None
+    if n_robots is not None and design.n_robots != n_robots:
+        raise ValueError(f"{path} was designed for {design.n_robots} robots, not {n_robots}")
+    return design
+
+
+def check_trajectory(name: object, n_robots: int, fast: bool = False) -> None:
+    """``ValueError`` unless ``name`` is a reference ``make_trajectory`` can build for a team of
+    ``n_robots`` (a design file is read and checked here; "excite" without a shipped design is
+    designed where the world is built)."""
+    if not is_trajectory_name(name):
+        raise ValueError(f"unknown trajectory {name!r}; allowed: {trajectory_choices()}")
+    from .trajectories import Trajectory
+
+    if name in Trajectory.NAMES:
+        return
+    if fast:
+        raise ValueError("fast=True applies to the figure-eight trajectories, not to designs")
+    if name != EXCITE:
+        load_design(name, n_robots)
+
+
+def has_design(n_robots: int) -> bool:
+    """Whether a design for ``n_robots`` is shipped (``DESIGNS_DIR``)."""
+    return (DESIGNS_DIR / f"excite_{int(n_robots)}robots.json").exists()
+
+
 def make_trajectory(
     name: str,
     n_robots: int,
@@ -987,37 +1069,32 @@ def make_trajectory(
 ):
     """The reference a name stands for: ``Trajectory(name, fast)`` for the analytic ones; for
     "excite" the design shipped for ``n_robots`` (``shipped_design``), else one designed for
-    ``world`` (an ``envs.world.World``) with ``estimator_kwargs`` and cached under
-    ``DESIGN_CACHE_DIR``; for a path ending in ``.json`` that design. ``fast`` does not apply
-    to designs (ValueError)."""
+    ``world`` (an ``envs.world.World``: its team and bag) with ``estimator_kwargs`` and cached
+    under ``DESIGN_CACHE_DIR``; for a path ending in ``.json`` that design (``load_design``).
+    ``fast`` does not apply to designs (ValueError). A design on the fly that finds no flyable
+    motion (every start scaled to rest) raises ``ValueError``."""
     from .trajectories import Trajectory
 
-    if not is_trajectory_name(name):
-        raise ValueError(
-            f"unknown trajectory {name!r}; allowed: {list(Trajectory.NAMES) + [EXCITE]} or the "
-            f"path of a design JSON file"
-        )
+    check_trajectory(name, n_robots, fast)
     if name in Trajectory.NAMES:
         return Trajectory(name, fast=fast)
-    if fast:
-        raise ValueError("fast=True applies to the figure-eight trajectories, not to designs")
-    if name.endswith(".json"):
-        design = ExcitationDesign.load(name)
-        if design.n_robots != n_robots:
-            raise ValueError(f"{name} was designed for {design.n_robots} robots, not {n_robots}")
-        return DesignedTrajectory(design)
-    try:
+    if name != EXCITE:
+        return DesignedTrajectory(load_design(name, n_robots))
+    if has_design(n_robots) or world is None:
         return DesignedTrajectory(shipped_design(n_robots))
-    except ValueError:
-        if world is None:
-            raise
     noise_key = hashlib.sha1(
         json.dumps(estimator_kwargs or {}, sort_keys=True, default=str).encode()
     ).hexdigest()[:10]
     cached = DESIGN_CACHE_DIR / f"excite_{n_robots}robots_{world.cargo_bag.name}_{noise_key}.json"
     if cached.exists():
-        return DesignedTrajectory(ExcitationDesign.load(cached))
+        return DesignedTrajectory(load_design(cached, n_robots))
     model = model_for_world(world, estimator_kwargs=estimator_kwargs)
     design = ExcitationDesigner(model, settings).run()
+    if not np.any(design.coeffs) and not any(design.spin_radps):
+        raise ValueError(
+            f"the excitation designer found no flyable design for {n_robots} robots (every "
+            f"start had to be scaled to rest to meet the limits; binding: "
+            f"{design.info.get('binding')})"
+        )
     design.save(cached)
     return DesignedTrajectory(design)

@@ -1,7 +1,8 @@
 """The team as one rigid body: composite inertia, desired wrench and its allocation, compiled.
 
-The cooperative controllers (``controllers.py``) treat the robots and the cargo as one rigid body
-(the arms move slowly; their own motion is a disturbance the feedback absorbs). Every function
+The cooperative controllers (``controllers.py``) treat the robots and the cargo as one body whose
+arms move (section "moving arms" below: the composite body at the arms' current angles, plus the
+wrench of the links' motion relative to the cargo from the joint rates). Every function
 here works in one frame W (the world, or one robot's base frame: the equations are the same), with
 vectors in metres, seconds, radians, kilograms, and wrenches [force (N); moment (N m)].
 
@@ -36,7 +37,7 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit
 
-from astrocargo.estimator.geometry import exp_so3, matmul3, matvec3, skew
+from astrocargo.estimator.geometry import exp_so3, log_so3, matmul3, matvec3, skew
 from astrocargo.estimator.rne import RobotDescription
 
 
@@ -270,6 +271,129 @@ def thrust_commands(
     return allocate(team, holding, rot_base, pos_base, com, wrench)
 
 
+# ------------------------------------------------------------------------------- moving arms
+# The arms move: every link of robot j moves relative to its grasp frame G_j, which is fixed to
+# the cargo. With each link b's centre c_b, velocity v_b and acceleration a_b relative to the
+# cargo frame (derivatives taken in it), angular velocity w_b and acceleration al_b relative to
+# it, the cargo's angular velocity w and the rigid terms of ``team_wrench``, Newton-Euler for the
+# team adds per link
+#     F_b = m_b (a_b + 2 w x v_b),
+#     tau_b = I_b (al_b + w x w_b) + w x I_b w_b + w_b x I_b w + w_b x I_b w_b   (about c_b),
+# and about the team's centre of mass c: [sum F_b; sum tau_b + (c_b - c) x F_b].
+ARM_STEP_S = 0.01  # central-difference step of the arms' relative motion
+
+
+@njit(cache=True)
+def links_in_grasp(team: TeamModel, m: int, q: np.ndarray) -> tuple:
+    """Model m's links at joint angles q in its grasp frame G: centres of mass (L, 3) m,
+    rotations (L, 3, 3), inertias about the centres (L, 3, 3) kg m^2 (G axes), and the link
+    frames' origins (L, 3) m: (R_bg^T R_k, R_bg^T (p_k - p_bg)) with (R_bg, p_bg) G in the
+    base."""
+    rots, poss = link_frames(team, m, q)
+    g = team.grasp_link[m]
+    rot_gb = (rots[g] @ team.grasp_rot[m]).T
+    pos_bg = poss[g] + rots[g] @ team.grasp_pos[m]
+    n_links = len(rots)
+    coms, rots_g = np.empty((n_links, 3)), np.empty((n_links, 3, 3))
+    inertias, origins = np.empty((n_links, 3, 3)), np.empty((n_links, 3))
+    for k in range(n_links):
+        rots_g[k] = rot_gb @ rots[k]
+        origins[k] = rot_gb @ (poss[k] - pos_bg)
+        coms[k] = origins[k] + rots_g[k] @ team.link_com[m, k]
+        inertias[k] = rots_g[k] @ team.link_inertia[m, k] @ rots_g[k].T
+    return coms, rots_g, inertias, origins
+
+
+@njit(cache=True)
+def arm_motion_in_grasp(team: TeamModel, m: int, q: np.ndarray, qd: np.ndarray) -> tuple:
+    """Motion of model m's links relative to its grasp frame G (G axes) with the joints at q
+    (rad) turning at qd (rad/s), q(t) = q + qd t: centres c_b (L, 3), inertias (L, 3, 3) about
+    them, the centres' velocities v_b and accelerations a_b (L, 3), angular velocities w_b and
+    accelerations al_b (L, 3), and the base origin's velocity (3,); by central differences over
+    ``ARM_STEP_S``: v = (c(h) - c(-h)) / 2h, a = (c(h) - 2 c(0) + c(-h)) / h^2,
+    w(+-h/2) = +-log(R(+-h) R(0)^T)^(+-1) / h, w = mean, al = (w(h/2) - w(-h/2)) / h."""
+    h = ARM_STEP_S
+    c0, r0, inertias, o0 = links_in_grasp(team, m, q)
+    cp, rp, _, op = links_in_grasp(team, m, q + qd * h)
+    cm, rm, _, om = links_in_grasp(team, m, q - qd * h)
+    vel = (cp - cm) / (2 * h)
+    acc = (cp - 2 * c0 + cm) / (h * h)
+    n_links = len(c0)
+    w, al = np.empty((n_links, 3)), np.empty((n_links, 3))
+    for k in range(n_links):
+        w_up = log_so3(rp[k] @ r0[k].T) / h
+        w_down = log_so3(r0[k] @ rm[k].T) / h
+        w[k] = 0.5 * (w_up + w_down)
+        al[k] = (w_up - w_down) / h
+    return c0, inertias, vel, acc, w, al, (op[0] - om[0]) / (2 * h)
+
+
+@njit(cache=True)
+def arm_motion_wrench(
+    masses: np.ndarray,
+    coms: np.ndarray,
+    inertias: np.ndarray,
+    vel: np.ndarray,
+    acc: np.ndarray,
+    w_rel: np.ndarray,
+    al_rel: np.ndarray,
+    com: np.ndarray,
+    w: np.ndarray,
+) -> np.ndarray:
+    """The wrench (6,) about ``com`` the arms' motion adds to ``team_wrench`` (section above):
+    links b (masses (b,), centres, inertias, relative velocities, accelerations, angular
+    velocities and accelerations, one frame's axes) on a cargo turning at ``w``."""
+    out = np.zeros(6)
+    for b in range(len(masses)):
+        force = masses[b] * (acc[b] + 2.0 * np.cross(w, vel[b]))
+        inertia = inertias[b]
+        torque = (
+            inertia @ (al_rel[b] + np.cross(w, w_rel[b]))
+            + np.cross(w, inertia @ w_rel[b])
+            + np.cross(w_rel[b], inertia @ w)
+            + np.cross(w_rel[b], inertia @ w_rel[b])
+        )
+        out[:3] += force
+        out[3:] += torque + np.cross(coms[b] - com, force)
+    return out
+
+
+@njit(cache=True)
+def team_arm_motion(
+    team: TeamModel,
+    holding: np.ndarray,
+    grasp_rot: np.ndarray,
+    grasp_pos: np.ndarray,
+    q: np.ndarray,
+    qd: np.ndarray,
+) -> tuple:
+    """Every link of the robots ``holding`` with its motion relative to the cargo, in a frame W
+    fixed to the cargo in which robot j's grasp frame is (grasp_rot[j], grasp_pos[j]); arms at
+    q (n, n_joints) turning at qd: masses, centres, inertias, velocities, accelerations, angular
+    velocities and accelerations (``arm_motion_in_grasp`` rotated into W), and per robot its base
+    origin's velocity (n, 3) and angular velocity (n, 3) relative to the cargo (W axes)."""
+    n_links = team.parent.shape[1]
+    count = len(holding) * n_links
+    masses, coms, inertias = np.empty(count), np.empty((count, 3)), np.empty((count, 3, 3))
+    vel, acc = np.empty((count, 3)), np.empty((count, 3))
+    w_rel, al_rel = np.empty((count, 3)), np.empty((count, 3))
+    base_vel, base_w = np.zeros((len(grasp_rot), 3)), np.zeros((len(grasp_rot), 3))
+    for idx in range(len(holding)):
+        j = holding[idx]
+        m = team.model_of[j]
+        c, inertia, v, a, w, al, v_base = arm_motion_in_grasp(team, m, q[j], qd[j])
+        rot = grasp_rot[j]
+        for k in range(n_links):
+            b = idx * n_links + k
+            masses[b] = team.link_mass[m, k]
+            coms[b] = rot @ c[k] + grasp_pos[j]
+            inertias[b] = rot @ inertia[k] @ rot.T
+            vel[b], acc[b] = rot @ v[k], rot @ a[k]
+            w_rel[b], al_rel[b] = rot @ w[k], rot @ al[k]
+        base_vel[j], base_w[j] = rot @ v_base, rot @ w[0]
+    return masses, coms, inertias, vel, acc, w_rel, al_rel, base_vel, base_w
+
+
 @njit(cache=True)
 def team_commands(
     team: TeamModel,
@@ -282,16 +406,26 @@ def team_commands(
     w: np.ndarray,
     acc: np.ndarray,
     wd: np.ndarray,
+    qd: np.ndarray,
 ) -> tuple[np.ndarray, float]:
-    """``thrust_commands`` for the robots ``holding`` at base poses (rot_base, pos_base) in W and
-    arm angles q (n, n_joints), with the ``cargo`` body (mass, centre, inertia in W)."""
+    """The robots' body wrenches (n, 6) for the robots ``holding`` at base poses (rot_base,
+    pos_base) in W and arm angles q (n, n_joints) turning at qd (rad/s), with the ``cargo`` body
+    (mass, centre, inertia in W): ``team_wrench`` of the composite body plus
+    ``arm_motion_wrench`` of the arms' motion (robot j's grasp frame in W: R_j R_bg(q_j),
+    p_j + R_j p_bg(q_j)), allocated by ``allocate``; and the saturation ratio."""
     count = len(holding) + 1
     masses, coms, inertias = np.empty(count), np.empty((count, 3)), np.empty((count, 3, 3))
+    grasp_rot, grasp_pos = np.zeros_like(rot_base), np.zeros_like(pos_base)
     for idx in range(len(holding)):
         j = holding[idx]
-        mass, com, inertia, _, _ = robot_body(team, team.model_of[j], q[j])
+        mass, com, inertia, rot_bg, pos_bg = robot_body(team, team.model_of[j], q[j])
         masses[idx] = mass
         coms[idx], inertias[idx] = place_body(com, inertia, rot_base[j], pos_base[j])
+        grasp_rot[j] = rot_base[j] @ rot_bg
+        grasp_pos[j] = pos_base[j] + rot_base[j] @ pos_bg
     masses[-1], coms[-1], inertias[-1] = cargo
-    bodies = (masses, coms, inertias)
-    return thrust_commands(team, holding, rot_base, pos_base, bodies, origin, w, acc, wd)
+    mass, com, inertia = composite_body(masses, coms, inertias)
+    wrench = team_wrench(mass, com, inertia, origin, w, acc, wd)
+    arms = team_arm_motion(team, holding, grasp_rot, grasp_pos, q, qd)
+    wrench += arm_motion_wrench(*arms[:7], com, w)
+    return allocate(team, holding, rot_base, pos_base, com, wrench)

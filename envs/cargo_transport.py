@@ -55,7 +55,7 @@ and stays within the joint ranges.
 commands, its known model, the reference and the messages it received; never from the truth.
 "Base frame" below is the robot's own estimate of its base attitude. With P = n_robots - 1 peer
 slots (peers in increasing index, skipping the robot itself) and E = 20 if `observe_estimates`
-else 0, the size is 33 + 8 P + E (n_robots=2: 41 without, 61 with estimates).
+else 0, the size is 35 + 12 P + E (n_robots=2: 47 without, 67 with estimates).
 
 | Index          | Observation                                                  | Unit       |
 |----------------|--------------------------------------------------------------|------------|
@@ -71,12 +71,15 @@ else 0, the size is 33 + 8 P + E (n_robots=2: 41 without, 61 with estimates).
 | 25-27          | cargo reference angular velocity, base frame                | rad/s      |
 | 28-30          | cargo reference angular acceleration, base frame            | rad/s^2    |
 | 31-32          | reference pan angle and pan rate (the arm pan ramp)         | rad, rad/s |
-| 33+8p+(0-5)    | peer p's last wrench on the cargo, this robot's base axes   | N, N m     |
-| 33+8p+6        | age of that message (0 before the first)                    | s          |
-| 33+8p+7        | valid: 1 once a message of peer p has arrived, else 0       | -          |
+| 33-34          | arm joint rates tilt, pan: the servo targets' rate this step | rad/s     |
+| 35+12p+(0-5)   | peer p's last wrench on the cargo, this robot's base axes   | N, N m     |
+| 35+12p+6       | age of that message (0 before the first)                    | s          |
+| 35+12p+7       | valid: 1 once a message of peer p has arrived, else 0       | -          |
 |                | (0 again, with the whole slot, once peer p has let go)      |            |
-| 33+8P+(0-9)    | estimate mean pi, this robot's grasp frame (if observed)    | see below  |
-| 43+8P+(0-9)    | standard deviations of those ten parameters (if observed)   | see below  |
+| 35+12p+(8-9)   | peer p's arm angles tilt, pan (encoders) when it sent it    | rad        |
+| 35+12p+(10-11) | peer p's arm joint rates (servo targets) when it sent it    | rad/s      |
+| 35+12P+(0-9)   | estimate mean pi, this robot's grasp frame (if observed)    | see below  |
+| 45+12P+(0-9)   | standard deviations of those ten parameters (if observed)   | see below  |
 
 A peer's wrench is [force; moment about the peer's grasp point] (zeros before its first message).
 pi = [m, m c_x, m c_y, m c_z, I_xx, I_yy, I_zz, I_xy, I_xz, I_yz] (kg, kg m, kg m^2; inertia about
@@ -134,7 +137,9 @@ Per agent: `reward_<term>` (above), `termination_reason` (None, "wall_contact", 
 (the indices of the robots holding it after this step), `released_momentum` (only at the step
 its robot lets go: the linear momentum, kg m/s, and the angular momentum about the module
 origin, kg m^2/s, world axes, that it carries away), `time_s`, `clipped_actions` (entries of
-this agent's action outside [-1, 1] this step),
+this agent's action outside [-1, 1] this step), `saturated` (the share of the requested thrust
+this step that was not delivered: 1 - |a_c| / |a| over the six thrust entries of the action a as
+given and a_c as clipped to [-1, 1]; 0 when none exceeds its limit; in [0, 1]),
 `wall_contacts`, `true_params` (the cargo's pi in this robot's grasp frame), with estimators on:
 `estimate`, `estimate_std`, `mass_rel_err`, `com_err_m`, `principal_rel_err` (list of 3, sorted
 principal moments), `estimator` (the estimator's counters, `CargoEstimator.counters`: updates,
@@ -235,7 +240,9 @@ its qpos, qvel, body and arm-target entries are zeros (its quaternions too: neve
 |---------------------|---------------|----------------------------------------------------------|
 | `n_robots`          | 2             | robots holding the cargo, 1 to 8: up to 4 on the half    |
 |                     |               | CTB, 5 to 8 on the single CTB (eight handrails; `World`) |
-| `trajectory`        | "figure8_yaw" | cargo reference: one of `Trajectory.NAMES`               |
+| `trajectory`        | "figure8_yaw" | cargo reference: one of `Trajectory.NAMES`, "excite"     |
+|                     |               | (the team's designed excitation, `agents.excitation`:    |
+|                     |               | shipped, else designed and cached) or a design JSON path |
 | `fast`              | False         | twice the figure-eight speed                             |
 | `noise`             | "nominal"     | sensor and actuation noise: one of `NOISE_PROFILES`      |
 | `cargo_mass_kg`     | 5.0           | mass in [0.1, 100] kg, or (low, high): uniform draw at   |
@@ -280,7 +287,10 @@ its qpos, qvel, body and arm-target entries are zeros (its quaternions too: neve
   arguments as one validated `EnvConfig` (`AstrobeeCargoEnv(config)` or the keyword arguments
   above); the env deep-copies and pickles (a live renderer is not copied); `render_mode="human"`
   without a display raises `RuntimeError`; importing `astrocargo.envs` registers the Gymnasium
-  form `astrocargo/AstrobeeCargo-v0`.
+  form `astrocargo/AstrobeeCargo-v0`; `trajectory="excite"` (the team's designed excitation)
+  or the path of a design JSON file; `infos["saturated"]`. Changed: the observation carries the
+  robot's arm joint rates (33-34) and each peer slot the sender's arm angles and rates (its
+  last four entries): 35 + 12 P + E entries instead of 33 + 8 P + E.
 """
 
 from __future__ import annotations

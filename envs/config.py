@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from astrocargo.agents.trajectories import Trajectory
+from astrocargo.agents.excitation import check_trajectory
 from astrocargo.envs.faults import Fault, parse_faults
 from astrocargo.envs.sensors import NOISE_PROFILES
 from astrocargo.envs.validation import check_choice, check_finite_array, check_finite_number
@@ -92,12 +92,12 @@ class EnvConfig:
         if not 1 <= n <= MAX_ROBOTS:
             raise ValueError(f"n_robots must be in 1..{MAX_ROBOTS}, got {n}")
         self._set("n_robots", int(n))
-        check_choice("trajectory", self.trajectory, Trajectory.NAMES)
         for name in ("fast", "observe_estimates", "estimators"):
             flag = getattr(self, name)
             if not isinstance(flag, bool | np.bool_):
                 raise ValueError(f"{name} must be True or False, got {flag!r}")
             self._set(name, bool(flag))
+        check_trajectory(self.trajectory, self.n_robots, self.fast)
         check_choice("noise profile", self.noise, NOISE_PROFILES)
         if self.observe_estimates and not self.estimators:
             raise ValueError("observe_estimates=True needs estimators=True")

@@ -34,9 +34,11 @@ OWN_BLOCKS = (
     ("ref_ang_vel", 3),  # cargo reference angular velocity, rad/s
     ("ref_ang_acc", 3),  # cargo reference angular acceleration, rad/s^2
     ("ref_pan", 2),  # reference pan angle and rate, rad, rad/s
+    ("joint_vel", 2),  # arm joint rates tilt, pan: the servo targets' rate this step, rad/s
 )
 # Per peer slot p (peers in increasing index, skipping the robot itself): "peer{p}_" + name.
-PEER_BLOCKS = (("wrench", 6), ("age", 1), ("valid", 1))
+# joint_pos / joint_vel: the peer's encoder angles and servo-target rates when it sent the message.
+PEER_BLOCKS = (("wrench", 6), ("age", 1), ("valid", 1), ("joint_pos", 2), ("joint_vel", 2))
 ESTIMATE_BLOCKS = (("estimate_mean", 10), ("estimate_std", 10))
 
 
@@ -83,7 +85,7 @@ def grasp_pose(link_parent, link_rot, link_pos, link_axis, grasp_link, grasp_rot
 
 @njit(cache=True)
 def _own_blocks(out, starts, rot, base_pos, base_vel, w, q, target, rot_ref, pos_ref, vel_ref,
-                ref_vecs, ref_pan):  # fmt: skip
+                ref_vecs, ref_pan, qd):  # fmt: skip
     """Write the OWN_BLOCKS of one row at ``starts``; ref_vecs rows: the cargo reference's
     position, velocity, acceleration, angular velocity and angular acceleration (world)."""
     rot_t = rot.T
@@ -100,6 +102,7 @@ def _own_blocks(out, starts, rot, base_pos, base_vel, w, q, target, rot_ref, pos
         matvec3(rot_t, ref_vecs[3]),
         matvec3(rot_t, ref_vecs[4]),
         ref_pan,
+        qd,
     ]
     for block, value in enumerate(values):
         out[starts[block] : starts[block] + value.shape[0]] = value
@@ -109,10 +112,11 @@ def _own_blocks(out, starts, rot, base_pos, base_vel, w, q, target, rot_ref, pos
 def assemble(out, acting, own_starts, peer_starts, estimate_start, rot, base_pos, base_vel, w,
              q, target, link_parent, link_rot, link_pos, link_axis, grasp_link, grasp_rot,
              grasp_pos, handrail_rot, handrail_pos, ref_rot, ref_vecs, ref_pan, peer_wrench,
-             peer_age, peer_valid, estimates):  # fmt: skip
+             peer_age, peer_valid, estimates, qd, peer_arm):  # fmt: skip
     """Every acting robot's observation row into ``out`` (N, obs_dim); the others' rows are left
     as they are. Robots are rows of the (N, ...) inputs; peer_* (N, P, ...) hold the latest
-    message of each peer slot (wrench in world axes); estimates (N, 20) or (N, 0)."""
+    message of each peer slot (wrench in world axes; peer_arm (N, P, 4): the sender's arm angles
+    and rates); estimates (N, 20) or (N, 0); qd (N, 2) the own arm rates."""
     for i in range(out.shape[0]):
         if not acting[i]:
             continue
@@ -126,7 +130,7 @@ def assemble(out, acting, own_starts, peer_starts, estimate_start, rot, base_pos
         row = out[i]
         _own_blocks(
             row, own_starts, rot[i], base_pos[i], base_vel[i], w[i], q[i], target[i], rot_ref,
-            pos_ref, vel_ref, ref_vecs, ref_pan,
+            pos_ref, vel_ref, ref_vecs, ref_pan, qd[i],
         )  # fmt: skip
         rot_t = rot[i].T
         for p in range(peer_starts.shape[0]):
@@ -135,6 +139,9 @@ def assemble(out, acting, own_starts, peer_starts, estimate_start, rot, base_pos
             row[s_wrench + 3 : s_wrench + 6] = matvec3(rot_t, peer_wrench[i, p, 3:])
             row[s_age] = peer_age[i, p]
             row[s_valid] = peer_valid[i, p]
+            s_q, s_qd = peer_starts[p, 3], peer_starts[p, 4]
+            row[s_q : s_q + 2] = peer_arm[i, p, :2]
+            row[s_qd : s_qd + 2] = peer_arm[i, p, 2:]
         if estimates.shape[1] > 0:
             row[estimate_start : estimate_start + estimates.shape[1]] = estimates[i]
 
@@ -175,15 +182,19 @@ class ObservationBuilder:
         self.handrail_pos = np.array([pos for _, pos in handrail_pose], dtype=float)
 
     def build(self, acting, rot, base_pos, base_vel, w, q, target, ref_rot, ref_vecs, ref_pan,
-              peer_wrench, peer_age, peer_valid, estimates) -> np.ndarray:  # fmt: skip
+              peer_wrench, peer_age, peer_valid, estimates, qd=None,
+              peer_arm=None) -> np.ndarray:  # fmt: skip
         """(N, obs_dim) observations: the rows of the ``acting`` robots (bool (N,)), zeros
         elsewhere."""
         out = np.zeros((len(acting), self.obs_dim))
+        n = len(acting)
+        qd = np.zeros((n, 2)) if qd is None else qd
+        peer_arm = np.zeros((n, max(n - 1, 0), 4)) if peer_arm is None else peer_arm
         assemble(
             out, acting, self.own_starts, self.peer_starts, self.estimate_start, rot, base_pos,
             base_vel, w, q, target, self.link_parent, self.link_rot, self.link_pos,
             self.link_axis, self.grasp_link, self.grasp_rot, self.grasp_pos, self.handrail_rot,
             self.handrail_pos, ref_rot, ref_vecs, ref_pan, peer_wrench, peer_age, peer_valid,
-            estimates,
+            estimates, qd, peer_arm,
         )  # fmt: skip
         return out

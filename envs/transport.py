@@ -12,7 +12,8 @@ import mujoco
 import numpy as np
 from numba import njit
 
-from astrocargo.agents.trajectories import Reference, Trajectory
+from astrocargo.agents.excitation import make_trajectory
+from astrocargo.agents.trajectories import Reference
 from astrocargo.envs.actions import (  # noqa: F401 (re-exported)
     ACTION_DIM,
     ARM_DEPLOYED,
@@ -47,6 +48,7 @@ from astrocargo.estimator.inertia import (
     principal_rel_errors,
 )
 
+SENT_ARM_KEPT = 1000  # messages' arm states kept per sender (160 s at one per 10 steps)
 LOG_STD_FLOOR = 1e-12
 REWARD_KEYS = tuple(f"reward_{t}" for t in REWARD_TERMS)  # their names in infos
 # MuJoCo's instability warnings: on a bad qpos, qvel or qacc it resets the state to the model's
@@ -67,6 +69,15 @@ def all_finite(values):
 
 
 @njit(cache=True)
+def thrust_saturation(actions: np.ndarray, clipped: np.ndarray) -> np.ndarray:
+    """Per row, the share of the requested thrust a robot could not deliver: 1 - |a_c| / |a|
+    over the six thrust entries of the action a as given and a_c as clipped to [-1, 1] (0 for
+    a zero request), in [0, 1]."""
+    wanted = np.sqrt((actions[:, :6] ** 2).sum(axis=1))
+    delivered = np.sqrt((clipped[:, :6] ** 2).sum(axis=1))
+    return np.where(wanted > 0, 1.0 - delivered / np.maximum(wanted, 1e-300), 0.0)
+
+
 def tracking_errors(pos, rot, ref_pos, ref_rot):
     """Position error |p - p_ref| (m) and rotation angle error |log(R_ref^T R)| (rad)."""
     angle = log_so3(matmul3(ref_rot.T, rot))
@@ -134,7 +145,10 @@ class CargoTransport:
             "peer_noise_std": c.comm_noise,
             **(c.estimator_kwargs or {}),
         }
-        self.trajectory = Trajectory(c.trajectory, fast=self.fast)
+        # A named figure-eight, "excite" (the team's design) or a design file (agents.excitation).
+        self.trajectory = make_trajectory(
+            c.trajectory, self.n_robots, self.fast, self.world, self.estimator_kwargs
+        )
         self.robots = [self.world.robot_model(i) for i in range(self.n_robots)]
         self.thrust_limits = np.array([r.thrust_limit for r in self.robots])
         self.joint_ranges = np.array([r.joint_range for r in self.robots])
@@ -265,6 +279,9 @@ class CargoTransport:
         self.estimators = self._make_estimators() if self.use_estimators else []
         self.navigator = BaseNavigator(self.robots, self.dt_s, self.profile)
         self.arm_targets = np.tile(np.asarray(ARM_DEPLOYED_RAD), (self.n_robots, 1))
+        self.arm_rates = np.zeros((self.n_robots, 2))  # the servo targets' rate, rad/s
+        # Per sender: message stamp -> its arm angles and rates then (what the message carries).
+        self._sent_arm: list[dict[int, np.ndarray]] = [{} for _ in range(self.n_robots)]
         self.peer_msgs: list[dict[int, Any]] = [{} for _ in range(self.n_robots)]
         self.step_count = 0
         self._ready = True
@@ -309,10 +326,13 @@ class CargoTransport:
         bad = first_non_finite(actions, acting_mask)
         if bad >= 0:
             raise ValueError(f"actions of robot {bad} are not all finite")
+        previous_targets = self.arm_targets
         clipped, n_clipped, effort, commands, self.arm_targets = scale_actions(
             actions, acting_mask, self.thrust_limits, self.arm_targets, self._joint_low,
             self._joint_high, ARM_SPEED_RADPS * self.dt_s, ARM_DEPLOYED, ARM_OFFSET_RAD,
         )  # fmt: skip
+        self.arm_rates = (self.arm_targets - previous_targets) / self.dt_s
+        saturated = np.where(acting_mask, thrust_saturation(actions, clipped), 0.0)
         self.step_count += 1
         k = self.step_count
 
@@ -345,7 +365,7 @@ class CargoTransport:
             -effort, robot_contacts, cargo_contacts, finite, acting_mask
         )
         infos = self._get_infos(
-            terms, n_clipped, robot_contacts + cargo_contacts, reason, acting, released
+            terms, n_clipped, robot_contacts + cargo_contacts, reason, acting, released, saturated
         )
         if reason is not None or not self.holding:
             self._ready = False
@@ -466,6 +486,10 @@ class CargoTransport:
                 packet.base_quat_world,
             )
             if msg is not None:
+                sent = self._sent_arm[i]
+                sent[msg.stamp] = np.concatenate((packet.joint_pos_rad, self.arm_rates[i]))
+                if len(sent) > SENT_ARM_KEPT:
+                    del sent[next(iter(sent))]  # the oldest
                 self.channel.send(msg, k)
         for receiver, msgs in self.channel.deliver(k).items():
             for msg in msgs:
@@ -548,18 +572,20 @@ class CargoTransport:
         messages are forgotten (``_release``)."""
         ref_rot, ref_vecs, ref_pan = self._reference_arrays()
         nav = self.navigator
-        peer_wrench, peer_age, peer_valid = self._peer_slot_values(acting)
+        peer_wrench, peer_age, peer_valid, peer_arm = self._peer_slot_values(acting)
         return self._observations.build(
             acting, nav.rot, nav.base_pos, nav.base_vel, nav.w_base, self.readings.joint_pos_rad,
             self.arm_targets, ref_rot, ref_vecs, ref_pan, peer_wrench, peer_age, peer_valid,
-            self._estimates,
+            self._estimates, self.arm_rates, peer_arm,
         )  # fmt: skip
 
     def _peer_slot_values(self, acting: np.ndarray) -> tuple[np.ndarray, ...]:
         """Each robot's peer slots: the latest message's wrench (world axes) (N, P, 6), its age
-        in s and whether one has arrived (N, P); zeros before the first message."""
+        in s and whether one has arrived (N, P), the sender's arm angles and rates when it sent it
+        (N, P, 4); zeros before the first message."""
         n = self.n_robots
         wrench, age, valid = np.zeros((n, n - 1, 6)), np.zeros((n, n - 1)), np.zeros((n, n - 1))
+        arm = np.zeros((n, n - 1, 4))
         step_count, dt = self.step_count, self.dt_s
         for i in range(n):
             latest = self.peer_msgs[i]
@@ -571,7 +597,8 @@ class CargoTransport:
                     wrench[i, p] = msg.wrench_world
                     age[i, p] = (step_count - msg.stamp) * dt
                     valid[i, p] = 1.0
-        return wrench, age, valid
+                    arm[i, p] = self._sent_arm[j].get(msg.stamp, arm[i, p])
+        return wrench, age, valid, arm
 
     # ------------------------------------------------------------------ rewards, infos
     def tracking_error(self) -> tuple[float, float]:
@@ -616,12 +643,15 @@ class CargoTransport:
         reason: str | None,
         robots: tuple[int, ...],
         released: tuple[int, ...],
+        saturated: np.ndarray | None = None,
     ) -> list[dict[str, Any] | None]:
-        """Infos of ``robots`` (None for the others); ``released``: those letting go now."""
+        """Infos of ``robots`` (None for the others); ``released``: those letting go now;
+        ``saturated`` (n_robots,): ``thrust_saturation`` of this step (zeros at reset)."""
         infos: list[dict[str, Any] | None] = [None] * self.n_robots
         comm = dict(self.channel.stats)
         rewards = [terms[t] for t in REWARD_TERMS]
         n_clipped, wall_contacts = n_clipped.tolist(), wall_contacts.tolist()
+        saturated = [0.0] * self.n_robots if saturated is None else saturated.tolist()
         faults = self._fault_infos()
         time_s = float(self.data.time)
         for i in robots:
@@ -634,6 +664,7 @@ class CargoTransport:
                 holding=list(self.holding),
                 time_s=time_s,
                 clipped_actions=n_clipped[i],
+                saturated=saturated[i],
                 wall_contacts=wall_contacts[i],
                 true_params=self.true_params_grasp[i].copy(),
                 comm=comm,

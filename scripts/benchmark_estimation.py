@@ -51,6 +51,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))  # the sibling cli.py, 
 from cli import (  # noqa: E402
     Formatter,
     VectorAction,
+    check_trajectory,
     join_vector_values,
     nonnegative_float,
     nonnegative_int,
@@ -58,10 +59,10 @@ from cli import (  # noqa: E402
     output_file,
     positive_float,
     positive_int,
+    trajectory,
 )
 from ray_backend import import_ray, ray_connection  # noqa: E402
 
-from astrocargo.agents.trajectories import Trajectory  # noqa: E402
 from astrocargo.envs.sensors import NOISE_PROFILES  # noqa: E402
 from astrocargo.envs.world import MAX_ROBOTS  # noqa: E402
 
@@ -75,6 +76,14 @@ CONTROL_HZ = 62.5
 # least squares and the Cramer-Rao bound need recorded updates; twice the warm-up leaves 4 s.
 MIN_DURATION_S = 8.0
 VECTOR_OPTIONS = {"--cargo-com": 3, "--cargo-inertia": 6}
+# Time to certainty: when the 2-sigma spread of each parameter group reaches its target (mass
+# relative, centre of mass norm m, worst principal moment relative), sampled every second.
+CERTAINTY_TARGETS = {"mass_rel": 0.01, "com_m": 0.005, "principal_rel": 0.05}
+CERTAINTY_SIGMAS = 2.0
+CERTAINTY_EVERY_S = 1.0
+# The rows of the time-to-certainty table: (trajectory, robots) -> scenario name.
+CERTAINTY_TRAJECTORIES = ("excite", "figure8_tumble", "figure8_yaw")
+CERTAINTY_ROBOTS = (1, 2, 3)
 BACKENDS = ("local", "ray")
 # A Ray task whose worker process or node dies is run again up to this many times; an exception
 # raised by the case itself is not retried (it would fail the same way).
@@ -160,12 +169,19 @@ def standard_cases(seeds: int, duration: float) -> list[Case]:
     # One robot cannot follow figure8_tumble within its propulsion limits (measured: 8.6 deg mean
     # attitude error, then a wall contact), so the single-robot scenarios fly the paper's
     # figure8_yaw; the multi-robot ones fly the tumble (and 2 robots the yaw too).
+    # Time to certainty compares excite, tumble and yaw at 1, 2 and 3 robots (certainty_name);
+    # there is no 1-robot excite design: that case reports "no design".
     scenarios = [
         ("yaw: 1 robot, fixed arm", "figure8_yaw", dict(robots=1, pan=False)),
         ("yaw: 1 robot, pan ramp", "figure8_yaw", dict(robots=1)),
         ("yaw: 2 robots", "figure8_yaw", dict(robots=2)),
+        ("yaw: 3 robots", "figure8_yaw", dict(robots=3)),
+        ("tumble: 1 robot", "figure8_tumble", dict(robots=1)),
         ("tumble: 2 robots", "figure8_tumble", dict(robots=2)),
         ("tumble: 3 robots", "figure8_tumble", dict(robots=3)),
+        ("excite: 1 robot", "excite", dict(robots=1)),
+        ("excite: 2 robots", "excite", dict(robots=2)),
+        ("excite: 3 robots", "excite", dict(robots=3)),
         (
             "tumble: 2 robots, 0.1 s latency, 20 % drop",
             "figure8_tumble",
@@ -193,10 +209,69 @@ def standard_cases(seeds: int, duration: float) -> list[Case]:
     return cases
 
 
+def certainty_cases(seeds: int, duration: float) -> list[Case]:
+    """The time-to-certainty scenarios of the standard suite only: excite, figure8_tumble and
+    figure8_yaw at 1, 2 and 3 robots."""
+    names = {certainty_name(t, n) for t in CERTAINTY_TRAJECTORIES for n in CERTAINTY_ROBOTS}
+    return [c for c in standard_cases(seeds, duration) if c.name in names]
+
+
+def certainty_name(trajectory: str, robots: int) -> str:
+    """The standard scenario of the time-to-certainty row (trajectory, robots)."""
+    short = {"excite": "excite", "figure8_tumble": "tumble", "figure8_yaw": "yaw"}[trajectory]
+    suffix = ", pan ramp" if trajectory == "figure8_yaw" and robots == 1 else ""
+    return f"{short}: {robots} robot{'s' if robots > 1 else ''}{suffix}"
+
+
+# ------------------------------------------------------------------------------- certainty
+def group_spreads(pi: np.ndarray, cov: np.ndarray, truth: np.ndarray) -> dict:
+    """1-sigma spreads of the parameter groups from the covariance ``cov`` of pi (grasp frame)
+    at ``pi`` (``derived_covariance``), relative to ``truth``'s mass and principal moments:
+    mass (relative), centre of mass (norm of the per-axis spreads, m), principal moments
+    (relative, ascending)."""
+    from astrocargo.estimator.baselines import derived_covariance
+    from astrocargo.estimator.inertia import mass_com_inertia_from_params, principal_moments
+
+    std = np.sqrt(np.maximum(np.diag(derived_covariance(pi, cov)), 0.0))
+    moments = principal_moments(mass_com_inertia_from_params(truth)[2])
+    return {
+        "mass_rel": float(std[0] / truth[0]),
+        "com_m": float(np.linalg.norm(std[1:4])),
+        "principal_rel": [float(x) for x in std[4:7] / moments],
+    }
+
+
+def bound_spreads(log: list, n_rows: int, truth: np.ndarray) -> dict:
+    """``group_spreads`` of the Cramer-Rao bound of the first ``n_rows`` updates of ``log`` (an
+    estimator's record); infinite while a group is not observable yet."""
+    from astrocargo.estimator.baselines import Recording, crlb
+
+    inf = {"mass_rel": np.inf, "com_m": np.inf, "principal_rel": [np.inf] * 3}
+    if n_rows < 2:
+        return inf
+    bound = crlb(Recording.from_log(log[:n_rows]), truth)
+    if bound["unobservable"]:
+        return inf
+    return group_spreads(truth, bound["cov"], truth)
+
+
+def time_to_certainty(times: list[float], spreads: list[dict]) -> dict:
+    """Per group, the first sample time from which CERTAINTY_SIGMAS times the spread (the worst
+    principal moment) stays at or below its CERTAINTY_TARGETS to the end; None if never."""
+    out = {}
+    for key, target in CERTAINTY_TARGETS.items():
+        values = np.array([np.max(s[key]) for s in spreads]) * CERTAINTY_SIGMAS
+        above = np.nonzero(~(values <= target))[0]
+        first = 0 if not len(above) else above[-1] + 1
+        out[key] = None if first >= len(times) else float(times[first])
+    return out
+
+
 # ------------------------------------------------------------------------------- one case
 def run_case(case: Case) -> dict:
     """Simulate one case and analyse it (runs in a worker process)."""
     from astrocargo.agents.controllers import ObservationController
+    from astrocargo.agents.excitation import EXCITE, has_design
     from astrocargo.agents.trajectories import Trajectory
     from astrocargo.envs import astrobee_cargo_v0
     from astrocargo.estimator.baselines import (
@@ -223,6 +298,10 @@ def run_case(case: Case) -> dict:
     )
 
     start = time.perf_counter()
+    if case.trajectory == EXCITE and not has_design(case.robots):
+        # The designer finds no flyable design for this team (none is shipped): a row that
+        # says so, rather than a design on the fly that fails after minutes.
+        return {"case": asdict(case), "wall_s": 0.0, "no_design": True}
     env = astrobee_cargo_v0.parallel_env(
         n_robots=case.robots,
         trajectory=case.trajectory,
@@ -242,15 +321,26 @@ def run_case(case: Case) -> dict:
     obs, _ = env.reset(seed=case.seed)
     sim = env.sim
     controller = ObservationController.for_env(env, case.cargo_model)
-    times, mass_est, track, saturated = [], [], [], 0
+    times, mass_est, track, saturated, shortfall = [], [], [], 0, 0.0
     infos = {}
+    # Every CERTAINTY_EVERY_S: time, robot 0's recorded updates, its filter's group spreads.
+    sample_t, sample_rows, filter_spreads = [], [], []
+    truth0 = sim.true_params_grasp[0]
     while env.agents:
         actions, _ = controller.predict(obs)
-        saturated += sum(np.any(np.abs(a[:6]) >= 0.999) for a in actions.values())
         obs, _, _, _, infos = env.step(actions)
+        # A robot-step is saturated when the env could not deliver its whole thrust request.
+        sat = [info["saturated"] for info in infos.values()]
+        saturated += sum(x > 0 for x in sat)
+        shortfall += sum(sat)
         times.append(float(sim.data.time))
         mass_est.append([m[0] for m in sim.est_mean])
         track.append(sim.tracking_error())
+        if case.analyse and len(times) % int(round(CERTAINTY_EVERY_S * CONTROL_HZ)) == 0:
+            est0 = sim.estimators[0]
+            sample_t.append(times[-1])
+            sample_rows.append(len(est0.log))
+            filter_spreads.append(group_spreads(est0.params_mean(), est0.params_cov(), truth0))
     times, mass_est, track = np.asarray(times), np.asarray(mass_est), np.asarray(track)
     skip = len(track) // 6  # tracking statistics after the start-up
     result = {
@@ -263,6 +353,8 @@ def run_case(case: Case) -> dict:
             "max_pos_err_m": float(track[:, 0].max()),
             "mean_att_err_rad": float(track[skip:, 1].mean()),
             "saturated_fraction": float(saturated / (len(track) * case.robots)),
+            "mean_saturated": float(shortfall / (len(track) * case.robots)),
+            "wall_contact": next(iter(infos.values())).get("termination_reason") == "wall_contact",
         },
     }
     if not case.analyse:
@@ -333,6 +425,14 @@ def run_case(case: Case) -> dict:
     for u in unseen:
         touched.update(PARAM_NAMES[k] for k in np.nonzero(np.abs(u) > 0.3 * np.abs(u).max())[0])
     result["unrevealed"] = {"count": len(unseen), "parameters": sorted(touched)}
+    bounds = [bound_spreads(est0.log, n, truth0) for n in sample_rows]
+    result["certainty"] = {
+        "times_s": sample_t,
+        "bound": bounds,
+        "filter": filter_spreads,
+        "time_to_bound_s": time_to_certainty(sample_t, bounds),
+        "time_to_filter_s": time_to_certainty(sample_t, filter_spreads),
+    }
     env.close()
     return result
 
@@ -490,7 +590,87 @@ def summarise(results: list[dict]) -> dict:
         if name.startswith("control"):
             traj = name.split(": ", 1)[1].rsplit(", ", 1)[0]
             control.setdefault(traj, {})[r["case"]["cargo_model"]] = r["tracking"]
-    return {"scenarios": summary, "control": control}
+    return {"scenarios": summary, "control": control, "certainty": summarise_certainty(results)}
+
+
+def _worst_time(values: list) -> float | None:
+    """The latest of the seeds' times (None if any seed never gets there)."""
+    return None if not values or None in values else max(values)
+
+
+def _mean_curve(rs: list[dict], source: str, key: str) -> tuple[np.ndarray, np.ndarray]:
+    """Sample times and the seeds' mean of 2-sigma spreads (worst principal moment) of group
+    ``key`` from ``source`` ("bound" or "filter"), over the samples every seed has."""
+    n = min(len(r["certainty"]["times_s"]) for r in rs)
+    t = np.asarray(rs[0]["certainty"]["times_s"][:n])
+    vals = [[CERTAINTY_SIGMAS * np.max(s[key]) for s in r["certainty"][source][:n]] for r in rs]
+    return t, np.mean(vals, axis=0)
+
+
+def summarise_certainty(results: list[dict]) -> dict:
+    """The time-to-certainty rows, (trajectory, robots) of CERTAINTY_TRAJECTORIES x
+    CERTAINTY_ROBOTS present in ``results``: final 2-sigma bound and filter spreads (seeds'
+    mean), times to certainty (the latest seed's), saturation, wall contacts, tracking; and per
+    team size the time excite's bound needs to reach the tumble's final bound."""
+    rows, reach = {}, {}
+    for robots in CERTAINTY_ROBOTS:
+        for traj in CERTAINTY_TRAJECTORIES:
+            name = certainty_name(traj, robots)
+            rs = [r for r in results if r["case"]["name"] == name]
+            if not rs:
+                continue
+            key = f"{traj}, {robots}"
+            if any(r.get("no_design") for r in rs):
+                rows[key] = {"trajectory": traj, "robots": robots, "no_design": True}
+                continue
+            rs = [r for r in rs if "certainty" in r]
+            if not rs:
+                continue
+            final = {
+                src: {
+                    k: float(
+                        np.mean([CERTAINTY_SIGMAS * np.max(r["certainty"][src][-1][k]) for r in rs])
+                    )  # fmt: skip
+                    for k in CERTAINTY_TARGETS
+                }
+                for src in ("bound", "filter")
+            }
+            rows[key] = {
+                "trajectory": traj,
+                "robots": robots,
+                "seeds": len(rs),
+                "final_2sigma": final,
+                "time_to_bound_s": {
+                    k: _worst_time([r["certainty"]["time_to_bound_s"][k] for r in rs])
+                    for k in CERTAINTY_TARGETS
+                },
+                "time_to_filter_s": {
+                    k: _worst_time([r["certainty"]["time_to_filter_s"][k] for r in rs])
+                    for k in CERTAINTY_TARGETS
+                },
+                "saturated_fraction": float(
+                    np.mean([r["tracking"]["saturated_fraction"] for r in rs])
+                ),
+                "wall_contacts": int(sum(r["tracking"]["wall_contact"] for r in rs)),
+                "mean_pos_err_m": float(np.mean([r["tracking"]["mean_pos_err_m"] for r in rs])),
+                "sim_s": float(min(r["sim_s"] for r in rs)),
+            }
+        excite, tumble = (
+            [
+                r
+                for r in results
+                if r["case"]["name"] == certainty_name(traj, robots) and "certainty" in r
+            ]
+            for traj in ("excite", "figure8_tumble")
+        )
+        if excite and tumble:
+            reach[robots] = {}
+            for k in CERTAINTY_TARGETS:
+                target = _mean_curve(tumble, "bound", k)[1][-1]
+                t, curve = _mean_curve(excite, "bound", k)
+                below = np.nonzero(curve <= target)[0]
+                reach[robots][k] = float(t[below[0]]) if len(below) else None
+    return {"rows": rows, "excite_reaches_tumble_s": reach}
 
 
 def markdown(summary: dict) -> str:
@@ -552,7 +732,122 @@ def markdown(summary: dict) -> str:
             f"| {traj} | {100 * e:.2f} cm | {100 * n:.2f} cm | {100 * t:.2f} cm | {e / t:.2f} | "
             f"{e / n:.2f} | {100 * models['estimate']['saturated_fraction']:.1f} % |"
         )
+    return "\n".join(lines) + "\n" + certainty_markdown(summary.get("certainty", {"rows": {}}))
+
+
+def _fmt_time(x):
+    return "never" if x is None else f"{x:.0f} s"
+
+
+def certainty_markdown(cert: dict) -> str:
+    """The time-to-certainty table and the excite-versus-tumble times."""
+    if not cert["rows"]:
+        return ""
+    lines = [
+        "",
+        f"## Time to certainty ({CERTAINTY_SIGMAS:g} sigma: mass "
+        f"{100 * CERTAINTY_TARGETS['mass_rel']:g} %, CoM {1e3 * CERTAINTY_TARGETS['com_m']:g} "
+        f"mm, worst principal moment {100 * CERTAINTY_TARGETS['principal_rel']:g} %; robot 0; "
+        "bound: Cramer-Rao bound of the updates so far, filter: the UKF's reported spread; "
+        "spreads at the end: mean over seeds, times: the latest seed's; saturated: robot-steps "
+        "whose thrust request was clipped)",
+        "",
+        "| trajectory | robots | seeds | bound at end (mass / CoM / principal) | filter at end "
+        "| time to certainty, bound | time to certainty, filter | saturated | wall contacts "
+        "| tracking |",
+        "|---" * 10 + "|",
+    ]
+    for row in cert["rows"].values():
+        if row.get("no_design"):
+            lines.append(
+                f"| {row['trajectory']} | {row['robots']} | - | no design | - | - | - | - | - | - |"
+            )
+            continue
+        fin = row["final_2sigma"]
+
+        def spreads(src, fin=fin):
+            f = fin[src]
+            return (
+                f"{100 * f['mass_rel']:.2f} % / {1e3 * f['com_m']:.1f} mm / "
+                f"{100 * f['principal_rel']:.1f} %"
+            )
+
+        def times(key, row=row):
+            return " / ".join(_fmt_time(row[key][k]) for k in CERTAINTY_TARGETS)
+
+        lines.append(
+            f"| {row['trajectory']} | {row['robots']} | {row['seeds']} | {spreads('bound')} | "
+            f"{spreads('filter')} | {times('time_to_bound_s')} | {times('time_to_filter_s')} | "
+            f"{100 * row['saturated_fraction']:.1f} % | {row['wall_contacts']} | "
+            f"{100 * row['mean_pos_err_m']:.2f} cm |"
+        )
+    for robots, reach in cert["excite_reaches_tumble_s"].items():
+        lines.append(
+            f"\nexcite, {robots} robot{'s' if robots > 1 else ''}: reaches figure8_tumble's final "
+            f"bound (mass / CoM / principal) at "
+            + " / ".join(_fmt_time(reach[k]) for k in CERTAINTY_TARGETS)
+        )
     return "\n".join(lines) + "\n"
+
+
+def plot_certainty(results: list[dict], path: Path) -> None:
+    """2-sigma spreads over time per team size (rows) and parameter group (columns): the
+    Cramer-Rao bound (solid) and the filter's reported spread (dashed), seeds' mean, one colour
+    per trajectory, the target as a grey line."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    teams = [
+        n
+        for n in CERTAINTY_ROBOTS
+        if any(
+            "certainty" in r and r["case"]["name"] == certainty_name(t, n)
+            for r in results
+            for t in CERTAINTY_TRAJECTORIES
+        )
+    ]
+    if not teams:
+        return
+    fig, axes = plt.subplots(
+        len(teams), 3, figsize=(14, 3.2 * len(teams)), squeeze=False, layout="constrained"
+    )
+    scale = {"mass_rel": 100, "com_m": 1e3, "principal_rel": 100}
+    titles = {"mass_rel": "mass [%]", "com_m": "CoM [mm]", "principal_rel": "worst principal [%]"}
+    colours = dict(zip(CERTAINTY_TRAJECTORIES, ("tab:red", "tab:blue", "tab:green"), strict=True))
+    for row, n in zip(axes, teams, strict=True):
+        for ax, key in zip(row, CERTAINTY_TARGETS, strict=True):
+            for traj in CERTAINTY_TRAJECTORIES:
+                rs = [
+                    r
+                    for r in results
+                    if r["case"]["name"] == certainty_name(traj, n) and "certainty" in r
+                ]
+                if not rs:
+                    continue
+                for src, style in (("bound", "-"), ("filter", "--")):
+                    t, curve = _mean_curve(rs, src, key)
+                    ax.plot(
+                        t, scale[key] * curve, style, color=colours[traj],
+                        label=f"{traj} ({src})",
+                    )  # fmt: skip
+            ax.axhline(scale[key] * CERTAINTY_TARGETS[key], color="grey", lw=1)
+            ax.set_yscale("log")
+            ax.set_title(f"{n} robot{'s' if n > 1 else ''}: {titles[key]}, 2 sigma", fontsize=9)
+            ax.set_xlabel("time [s]")
+            ax.grid(alpha=0.3)
+    legend = {}  # every trajectory's lines, whichever team flew it
+    for ax in axes[:, 0]:
+        for handle, label in zip(*ax.get_legend_handles_labels(), strict=True):
+            legend.setdefault(label, handle)
+    fig.legend(legend.values(), legend.keys(), fontsize=8, loc="outside lower center", ncols=3)
+    fig.suptitle(
+        "Time to certainty: Cramer-Rao bound (solid) and the UKF's reported spread (dashed)",
+        fontsize=10,
+    )
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
 
 
 def run_conditions(results: list[dict]) -> str:
@@ -655,9 +950,10 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--suite",
-        choices=("standard", "smoke", "sweep"),
+        choices=("standard", "smoke", "sweep", "certainty"),
         default="standard",
-        help="sweep: --seeds cases, each a random cargo",
+        help="sweep: --seeds cases, each a random cargo; certainty: the standard suite's "
+        "time-to-certainty scenarios only (excite, tumble, yaw at 1, 2, 3 robots)",
     )
     p.add_argument("--backend", choices=BACKENDS, default="local", help="where cases run")
     p.add_argument(
@@ -670,7 +966,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--robots", type=int, help=f"1..{MAX_ROBOTS}: run one custom case")
     p.add_argument("--seed", type=nonnegative_int, default=0)
     p.add_argument("--noise", choices=sorted(NOISE_PROFILES), default="nominal")
-    p.add_argument("--trajectory", default="figure8_tumble", choices=Trajectory.NAMES)
+    p.add_argument(
+        "--trajectory",
+        type=trajectory,
+        default="figure8_tumble",
+        help="figure8_yaw, figure8_tumble, hover, excite (the team's designed excitation) or a "
+        "design JSON file",
+    )
     p.add_argument("--cargo-mass", type=positive_float, default=CARGO_MASS, help="kg")
     p.add_argument(
         "--cargo-com",
@@ -708,6 +1010,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     if args.robots is not None:
         if not 1 <= args.robots <= MAX_ROBOTS:
             p.error(f"--robots must be in 1..{MAX_ROBOTS}, got {args.robots}")
+        check_trajectory(p, args.trajectory, args.robots)
         if not args.comm_drop < 1:
             p.error(f"--comm-drop must be a probability below 1, got {args.comm_drop:g}")
         output_file(p, Path(args.out or "custom_case.json"), "--out")
@@ -727,6 +1030,8 @@ def suite_cases(args: argparse.Namespace) -> list[Case]:
         return smoke_cases(args.duration)
     if args.suite == "sweep":
         return sweep_cases(args.seeds, args.duration)
+    if args.suite == "certainty":
+        return certainty_cases(args.seeds, args.duration)
     return standard_cases(args.seeds, args.duration)
 
 
@@ -789,6 +1094,7 @@ def main(argv: list[str] | None = None) -> int:
     table = markdown(summary)
     (out_dir / "results.md").write_text(table)
     plot(results, out_dir / "errors.png")
+    plot_certainty(results, out_dir / "certainty.png")
     print(table)
     return 0
 

@@ -167,3 +167,32 @@ class Formatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionH
             action = copy.copy(action)
             action.help = "(default: %(default)s)"
         return super()._format_action(action)
+
+
+def trajectory(text: str) -> str:
+    """A trajectory name: one of ``Trajectory.NAMES``, "excite", or the path of a readable
+    design JSON file (``agents.excitation``); the team size is checked after parsing
+    (``check_trajectory``)."""
+    from astrocargo.agents.excitation import is_trajectory_name, load_design, trajectory_choices
+
+    if not is_trajectory_name(text):
+        raise argparse.ArgumentTypeError(f"unknown trajectory {text!r}; {trajectory_choices()}")
+    if text.endswith(".json"):
+        try:
+            load_design(text)
+        except ValueError as err:
+            raise argparse.ArgumentTypeError(str(err)) from None
+    return text
+
+
+def check_trajectory(
+    parser: argparse.ArgumentParser, name: str, n_robots: int, fast: bool = False
+) -> None:
+    """The parser's error unless trajectory ``name`` can be flown by ``n_robots`` robots (a
+    design file made for another team size, ``fast`` with a design)."""
+    from astrocargo.agents.excitation import check_trajectory as check
+
+    try:
+        check(name, n_robots, fast)
+    except ValueError as err:
+        parser.error(f"--trajectory: {err}")

@@ -1,13 +1,19 @@
 """Headline demo: two Astrobees carry an unknown cargo and estimate its inertia in real time.
 
-The paper's scenario (figure-eight, yaw ramp with a sudden turn at 40 s, arm pan ramp) with
-`nominal` sensor noise for 90 s, driven by the cooperative controller from the robots'
-observations and their own live estimates. Prints a table of final errors and mass convergence
-times per robot and saves a figure like the paper's Fig. 3: each parameter's estimate with its
-2-sigma band against the truth over time. Optionally an animated GIF.
+The same team, cargo, noise (`nominal`) and seed fly 90 s twice: the paper's scenario
+(`figure8_yaw`: figure-eight, yaw ramp with a sudden turn at 40 s, arm pan ramp) and the team's
+designed excitation (`excite`, agents/excitation.py: motion optimised for what the estimator
+learns, within the robots' thrust, the servo and the walls), each driven by the cooperative
+controller from the robots' observations and their own live estimates. Prints a table of final
+errors and mass convergence times per robot and run, and saves one figure with the two runs side
+by side (a column each, a row per parameter, like the paper's Fig. 3: the estimate with its
+2-sigma band against the truth over time), so that one picture shows what the seed's trajectory
+cannot reveal and what designed excitation does. Optionally an animated GIF of the `--trajectory`
+run.
 
     MUJOCO_GL=egl .venv/bin/python scripts/demo.py                 # the defaults above
-    .venv/bin/python scripts/demo.py --trajectory figure8_tumble --duration 60 --video out/demo.gif
+    .venv/bin/python scripts/demo.py --compare none --trajectory figure8_tumble --duration 60 \
+        --video out/demo.gif                                       # one run only
 """
 
 from __future__ import annotations
@@ -30,15 +36,16 @@ from tqdm import tqdm  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the sibling scripts/cli.py
 from cli import (  # noqa: E402
     Formatter,
+    check_trajectory,
     nonnegative_int,
     output_dir,
     output_file,
     positive_float,
     positive_int,
+    trajectory,
 )
 
 from astrocargo.agents.controllers import ObservationController  # noqa: E402
-from astrocargo.agents.trajectories import Trajectory  # noqa: E402
 from astrocargo.envs import astrobee_cargo_v0  # noqa: E402
 from astrocargo.envs.sensors import NOISE_PROFILES  # noqa: E402
 from astrocargo.envs.world import MAX_ROBOTS  # noqa: E402
@@ -59,13 +66,15 @@ def physical(pi: np.ndarray) -> np.ndarray:
     return np.concatenate(([mass], com, inertia_to_vec(inertia)))
 
 
-def run(args: argparse.Namespace) -> dict:
+def run(args: argparse.Namespace, trajectory: str, video: bool = False) -> dict:
+    """Fly ``trajectory`` with the team, cargo, noise and seed of ``args``: the results (final
+    errors, convergence, tracking) and, under "series", robot 0's estimate over time."""
     env = astrobee_cargo_v0.parallel_env(
         n_robots=args.robots,
-        trajectory=args.trajectory,
+        trajectory=trajectory,
         noise=args.noise,
         max_cycles=control_steps(args.duration),
-        render_mode="rgb_array" if args.video else None,
+        render_mode="rgb_array" if video else None,
     )
     obs, _ = env.reset(seed=args.seed)
     controller = ObservationController.for_env(env, args.cargo_model)
@@ -83,7 +92,7 @@ def run(args: argparse.Namespace) -> dict:
             means.append([m for m, _ in estimates])
             stds.append([s for _, s in estimates])
             track.append(sim.tracking_error())
-            if args.video and step % args.video_every == 0:
+            if video and step % args.video_every == 0:
                 first = infos[env.possible_agents[0]]
                 caption = (
                     f"t = {sim.data.time:5.1f} s   {env.possible_agents[0]}: mass error "
@@ -96,6 +105,7 @@ def run(args: argparse.Namespace) -> dict:
     reason = next(iter(infos.values())).get("termination_reason")
     times, means, stds, track = map(np.asarray, (times, means, stds, track))
     results = {
+        "trajectory": trajectory,
         "seed": args.seed,
         "args": vars(args),
         "wall_s": wall,
@@ -119,13 +129,10 @@ def run(args: argparse.Namespace) -> dict:
         "mean_pos_err_m": float(track[len(track) // 6 :, 0].mean()),
         "mean_att_err_deg": float(np.degrees(track[len(track) // 6 :, 1].mean())),
     }
-    out = Path(args.out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    plot(times, means[:, 0], stds[:, 0], truth[0], args, out / "estimates.png")
-    (out / "results.json").write_text(json.dumps(results, indent=2, default=float))
     if frames:
         save_gif(frames, Path(args.video), fps=CONTROL_HZ / args.video_every)
     env.close()
+    results["series"] = (times, means[:, 0], stds[:, 0], truth[0])
     return results
 
 
@@ -150,62 +157,81 @@ def zoomed_limits(
     return lo - margin, hi + margin
 
 
-def plot(times, mean, std, truth, args, path: Path) -> None:
-    """Each parameter's estimate with its 2-sigma band against the truth over time."""
+def plot(runs: list[dict], args, path: Path) -> None:
+    """Robot 0's estimate of each parameter (rows) with its 2-sigma band against the truth over
+    time, one column per run (side by side, the same y-limits in a row)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(2, 5, figsize=(17, 6.4), sharex=True)
-    zoom_s = ZOOM_AFTER * (times[-1] - times[0]) + times[0]
-    for k, ax in enumerate(axes.ravel()):
-        spread = std[-1, k] / std[0, k]  # reported spread at the end over the prior's
-        revealed = spread <= UNREVEALED_STD_FRACTION
-        ax.fill_between(
-            times,
-            mean[:, k] - 2 * std[:, k],
-            mean[:, k] + 2 * std[:, k],
-            color="tab:blue",
-            alpha=0.25,
-            lw=0,
-            label="estimate +- 2 sigma",
-        )
-        ax.plot(times, mean[:, k], color="tab:blue", lw=1.2, label="estimate")
-        ax.axhline(truth[k], color="k", ls="--", lw=1, label="truth")
-        lo, hi = zoomed_limits(times, mean[:, k], std[:, k], truth[k], revealed)
-        if not revealed:
-            lo -= 0.35 * (hi - lo)  # room for the note below the curves
-        ax.set_ylim(lo, hi)
-        title = LABELS[k] if k < 4 else LABELS[k] + " [kg m^2]"
-        if not revealed:
+    n_runs = len(runs)
+    fig, axes = plt.subplots(
+        len(LABELS), n_runs, figsize=(6.5 * n_runs + 1, 19), sharex=True, squeeze=False
+    )
+    limits = []
+    for k in range(len(LABELS)):
+        lows, highs = [], []
+        for r in runs:
+            times, mean, std, truth = r["series"]
+            revealed = std[-1, k] / std[0, k] <= UNREVEALED_STD_FRACTION
+            lo, hi = zoomed_limits(times, mean[:, k], std[:, k], truth[k], revealed)
+            lows.append(lo if revealed else lo - 0.35 * (hi - lo))  # room for the note
+            highs.append(hi)
+        limits.append((min(lows), max(highs)))
+    for col, r in enumerate(runs):
+        times, mean, std, truth = r["series"]
+        for k in range(len(LABELS)):
+            ax = axes[k, col]
+            spread = std[-1, k] / std[0, k]  # reported spread at the end over the prior's
+            revealed = spread <= UNREVEALED_STD_FRACTION
+            ax.fill_between(
+                times,
+                mean[:, k] - 2 * std[:, k],
+                mean[:, k] + 2 * std[:, k],
+                color="tab:blue",
+                alpha=0.25,
+                lw=0,
+                label="estimate +- 2 sigma",
+            )
+            ax.plot(times, mean[:, k], color="tab:blue", lw=1.2, label="estimate")
+            ax.axhline(truth[k], color="k", ls="--", lw=1, label="truth")
+            ax.set_ylim(*limits[k])
+            note = "revealed" if revealed else "NOT revealed"
             ax.text(
-                0.5,
+                0.99,
                 0.04,
-                f"not revealed by this motion\nspread {spread:.0%} of the prior's",
+                f"{note}: spread {spread:.0%} of the prior's",
                 transform=ax.transAxes,
-                ha="center",
+                ha="right",
                 va="bottom",
                 fontsize=7.5,
-                color="0.2",
+                color="0.2" if revealed else "tab:red",
                 bbox={"boxstyle": "round", "facecolor": "white", "alpha": 0.85, "lw": 0},
             )
-            title += " - not revealed"
-        ax.set_title(title, fontsize=10)
-        ax.ticklabel_format(axis="y", style="plain", useOffset=False)
-        if k >= 5:
-            ax.set_xlabel("time [s]")
+            ax.ticklabel_format(axis="y", style="plain", useOffset=False)
+            if col == 0:
+                ax.set_ylabel(LABELS[k] if k < 4 else LABELS[k] + " [kg m^2]", fontsize=9)
+        errs = r["agents"][next(iter(r["agents"]))]
+        axes[0, col].set_title(
+            f"{r['trajectory']}: mass {errs['mass_rel_err']:.1%}, CoM "
+            f"{errs['com_err_m'] * 1e3:.1f} mm, principal moments "
+            + " / ".join(f"{x:.0%}" for x in errs["principal_rel_err"])
+            + f" at {r['sim_s']:.0f} s",
+            fontsize=10,
+        )
+        axes[-1, col].set_xlabel("time [s]")
     axes[0, 0].legend(fontsize=8, loc="upper right")
     fig.suptitle(
         f"astrobee_0's estimate of the cargo (grasp frame; inertia about the centre of mass) - "
-        f"{args.robots} robots, {args.trajectory}, {args.noise} noise, seed {args.seed}\n"
-        f"y-limits: the estimate, its band and the truth after {zoom_s:.0f} s (the band is "
-        f"clipped before); 'not revealed': reported spread still above "
-        f"{UNREVEALED_STD_FRACTION:.0%} of the prior's at the end",
+        f"{args.robots} robots, {args.noise} noise, seed {args.seed}, the same cargo\n"
+        f"'NOT revealed': reported spread still above {UNREVEALED_STD_FRACTION:.0%} of the "
+        f"prior's at the end; y-limits: the estimates, bands and truth after "
+        f"{ZOOM_AFTER:.0%} of the run",
         fontsize=11,
     )
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    fig.tight_layout(rect=(0, 0, 1, 0.965))
+    fig.savefig(path, dpi=100)
     plt.close(fig)
 
 
@@ -232,7 +258,8 @@ def save_gif(frames: list[np.ndarray], path: Path, fps: float) -> None:
 
 def print_table(results: dict) -> None:
     print(
-        f"\nfinal estimates after {results['sim_s']:.1f} s (wall {results['wall_s']:.1f} s, "
+        f"\n{results['trajectory']}: final estimates after {results['sim_s']:.1f} s "
+        f"(wall {results['wall_s']:.1f} s, "
         f"real-time factor {results['sim_s'] / results['wall_s']:.1f}); "
         f"end: {results['end']}"
     )
@@ -262,7 +289,20 @@ def control_steps(duration_s: float) -> int:
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=Formatter)
     parser.add_argument("--robots", type=int, default=2, help=f"1..{MAX_ROBOTS}")
-    parser.add_argument("--trajectory", default="figure8_yaw", choices=Trajectory.NAMES)
+    parser.add_argument(
+        "--trajectory",
+        type=trajectory,
+        default="excite",
+        help="figure8_yaw, figure8_tumble, hover, excite (the team's designed excitation) or a "
+        "design JSON file",
+    )
+    parser.add_argument(
+        "--compare",
+        type=lambda text: text if text == "none" else trajectory(text),
+        default="figure8_yaw",
+        help="the trajectory flown first, beside --trajectory (the same team, cargo, noise and "
+        "seed); none: fly --trajectory only",
+    )
     parser.add_argument("--noise", default="nominal", choices=sorted(NOISE_PROFILES))
     parser.add_argument("--duration", type=positive_float, default=90.0, help="simulated seconds")
     parser.add_argument("--seed", type=nonnegative_int, default=0)
@@ -289,6 +329,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     args = parser.parse_args(argv)
     if not 1 <= args.robots <= MAX_ROBOTS:
         parser.error(f"--robots must be in 1..{MAX_ROBOTS}, got {args.robots}")
+    check_trajectory(parser, args.trajectory, args.robots)
+    if args.compare != "none":
+        check_trajectory(parser, args.compare, args.robots)
     if control_steps(args.duration) < 1:
         parser.error(
             f"--duration must be at least one control period ({1 / CONTROL_HZ} s), "
@@ -303,8 +346,16 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 def main(argv: list[str] | None = None) -> None:
     args = parse_args(argv)
     print(f"seed {args.seed}")
-    results = run(args)
-    print_table(results)
+    flown = ([] if args.compare == "none" else [args.compare]) + [args.trajectory]
+    # The GIF shows the last run (--trajectory).
+    last = len(flown) - 1
+    runs = [run(args, traj, bool(args.video) and k == last) for k, traj in enumerate(flown)]
+    out = Path(args.out_dir)
+    plot(runs, args, out / "estimates.png")
+    for r in runs:
+        print_table(r)
+    results = {r["trajectory"]: {k: v for k, v in r.items() if k != "series"} for r in runs}
+    (out / "results.json").write_text(json.dumps(results, indent=2, default=float))
     print(
         f"figure: {Path(args.out_dir) / 'estimates.png'}; "
         f"results: {Path(args.out_dir) / 'results.json'}"

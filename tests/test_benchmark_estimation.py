@@ -52,3 +52,44 @@ def test_killed_run_resumes_to_the_same_results(tmp_path):
     proc = _run(killed)
     assert proc.wait(timeout=600) == 0, proc.stderr.read()
     assert _analysis(killed) == _analysis(clean)
+
+
+def _module():
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("_bench_estimation", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_time_to_certainty_is_when_the_spread_stays_below_its_target():
+    bench = _module()
+    times = [1.0, 2.0, 3.0, 4.0]
+    # 2 sigma: mass 3, 0.8, 1.2, 0.8 % -> stays below 1 % from 4 s; CoM always below 5 mm;
+    # the worst principal moment never below 5 %.
+    spreads = [
+        {"mass_rel": m / 200, "com_m": 0.001, "principal_rel": [0.01, 0.03, 0.2]}
+        for m in (3.0, 0.8, 1.2, 0.8)
+    ]
+    got = bench.time_to_certainty(times, spreads)
+    assert got == {"mass_rel": 4.0, "com_m": 1.0, "principal_rel": None}
+
+
+def test_excite_without_a_design_is_a_no_design_row():
+    """One robot has no shipped design: its case reports "no design" at once, and the
+    time-to-certainty table says so instead of failing."""
+    bench = _module()
+    case = bench.Case(bench.certainty_name("excite", 1), robots=1, trajectory="excite", seed=0)
+    result = bench.run_case(case)
+    assert result["no_design"] is True and result["wall_s"] == 0.0
+    cert = bench.summarise_certainty([result])
+    assert cert["rows"]["excite, 1"]["no_design"] is True
+    assert "| excite | 1 | - | no design |" in bench.certainty_markdown(cert)
+    names = {c.name for c in bench.certainty_cases(1, 90.0)}
+    assert names == {
+        bench.certainty_name(t, n)
+        for t in bench.CERTAINTY_TRAJECTORIES
+        for n in bench.CERTAINTY_ROBOTS
+    }

@@ -149,7 +149,7 @@ def test_multi_step_determinism():
     env_b = astrobee_cargo_v0.parallel_env(**kwargs)
     obs_a, rew_a = _rollout(env_a, 123, actions)
     obs_b, rew_b = _rollout(env_b, 123, actions)
-    assert obs_a.shape == (1001, 2, 61)
+    assert obs_a.shape == (1001, 2, 67)
     np.testing.assert_array_equal(obs_a, obs_b)
     np.testing.assert_array_equal(rew_a, rew_b)
     # The peer slots and the estimates did change over the run (the comparison is not vacuous).
@@ -195,7 +195,7 @@ def test_teams_of_five_to_eight_carry_the_larger_bag():
         mass, _, inertia = mass_com_inertia_from_params(env.sim.true_params)
         np.testing.assert_allclose(inertia, world.uniform_cargo_inertia(mass), atol=1e-12)
     assert np.allclose(large.sim.world.cargo_size_m, (0.502, 0.425, 0.248))
-    assert len(infos) == 8 and large.observation_space("astrobee_7").shape == (33 + 8 * 7 + 20,)
+    assert len(infos) == 8 and large.observation_space("astrobee_7").shape == (35 + 12 * 7 + 20,)
     com = (0.23, 0.0, 0.0)  # inside the single CTB (half length 0.251 m), outside the half CTB
     astrobee_cargo_v0.parallel_env(n_robots=8, cargo_com_m=com)
     with pytest.raises(ValueError, match="cargo_com_m"):

@@ -80,7 +80,8 @@ def test_layout_is_built_from_the_block_tables():
     peer = sum(size for _, size in PEER_BLOCKS)
     assert layout["all"].stop == own + 2 * peer + 20
     assert [name for name, _ in OWN_BLOCKS] == list(layout)[: len(OWN_BLOCKS)]
-    assert layout["peer1_valid"] == slice(own + 2 * peer - 1, own + 2 * peer)
+    assert layout["peer1_valid"] == slice(own + peer + 7, own + peer + 8)
+    assert layout["peer1_joint_vel"] == slice(own + 2 * peer - 2, own + 2 * peer)
 
 
 @pytest.mark.parametrize("q", [(0.0, 0.0), (-1.2, 0.4), (-np.pi / 2, -0.7)])

@@ -12,6 +12,7 @@ from astrocargo.agents.excitation import (
     DesignSettings,
     ExcitationDesign,
     ExcitationDesigner,
+    estimator_measurement_cov,
     shipped_design,
     window,
     window_integral,
@@ -183,7 +184,7 @@ def test_predicted_fisher_equals_the_regressor_on_the_designs_motion(model):
         lever = np.linalg.norm(
             grasp_pose(model.robots[0], np.array([TILT_DEPLOYED_RAD, ref.pan]))[1]
         )
-        r = est.meas_cov + cov / est.update_every + model.sensor_cov(lever)
+        r = est.meas_cov + cov / est.update_every + _sensor_cov(model, lever)
         fisher += a.T @ np.linalg.solve(r, a)
     predicted = model.fisher(traj.motion(times))
     np.testing.assert_allclose(predicted, fisher, rtol=5e-3, atol=5e-3 * np.abs(fisher).max())
@@ -207,7 +208,21 @@ def test_sensor_covariance_is_the_estimators():
     est = model.estimator
     lever = 0.3
     est._grasp_lever = lever
-    np.testing.assert_allclose(model.sensor_cov(lever), est._sensor_cov(), rtol=1e-12)
+    np.testing.assert_allclose(_sensor_cov(model, lever), est._sensor_cov(), rtol=1e-12)
+
+
+def _sensor_cov(model, lever_m: float) -> np.ndarray:
+    """The errors-in-variables term of ``estimator_measurement_cov``: R minus meas_cov at zero
+    actuation noise maps."""
+    n = model.n_robots
+    r = estimator_measurement_cov(
+        model.estimator,
+        model.cargo_grasp,
+        np.zeros((1, n, 6)),
+        np.zeros((1, n, 6, 6)),
+        np.array([lever_m]),
+    )[0]
+    return r - model.estimator.meas_cov
 
 
 def test_designer_improves_on_its_start(model):
@@ -244,3 +259,56 @@ def test_make_trajectory_names(tmp_path):
         make_trajectory("excite", 2, fast=True)
     with pytest.raises(ValueError, match="no excitation design shipped"):
         make_trajectory("excite", 7)  # none shipped, and no world to design one for
+
+
+def test_env_flies_the_shipped_design_and_a_design_file(tmp_path):
+    """trajectory="excite" gives the shipped design for the team (its reference, pan included,
+    is what the env observes and steps on); a design file path flies that design."""
+    from astrocargo.envs import astrobee_cargo_v0
+
+    env = astrobee_cargo_v0.parallel_env(n_robots=2, trajectory="excite", max_cycles=5)
+    env.reset(seed=0)
+    assert isinstance(env.sim.trajectory, DesignedTrajectory)
+    for _ in range(3):
+        env.step({a: np.zeros(8) for a in env.agents})
+    ref, want = env.sim.reference(), env.sim.trajectory(env.sim.data.time)
+    np.testing.assert_array_equal(ref.pos, want.pos)
+    assert env.sim.data.time > 0
+    path = tmp_path / "mine.json"
+    _random_design().save(path)
+    env = astrobee_cargo_v0.parallel_env(n_robots=2, trajectory=str(path), max_cycles=5)
+    env.reset(seed=0)
+    np.testing.assert_array_equal(env.sim.trajectory.design.coeffs, _random_design().coeffs)
+
+
+@pytest.mark.parametrize(
+    "trajectory, message",
+    [
+        ("nowhere/design.json", "'nowhere/design.json' does not exist"),
+        ("circle", "unknown trajectory 'circle'"),
+    ],
+)
+def test_env_rejects_a_bad_trajectory(tmp_path, trajectory, message):
+    from astrocargo.envs import astrobee_cargo_v0
+
+    with pytest.raises(ValueError, match=message):
+        astrobee_cargo_v0.parallel_env(n_robots=2, trajectory=trajectory)
+    bad = tmp_path / "bad.json"
+    bad.write_text("{not json")
+    with pytest.raises(ValueError, match="is not a design"):
+        astrobee_cargo_v0.parallel_env(n_robots=2, trajectory=str(bad))
+    with pytest.raises(ValueError, match="fast=True"):
+        astrobee_cargo_v0.parallel_env(n_robots=2, trajectory="excite", fast=True)
+
+
+def test_designed_trajectory_arrays_hold_the_reference():
+    """``arrays(t)`` (what the env evaluates each step) holds the numbers of ``traj(t)``."""
+    from astrocargo.agents.excitation import DESIGNS_DIR, DesignedTrajectory, ExcitationDesign
+
+    traj = DesignedTrajectory(ExcitationDesign.load(DESIGNS_DIR / "excite_2robots.json"))
+    for t in (0.0, 13.7, 45.0, 89.9, 120.0):
+        rot, vecs, pan = traj.arrays(t)
+        ref = traj(t)
+        np.testing.assert_allclose(rot, ref.rot, atol=1e-15)
+        np.testing.assert_allclose(vecs, [ref.pos, ref.vel, ref.acc, ref.w, ref.wd], atol=1e-15)
+        np.testing.assert_allclose(pan, [ref.pan, ref.pan_rate], atol=1e-15)

@@ -14,6 +14,7 @@ from pathlib import Path
 import pytest
 
 SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"
+TWO_ROBOT_DESIGN = SCRIPTS.parent / "agents" / "designs" / "excite_2robots.json"
 
 
 def load(name: str):
@@ -82,7 +83,9 @@ def test_vector_defaults_are_kept(scripts, tmp_path):
         (["--robots", "2", "--seed", "-1"], "--seed: must be an integer >= 0"),
         (["--robots", "2", "--comm-drop", "1"], "--comm-drop must be a probability below 1"),
         (["--robots", "2", "--cargo-mass", "0"], "--cargo-mass: must be a positive number"),
-        (["--trajectory", "circle"], "invalid choice"),
+        (["--trajectory", "circle"], "unknown trajectory 'circle'"),
+        (["--trajectory", "nowhere.json"], "'nowhere.json' does not exist"),
+        (["--robots", "3", "--trajectory", str(TWO_ROBOT_DESIGN)], "designed for 2 robots"),
         (["--out-dir", "/dev/null/x"], "--out-dir: cannot create folder"),
     ],
 )
@@ -137,11 +140,23 @@ def test_benchmark_performance_accepts_a_new_or_its_own_json_file(scripts, tmp_p
         (["--video", "/dev/null/x.gif"], "--video's folder: cannot create folder"),
         (["--video", "out.mp4"], "--video must end in .gif"),
         (["--noise", "loud"], "invalid choice"),
+        (["--trajectory", "circle"], "unknown trajectory 'circle'"),
+        (["--trajectory", "nowhere.json"], "'nowhere.json' does not exist"),
+        (["--robots", "3", "--trajectory", str(TWO_ROBOT_DESIGN)], "designed for 2 robots"),
+        (["--compare", "circle"], "unknown trajectory 'circle'"),
+        (["--robots", "3", "--compare", str(TWO_ROBOT_DESIGN)], "designed for 2 robots"),
     ],
 )
 def test_demo_rejects(scripts, capsys, tmp_path, monkeypatch, argv, message):
     monkeypatch.chdir(tmp_path)
     assert message in parser_error(scripts["demo"].parse_args, argv, capsys)
+
+
+def test_demo_flies_figure8_yaw_beside_excite_by_default(scripts, tmp_path):
+    args = scripts["demo"].parse_args(["--out-dir", str(tmp_path)])
+    assert (args.compare, args.trajectory) == ("figure8_yaw", "excite")
+    alone = scripts["demo"].parse_args(["--out-dir", str(tmp_path), "--compare", "none"])
+    assert alone.compare == "none"
 
 
 def test_demo_creates_its_folders_first_and_keeps_the_video_path(scripts, tmp_path):
