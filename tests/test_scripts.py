@@ -29,7 +29,7 @@ def load(name: str):
 @pytest.fixture(scope="module")
 def scripts():
     names = ("demo", "benchmark_estimation", "benchmark_performance", "soak", "train")
-    return {name: load(name) for name in names + ("evaluate", "render_scene")}
+    return {name: load(name) for name in names + ("evaluate", "render_scene", "estimation_limits")}
 
 
 def parser_error(parse, argv: list[str], capsys) -> str:
@@ -235,7 +235,29 @@ def test_render_scene_rejects(scripts, capsys, argv, message):
 
 
 @pytest.mark.parametrize(
-    "name", ["demo", "benchmark_estimation", "benchmark_performance", "soak", "train", "evaluate"]
+    "argv, message",
+    [
+        (["--robots", "9"], "--robots must be 1 to 8"),
+        (["--duration", "5"], "--duration must be >= 8 s"),
+        (["--seeds", "-1"], "--seeds"),
+        (["--trajectory", "nowhere.json"], "--trajectory"),
+    ],
+)
+def test_estimation_limits_rejects(scripts, capsys, argv, message):
+    assert message in parser_error(scripts["estimation_limits"].parse_args, argv, capsys)
+
+
+@pytest.mark.parametrize(
+    "name",
+    [
+        "demo",
+        "benchmark_estimation",
+        "benchmark_performance",
+        "soak",
+        "train",
+        "evaluate",
+        "estimation_limits",
+    ],
 )
 def test_help_shows_every_default(scripts, capsys, name):
     module = scripts[name]

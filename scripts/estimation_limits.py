@@ -1,0 +1,128 @@
+"""What limits estimation: the Cramer-Rao bound of the same flight with one noise source at a time.
+
+Flies one scenario (default: 2 robots, `figure8_tumble`, 90 s, seed 0, the benchmark's cargo)
+under `nominal` noise and under variants of it, each with one source removed or alone, and prints
+robot 0's Cramer-Rao bound (1 sigma, as `benchmark_estimation.py` computes it from the filter's
+own measurements and covariance) with the UKF's errors and NEES. This is the table of
+docs/estimation_limits.md:
+
+    .venv/bin/python scripts/estimation_limits.py                       # the doc's table
+    .venv/bin/python scripts/estimation_limits.py --trajectory excite --seeds 0 1 2
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import replace
+from pathlib import Path
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # before numpy: one thread per worker
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import benchmark_estimation as bench  # noqa: E402
+import cli  # noqa: E402
+
+from astrocargo.envs import sensors  # noqa: E402
+
+NOMINAL = sensors.NOISE_PROFILES["nominal"]
+_NO_SENSORS = dict(
+    accel_std=0.0, gyro_std=0.0, position_std_m=0.0, attitude_std_rad=0.0, encoder_std_rad=0.0
+)
+# Variants of `nominal`: (name, what it shows, profile).
+VARIANTS = (
+    ("nominal", "every source", NOMINAL),
+    ("actuation_only", "perfect sensors", replace(NOMINAL, **_NO_SENSORS)),
+    ("no_accelerometer", "accelerometer off", replace(NOMINAL, accel_std=0.0)),
+    ("no_encoders", "encoders off", replace(NOMINAL, encoder_std_rad=0.0)),
+    ("no_gyro", "gyro off", replace(NOMINAL, gyro_std=0.0)),
+    (
+        "no_localization",
+        "localization off",
+        replace(NOMINAL, position_std_m=0.0, attitude_std_rad=0.0),
+    ),
+    (
+        "no_relative_actuation",
+        "actuation's 2 % term off",
+        replace(NOMINAL, force_rel=0.0, torque_rel=0.0),
+    ),
+    (
+        "no_actuation_floor",
+        "actuation's floors off",
+        replace(NOMINAL, force_std_n=0.0, torque_std_nm=0.0),
+    ),
+)
+# Registered under these names in this process and in the workers it forks.
+sensors.NOISE_PROFILES.update({f"limits_{name}": profile for name, _, profile in VARIANTS})
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0],
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    parser.add_argument("--robots", type=cli.positive_int, default=2, help="1 to 8")
+    parser.add_argument(
+        "--trajectory", type=cli.trajectory, default="figure8_tumble", help="a name or a design"
+    )
+    parser.add_argument("--duration", type=cli.positive_float, default=90.0, help="s, >= 8")
+    parser.add_argument("--seeds", type=cli.nonnegative_int, nargs="+", default=[0], help=">= 0")
+    parser.add_argument("--workers", type=cli.positive_int, default=2, help="processes")
+    return parser
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    cli.check(parser, 1 <= args.robots <= 8, f"--robots must be 1 to 8, got {args.robots}")
+    cli.check(parser, args.duration >= 8.0, f"--duration must be >= 8 s, got {args.duration}")
+    cli.check_trajectory(parser, args.trajectory, args.robots)
+    return args
+
+
+def _run(job: tuple[str, int, argparse.Namespace]) -> tuple[str, int, dict]:
+    name, seed, args = job
+    case = bench.Case(
+        name, robots=args.robots, trajectory=args.trajectory, seed=seed,
+        duration=args.duration, noise=f"limits_{name}",
+    )  # fmt: skip
+    return name, seed, bench.run_case(case)
+
+
+def main(argv: list[str] | None = None) -> None:
+    args = parse_args(argv)
+    jobs = [(name, seed, args) for name, _, _ in VARIANTS for seed in args.seeds]
+    with ProcessPoolExecutor(args.workers) as pool:
+        results = list(pool.map(_run, jobs))
+    perfect = {seed: r["crlb"] for name, seed, r in results if name == "actuation_only"}
+    print(
+        f"{args.robots} robots, {args.trajectory}, {args.duration:g} s, seeds {args.seeds}: "
+        "robot 0's Cramer-Rao bound (1 sigma) and the UKF's worst error over the robots"
+    )
+    print(
+        "| noise | CRLB mass | CRLB CoM | CRLB principal (I1 / I2 / I3) | / perfect sensors "
+        "| UKF mass | UKF CoM | UKF principal | NEES |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|")
+    labels = {name: label for name, label, _ in VARIANTS}
+    for name, seed, r in results:
+        c, p = r["crlb"], perfect[seed]
+        pairs = zip(c["principal_rel_err"], p["principal_rel_err"], strict=True)
+        ratio = " / ".join(f"{a / b:.2f}" for a, b in pairs)
+        agents = list(r["agents"].values())
+        worst = [max(a["principal_rel_err"][k] for a in agents) for k in range(3)]
+        print(
+            f"| {labels[name]} (seed {seed}) | {100 * c['mass_rel_err']:.2f} % "
+            f"| {1e3 * c['com_err_m']:.2f} mm "
+            f"| {' / '.join(f'{100 * x:.2f}' for x in c['principal_rel_err'])} % | {ratio} "
+            f"| {100 * max(a['mass_rel_err'] for a in agents):.2f} % "
+            f"| {1e3 * max(a['com_err_m'] for a in agents):.2f} mm "
+            f"| {' / '.join(f'{100 * x:.1f}' for x in worst)} % "
+            f"| {' / '.join(f'{nees:.1f}' for nees in (a['nees'] for a in agents))} |"
+        )
+
+
+if __name__ == "__main__":
+    main()
