@@ -96,6 +96,7 @@ def condition_on_mismatch(
     variances: list[np.ndarray],
     mismatch: np.ndarray | None,
     band_factors: list[np.ndarray] | None = None,
+    mismatch_model_var: float = 0.0,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Mean and covariance of the balance noise n = sum_r N_r dxi_r given the observed
     mismatches d = sum_r D_r dxi_r (robots r independent, Cov dxi_r = diag(variances[r])).
@@ -108,7 +109,12 @@ def condition_on_mismatch(
     colour: the conditioning is done on the levels var * factor each source has in the band
     where the excitation lives (a differentiated encoder's per-sample noise is mostly above it
     and must not hide the accelerometers' difference in d), and the remaining noise
-    n - K d = sum_r (N_r - K D_r) dxi_r is returned at those levels."""
+    n - K d = sum_r (N_r - K D_r) dxi_r is returned at those levels.
+
+    ``mismatch_model_var`` (per update, (m/s^2)^2 per axis): what the model leaves in d with
+    perfect sensors (the balance's pre-filter distortion of the products), independent of the
+    sensors: S_dd + mismatch_model_var I. Without it the conditioning reads that model error as
+    sensor noise and subtracts it from the balance; K's residual adds K (var I) K^T."""
     n_map = np.hstack(noise_maps)
     var = np.concatenate([np.asarray(v, dtype=float) for v in variances])
     if n_map.shape != (6, var.size):
@@ -124,12 +130,12 @@ def condition_on_mismatch(
         raise ValueError(f"mismatch maps give shape {d_map.shape}, mismatch {np.shape(mismatch)}")
     level = var * weight
     s_nd = (n_map * level) @ d_map.T
-    s_dd = (d_map * level) @ d_map.T
+    s_dd = (d_map * level) @ d_map.T + mismatch_model_var * np.eye(d_map.shape[0])
     # Pseudo-inverse: noiseless motion coordinates (perfect sensors) make S_dd singular.
     gain = s_nd @ np.linalg.pinv(s_dd, hermitian=True)
     mean = gain @ np.asarray(mismatch, dtype=float)
     remaining = n_map - gain @ d_map
-    cov = (remaining * level) @ remaining.T
+    cov = (remaining * level) @ remaining.T + mismatch_model_var * gain @ gain.T
     return mean, 0.5 * (cov + cov.T)
 
 
