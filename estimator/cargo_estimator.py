@@ -241,8 +241,11 @@ class CargoEstimator:
             decorrelation time. Measured on the 90 s tumble, 2 robots, with nothing entering the
             balance (localization noise alone, the grasp layout known): force rows 5-8e-5 N,
             moment rows 0.1-1.2e-5 N m (rms times the square root of the residual's correlation
-            sum, over the decorrelation factor). The sensors' noise is modelled separately
-            (``motion_fusion``; ``_sensor_cov`` with "none"), as is the actuation's.
+            sum, over the decorrelation factor). The moment floor is kept at 3.4e-5 N m, above
+            that: at 1.5e-5 the accelerometer-alone NEES rose to 79 (the team-conditioned
+            accelerometer noise is under-modelled in the moment rows, cause not found). The
+            sensors' noise is modelled separately (``motion_fusion``; ``_sensor_cov`` with
+            "none"), as is the actuation's.
         actuation_noise: (force_abs_n, force_rel, torque_abs_nm, torque_rel): the robot's known
             propulsion accuracy, white per control step: std = abs + rel * |command| per axis.
             Its covariance, carried into the grasp frame (force noise at the base becomes moment
@@ -299,7 +302,7 @@ class CargoEstimator:
         *,
         update_every: int = 10,
         force_std_n: float = 7e-5,
-        torque_std_nm: float = 1.5e-5,
+        torque_std_nm: float = 3.4e-5,
         actuation_noise: tuple[float, float, float, float] = (5e-3, 0.02, 5e-4, 0.02),
         prior_std: tuple[float, float, float, float] = DEFAULT_PRIOR_STD,
         process_std_rel: float = DEFAULT_PROCESS_STD_REL,
