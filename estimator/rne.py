@@ -308,6 +308,16 @@ def _grasp_balance(
         parent, joint_axis, rot_in_parent, pos_in_parent, mass, com, inertia_com, grasp_link,
         grasp_rot, grasp_pos,
     )  # fmt: skip
+    links_g, y, to_grasp, grasp_rot, grasp_pos = _links_and_regressor(
+        arrays, w_base, wd_base, acc_base, q, qd, qdd
+    )
+    return to_grasp @ thrust_base, links_g, y, grasp_rot, grasp_pos
+
+
+@njit(cache=True)
+def _links_and_regressor(arrays, w_base, wd_base, acc_base, q, qd, qdd):
+    """Both passes for one sample, in G: (links_G (6,), Y (6, 10), T_G<-B (6, 6), grasp_rot,
+    grasp_pos)."""
     rot, pos, w, wd, acc, grasp_rot, grasp_pos, grasp_acc = _forward_pass(
         arrays, w_base, wd_base, acc_base, q, qd, qdd
     )
@@ -316,7 +326,38 @@ def _grasp_balance(
     g = arrays.grasp_link
     # Vectors in G: R_G^T v is v @ R_G.
     y = _body_regressor(grasp_acc @ grasp_rot, w[g] @ grasp_rot, wd[g] @ grasp_rot)
-    return to_grasp @ thrust_base, to_grasp @ links, y, grasp_rot, grasp_pos
+    return to_grasp @ links, y, to_grasp, grasp_rot, grasp_pos
+
+
+@njit(cache=True)
+def _motion_jacobians(
+    parent, joint_axis, rot_in_parent, pos_in_parent, mass, com, inertia_com, grasp_link,
+    grasp_rot, grasp_pos, w_base, wd_base, acc_base, q, qd, qdd,
+):  # fmt: skip
+    """Jacobians of (links_G, Y) in xi = (acc_base, wd_base, qdd) with w_base, q, qd held:
+    (d links (6, n), d Y (n, 6, 10)), n = 6 + n_joints. The balance is affine in xi, so the
+    differences of unit steps are exact."""
+    arrays = RobotArrays(
+        parent, joint_axis, rot_in_parent, pos_in_parent, mass, com, inertia_com, grasp_link,
+        grasp_rot, grasp_pos,
+    )  # fmt: skip
+    nj = q.shape[0]
+    xi = np.concatenate((acc_base, wd_base, qdd))
+    n = xi.shape[0]
+    links0, y0, _, _, _ = _links_and_regressor(
+        arrays, w_base, xi[3:6].copy(), xi[0:3].copy(), q, qd, xi[6 : 6 + nj].copy()
+    )
+    d_links = np.empty((6, n))
+    d_y = np.empty((n, 6, 10))
+    for k in range(n):
+        step = xi.copy()
+        step[k] += 1.0
+        links1, y1, _, _, _ = _links_and_regressor(
+            arrays, w_base, step[3:6].copy(), step[0:3].copy(), q, qd, step[6 : 6 + nj].copy()
+        )
+        d_links[:, k] = links1 - links0
+        d_y[k] = y1 - y0
+    return d_links, d_y
 
 
 @njit(cache=True)
@@ -518,3 +559,44 @@ def balance_in_grasp_frame(
 
 
 # ---------------------------------------------------------------------------------------------
+
+
+def links_and_regressor(
+    robot: RobotDescription,
+    w_base: np.ndarray,
+    wd_base: np.ndarray,
+    acc_base: np.ndarray,
+    q: np.ndarray,
+    qd: np.ndarray,
+    qdd: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """(links_G (6,), Y (6, 10)) of one sample: the links' rate of change of momentum and the
+    cargo's body regressor in G (moments about G's origin), inputs as ``balance_in_grasp_frame``.
+    For w_base, q and qd held both are affine in the motion xi = (acc_base, wd_base, qdd)."""
+    nj = (robot.n_joints,)
+    inputs = [_single(x, shape, name) for x, shape, name in (
+        (w_base, (3,), "w_base"), (wd_base, (3,), "wd_base"), (acc_base, (3,), "acc_base"),
+        (q, nj, "q"), (qd, nj, "qd"), (qdd, nj, "qdd"),
+    )]  # fmt: skip
+    _, links_g, y, _, _ = _grasp_balance(*robot.arrays, *inputs, np.zeros(6))
+    return links_g, y
+
+
+def balance_motion_jacobians(
+    robot: RobotDescription,
+    w_base: np.ndarray,
+    wd_base: np.ndarray,
+    acc_base: np.ndarray,
+    q: np.ndarray,
+    qd: np.ndarray,
+    qdd: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Exact Jacobians of ``links_and_regressor`` in the motion xi = (acc_base (3), wd_base (3),
+    qdd (n_joints)) with w_base, q, qd held: (d links_G / d xi (6, n), d Y / d xi (n, 6, 10)),
+    n = 6 + n_joints. Units: links N (or N m) per m/s^2, rad/s^2 of the coordinate."""
+    nj = (robot.n_joints,)
+    inputs = [_single(x, shape, name) for x, shape, name in (
+        (w_base, (3,), "w_base"), (wd_base, (3,), "wd_base"), (acc_base, (3,), "acc_base"),
+        (q, nj, "q"), (qd, nj, "qd"), (qdd, nj, "qdd"),
+    )]  # fmt: skip
+    return _motion_jacobians(*robot.arrays, *inputs)

@@ -245,26 +245,19 @@ def test_propulsion_dead(clean):
     _assert_within(ep, clean, mass_rel=0.02, com_m=0.01)
 
 
-@pytest.mark.parametrize(
-    ("robot", "gated"), [(1, True), (0, False)], ids=["caught_by_the_gate", "absorbed"]
-)
-def test_propulsion_weakened(clean, robot, gated):
-    """Half thrust for 3 s, 2 s after the first updates: robot 1's commands then are large
-    enough for the gate (as when dead); robot 0's are not, and while the estimate is still wide
-    a weakened thruster looks like a heavier cargo: its own estimator absorbs it, within 10 %
-    mass and 6 cm of the clean run's errors at 18 s (measured 6.7 % and 5.1 cm; the env
-    docstring gives the longer-run figures)."""
+@pytest.mark.parametrize("robot", [1, 0])
+def test_propulsion_weakened(clean, robot):
+    """Half thrust for 3 s, 2 s after the first updates: both robots' estimators catch it with
+    the gate (as when dead) and end within 2 % mass and 1 cm of the clean run's errors (measured
+    0.6 % and 0.1 cm). Robot 0's commands are small: with the sensors' noise carried at its
+    structure (``motion``) rather than as scalar bounds, its measurement covariance is tight
+    enough that the gate sees its fault too; with the scalar bounds its own estimator absorbed
+    it as a heavier cargo (6.7 % and 5.1 cm; the env docstring's longer-run figures)."""
     fault = Fault("propulsion", robot, FAULT_START_S, 3.0, scale=0.5)
     ep = _run([fault], clean.actions)
     assert ep.infos[f"astrobee_{robot}"]["faults"]["propulsion_steps"] == 187
-    if gated:
-        assert np.all(_counter(ep, "gated") >= 1)
-        _assert_within(ep, clean, mass_rel=0.02, com_m=0.01)
-    else:
-        # Its own estimator absorbs it (the peer, which takes its messages at face value, may
-        # gate an instant).
-        assert _counter(ep, "gated")[robot] == 0
-        _assert_within(ep, clean, mass_rel=0.10, com_m=0.06)
+    assert np.all(_counter(ep, "gated") >= 1)
+    _assert_within(ep, clean, mass_rel=0.02, com_m=0.01)
 
 
 def test_comm_burst(clean):

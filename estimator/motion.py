@@ -1,0 +1,216 @@
+"""The motion noise of the wrench balance, and what the team's IMUs know about it.
+
+The balance of robot i (``rne``, grasp frame G_i, moments about the grasp point)
+
+    thrust_i = links_i(xi_i) + Y_i(xi_i) pi - sum_j T_ij W_j,   W_j = thrust_j - links_j(xi_j)
+
+is built from each robot's filtered motion xi = (a_B (3), wd_B (3), qdd (n_joints)): the base
+origin's linear acceleration (accelerometer), the base's angular acceleration (differentiated
+gyro) and the joint accelerations (doubly differentiated encoders), base frame. For fixed angular
+rate, joint angles and joint rates the balance is affine in xi, so an error dxi_i of robot i's
+filtered motion and dxi_j of each peer's move the model side A pi + b by
+
+    n = E_i dxi_i + sum_j T_ij L_j dxi_j,       E_i = d(links_i + Y_i pi)/dxi_i,
+                                                 L_j = d(links_j)/dxi_j  (in G_j, about G_j),
+
+a 6-vector whose covariance E Sigma E^T has the structure of the motion's noise: one
+accelerometer's error moves the force rows by M a and the moment rows by c x a (c the mass-weighted
+lever of the moved bodies), fully correlated (``balance_noise``). A diagonal covariance that
+ignores this correlation throws that information away.
+
+Every robot and the cargo move as one rigid body (the grasps are rigid; the arms move the bases
+relative to the cargo, which the encoders see). So the cargo's acceleration at robot j's grasp
+point is measured twice: by robot j (its IMU carried through its arm) and by robot i (its IMU
+carried through its arm, then across the cargo: a_Gj = a_Gi + (skew(wd) + skew(w)^2) r_ij). The
+mismatch of the two, d_j = R_ij a_Gj - a_Gi - Omega_i r_ij, is zero up to the motion errors,
+
+    d_j = R_ij G_j dxi_j - G_ij dxi_i,
+
+and conditioning the Gaussian (n, d) on the observed d (``condition_on_mismatch``) gives the
+balance noise that remains once every IMU of the team has been heard:
+
+    E[n | d] = S_nd S_dd^-1 d,        Cov[n | d] = S_nn - S_nd S_dd^-1 S_nd^T,
+
+S = the joint covariance of (n, d) from Sigma = blockdiag(Sigma_i, Sigma_j, ...). The measurement
+then uses b - E[n | d] and the covariance Cov[n | d]: the common part of the accelerometer errors
+(what all robots agree on) stays, the differences are removed; for the moment rows about the
+assembly's centre of mass the common linear-acceleration error drops out altogether.
+
+All quantities here are filtered ones (the same slow filter runs over every balance term, so
+dxi is the filter's output noise); Sigma is the diagonal covariance of that filtered noise per
+motion coordinate. Everything is linear; the Jacobians are exact unit differences of the affine
+balance (``motion_jacobians``).
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable
+
+import numpy as np
+
+from .preprocess import StateVariableFilter
+
+
+def motion_jacobians(
+    balance: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]], xi: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Jacobians of (links_G (6,), Y (6, 10)) with respect to the motion ``xi`` (n,).
+
+    ``balance(xi)`` returns the links' momentum rate and the cargo's body regressor for motion xi
+    with everything else held; it is affine in xi, so unit differences are exact. Returns
+    (dlinks (6, n), dY (n, 6, 10))."""
+    xi = np.asarray(xi, dtype=float)
+    if xi.ndim != 1:
+        raise ValueError(f"xi must be a vector, got shape {xi.shape}")
+    links0, y0 = balance(xi)
+    d_links = np.empty((6, xi.size))
+    d_y = np.empty((xi.size, 6, 10))
+    for k in range(xi.size):
+        step = xi.copy()
+        step[k] += 1.0
+        links1, y1 = balance(step)
+        d_links[:, k] = links1 - links0
+        d_y[k] = y1 - y0
+    return d_links, d_y
+
+
+def balance_noise_map(d_links: np.ndarray, d_y: np.ndarray, params: np.ndarray) -> np.ndarray:
+    """E = d(links + Y pi)/dxi (6, n) at parameters pi (10,)."""
+    return d_links + np.einsum("kij,j->ik", d_y, np.asarray(params, dtype=float))
+
+
+def grasp_acc_map(d_y: np.ndarray, point_g: np.ndarray | None = None) -> np.ndarray:
+    """G = d a_P / dxi (3, n): the acceleration of the cargo point P (``point_g``, G axes and
+    origin; None: the grasp point) from the regressor's force rows, whose column m is a_G and
+    columns h are skew(wd) + skew(w)^2 (so a_P = a_G + (skew(wd) + skew(w)^2) p)."""
+    jac = d_y[:, :3, 0].T.copy()
+    if point_g is not None:
+        jac += np.einsum("kij,j->ik", d_y[:, :3, 1:4], np.asarray(point_g, dtype=float))
+    return jac
+
+
+def condition_on_mismatch(
+    noise_maps: list[np.ndarray],
+    mismatch_maps: list[np.ndarray],
+    variances: list[np.ndarray],
+    mismatch: np.ndarray | None,
+    band_factors: list[np.ndarray] | None = None,
+    mismatch_model_var: float = 0.0,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Mean and covariance of the balance noise n = sum_r N_r dxi_r given the observed
+    mismatches d = sum_r D_r dxi_r (robots r independent, Cov dxi_r = diag(variances[r])).
+
+    ``noise_maps[r]`` (6, n_r); ``mismatch_maps[r]`` (m, n_r) with m = 3 per peer (zero rows
+    for a robot that does not enter a mismatch); ``mismatch`` (m,) or None (no peer motion
+    heard: the unconditioned (0, N Sigma N^T)).
+
+    ``band_factors`` (per coordinate, default 1; ``band_factors``) weight each source for its
+    colour: the conditioning is done on the levels var * factor each source has in the band
+    where the excitation lives (a differentiated encoder's per-sample noise is mostly above it
+    and must not hide the accelerometers' difference in d), and the remaining noise
+    n - K d = sum_r (N_r - K D_r) dxi_r is returned at those levels.
+
+    ``mismatch_model_var`` (per update, (m/s^2)^2 per axis): what the model leaves in d with
+    perfect sensors (the balance's pre-filter distortion of the products), independent of the
+    sensors: S_dd + mismatch_model_var I. Without it the conditioning reads that model error as
+    sensor noise and subtracts it from the balance; K's residual adds K (var I) K^T."""
+    n_map = np.hstack(noise_maps)
+    var = np.concatenate([np.asarray(v, dtype=float) for v in variances])
+    if n_map.shape != (6, var.size):
+        raise ValueError(f"noise maps give shape {n_map.shape}, variances {var.size} coordinates")
+    weight = np.ones(var.size) if band_factors is None else np.concatenate(band_factors)
+    if weight.shape != var.shape:
+        raise ValueError(f"band_factors give {weight.size} coordinates, variances {var.size}")
+    if mismatch is None or not mismatch_maps:
+        s_nn = (n_map * (var * weight)) @ n_map.T
+        return np.zeros(6), 0.5 * (s_nn + s_nn.T)
+    d_map = np.hstack(mismatch_maps)
+    if d_map.shape != (np.size(mismatch), var.size):
+        raise ValueError(f"mismatch maps give shape {d_map.shape}, mismatch {np.shape(mismatch)}")
+    level = var * weight
+    s_nd = (n_map * level) @ d_map.T
+    s_dd = (d_map * level) @ d_map.T + mismatch_model_var * np.eye(d_map.shape[0])
+    # Pseudo-inverse: noiseless motion coordinates (perfect sensors) make S_dd singular.
+    gain = s_nd @ np.linalg.pinv(s_dd, hermitian=True)
+    mean = gain @ np.asarray(mismatch, dtype=float)
+    remaining = n_map - gain @ d_map
+    cov = (remaining * level) @ remaining.T + mismatch_model_var * gain @ gain.T
+    return mean, 0.5 * (cov + cov.T)
+
+
+@functools.lru_cache(maxsize=16)
+def filtered_motion_gains(
+    dt_s: float,
+    kinematics_cutoff_hz: float,
+    cutoff_hz: float,
+    regressor_every: int,
+    n_delays: float = 8.0,
+) -> np.ndarray:
+    """Standard deviation of the balance's filtered motion per unit white noise per sample (3,):
+    of the pre-filter's value (accelerometer -> a_B), first derivative (gyro -> wd_B) and second
+    derivative (encoders -> qdd), each sampled every ``regressor_every`` steps and passed through
+    the slow filter's value, the chain the estimator runs (``preprocess``, ``cargo_estimator``).
+
+    Exact for the linear chain: the output at one slow-filter sample is sum_k g_k u_k, so its
+    variance is sum_k g_k^2; the g_k are the responses to one impulse per input step (one channel
+    each), over ``n_delays`` delays of the two filters. Cached: every robot shares its chain."""
+    if regressor_every < 1:
+        raise ValueError(f"regressor_every must be >= 1, got {regressor_every}")
+
+    pre = StateVariableFilter(1, dt_s, kinematics_cutoff_hz)
+    slow = StateVariableFilter(1, dt_s * regressor_every, cutoff_hz)
+    span = int(np.ceil(n_delays * (pre.delay_s + slow.delay_s) / dt_s))
+    span += regressor_every - span % regressor_every  # output at a slow-filter sample
+    # The accelerometer and the gyro are period means (held channels, ``preprocess``); the
+    # encoders point samples.
+    pre = StateVariableFilter(3 * span, dt_s, kinematics_cutoff_hz, held=slice(0, 2 * span))
+    slow = StateVariableFilter(3 * span, dt_s * regressor_every, cutoff_hz)
+    # A first sample sets a filter's state (no start-up transient): start both at rest at zero.
+    pre.step(np.zeros(3 * span))
+    slow.step(np.zeros(3 * span))
+    # Channel (c, k): source c (0 value, 1 rate, 2 angle), impulse at input step k.
+    impulse = np.zeros((span + 1, 3 * span))
+    for c in range(3):
+        impulse[np.arange(span), c * span + np.arange(span)] = 1.0
+    out = np.zeros(3 * span)
+    for k in range(span + 1):
+        y, yd, ydd = pre.step(impulse[k])
+        if k % regressor_every == 0:
+            src = np.concatenate((y[:span], yd[span : 2 * span], ydd[2 * span :]))
+            out, _, _ = slow.step(src)
+    return np.sqrt((out.reshape(3, span) ** 2).sum(axis=1))
+
+
+def band_factors(
+    gains: np.ndarray,
+    dt_s: float,
+    kinematics_cutoff_hz: float,
+    cutoff_hz: float,
+    update_every: int,
+) -> np.ndarray:
+    """Per-update weight of each filtered motion source (value, rate, second derivative) (3,):
+    the measurement covariance treats the updates, every ``update_every`` steps, as independent,
+    so each source enters as white noise at the highest level its filtered spectrum reaches
+    below the slow filter's cutoff, where the excitation lives:
+
+        factor_c = max_{f <= cutoff} S_c(f) / (2 dt_update var_c),
+        S_c(f) = 2 dt (2 pi f)^(2c) |H_pre(f)|^2 |H_slow(f)|^2   (unit white noise per sample),
+
+    var_c = ``gains[c]``^2 (``filtered_motion_gains``). For white noise (c = 0) the maximum is at
+    f = 0 and the factor is the filter's decorrelation factor; a differentiated source (gyro to
+    angular acceleration, c = 1; encoders to joint acceleration, c = 2) has most of its power
+    above the cutoff, where the balance's slow filter removes it, and a factor near 1. Replacing
+    a spectrum by its maximum over the signal band can only lose information: the bound stays
+    conservative."""
+    gains = np.asarray(gains, dtype=float)
+    freq = np.linspace(0.0, cutoff_hz, 2001)[1:]
+    w = 2 * np.pi * freq
+
+    def power(fc: float) -> np.ndarray:  # |(wc / (s + wc))^3|^2 with the -3 dB point at fc
+        wc = 2 * np.pi * fc / np.sqrt(2 ** (1 / 3) - 1)
+        return (wc**2 / (wc**2 + w**2)) ** 3
+
+    chain = power(kinematics_cutoff_hz) * power(cutoff_hz)
+    level = np.array([np.max(2 * dt_s * w ** (2 * c) * chain) for c in range(3)])
+    return level / (2 * dt_s * update_every * gains**2)
