@@ -5,7 +5,7 @@ at its own angles, and the arms' motion relative to the cargo (from the joint ra
 wrench (``team_dynamics.arm_motion_wrench``). With the composite mass M, centre of mass c and
 inertia I_c (robots known, cargo from live estimates, the truth, or nothing), a PD law with
 feed-forward
-gives the desired acceleration of the cargo frame (Astrobee's law, facts file section 3.1:
+gives the desired acceleration of the cargo frame (Astrobee's law, sources §3.1, docs/design.md:
 F = m (a_ref + Kd (v_ref - v) + Kp e_p), and likewise for attitude with e_R = log(R_ref R^T)),
 hence the total wrench about c:
     F = M (a + wd x (c - p) + w x (w x (c - p))),     tau = I_c wd + w x I_c w.
@@ -50,7 +50,7 @@ from .team_dynamics import (
 from .trajectories import Reference
 
 # Translation: ISS flight-mode gains (iss.config); attitude: gnc.config defaults, which the
-# heavier robot-cargo assembly can follow within the propulsion limits (facts section 3.2).
+# heavier robot-cargo assembly can follow within the propulsion limits (sources §3).
 POS_KP, POS_KD = 0.6, 1.2
 ATT_KP, ATT_KD = 2.0, 1.6
 CARGO_MODELS = ("estimate", "none", "truth")

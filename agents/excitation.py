@@ -83,7 +83,7 @@ from .trajectories import Reference, ReferenceValues
 DOF_NAMES = ("x", "y", "z", "yaw", "roll", "pitch", "pan")
 N_DOF = len(DOF_NAMES)
 PAN_DOF = 6
-SERVO_RATE_RADPS = 0.12  # URDF joint velocity limit (facts file section 5)
+SERVO_RATE_RADPS = 0.12  # URDF joint velocity limit (sources §5, docs/design.md)
 PAN_RANGE_RAD = 0.5  # the env's pan action scale: target = a * 0.5 rad, a in [-1, 1]
 TILT_DEPLOYED_RAD = -np.pi / 2
 # Bound targets of the issue (1 sigma): principal moments 3.5 %, mass 0.8 %, centre of mass 3 mm.

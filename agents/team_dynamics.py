@@ -13,7 +13,7 @@ Composite body of bodies b (robot links and the cargo), mass m_b, centre c_b and
 c_b (W axes), by the parallel-axis theorem:
     M = sum m_b,   c = sum m_b c_b / M,  I_c = sum I_b + m_b (|r_b|^2 1 - r_b r_b^T), r_b = c_b - c
 
-Desired motion of the cargo frame (PD with feed-forward, Astrobee's law, facts file section 3.1):
+Desired motion of the cargo frame (PD with feed-forward, Astrobee's law, sources §3.1):
     a  = a_ref  + K_d (v_ref - v) + K_p e_p,      e_p = p_ref - p
     w' = w'_ref + K_dw (w_ref - w) + K_pw e_R,    e_R = log(R_ref R^T)
 and the wrench about c that gives it to the composite body, with r = c - p:

@@ -3,7 +3,7 @@
 All are analytic: position, velocity and acceleration; attitude as a rotation with angular
 velocity and acceleration (world axes); pan angle with its rate. Positions are in the module
 frame (origin at the aisle centre, x along the aisle), metres and seconds throughout. Defaults
-stay within Astrobee's nominal limits (facts file section 7.3 / flight modes: 0.2 m/s,
+stay within Astrobee's nominal limits (sources §7.3, docs/design.md / flight modes: 0.2 m/s,
 0.0175 m/s^2, 0.1745 rad/s); ``fast=True`` runs the figure-eight sqrt(2) times faster
 (accelerations x2, within the "difficult" mode's 0.02 m/s^2) for the "faster option".
 
@@ -53,7 +53,7 @@ NOMINAL_SPEED_MPS = 0.2
 NOMINAL_ACCEL_MPS2 = 0.0175
 NOMINAL_RATE_RADPS = 0.1745
 # The faster option: the figure-eight at sqrt(2) times the speed, accelerations x2, within the
-# "difficult" flight mode's 0.4 m/s and 0.02 m/s^2 (facts file section 7.3, pyastrobee).
+# "difficult" flight mode's 0.4 m/s and 0.02 m/s^2 (sources §7.3, docs/design.md, pyastrobee).
 FAST_FACTOR = 2**0.5
 FAST_ACCEL_MPS2 = 0.02
 # Yaw ramp: final rate (rad/s), and the sudden turn (start s, smooth edge s) doubling it for 10 s.

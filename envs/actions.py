@@ -16,7 +16,7 @@ from astrocargo.envs.world import ARM_DEPLOYED_RAD
 ACTION_DIM = 8
 ARM_DEPLOYED = np.asarray(ARM_DEPLOYED_RAD, dtype=float)
 ARM_OFFSET_RAD = 0.5  # reach of the arm actions around the deployed pose
-ARM_SPEED_RADPS = 0.12  # URDF joint velocity limit (facts file section 5)
+ARM_SPEED_RADPS = 0.12  # URDF joint velocity limit (sources §5, docs/design.md)
 
 
 @njit(cache=True)

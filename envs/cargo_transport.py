@@ -11,7 +11,7 @@ command, and from the grasp wrenches the other robots send over a communication 
 latency, loss and noise (`envs.comms.CommChannel`). Each robot's estimate (mean and standard
 deviation) is part of its observation, so controllers can use it.
 
-One control step (62.5 Hz, Astrobee's GNC rate; facts file section 3.1), in this order:
+One control step (62.5 Hz, Astrobee's GNC rate; sources §3.1, docs/design.md), in this order:
 actions are validated, clipped and scaled; MuJoCo advances `frame_skip` physics steps; every
 robot's sensors are read with the seeded noise model (`envs.sensors`); each estimator ingests
 its own packet and its own command and publishes its wrench; the channel delivers what is due;
@@ -46,7 +46,7 @@ does; an unknown agent name raises `ValueError`.
 
 The thrust limits are the actuators' `ctrlrange` (`World.robot_model(i).thrust_limit`). The arm
 targets are offsets from the deployed pose (tilt -pi/2, pan 0); the target sent to the servo moves
-towards the requested one at most 0.12 rad/s (URDF joint velocity limit, facts file section 5)
+towards the requested one at most 0.12 rad/s (URDF joint velocity limit, sources §5, docs/design.md)
 and stays within the joint ranges.
 
 ## Observation Space

@@ -16,9 +16,9 @@ from astrocargo.envs.sensors import NOISE_PROFILES
 from astrocargo.envs.validation import check_choice, check_finite_array, check_finite_number
 from astrocargo.envs.world import MAX_ROBOTS
 
-CONTROL_HZ = 62.5  # Astrobee GNC and PMC rate (facts file section 3.1)
+CONTROL_HZ = 62.5  # Astrobee GNC and PMC rate (sources §3.1, docs/design.md)
 EPISODE_S = 90.0  # default episode length: the seed paper's runs last 90 s
-# Accepted cargo masses: an empty bag (the ISAAC cargo model's 0.5 kg, facts file section 7) to
+# Accepted cargo masses: an empty bag (ISAAC's cargo model's 0.5 kg, sources §7) to
 # ten Astrobees' worth; beyond that two robots' 0.4 N cannot move it within an episode.
 CARGO_MASS_LIMITS_KG = (0.1, 100.0)
 CONTROL_HZ_LIMITS = (10.0, 1000.0)  # estimator filters need >= 10 Hz (1 Hz pre-filter cutoff)

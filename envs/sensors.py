@@ -19,10 +19,10 @@ the IMU frame; localization pose of the base frame in the module (world) frame, 
 
 Noise profiles (white, per 62.5 Hz sample, after the IMU's internal filtering). ``nominal`` uses
 the floors of docs/design.md ("Noise model and its sources"): accelerometer 1e-3 m/s^2 and gyro
-2e-4 rad/s (Epson G362-class MEMS IMU; the Astrobee IMU is an Epson G362P, facts file section
-4.1), localization 5 mm and 0.2 deg at 62.5 / 20 = 3.125 Hz (the simulator's sparse-map features
-arrive at 3 Hz, facts section 4.2), encoders 1e-3 rad, actuation 0.005 N + 2 % of the command
-and 5e-4 N m + 2 %.
+2e-4 rad/s (Epson G362-class MEMS IMU; the Astrobee IMU is an Epson G362P, sources §4,
+docs/design.md), localization 5 mm and 0.2 deg at 62.5 / 20 = 3.125 Hz (the simulator's
+sparse-map features arrive at 3 Hz, sources §4), encoders 1e-3 rad, actuation 0.005 N + 2 % of
+the command and 5e-4 N m + 2 %.
 ``ideal``: no noise at all; ``actuation_only``: perfect sensors with ``nominal``'s actuation noise.
 """
 

@@ -77,7 +77,7 @@ CARGO_BAGS = (
 )
 MAX_ROBOTS = max(bag.n_handrails for bag in CARGO_BAGS)  # a handrail per robot
 MAX_TIMESTEP_S = 0.016  # RK4 is checked up to one step per 62.5 Hz control period
-ARM_DEPLOYED_RAD = (-np.pi / 2, 0.0)  # tilt, pan: arm straight aft (facts file section 5)
+ARM_DEPLOYED_RAD = (-np.pi / 2, 0.0)  # tilt, pan: arm straight aft (sources §5, docs/design.md)
 THRUST_ACTUATORS = ("force_x", "force_y", "force_z", "torque_x", "torque_y", "torque_z")
 ARM_JOINTS = ("tilt", "pan")
 ARM_LINK_BODIES = ("proximal", "distal", "gripper")

@@ -2,7 +2,7 @@
 
 Both work on the very measurements the filter used (``CargoEstimator(record=True)`` keeps them):
 per update k, z_k = A_k pi + b_k + e_k with e_k ~ N(0, R_k) (``rne``: the wrench balance is linear
-in the cargo's standard parameters pi). Then (reference/equations.md):
+in the cargo's standard parameters pi). Then:
 
 - Fisher information F = sum_k A_k^T R_k^-1 A_k; any unbiased estimator has Cov(pi) >= F^-1,
   and with the filter's Gaussian prior P0 the Bayesian bound is (P0^-1 + F)^-1.

@@ -4,7 +4,7 @@ Parameters and frames: pi = [m, h_x, h_y, h_z, I_xx, I_yy, I_zz, I_xy, I_xz, I_y
 kg m^2) in one body-fixed frame with origin o, h = m c (c the centre of mass from o), I the
 inertia about o. The pseudo-inertia J(pi) = [[0.5 tr(I) 1 - I, h], [h^T, m]] (4 x 4) is linear in
 pi, J(pi) = sum_k pi_k E_k, and a body is physically realisable exactly when J is positive
-definite (``estimator.inertia``; equations.md).
+definite (``estimator.inertia``).
 
 The problem solved by `constrained_mode`, with cov = L L^T and pi = mean + L v (whitened v):
 

@@ -1,6 +1,6 @@
 """Inertial parameters of one rigid body: conversions, consistency checks and error metrics.
 
-Conventions (see shared/reference/equations.md), used by every function below:
+Conventions, used by every function below:
 
 - Standard parameter vector, SI units (kg, kg m, kg m^2), all in one body frame with origin o::
 
@@ -62,7 +62,8 @@ _SYMMETRY_RTOL = 1e-9
 _ROTATION_ATOL = 1e-6
 
 # pi / m is a quadratic form in w = (e^d1, e^d2, e^d3, s12, s23, s13, t1, t2, t3, 1), i.e. eta[1:]
-# with the d's exponentiated and a constant 1 appended. The table is equations.md line by line:
+# with the d's exponentiated and a constant 1 appended. The table is the map pi(eta) of the
+# log-Cholesky parameterisation (Rucker and Wensing 2022) line by line:
 # each pi entry lists (coefficient, factor, factor).
 _W_NAMES = ("e^d1", "e^d2", "e^d3", "s12", "s23", "s13", "t1", "t2", "t3", "1")
 _PI_OVER_MASS_TERMS = (
@@ -279,7 +280,7 @@ def physical_violation(pi: np.ndarray, tol: float = 0.0) -> str | None:
     Checked in order: mass > tol, inertia about the centre of mass positive definite (smallest
     principal moment > tol), triangle inequality of the principal moments (I_1 + I_2 >= I_3 + tol),
     pseudo-inertia positive definite (smallest eigenvalue > tol). tol (>= 0, in the SI unit of each
-    quantity) demands a margin; tol = 0 gives exactly the conditions of equations.md. For a batch
+    quantity) demands a margin; tol = 0 gives exactly the conditions above. For a batch
     the message is about the first inconsistent element (C order) and names its index.
     """
     pi = _as_array(pi, (10,), "pi")

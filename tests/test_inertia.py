@@ -1,4 +1,5 @@
-"""Tests of astrocargo.estimator.inertia against equations.md and first principles."""
+"""Tests of astrocargo.estimator.inertia against the log-Cholesky map written out (Rucker and
+Wensing 2022) and first principles."""
 
 from __future__ import annotations
 
@@ -69,7 +70,7 @@ def random_params(rng: np.random.Generator, shape: tuple[int, ...] = ()) -> np.n
 
 
 def params_by_equations_md(eta: np.ndarray) -> np.ndarray:
-    """log-Cholesky -> pi written out term by term from equations.md, for one eta."""
+    """log-Cholesky -> pi written out term by term from the published map, for one eta."""
     alpha, d1, d2, d3, s12, s23, s13, t1, t2, t3 = eta
     m = np.exp(2 * alpha)
     e1, e2, e3 = np.exp([d1, d2, d3])

@@ -89,7 +89,8 @@ def inertial_hx_batch(A: np.ndarray, b: np.ndarray):
 
 
 def test_consistency_check_rejects_triangle_violation():
-    # I_c = diag(1, 1, 2.5) is positive definite but breaks 1 + 1 >= 2.5 (equations.md).
+    # I_c = diag(1, 1, 2.5) is positive definite but breaks 1 + 1 >= 2.5 (the principal moments'
+    # triangle inequality).
     bad = params_from_mass_com_inertia(2.0, np.zeros(3), np.diag([1.0, 1.0, 2.5]))
     assert not is_physically_consistent(bad)
     assert is_physically_consistent(TRUE_PARAMS)

@@ -2,7 +2,7 @@
 the rigid grasp, ``World.set_cargo`` and the known robot model (``World.robot_model``) against
 MuJoCo; the cargo bags and the clearances of teams of up to eight robots.
 
-Reference numbers come from shared/reference/astrobee-facts.md: section 1 (iss.config mass, CoM
+Reference numbers come from the source groups of docs/design.md: section 1 (iss.config mass, CoM
 and inertia of the free-flyer) and section 5 (URDF masses of the perching-arm parts).
 """
 
@@ -34,7 +34,7 @@ DISTAL_MASS_KG = 0.1033
 FINGER_MASSES_KG = (0.04, 0.0116, 0.04, 0.02285)
 ROBOT_MASS_KG = BASE_MASS_KG + ARM_BAY_MASS_KG + PROXIMAL_MASS_KG + DISTAL_MASS_KG
 ROBOT_MASS_KG += sum(FINGER_MASSES_KG)
-# Arm bay: URDF fixed joint body -> bay (facts file section 1); a uniform box of the URDF
+# Arm bay: URDF fixed joint body -> bay (sources §1, docs/design.md); a uniform box of the URDF
 # collision-box size (section 5), CoM at the bay origin. The diagonal is the one typed in
 # astrobee.xml (the box formula rounded to 5 significant digits).
 ARM_BAY_POS_M = np.array([-0.01, 0.0, -0.065])
@@ -677,8 +677,8 @@ def test_world_without_a_robot_is_the_world_of_the_others() -> None:
 
 
 # --------------------------------------------------------------------------- 10. bags and teams
-HANDRAIL_LENGTH_M = 0.2235  # 8.5 in handrail (facts file section 6)
-HANDRAIL_STANDOFF_M = 0.0595  # bar centre off the face: mid-span of 0.039-0.080 m (facts section 6)
+HANDRAIL_LENGTH_M = 0.2235  # 8.5 in handrail (sources §6, docs/design.md)
+HANDRAIL_STANDOFF_M = 0.0595  # bar centre off the face: mid-span of 0.039-0.080 m (sources §6)
 PAN_RAMP_RAD = 0.4  # amplitude of the trajectories' pan ramp (agents/trajectories.py, _pan)
 CLEARANCE_M = 0.05  # least gap between two robots, or a robot's base and the cargo, along the ramp
 AISLE_MARGIN_M = 0.1  # least gap to the aisle's walls (and past their 0.08 m handrails)
