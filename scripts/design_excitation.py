@@ -1,4 +1,4 @@
-"""Design an excitation trajectory for information (agents/excitation.py) and write it as JSON.
+"""Design an excitation trajectory for information (agents.excitation_design); write it as JSON.
 
 The design cargo defaults to a 5 kg uniform bag of the team's cargo bag (centre of mass at its
 centre); the noise model is the env's estimator settings of ``--noise``. Prints the predicted
@@ -20,7 +20,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 
-from astrocargo.agents.excitation import (  # noqa: E402
+from astrocargo.agents.excitation_design import (  # noqa: E402
     DesignSettings,
     ExcitationDesigner,
     Limits,

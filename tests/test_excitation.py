@@ -1,6 +1,7 @@
-"""The excitation designer (agents/excitation.py): rest at both ends, the analytic derivatives,
-the limits checked through the controller's own allocation, the predicted Fisher information
-against an independent per-sample computation, and the JSON round trip."""
+"""The excitation designer (agents/excitation_design.py) and its designs (agents/excitation.py):
+rest at both ends, the analytic derivatives, the limits checked through the controller's own
+allocation, the predicted Fisher information against an independent per-sample computation,
+and the JSON round trip."""
 
 import numpy as np
 import pytest
@@ -9,13 +10,15 @@ from astrocargo.agents.controllers import CargoState, CooperativeController, Rob
 from astrocargo.agents.excitation import (
     TILT_DEPLOYED_RAD,
     DesignedTrajectory,
-    DesignSettings,
     ExcitationDesign,
-    ExcitationDesigner,
-    estimator_measurement_cov,
     shipped_design,
     window,
     window_integral,
+)
+from astrocargo.agents.excitation_design import (
+    DesignSettings,
+    ExcitationDesigner,
+    estimator_measurement_cov,
 )
 from astrocargo.envs.sensors import estimator_noise_kwargs, noise_profile
 from astrocargo.envs.world import World
@@ -35,7 +38,7 @@ def _random_design(seed: int = 1, n_harm: int = 3, spin=(0.03, -0.02, 0.04)) -> 
 
 @pytest.fixture(scope="module")
 def model():
-    from astrocargo.agents.excitation import model_for_world
+    from astrocargo.agents.excitation_design import model_for_world
 
     kwargs = estimator_noise_kwargs(noise_profile("nominal"))
     return model_for_world(World(2), estimator_kwargs=kwargs)
@@ -195,7 +198,7 @@ def test_predicted_fisher_equals_the_regressor_on_the_designs_motion(model):
 def test_sensor_covariance_is_the_estimators():
     """With the estimator's own prior as the design cargo, the model's errors-in-variables
     covariance equals CargoEstimator._sensor_cov at that estimate."""
-    from astrocargo.agents.excitation import model_for_world
+    from astrocargo.agents.excitation_design import model_for_world
 
     world = World(2)
     robot = world.robot_model(0)
