@@ -2,7 +2,7 @@
 
 The same team, cargo, noise (`nominal`) and seed fly 90 s twice: the paper's scenario
 (`figure8_yaw`: figure-eight, yaw ramp with a sudden turn at 40 s, arm pan ramp) and the team's
-designed excitation (`excite`, agents/excitation.py: motion optimised for what the estimator
+designed excitation (`excite`, agents/excitation_design.py: motion optimised for what the estimator
 learns, within the robots' thrust, the servo and the walls), each driven by the cooperative
 controller from the robots' observations and their own live estimates. Prints a table of final
 errors and mass convergence times per robot and run, and saves one figure with the two runs side
