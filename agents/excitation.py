@@ -35,7 +35,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .trajectories import Reference, ReferenceValues
+from .trajectories import Reference
 
 if TYPE_CHECKING:
     from .excitation_design import DesignSettings
@@ -250,7 +250,7 @@ def shipped_design(n_robots: int) -> ExcitationDesign:
 
 class DesignedTrajectory:
     """A designed excitation as a cargo reference, with ``Trajectory``'s interface:
-    ``traj(t)`` -> ``Reference``, ``values(t)`` -> ``ReferenceValues`` (floats), ``motion(t)``
+    ``traj(t)`` -> ``Reference``, ``arrays(t)`` (the env's packed form), ``motion(t)``
     on a time grid. After ``duration_s`` it holds the start pose at rest."""
 
     NAMES = ("excite",)
@@ -286,19 +286,6 @@ class DesignedTrajectory:
             qdd[PAN_DOF],
         )
 
-    def values(self, t: float) -> ReferenceValues:
-        m = self.motion(np.array([float(t)]))
-        return ReferenceValues(
-            m.pos[0].tolist(),
-            m.vel[0].tolist(),
-            m.acc[0].tolist(),
-            m.rot[0].tolist(),
-            m.w[0].tolist(),
-            m.wd[0].tolist(),
-            float(m.pan[0]),
-            float(m.pan_rate[0]),
-        )
-
     def arrays(self, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The reference at ``t`` as ``Trajectory.arrays`` gives it: rotation (3, 3); pos, vel,
         acc, w, wd as the rows of a (5, 3), world axes; (pan, pan_rate) (2,)."""
@@ -307,7 +294,11 @@ class DesignedTrajectory:
         return np.ascontiguousarray(m.rot[0]), vecs, np.array((m.pan[0], m.pan_rate[0]))
 
     def __call__(self, t: float) -> Reference:
-        return self.values(t).to_reference()
+        m = self.motion(np.array([float(t)]))
+        return Reference(
+            m.pos[0], m.vel[0], m.acc[0], m.rot[0], m.w[0], m.wd[0],
+            float(m.pan[0]), float(m.pan_rate[0]),
+        )  # fmt: skip
 
 
 # ------------------------------------------------------------------------------- from a World

@@ -40,7 +40,6 @@ The whole evaluation is compiled with numba (``@njit(cache=True)``): one call pe
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -82,32 +81,6 @@ class Reference:
     wd: np.ndarray
     pan: float
     pan_rate: float
-
-
-class ReferenceValues(NamedTuple):
-    """A ``Reference`` as Python floats (vectors as lists, the rotation as its rows), for code on
-    float helpers; ``Trajectory.values`` returns it. The same numbers as the ``Reference``."""
-
-    pos: Sequence[float]
-    vel: Sequence[float]
-    acc: Sequence[float]
-    rot: Sequence[Sequence[float]]
-    w: Sequence[float]
-    wd: Sequence[float]
-    pan: float
-    pan_rate: float
-
-    def to_reference(self) -> Reference:
-        return Reference(
-            np.array(self.pos),
-            np.array(self.vel),
-            np.array(self.acc),
-            np.array(self.rot),
-            np.array(self.w),
-            np.array(self.wd),
-            self.pan,
-            self.pan_rate,
-        )
 
 
 class _Shape(NamedTuple):
@@ -283,11 +256,8 @@ def _evaluate_arrays(t: float, shape: _Shape) -> tuple[np.ndarray, np.ndarray, n
 
 
 class Trajectory:
-    """A named reference: ``Trajectory(name, fast=False)(t)`` -> ``Reference`` at t (s).
-
-    ``values(t)`` is the same reference as Python floats (``ReferenceValues``), for callers on
-    float helpers.
-    """
+    """A named reference: ``Trajectory(name, fast=False)(t)`` -> ``Reference`` at t (s);
+    ``arrays(t)`` packs the same numbers for the env's per-step kernels."""
 
     NAMES = ("figure8_yaw", "figure8_tumble", "hover")
     # figure8_tumble's (amplitude deg, period s) of roll (about x) then pitch (about y), and of
@@ -335,17 +305,3 @@ class Trajectory:
         """The reference at ``t`` as arrays (the same numbers as ``self(t)``): rotation (3, 3);
         pos, vel, acc, w, wd as the rows of a (5, 3), world axes; (pan, pan_rate) (2,)."""
         return _evaluate_arrays(float(t), self._shape)
-
-    def values(self, t: float) -> ReferenceValues:
-        """The reference at ``t`` as Python floats (the same numbers as ``self(t)``)."""
-        ref = self(t)
-        return ReferenceValues(
-            ref.pos.tolist(),
-            ref.vel.tolist(),
-            ref.acc.tolist(),
-            ref.rot.tolist(),
-            ref.w.tolist(),
-            ref.wd.tolist(),
-            ref.pan,
-            ref.pan_rate,
-        )

@@ -96,16 +96,6 @@ def test_tumble_rotates_about_three_axes_and_yaw_about_one():
 
 
 @pytest.mark.parametrize("name", Trajectory.NAMES)
-def test_values_are_the_reference_on_floats(name):
-    """``values(t)`` (what the env evaluates each step) holds the very numbers of ``tr(t)``."""
-    tr = Trajectory(name)
-    for t in (0.0, 7.3, 15.0, 42.5, 61.2):
-        ref, values = tr(t), tr.values(t)
-        for field in ("pos", "vel", "acc", "rot", "w", "wd", "pan", "pan_rate"):
-            np.testing.assert_array_equal(getattr(ref, field), np.array(getattr(values, field)))
-
-
-@pytest.mark.parametrize("name", Trajectory.NAMES)
 def test_arrays_are_the_reference_packed(name):
     """``arrays(t)`` (what the env evaluates each step) holds the very numbers of ``tr(t)``."""
     tr = Trajectory(name)

@@ -82,9 +82,9 @@ def test_analytic_rates_match_finite_differences():
         rdot = (m.rot[2] - m.rot[0]) / (2 * h)
         sk = rdot @ m.rot[1].T
         np.testing.assert_allclose([sk[2, 1], sk[0, 2], sk[1, 0]], m.w[1], atol=1e-7)
-        values = traj.values(t)
-        np.testing.assert_allclose(values.rot, m.rot[1], atol=1e-15)
-        np.testing.assert_allclose(values.wd, m.wd[1], atol=1e-15)
+        ref = traj(t)
+        np.testing.assert_allclose(ref.rot, m.rot[1], atol=1e-15)
+        np.testing.assert_allclose(ref.wd, m.wd[1], atol=1e-15)
 
 
 def test_json_round_trip(tmp_path):
