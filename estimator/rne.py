@@ -535,6 +535,15 @@ def thrust_wrench(robot: RobotDescription, command: np.ndarray) -> np.ndarray:
     return np.asarray(command, dtype=float) @ robot.thrust_to_base.T
 
 
+def _single_motion(robot, w_base, wd_base, acc_base, q, qd, qdd) -> list[np.ndarray]:
+    """One sample's motion inputs checked for shape, as the compiled kernels take them."""
+    nj = (robot.n_joints,)
+    return [_single(x, shape, name) for x, shape, name in (
+        (w_base, (3,), "w_base"), (wd_base, (3,), "wd_base"), (acc_base, (3,), "acc_base"),
+        (q, nj, "q"), (qd, nj, "qd"), (qdd, nj, "qdd"),
+    )]  # fmt: skip
+
+
 def balance_in_grasp_frame(
     robot: RobotDescription,
     w_base: np.ndarray,
@@ -549,12 +558,9 @@ def balance_in_grasp_frame(
     origin (3,) m). Inputs as ``propagate`` for one sample, and the propulsion wrench
     ``thrust_base`` (6,) in B about B's origin. Both passes and the regressor in one compiled
     call: the estimator evaluates it every other control step."""
-    nj = (robot.n_joints,)
-    inputs = [_single(x, shape, name) for x, shape, name in (
-        (w_base, (3,), "w_base"), (wd_base, (3,), "wd_base"), (acc_base, (3,), "acc_base"),
-        (q, nj, "q"), (qd, nj, "qd"), (qdd, nj, "qdd"), (thrust_base, (6,), "thrust_base"),
-    )]  # fmt: skip
-    thrust_g, links_g, y, rot, pos = _grasp_balance(*robot.arrays, *inputs)
+    inputs = _single_motion(robot, w_base, wd_base, acc_base, q, qd, qdd)
+    thrust = _single(thrust_base, (6,), "thrust_base")
+    thrust_g, links_g, y, rot, pos = _grasp_balance(*robot.arrays, *inputs, thrust)
     return Balance(thrust_g, links_g, y), rot, pos
 
 
@@ -573,11 +579,7 @@ def links_and_regressor(
     """(links_G (6,), Y (6, 10)) of one sample: the links' rate of change of momentum and the
     cargo's body regressor in G (moments about G's origin), inputs as ``balance_in_grasp_frame``.
     For w_base, q and qd held both are affine in the motion xi = (acc_base, wd_base, qdd)."""
-    nj = (robot.n_joints,)
-    inputs = [_single(x, shape, name) for x, shape, name in (
-        (w_base, (3,), "w_base"), (wd_base, (3,), "wd_base"), (acc_base, (3,), "acc_base"),
-        (q, nj, "q"), (qd, nj, "qd"), (qdd, nj, "qdd"),
-    )]  # fmt: skip
+    inputs = _single_motion(robot, w_base, wd_base, acc_base, q, qd, qdd)
     _, links_g, y, _, _ = _grasp_balance(*robot.arrays, *inputs, np.zeros(6))
     return links_g, y
 
@@ -594,9 +596,5 @@ def balance_motion_jacobians(
     """Exact Jacobians of ``links_and_regressor`` in the motion xi = (acc_base (3), wd_base (3),
     qdd (n_joints)) with w_base, q, qd held: (d links_G / d xi (6, n), d Y / d xi (n, 6, 10)),
     n = 6 + n_joints. Units: links N (or N m) per m/s^2, rad/s^2 of the coordinate."""
-    nj = (robot.n_joints,)
-    inputs = [_single(x, shape, name) for x, shape, name in (
-        (w_base, (3,), "w_base"), (wd_base, (3,), "wd_base"), (acc_base, (3,), "acc_base"),
-        (q, nj, "q"), (qd, nj, "qd"), (qdd, nj, "qdd"),
-    )]  # fmt: skip
+    inputs = _single_motion(robot, w_base, wd_base, acc_base, q, qd, qdd)
     return _motion_jacobians(*robot.arrays, *inputs)
