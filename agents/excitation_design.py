@@ -35,7 +35,6 @@ design is scaled down, if need be, until every constraint holds on a 0.1 s grid.
 from __future__ import annotations
 
 import copy
-import math
 import time
 from dataclasses import dataclass, fields
 
@@ -77,9 +76,8 @@ from .excitation import (
 
 
 # ------------------------------------------------------------------------------- ESTIMATOR COUPLING
-# The ONE place that reads CargoEstimator's private noise model (meas_cov, _actuation_abs/_rel,
-# _acc_noise, _ang_acc_noise, _joint_acc_noise, _robot_mass, _robot_inertia, _correlated: the
-# terms of CargoEstimator.process's meas_cov and of CargoEstimator._sensor_cov). When the
+# The ONE place that reads CargoEstimator's noise model (meas_cov, _actuation_abs/_rel and
+# update_every: the terms of CargoEstimator.process's meas_cov, and sensor_cov_at). When the
 # estimator offers a public method for its per-update measurement covariance, repoint this
 # function to it; nothing else in this module depends on how R is built.
 def estimator_measurement_cov(
@@ -103,22 +101,8 @@ def estimator_measurement_cov(
     est = estimator
     std = est._actuation_abs + est._actuation_rel * np.abs(commands)  # (N, n, 6)
     act = np.einsum("nkij,nkj,nklj->nil", noise_maps, std**2, noise_maps)
-    m_c, h_x, h_y, h_z, i_xx, i_yy, i_zz = (float(x) for x in cargo_grasp[:7])
-    com = math.sqrt(h_x * h_x + h_y * h_y + h_z * h_z) / m_c
-    lever = np.asarray(lever_m, dtype=float)
-    total = est._robot_mass + m_c
-    inertia = est._robot_inertia + est._robot_mass * lever**2 + max(i_xx, i_yy, i_zz)
-    force = (total * est._acc_noise) ** 2 + (m_c * lever * est._joint_acc_noise) ** 2
-    moment = (
-        (inertia * est._ang_acc_noise) ** 2
-        + (total * lever * est._acc_noise) ** 2
-        + (m_c * com * lever * est._joint_acc_noise) ** 2
-    )
-    sensor = np.zeros((lever.size, 6, 6))
-    idx = np.arange(3)
-    sensor[:, idx, idx] = force[:, None]
-    sensor[:, idx + 3, idx + 3] = moment[:, None]
-    return est.meas_cov + act / est.update_every + est._correlated * sensor
+    sensor = est.sensor_cov_at(np.asarray(cargo_grasp, dtype=float), lever_m)
+    return est.meas_cov + act / est.update_every + sensor
 
 
 # ------------------------------------------------------------------------------- the model

@@ -796,14 +796,19 @@ class CargoEstimator:
         return np.diag([var_att * f2] * 3 + [var_att * n2 + var_pos * f2] * 3)
 
     def _sensor_cov(self) -> np.ndarray:
-        """Measurement covariance from the sensors' noise on the filtered accelerations, at the
-        current estimate (scalar per block, magnitudes only): force M sigma_a + m_c L sigma_qdd,
+        """``sensor_cov_at`` the current estimate and this robot's base-to-grasp lever."""
+        return self.sensor_cov_at(self.ukf.params_mean(), self._grasp_lever)
+
+    def sensor_cov_at(self, params: np.ndarray, lever_m: float | np.ndarray) -> np.ndarray:
+        """Measurement covariance (..., 6, 6) from the sensors' noise on the filtered
+        accelerations at the cargo ``params`` (10,) (grasp frame) and base-to-grasp lever(s)
+        ``lever_m`` (...) m, scalar per block, magnitudes only: force M sigma_a + m_c L sigma_qdd,
         moment J sigma_wd + M L sigma_a + m_c |c| L sigma_qdd, with M the robot-plus-cargo mass,
-        L the base-to-grasp lever and J the inertia about the grasp."""
-        params = self.ukf.params_mean()
+        L the lever and J the inertia about the grasp. The model of ``motion_fusion="none"``
+        (and of a peer that sends no motion); the excitation designer reads it too."""
         m_c, i_xx, i_yy, i_zz = (float(x) for x in params[[0, 4, 5, 6]])
         com = float(np.linalg.norm(params[1:4])) / m_c
-        lever = self._grasp_lever
+        lever = np.asarray(lever_m, dtype=float)
         total = self._robot_mass + m_c
         inertia = self._robot_inertia + self._robot_mass * lever**2 + max(i_xx, i_yy, i_zz)
         force = (total * self._acc_noise) ** 2 + (m_c * lever * self._joint_acc_noise) ** 2
@@ -812,7 +817,11 @@ class CargoEstimator:
             + (total * lever * self._acc_noise) ** 2
             + (m_c * com * lever * self._joint_acc_noise) ** 2
         )
-        return self._correlated * np.diag([force] * 3 + [moment] * 3)
+        cov = np.zeros(lever.shape + (6, 6))
+        axes = np.arange(3)
+        cov[..., axes, axes] = force[..., None]
+        cov[..., axes + 3, axes + 3] = moment[..., None]
+        return self._correlated * cov
 
     def set_peers(self, peers: list[int] | tuple[int, ...]) -> None:
         """Change which robots hold the cargo (a robot released it). The pending instants are
