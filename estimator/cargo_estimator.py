@@ -69,6 +69,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.stats import chi2
 
+from . import per_step
 from .geometry import exp_so3, quat_to_mat
 from .inertia import (
     inertia_to_vec,
@@ -103,6 +104,8 @@ DEFAULT_PRIOR_STD = (3.0, 0.15, 0.1, 0.03)
 MOTION_FUSION = ("none", "own", "team")
 # Random walk of the parameters per update, as a fraction of the prior standard deviations.
 DEFAULT_PROCESS_STD_REL = 1e-5
+# What the compiled step reads as the fix when there is none (it is not used).
+_NO_POS, _NO_QUAT = np.zeros(3), np.zeros(4)
 
 
 def _project_rotation(m: np.ndarray) -> np.ndarray:
@@ -372,6 +375,21 @@ class CargoEstimator:
         self.min_excitation_snr = float(min_excitation_snr)
         self.min_relative_fixes = int(min_relative_fixes)
         self._init_bookkeeping(relative_grasps, record)
+        self._step_constants = self._compiled_step_constants()
+
+    def _compiled_step_constants(self) -> tuple:
+        """The constant arguments of ``per_step.estimator_step``, in its order."""
+        pre, bal = self.pre.filter, self.balance_filter
+
+        def c(a):
+            return np.ascontiguousarray(a, dtype=float)
+
+        return (
+            *self.robot.arrays, c(self.pre._to_input), pre.ad, pre.b_value, c(pre.b_slope),
+            pre._held, c(self.pre._imu_pos_neg), bal.ad, bal.b_value, c(bal.b_slope), bal._held,
+            c(self._imu_rot), c(self._thrust_to_base), c(self._actuation_abs),
+            c(self._actuation_rel), self.dt_s,
+        )  # fmt: skip
 
     def _init_noise_model(
         self, force_std_n, torque_std_nm, actuation_noise, sensor_noise, peer_noise_std,
@@ -490,6 +508,62 @@ class CargoEstimator:
         """
         if (accel_imu is None) != (gyro_imu is None):
             raise ValueError("accel_imu and gyro_imu are one IMU frame: both None or neither")
+        if self._compiled_path_ready(stamp, accel_imu):
+            fix_given = base_pos_world is not None and base_quat_world is not None
+            outcome = self._compiled_step(
+                stamp, accel_imu, gyro_imu, joint_pos_rad, thrust_command, base_pos_world,
+                base_quat_world, fix_given,
+            )  # fmt: skip
+            if outcome != per_step.NOT_USABLE:
+                if stamp % self.update_every or stamp < self.warmup_steps:
+                    return None
+                return self._record_instant(stamp, joint_pos_rad, outcome == per_step.FIX)
+        return self._python_step(
+            stamp, accel_imu, gyro_imu, joint_pos_rad, thrust_command, base_pos_world,
+            base_quat_world,
+        )  # fmt: skip
+
+    def _compiled_path_ready(self, stamp: int, accel_imu: np.ndarray | None) -> bool:
+        """Can this step take ``per_step.estimator_step``: an IMU frame, an increasing stamp,
+        both filters started (the balance filter if this step feeds it) and an attitude?"""
+        return (
+            accel_imu is not None
+            and stamp > self.stamp
+            and self._rot_world_base is not None
+            and self.pre.filter.started
+            and (self.balance_filter.started or stamp % self.regressor_every != 0)
+        )
+
+    def _compiled_step(self, stamp, accel, gyro, q, thrust, pos, quat, fix_given) -> int:
+        """The common path in one compiled call (``per_step``); NOT_USABLE (nothing changed)
+        for a non-finite or wrongly shaped reading, or readings not float64 vectors."""
+        do_balance = stamp % self.regressor_every == 0
+        try:
+            outcome, lever = per_step.estimator_step(
+                *self._step_constants, self.pre.filter.state, self.pre.filter._u_prev,
+                self.balance_filter.state, self.balance_filter._u_prev, self._act_cov_sum,
+                self._rot_world_base, self._pos_world_base, accel, gyro, q, thrust,
+                pos if fix_given else _NO_POS, quat if fix_given else _NO_QUAT, fix_given,
+                do_balance,
+            )  # fmt: skip
+        except TypeError:  # not float64 vectors: the Python path converts them
+            return per_step.NOT_USABLE
+        if outcome == per_step.NOT_USABLE:
+            return outcome
+        self.stamp = int(stamp)
+        self._last_input = (accel, gyro, q, thrust)
+        self.n_fixes += outcome == per_step.FIX
+        self.n_bad_readings += outcome == per_step.BAD_FIX
+        if do_balance:
+            self._act_cov_n += 1
+            self._grasp_lever = lever
+        return outcome
+
+    def _python_step(
+        self, stamp, accel_imu, gyro_imu, joint_pos_rad, thrust_command, base_pos_world,
+        base_quat_world,
+    ) -> WrenchMessage | None:  # fmt: skip
+        """``step`` for any readings: missing or non-finite ones held, the filters started."""
         missing = accel_imu is None
         readings = [
             None if x is None else np.asarray(x, dtype=float)
@@ -542,8 +616,7 @@ class CargoEstimator:
         self._act_cov_sum += (to_grasp * std**2) @ to_grasp.T
         self._act_cov_n += 1
         self._grasp_lever = math.sqrt(pos_bg @ pos_bg)
-        filtered, _, _ = self.balance_filter.step(balance.to_vector())
-        self._balance = Balance.from_vector(filtered)
+        self.balance_filter.step(balance.to_vector())
 
     def _update_attitude(self, gyro_imu, base_pos_world, base_quat_world) -> bool:
         """Attitude from the last fix, propagated with the gyro between fixes."""
@@ -553,8 +626,8 @@ class CargoEstimator:
             if quat.shape != (4,) or pos.shape != (3,):
                 raise ValueError("base_pos_world must be (3,) and base_quat_world (4,)")
             if np.all(np.isfinite(quat)) and np.all(np.isfinite(pos)) and np.linalg.norm(quat) > 0:
-                self._rot_world_base = quat_to_mat(quat)
-                self._pos_world_base = pos.copy()
+                self._rot_world_base = np.ascontiguousarray(quat_to_mat(quat))
+                self._pos_world_base = np.array(pos, dtype=float)
                 self.n_fixes += 1
                 return True
             self.n_bad_readings += 1
@@ -564,7 +637,7 @@ class CargoEstimator:
         return False
 
     def _record_instant(self, stamp: int, q_raw: np.ndarray, fix: bool) -> WrenchMessage | None:
-        b = self._balance
+        b = Balance.from_vector(self.balance_filter.state[0].copy())
         wrench_grasp = b.thrust - b.links
         # Per-step actuation covariance averaged over this update's window (grasp frame).
         act_cov = self._act_cov_sum / max(self._act_cov_n, 1)

@@ -116,19 +116,19 @@ class StateVariableFilter:
         u = np.asarray(u, dtype=float)
         if u.shape != (self.n_channels,):
             raise ValueError(f"filter input must have shape ({self.n_channels},), got {u.shape}")
+        # The state and the previous input are updated in place (``per_step`` steps them too).
         if self.started:
             u_prev = self._u_prev
             if self._any_held:
                 u_prev = np.where(self._held, u, u_prev)
-            self.state = _first_order_hold_step(
-                self.ad, self.b_value, self.b_slope, self.state, u_prev, u
-            )
+            new = _first_order_hold_step(self.ad, self.b_value, self.b_slope, self.state, u_prev, u)
         else:
-            self.state = np.zeros((3, self.n_channels))
-            self.state[0] = u
+            new = np.zeros((3, self.n_channels))
+            new[0] = u
             self.started = True
-        self._u_prev = u.copy()
-        return self.state[0], self.state[1], self.state[2]
+        self.state[:] = new
+        self._u_prev[:] = u
+        return new[0], new[1], new[2]
 
     def noise_gains(self) -> np.ndarray:
         """(g_y, g_yd, g_ydd) (3,): white noise of standard deviation s per sample leaves s * g on
@@ -181,7 +181,6 @@ class Preprocessor:
         rows = (self._gyro, self._accel, self._q, self._thrust)
         for block, row in zip(blocks, rows, strict=True):
             self._to_input[row, row] = block
-        self._y = self._yd = self._ydd = np.zeros(12 + nj)
 
     def step(
         self,
@@ -204,22 +203,23 @@ class Preprocessor:
 
     def step_raw(self, raw: np.ndarray) -> None:
         """``step`` with the readings already in one vector (``raw_input``)."""
-        self._y, self._yd, self._ydd = self.filter.step(self._to_input @ raw)
+        self.filter.step(self._to_input @ raw)
 
     def motion(self) -> BaseAndJointMotion:
-        """Filtered base and joint motion, base frame."""
-        w, wd = self._y[self._gyro], self._yd[self._gyro]
+        """Filtered base and joint motion, base frame (copies of the filter's state)."""
+        y, yd, ydd = self.filter.state.copy()
+        w, wd = y[self._gyro], yd[self._gyro]
         # a_o = a_imu - wd x r - w x (w x r): the IMU point's acceleration at the lever -r.
-        acc_origin = point_acceleration(self._y[self._accel], w, wd, self._imu_pos_neg)
+        acc_origin = point_acceleration(y[self._accel], w, wd, self._imu_pos_neg)
         q = self._q
-        return BaseAndJointMotion(w, wd, acc_origin, self._y[q], self._yd[q], self._ydd[q])
+        return BaseAndJointMotion(w, wd, acc_origin, y[q], yd[q], ydd[q])
 
     def kinematics(self) -> Kinematics:
         m = self.motion()
         return propagate(self.robot, m.w_base, m.wd_base, m.acc_base, m.q, m.qd, m.qdd)
 
     def thrust(self) -> np.ndarray:
-        return self._y[self._thrust].copy()
+        return self.filter.state[0, self._thrust].copy()
 
     @property
     def delay_s(self) -> float:
