@@ -28,6 +28,12 @@ from astrocargo.envs.config import (
     REWARD_TERMS,
     EnvConfig,
 )
+from astrocargo.envs.estimation import (  # noqa: F401 (re-exported)
+    LOG_STD_FLOOR,
+    SENT_ARM_KEPT,
+    TeamEstimation,
+    make_estimators,
+)
 from astrocargo.envs.faults import (
     FAULT_COUNTERS,
     NO_FAULT_COUNTS,
@@ -42,14 +48,7 @@ from astrocargo.envs.sensors import noise_profile as get_noise_profile
 from astrocargo.envs.world import ARM_DEPLOYED_RAD, MAX_TIMESTEP_S, World
 from astrocargo.estimator.cargo_estimator import CargoEstimator
 from astrocargo.estimator.geometry import log_so3, mat_to_quat, matmul3, quat_to_mat
-from astrocargo.estimator.inertia import (
-    com_error_m,
-    mass_rel_error,
-    principal_rel_errors,
-)
 
-SENT_ARM_KEPT = 1000  # messages' arm states kept per sender (160 s at one per 10 steps)
-LOG_STD_FLOOR = 1e-12
 REWARD_KEYS = tuple(f"reward_{t}" for t in REWARD_TERMS)  # their names in infos
 # MuJoCo's instability warnings: on a bad qpos, qvel or qacc it resets the state to the model's
 # initial one (and counts the warning), so after one the physics no longer continues.
@@ -192,21 +191,9 @@ class CargoTransport:
         self.state_dim += 10 + 21 + 2 * self.n_robots + self.n_robots
 
     def _make_estimators(self) -> list[CargoEstimator]:
-        out = []
-        for i in range(self.n_robots):
-            peers = [j for j in range(self.n_robots) if j != i]
-            # The grasp layout (which handrails the team holds) is known geometry, like the
-            # handrail poses the observations use; estimating it from fixes biases early updates.
-            kwargs = {
-                "relative_grasps": {j: self.world.relative_grasp(i, j) for j in peers},
-                **self.estimator_kwargs,
-            }
-            try:
-                est = CargoEstimator(self.robots[i], i, peers, self.dt_s, **kwargs)
-            except TypeError as err:
-                raise ValueError(f"bad estimator_kwargs {self.estimator_kwargs!r}: {err}") from err
-            out.append(est)
-        return out
+        return make_estimators(
+            self.robots, self.dt_s, self.estimator_kwargs, self.world.relative_grasp
+        )
 
     def _bind_world(self, world: World, data: mujoco.MjData) -> None:
         """Simulate ``world`` (with its state in ``data``): the robots it holds act, and the
@@ -277,12 +264,13 @@ class CargoTransport:
             elif fault.kind == "comm_delay":
                 self.channel.add_delay(fault.robot, first, end, fault.delay_s)
         self.estimators = self._make_estimators() if self.use_estimators else []
+        self.estimation = TeamEstimation(
+            self.n_robots, self.estimators, self.true_params_grasp, self.dt_s
+        )
         self.navigator = BaseNavigator(self.robots, self.dt_s, self.profile)
         self.arm_targets = np.tile(np.asarray(ARM_DEPLOYED_RAD), (self.n_robots, 1))
         self.arm_rates = np.zeros((self.n_robots, 2))  # the servo targets' rate, rad/s
-        # Per sender: message stamp -> its arm angles and rates then (what the message carries).
-        self._sent_arm: list[dict[int, np.ndarray]] = [{} for _ in range(self.n_robots)]
-        self.peer_msgs: list[dict[int, Any]] = [{} for _ in range(self.n_robots)]
+        self.peer_msgs = self.estimation.peer_msgs  # per receiver: sender -> latest message
         self.step_count = 0
         self._ready = True
 
@@ -388,7 +376,7 @@ class CargoTransport:
             self.channel.disconnect(i)
         for i in self.holding:
             for j in released:
-                self.peer_msgs[i].pop(j, None)
+                self.estimation.forget(i, j)
             if self.estimators:
                 self.estimators[i].set_peers([j for j in self.holding if j != i])
 
@@ -470,35 +458,11 @@ class CargoTransport:
         ]
 
     def _update_estimators(self, readings: SensorReadings, commands: np.ndarray, k: int) -> None:
-        """Each estimator ingests its own packet and command; messages go through the channel;
-        what is due is delivered; each estimator updates with its complete instants."""
-        if not self.estimators:
-            return
-        for i in self.holding:
-            est, packet, command = self.estimators[i], readings.packet(i), commands[i]
-            msg = est.step(
-                k,
-                packet.accel_imu,
-                packet.gyro_imu,
-                packet.joint_pos_rad,
-                command,
-                packet.base_pos_world,
-                packet.base_quat_world,
-            )
-            if msg is not None:
-                sent = self._sent_arm[i]
-                sent[msg.stamp] = np.concatenate((packet.joint_pos_rad, self.arm_rates[i]))
-                if len(sent) > SENT_ARM_KEPT:
-                    del sent[next(iter(sent))]  # the oldest
-                self.channel.send(msg, k)
-        for receiver, msgs in self.channel.deliver(k).items():
-            for msg in msgs:
-                self.estimators[receiver].receive(msg)
-                latest = self.peer_msgs[receiver].get(msg.sender)
-                if latest is None or msg.stamp > latest.stamp:
-                    self.peer_msgs[receiver][msg.sender] = msg
-        updated = [self.estimators[i].process() > 0 for i in self.holding]
-        if any(updated):
+        """The team's estimation of step ``k`` (``TeamEstimation.step``); the estimates are
+        gathered again when one changed."""
+        if self.estimators and self.estimation.step(
+            readings, commands, k, self.holding, self.arm_rates, self.channel
+        ):
             self._refresh_estimates()
 
     def _refresh_estimates(self) -> None:
@@ -506,29 +470,16 @@ class CargoTransport:
             self.est_mean, self.est_std, self.est_errors = [], [], []
             self._estimates = np.zeros((self.n_robots, 0))
             return
-        self.est_mean = [est.params_mean() for est in self.estimators]
-        self.est_std = [est.params_std() for est in self.estimators]
+        self.est_mean, self.est_std, self.est_errors = self.estimation.refresh()
         # The observation's estimate blocks (N, 20), or none (N, 0).
         observed = (self.est_mean, self.est_std) if self.observe_estimates else ()
         self._estimates = np.concatenate((*observed, np.zeros((self.n_robots, 0))), axis=1)
-        self._log_std_now = np.log(np.maximum(np.array(self.est_std), LOG_STD_FLOOR)).sum(axis=1)
-        # Every robot's errors in one call per kind (the same values robot by robot).
-        means, truths = np.array(self.est_mean), np.array(self.true_params_grasp)
-        self.est_errors = [
-            {"mass_rel_err": mass, "com_err_m": com, "principal_rel_err": principal}
-            for mass, com, principal in zip(
-                mass_rel_error(means, truths).tolist(),
-                com_error_m(means, truths).tolist(),
-                principal_rel_errors(means, truths).tolist(),
-                strict=True,
-            )
-        ]
 
     def _estimate_log_std_sums(self) -> np.ndarray:
         """Sum of the log standard deviations of each robot's estimate (as of the last refresh)."""
         if not self.estimators:
             return np.zeros(self.n_robots)
-        return self._log_std_now
+        return self.estimation.log_std_sums
 
     def _wall_contacts(self) -> tuple[np.ndarray, int]:
         """Contacts with the module per robot, and those of the cargo."""
@@ -580,25 +531,8 @@ class CargoTransport:
         )  # fmt: skip
 
     def _peer_slot_values(self, acting: np.ndarray) -> tuple[np.ndarray, ...]:
-        """Each robot's peer slots: the latest message's wrench (world axes) (N, P, 6), its age
-        in s and whether one has arrived (N, P), the sender's arm angles and rates when it sent it
-        (N, P, 4); zeros before the first message."""
-        n = self.n_robots
-        wrench, age, valid = np.zeros((n, n - 1, 6)), np.zeros((n, n - 1)), np.zeros((n, n - 1))
-        arm = np.zeros((n, n - 1, 4))
-        step_count, dt = self.step_count, self.dt_s
-        for i in range(n):
-            latest = self.peer_msgs[i]
-            if not acting[i] or not latest:
-                continue
-            for p, j in enumerate(self._peer_slots[i]):
-                msg = latest.get(j)
-                if msg is not None:
-                    wrench[i, p] = msg.wrench_world
-                    age[i, p] = (step_count - msg.stamp) * dt
-                    valid[i, p] = 1.0
-                    arm[i, p] = self._sent_arm[j].get(msg.stamp, arm[i, p])
-        return wrench, age, valid, arm
+        """Each robot's peer slots (``TeamEstimation.peer_slot_values``)."""
+        return self.estimation.peer_slot_values(acting, self.step_count)
 
     # ------------------------------------------------------------------ rewards, infos
     def tracking_error(self) -> tuple[float, float]:

@@ -1,0 +1,150 @@
+"""The team's estimation inside the env: one ``CargoEstimator`` per robot and the messages
+between them (``TeamEstimation``, held by ``CargoTransport``).
+
+Per control step (``step``): each robot holding the cargo feeds its own estimator its sensor
+packet and its thrust command; the messages it publishes go into the communication channel; what
+the channel delivers is handed to the receivers' estimators; each estimator then updates with its
+complete instants. After an update the estimates are gathered (``refresh``): means and standard
+deviations of pi (10,) per robot, in each robot's grasp frame (kg, kg m, kg m^2), their errors
+against the true cargo, and the sum of the log standard deviations (the information reward).
+
+The latest message each robot has received from each peer is also kept as arrays, row receiver,
+column sender: its wrench on the cargo (world axes, N and N m), its stamp (control steps; -1:
+none) and the sender's arm angles and rates when it sent it (rad, rad/s): the observations' peer
+slots read them (``peer_slot_values``).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from astrocargo.envs.sensors import SensorReadings
+from astrocargo.estimator.cargo_estimator import CargoEstimator
+from astrocargo.estimator.inertia import com_error_m, mass_rel_error, principal_rel_errors
+from astrocargo.estimator.rne import RobotDescription
+
+SENT_ARM_KEPT = 1000  # messages' arm states kept per sender (160 s at one per 10 steps)
+LOG_STD_FLOOR = 1e-12
+
+
+def make_estimators(
+    robots: list[RobotDescription],
+    dt_s: float,
+    estimator_kwargs: dict[str, Any],
+    relative_grasp,
+) -> list[CargoEstimator]:
+    """One estimator per robot, each with every other robot as a peer. The grasp layout
+    (``relative_grasp(i, j)``: robot j's grasp frame in robot i's, rotation and position m) is
+    known geometry, like the handrail poses the observations use; estimating it from fixes
+    biases early updates. A bad keyword in ``estimator_kwargs`` raises ValueError."""
+    n = len(robots)
+    out = []
+    for i in range(n):
+        peers = [j for j in range(n) if j != i]
+        kwargs = {"relative_grasps": {j: relative_grasp(i, j) for j in peers}, **estimator_kwargs}
+        try:
+            out.append(CargoEstimator(robots[i], i, peers, dt_s, **kwargs))
+        except TypeError as err:
+            raise ValueError(f"bad estimator_kwargs {estimator_kwargs!r}: {err}") from err
+    return out
+
+
+class TeamEstimation:
+    """Every robot's estimator and the messages between them for one episode (module
+    docstring) of ``n_robots``. ``estimators`` is the list of ``CargoEstimator`` (robot index
+    order; empty: no estimation, the peer slots stay zero); ``peer_msgs[i]`` maps a sender to
+    the latest message robot i received from it."""
+
+    def __init__(self, n_robots: int, estimators: list[CargoEstimator],
+                 true_params_grasp: list[np.ndarray], dt_s: float) -> None:  # fmt: skip
+        n = n_robots
+        self.estimators = estimators
+        self.dt_s = dt_s
+        self.true_params_grasp = np.array(true_params_grasp)
+        self.sent_arm: list[dict[int, np.ndarray]] = [{} for _ in range(n)]
+        self.peer_msgs: list[dict[int, Any]] = [{} for _ in range(n)]
+        self.latest_wrench = np.zeros((n, n, 6))  # [receiver, sender], world axes
+        self.latest_stamp = np.full((n, n), -1, dtype=np.int64)
+        self.latest_arm = np.zeros((n, n, 4))
+        # Per robot: the peer in each of its peer slots (increasing index, skipping itself).
+        slots = [[j for j in range(n) if j != i] for i in range(n)]
+        self.peer_slots = np.array(slots, dtype=np.int64).reshape(n, n - 1)
+
+    def step(self, readings: SensorReadings, commands: np.ndarray, k: int, holding,
+             arm_rates: np.ndarray, channel) -> bool:  # fmt: skip
+        """Control step ``k``: the ``holding`` robots' estimators ingest their packets and
+        commands (n_robots, 6); messages are sent (with the sender's arm angles and
+        ``arm_rates``) and delivered through ``channel``; every estimator processes its
+        complete instants. Returns whether any estimate changed."""
+        for i in holding:
+            packet = readings.packet(i)
+            msg = self.estimators[i].step(
+                k, packet.accel_imu, packet.gyro_imu, packet.joint_pos_rad, commands[i],
+                packet.base_pos_world, packet.base_quat_world,
+            )  # fmt: skip
+            if msg is not None:
+                sent = self.sent_arm[i]
+                sent[msg.stamp] = np.concatenate((packet.joint_pos_rad, arm_rates[i]))
+                if len(sent) > SENT_ARM_KEPT:
+                    del sent[next(iter(sent))]  # the oldest
+                channel.send(msg, k)
+        for receiver, msgs in channel.deliver(k).items():
+            for msg in msgs:
+                self.estimators[receiver].receive(msg)
+                self._keep_latest(receiver, msg)
+        updated = False
+        for i in holding:
+            updated |= self.estimators[i].process() > 0
+        return updated
+
+    def _keep_latest(self, receiver: int, msg) -> None:
+        """Keep ``msg`` as the latest one ``receiver`` has from its sender, if it is newer."""
+        j = msg.sender
+        if msg.stamp > self.latest_stamp[receiver, j]:
+            self.peer_msgs[receiver][j] = msg
+            self.latest_stamp[receiver, j] = msg.stamp
+            self.latest_wrench[receiver, j] = msg.wrench_world
+            arm = self.sent_arm[j].get(msg.stamp)
+            self.latest_arm[receiver, j] = 0.0 if arm is None else arm
+
+    def forget(self, receiver: int, sender: int) -> None:
+        """``receiver`` no longer counts messages from ``sender`` (it let go of the cargo)."""
+        self.peer_msgs[receiver].pop(sender, None)
+        self.latest_stamp[receiver, sender] = -1
+        self.latest_wrench[receiver, sender] = 0.0
+        self.latest_arm[receiver, sender] = 0.0
+
+    def refresh(self) -> tuple[list[np.ndarray], list[np.ndarray], list[dict[str, float]]]:
+        """Every estimator's mean and standard deviation of pi (10,), and its errors against the
+        true cargo (mass relative, centre of mass m, principal moments relative); also updates
+        ``log_std_sums``."""
+        est_mean = [est.params_mean() for est in self.estimators]
+        est_std = [est.params_std() for est in self.estimators]
+        std = np.array(est_std)
+        self.log_std_sums = np.log(np.maximum(std, LOG_STD_FLOOR)).sum(axis=1)
+        means, truths = np.array(est_mean), self.true_params_grasp
+        errors = [
+            {"mass_rel_err": mass, "com_err_m": com, "principal_rel_err": principal}
+            for mass, com, principal in zip(
+                mass_rel_error(means, truths).tolist(),
+                com_error_m(means, truths).tolist(),
+                principal_rel_errors(means, truths).tolist(),
+                strict=True,
+            )
+        ]
+        return est_mean, est_std, errors
+
+    def peer_slot_values(self, acting: np.ndarray, step_count: int) -> tuple[np.ndarray, ...]:
+        """Each robot's peer slots: the latest message's wrench (world axes) (N, P, 6), its age
+        in s and whether one has arrived (N, P), the sender's arm angles and rates when it sent
+        it (N, P, 4); zeros before the first message and in the rows of robots not ``acting``
+        (bool (N,))."""
+        rows = np.arange(self.peer_slots.shape[0])[:, None]
+        stamp = self.latest_stamp[rows, self.peer_slots]
+        valid = (stamp >= 0) & acting[:, None]
+        age = np.where(valid, (step_count - stamp) * self.dt_s, 0.0)
+        wrench = np.where(valid[..., None], self.latest_wrench[rows, self.peer_slots], 0.0)
+        arm = np.where(valid[..., None], self.latest_arm[rows, self.peer_slots], 0.0)
+        return wrench, age, valid.astype(float), arm
