@@ -64,19 +64,11 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.stats import chi2
 
-from . import per_step
-from .geometry import exp_so3, quat_to_mat
-from .inertia import (
-    inertia_to_vec,
-    mass_com_inertia_from_params,
-    params_from_mass_com_inertia,
-    vec_to_inertia,
-)
+from .messages import WrenchMessage, _Instant, _RelativeGrasp  # noqa: F401 (re-exported)
 from .motion import (
     balance_noise_map,
     band_factors,
@@ -84,119 +76,19 @@ from .motion import (
     filtered_motion_gains,
     grasp_acc_map,
 )
+from .per_step import EstimatorInputs
 from .preprocess import Preprocessor, StateVariableFilter
-from .rne import (
-    Balance,
-    RobotDescription,
-    balance_in_grasp_frame,
-    balance_motion_jacobians,
-    grasp_from_base,
-    grasp_pose,
-    wrench_transform,
+from .prior import (  # noqa: F401 (re-exported)
+    DEFAULT_PRIOR_STD,
+    DEFAULT_PROCESS_STD_REL,
+    default_prior,
+    prior_covariance,
 )
+from .rne import Balance, RobotDescription, grasp_pose, wrench_transform
 from .ukf import InertialParamUKF
 
-# Prior standard deviations (see `prior_covariance`): mass 3 kg, centre of mass 0.15 m per axis,
-# moments of inertia about the centre of mass 0.1 kg m^2, products 0.03 kg m^2: wide for a cargo
-# of a few kilograms and tens of centimetres, so the data, not the prior, decide.
-DEFAULT_PRIOR_STD = (3.0, 0.15, 0.1, 0.03)
 # Ways the motion's sensor noise enters the measurement (CargoEstimator's motion_fusion).
 MOTION_FUSION = ("none", "own", "team")
-# Random walk of the parameters per update, as a fraction of the prior standard deviations.
-DEFAULT_PROCESS_STD_REL = 1e-5
-# What the compiled step reads as the fix when there is none (it is not used).
-_NO_POS, _NO_QUAT = np.zeros(3), np.zeros(4)
-
-
-def _project_rotation(m: np.ndarray) -> np.ndarray:
-    """The rotation nearest (Frobenius) to a 3x3 matrix: U diag(1, 1, det(U V^T)) V^T."""
-    u, _, vt = np.linalg.svd(m)
-    d = np.sign(np.linalg.det(u @ vt))
-    return u @ np.diag([1.0, 1.0, d]) @ vt
-
-
-def default_prior(robot: RobotDescription) -> np.ndarray:
-    """A generic prior in the grasp frame: a 3 kg, 0.3 m cube whose centre is 0.2 m beyond the
-    grasp, along -z of the grasp frame (the fingers point along -z, into the cargo)."""
-    del robot
-    side = 0.3
-    mass = 3.0
-    return params_from_mass_com_inertia(
-        mass, np.array([0.0, 0.0, -0.2]), np.eye(3) * mass * side**2 / 6
-    )
-
-
-def prior_covariance(
-    prior_params: np.ndarray,
-    std: tuple[float, float, float, float] = DEFAULT_PRIOR_STD,
-    step: float = 1e-6,
-) -> np.ndarray:
-    """Covariance of pi (10, 10) for independent errors of the prior's physical quantities:
-    ``std`` = (mass kg, centre of mass m per axis, moments of inertia about the centre of mass
-    kg m^2, products of inertia kg m^2), carried to pi = (m, m c, I_origin) through the map's
-    Jacobian at ``prior_params`` (central differences)."""
-    std = np.asarray(std, dtype=float)
-    if std.shape != (4,) or not np.all(np.isfinite(std)) or np.any(std <= 0):
-        raise ValueError(f"prior std must be 4 positive numbers (kg, m, kg m^2, kg m^2), got {std}")
-    mass, com, inertia = mass_com_inertia_from_params(np.asarray(prior_params, dtype=float))
-    phys = np.concatenate(([mass], com, inertia_to_vec(inertia)))
-    sd = np.repeat(std, (1, 3, 3, 3))
-    jac = np.empty((10, 10))
-    for k in range(10):
-        d = np.zeros(10)
-        d[k] = step
-        plus, minus = phys + d, phys - d
-        jac[:, k] = (
-            params_from_mass_com_inertia(plus[0], plus[1:4], vec_to_inertia(plus[4:]))
-            - params_from_mass_com_inertia(minus[0], minus[1:4], vec_to_inertia(minus[4:]))
-        ) / (2 * step)
-    cov = (jac * sd**2) @ jac.T
-    return 0.5 * (cov + cov.T)
-
-
-@dataclass(frozen=True)
-class WrenchMessage:
-    """What robot ``sender`` publishes at control step ``stamp``."""
-
-    sender: int
-    stamp: int
-    wrench_grasp: np.ndarray  # (6,) on the cargo: [f N; moment about the grasp point N m], G axes
-    wrench_world: np.ndarray  # (6,) the same in world axes (with the sender's attitude estimate)
-    grasp_pos_world: np.ndarray  # (3,) m
-    grasp_rot_world: np.ndarray  # (3, 3)
-    fix: bool  # grasp pose from a localization fix at this stamp
-    wrench_cov_grasp: np.ndarray  # (6, 6) per-step covariance of the sender's actuation noise
-    tainted: bool = False  # built from held readings (a missing or bad sample): do not use
-    # The sender's filtered motion and its noise (``motion``), when it runs motion_fusion:
-    grasp_acc: np.ndarray | None = None  # (3,) filtered acceleration of the grasp point, G axes
-    motion_links_jac: np.ndarray | None = None  # (6, n) d links_G / d xi (xi: a_B, wd_B, qdd)
-    motion_grasp_jac: np.ndarray | None = None  # (3, n) d grasp_acc / d xi
-    motion_var: np.ndarray | None = None  # (n,) per-sample variance of the filtered xi's noise
-    motion_band: np.ndarray | None = None  # (n,) its weight per update (motion.band_factors)
-
-
-@dataclass
-class _Instant:
-    thrust: np.ndarray  # all in the grasp frame, moments about the grasp point
-    links: np.ndarray
-    regressor: np.ndarray
-    act_cov: np.ndarray  # per-step covariance of the own actuation noise, grasp frame
-    tainted: bool
-    motion_jac: tuple[np.ndarray, np.ndarray] | None = None  # (d links (6, n), d Y (n, 6, 10))
-
-
-@dataclass
-class _RelativeGrasp:
-    rot_sum: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)))
-    pos_sum: np.ndarray = field(default_factory=lambda: np.zeros(3))
-    count: int = 0
-    known: np.ndarray | None = None  # the wrench transform, when the grasp layout is given
-
-    def transform(self) -> np.ndarray:
-        if self.known is not None:
-            return self.known
-        rot = _project_rotation(self.rot_sum)
-        return wrench_transform(rot, self.pos_sum / self.count)
 
 
 def _check_arguments(
@@ -227,7 +119,7 @@ def _check_arguments(
         raise ValueError(f"min_relative_fixes must be >= 1, got {min_relative_fixes}")
 
 
-class CargoEstimator:
+class CargoEstimator(EstimatorInputs):
     """Constrained UKF on the cargo's inertial parameters for robot ``index``.
 
     Args:
@@ -377,20 +269,6 @@ class CargoEstimator:
         self._init_bookkeeping(relative_grasps, record)
         self._step_constants = self._compiled_step_constants()
 
-    def _compiled_step_constants(self) -> tuple:
-        """The constant arguments of ``per_step.estimator_step``, in its order."""
-        pre, bal = self.pre.filter, self.balance_filter
-
-        def c(a):
-            return np.ascontiguousarray(a, dtype=float)
-
-        return (
-            *self.robot.arrays, c(self.pre._to_input), pre.ad, pre.b_value, c(pre.b_slope),
-            pre._held, c(self.pre._imu_pos_neg), bal.ad, bal.b_value, c(bal.b_slope), bal._held,
-            c(self._imu_rot), c(self._thrust_to_base), c(self._actuation_abs),
-            c(self._actuation_rel), self.dt_s,
-        )  # fmt: skip
-
     def _init_noise_model(
         self, force_std_n, torque_std_nm, actuation_noise, sensor_noise, peer_noise_std,
         localization_noise, cutoff_hz, kinematics_cutoff_hz,
@@ -492,209 +370,6 @@ class CargoEstimator:
         )
 
     # ------------------------------------------------------------------ inputs
-    def step(
-        self,
-        stamp: int,
-        accel_imu: np.ndarray | None,
-        gyro_imu: np.ndarray | None,
-        joint_pos_rad: np.ndarray,
-        thrust_command: np.ndarray,
-        base_pos_world: np.ndarray | None = None,
-        base_quat_world: np.ndarray | None = None,
-    ) -> WrenchMessage | None:
-        """Ingest the readings of control step ``stamp``; return the message to publish, if any.
-
-        ``accel_imu`` and ``gyro_imu`` None: the IMU frame is missing (see the module docstring).
-        """
-        if (accel_imu is None) != (gyro_imu is None):
-            raise ValueError("accel_imu and gyro_imu are one IMU frame: both None or neither")
-        if self._compiled_path_ready(stamp, accel_imu):
-            fix_given = base_pos_world is not None and base_quat_world is not None
-            outcome = self._compiled_step(
-                stamp, accel_imu, gyro_imu, joint_pos_rad, thrust_command, base_pos_world,
-                base_quat_world, fix_given,
-            )  # fmt: skip
-            if outcome != per_step.NOT_USABLE:
-                if stamp % self.update_every or stamp < self.warmup_steps:
-                    return None
-                return self._record_instant(stamp, joint_pos_rad, outcome == per_step.FIX)
-        return self._python_step(
-            stamp, accel_imu, gyro_imu, joint_pos_rad, thrust_command, base_pos_world,
-            base_quat_world,
-        )  # fmt: skip
-
-    def _compiled_path_ready(self, stamp: int, accel_imu: np.ndarray | None) -> bool:
-        """Can this step take ``per_step.estimator_step``: an IMU frame, an increasing stamp,
-        both filters started (the balance filter if this step feeds it) and an attitude?"""
-        return (
-            accel_imu is not None
-            and stamp > self.stamp
-            and self._rot_world_base is not None
-            and self.pre.filter.started
-            and (self.balance_filter.started or stamp % self.regressor_every != 0)
-        )
-
-    def _compiled_step(self, stamp, accel, gyro, q, thrust, pos, quat, fix_given) -> int:
-        """The common path in one compiled call (``per_step``); NOT_USABLE (nothing changed)
-        for a non-finite or wrongly shaped reading, or readings not float64 vectors."""
-        do_balance = stamp % self.regressor_every == 0
-        try:
-            outcome, lever = per_step.estimator_step(
-                *self._step_constants, self.pre.filter.state, self.pre.filter._u_prev,
-                self.balance_filter.state, self.balance_filter._u_prev, self._act_cov_sum,
-                self._rot_world_base, self._pos_world_base, accel, gyro, q, thrust,
-                pos if fix_given else _NO_POS, quat if fix_given else _NO_QUAT, fix_given,
-                do_balance,
-            )  # fmt: skip
-        except TypeError:  # not float64 vectors: the Python path converts them
-            return per_step.NOT_USABLE
-        if outcome == per_step.NOT_USABLE:
-            return outcome
-        self.stamp = int(stamp)
-        self._last_input = (accel, gyro, q, thrust)
-        self.n_fixes += outcome == per_step.FIX
-        self.n_bad_readings += outcome == per_step.BAD_FIX
-        if do_balance:
-            self._act_cov_n += 1
-            self._grasp_lever = lever
-        return outcome
-
-    def _python_step(
-        self, stamp, accel_imu, gyro_imu, joint_pos_rad, thrust_command, base_pos_world,
-        base_quat_world,
-    ) -> WrenchMessage | None:  # fmt: skip
-        """``step`` for any readings: missing or non-finite ones held, the filters started."""
-        missing = accel_imu is None
-        readings = [
-            None if x is None else np.asarray(x, dtype=float)
-            for x in (accel_imu, gyro_imu, joint_pos_rad, thrust_command)
-        ]
-        for (name, shape), x in zip(self._reading_shapes, readings, strict=True):
-            if x is not None and x.shape != shape:
-                raise ValueError(f"{name} must have shape {shape}, got {x.shape}")
-        if stamp <= self.stamp:
-            raise ValueError(f"stamps must increase: got {stamp} after {self.stamp}")
-        self.stamp = int(stamp)
-        # One check for the usual case (every reading present and finite), then per reading;
-        # the readings in one vector serve the pre-filter too.
-        usable = [True] * 4
-        raw = None if missing else self.pre.raw_input(*readings)
-        if raw is None or not np.isfinite(raw).all():
-            usable = [x is not None and bool(np.all(np.isfinite(x))) for x in readings]
-        if not all(usable):
-            if missing:
-                self.n_missing_imu += 1
-            if any(x is not None and not ok for x, ok in zip(readings, usable, strict=True)):
-                self.n_bad_readings += 1
-            self._tainted_until = stamp + self.taint_steps
-            if self._last_input is None:
-                return None
-            # Hold the previous sample of each unusable signal only.
-            readings = [
-                x if ok else last
-                for x, ok, last in zip(readings, usable, self._last_input, strict=True)
-            ]
-            raw = self.pre.raw_input(*readings)
-        self._last_input = tuple(readings)
-        accel, gyro, q, thrust = readings
-        self.pre.step_raw(raw)
-        fix = self._update_attitude(gyro, base_pos_world, base_quat_world)
-        if stamp % self.regressor_every == 0:
-            self._filter_balance(thrust)
-        if stamp % self.update_every or stamp < self.warmup_steps:
-            return None
-        return self._record_instant(stamp, q, fix)
-
-    def _filter_balance(self, thrust_command: np.ndarray) -> None:
-        m = self.pre.motion()
-        balance, rot_bg, pos_bg = balance_in_grasp_frame(
-            self.robot, m.w_base, m.wd_base, m.acc_base, m.q, m.qd, m.qdd, self.pre.thrust()
-        )
-        # Per-step covariance of the actuation noise, carried into the grasp frame.
-        to_grasp = grasp_from_base(rot_bg, pos_bg) @ self._thrust_to_base
-        std = self._actuation_abs + self._actuation_rel * np.abs(thrust_command)
-        self._act_cov_sum += (to_grasp * std**2) @ to_grasp.T
-        self._act_cov_n += 1
-        self._grasp_lever = math.sqrt(pos_bg @ pos_bg)
-        self.balance_filter.step(balance.to_vector())
-
-    def _update_attitude(self, gyro_imu, base_pos_world, base_quat_world) -> bool:
-        """Attitude from the last fix, propagated with the gyro between fixes."""
-        if base_quat_world is not None and base_pos_world is not None:
-            quat = np.asarray(base_quat_world, dtype=float)
-            pos = np.asarray(base_pos_world, dtype=float)
-            if quat.shape != (4,) or pos.shape != (3,):
-                raise ValueError("base_pos_world must be (3,) and base_quat_world (4,)")
-            if np.all(np.isfinite(quat)) and np.all(np.isfinite(pos)) and np.linalg.norm(quat) > 0:
-                self._rot_world_base = np.ascontiguousarray(quat_to_mat(quat))
-                self._pos_world_base = np.array(pos, dtype=float)
-                self.n_fixes += 1
-                return True
-            self.n_bad_readings += 1
-        if self._rot_world_base is not None:
-            w_base = self._imu_rot @ gyro_imu
-            self._rot_world_base = self._rot_world_base @ exp_so3(self.dt_s * w_base)
-        return False
-
-    def _record_instant(self, stamp: int, q_raw: np.ndarray, fix: bool) -> WrenchMessage | None:
-        b = Balance.from_vector(self.balance_filter.state[0].copy())
-        wrench_grasp = b.thrust - b.links
-        # Per-step actuation covariance averaged over this update's window (grasp frame).
-        act_cov = self._act_cov_sum / max(self._act_cov_n, 1)
-        self._act_cov_sum = np.zeros((6, 6))
-        self._act_cov_n = 0
-        tainted = stamp <= self._tainted_until
-        motion = {}
-        jac = None
-        if self.motion_fusion != "none":
-            m = self.pre.motion()
-            jac = balance_motion_jacobians(
-                self.robot, m.w_base, m.wd_base, m.acc_base, m.q, m.qd, m.qdd
-            )
-            motion = {
-                "grasp_acc": b.regressor[:3, 0].copy(),
-                "motion_links_jac": jac[0],
-                "motion_grasp_jac": grasp_acc_map(jac[1]),
-                "motion_var": self._motion_var,
-                "motion_band": self._motion_band,
-            }
-        self._pending[stamp] = _Instant(
-            thrust=b.thrust.copy(),
-            links=b.links.copy(),
-            regressor=b.regressor.copy(),
-            act_cov=act_cov,
-            tainted=tainted,
-            motion_jac=jac,
-        )
-        if self._rot_world_base is None:
-            return None  # no attitude yet: nothing meaningful to publish
-        # The grasp pose for the relative-grasp average uses the current encoders, not the
-        # filtered (delayed) angles, so that it matches the fix in time.
-        rot_bg, pos_bg = self.robot_grasp_pose(q_raw)
-        rot_wb = self._rot_world_base
-        rot_wg = rot_wb @ rot_bg
-        pos_wg = self._pos_world_base + rot_wb @ pos_bg
-        if fix:
-            self._own_fix[stamp] = (rot_wg, pos_wg)
-            for p in self.peers:
-                msg = self._peer_msgs.get((p, stamp))
-                if msg is not None and msg.fix:
-                    self._accumulate_relative(p, msg)
-        rot_world = np.zeros((6, 6))
-        rot_world[:3, :3] = rot_world[3:, 3:] = rot_wg
-        return WrenchMessage(
-            sender=self.index,
-            stamp=stamp,
-            wrench_grasp=wrench_grasp,
-            wrench_world=rot_world @ wrench_grasp,
-            grasp_pos_world=pos_wg,
-            grasp_rot_world=rot_wg,
-            fix=fix,
-            wrench_cov_grasp=act_cov,
-            tainted=tainted,
-            **motion,
-        )
-
     def robot_grasp_pose(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Grasp frame in the base frame at joint angles ``q``."""
         return grasp_pose(self.robot, q)

@@ -17,19 +17,36 @@ readings as they come (IMU body axes, rad, m, N and N m) and it changes nothing 
 is missing, non-finite or wrongly shaped (the estimator's Python path handles those). The
 equations are those of ``preprocess``, ``rne`` and ``geometry``, whose compiled functions it
 calls.
+
+``EstimatorInputs`` is the input side of ``CargoEstimator`` (its ``step``): it takes this call
+when it can and the Python path otherwise, and records the instants of the updates.
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 from numba import boolean, float64, int64, njit, types
 
 from .geometry import exp_so3, quat_to_mat
+from .messages import WrenchMessage, _Instant
+from .motion import grasp_acc_map
 from .preprocess import _first_order_hold_step
-from .rne import RobotArrays, _links_and_regressor, point_acceleration
+from .rne import (
+    Balance,
+    RobotArrays,
+    _links_and_regressor,
+    balance_in_grasp_frame,
+    balance_motion_jacobians,
+    grasp_from_base,
+    point_acceleration,
+)
 
 # Outcomes of `estimator_step` (its first return value).
 NOT_USABLE, NO_FIX, FIX, BAD_FIX = range(4)
+# What the compiled step reads as the fix when there is none (it is not used).
+_NO_POS, _NO_QUAT = np.zeros(3), np.zeros(4)
 
 
 @njit(cache=True)
@@ -137,3 +154,227 @@ def estimator_step(
     )  # fmt: skip
     filter_step(bal_ad, bal_b_value, bal_b_slope, bal_held, bal_state, bal_u_prev, balance)
     return outcome, lever
+
+
+class EstimatorInputs:
+    """The input side of ``CargoEstimator``: ``step`` and the recording of update instants.
+    It uses the estimator's filters (``pre``, ``balance_filter``), attitude, actuation
+    covariance sum, counters and histories, which ``CargoEstimator.__init__`` creates."""
+
+    def _compiled_step_constants(self) -> tuple:
+        """The constant arguments of ``estimator_step``, in its order."""
+        pre, bal = self.pre.filter, self.balance_filter
+
+        def c(a):
+            return np.ascontiguousarray(a, dtype=float)
+
+        return (
+            *self.robot.arrays, c(self.pre._to_input), pre.ad, pre.b_value, c(pre.b_slope),
+            pre._held, c(self.pre._imu_pos_neg), bal.ad, bal.b_value, c(bal.b_slope), bal._held,
+            c(self._imu_rot), c(self._thrust_to_base), c(self._actuation_abs),
+            c(self._actuation_rel), self.dt_s,
+        )  # fmt: skip
+
+    def step(
+        self,
+        stamp: int,
+        accel_imu: np.ndarray | None,
+        gyro_imu: np.ndarray | None,
+        joint_pos_rad: np.ndarray,
+        thrust_command: np.ndarray,
+        base_pos_world: np.ndarray | None = None,
+        base_quat_world: np.ndarray | None = None,
+    ) -> WrenchMessage | None:
+        """Ingest the readings of control step ``stamp``; return the message to publish, if any.
+
+        ``accel_imu`` and ``gyro_imu`` None: the IMU frame is missing (see the module docstring).
+        """
+        if (accel_imu is None) != (gyro_imu is None):
+            raise ValueError("accel_imu and gyro_imu are one IMU frame: both None or neither")
+        if self._compiled_path_ready(stamp, accel_imu):
+            fix_given = base_pos_world is not None and base_quat_world is not None
+            outcome = self._compiled_step(
+                stamp, accel_imu, gyro_imu, joint_pos_rad, thrust_command, base_pos_world,
+                base_quat_world, fix_given,
+            )  # fmt: skip
+            if outcome != NOT_USABLE:
+                if stamp % self.update_every or stamp < self.warmup_steps:
+                    return None
+                return self._record_instant(stamp, joint_pos_rad, outcome == FIX)
+        return self._python_step(
+            stamp, accel_imu, gyro_imu, joint_pos_rad, thrust_command, base_pos_world,
+            base_quat_world,
+        )  # fmt: skip
+
+    def _compiled_path_ready(self, stamp: int, accel_imu: np.ndarray | None) -> bool:
+        """Can this step take ``estimator_step``: an IMU frame, an increasing stamp,
+        both filters started (the balance filter if this step feeds it) and an attitude?"""
+        return (
+            accel_imu is not None
+            and stamp > self.stamp
+            and self._rot_world_base is not None
+            and self.pre.filter.started
+            and (self.balance_filter.started or stamp % self.regressor_every != 0)
+        )
+
+    def _compiled_step(self, stamp, accel, gyro, q, thrust, pos, quat, fix_given) -> int:
+        """The common path in one compiled call (``per_step``); NOT_USABLE (nothing changed)
+        for a non-finite or wrongly shaped reading, or readings not float64 vectors."""
+        do_balance = stamp % self.regressor_every == 0
+        try:
+            outcome, lever = estimator_step(
+                *self._step_constants, self.pre.filter.state, self.pre.filter._u_prev,
+                self.balance_filter.state, self.balance_filter._u_prev, self._act_cov_sum,
+                self._rot_world_base, self._pos_world_base, accel, gyro, q, thrust,
+                pos if fix_given else _NO_POS, quat if fix_given else _NO_QUAT, fix_given,
+                do_balance,
+            )  # fmt: skip
+        except TypeError:  # not float64 vectors: the Python path converts them
+            return NOT_USABLE
+        if outcome == NOT_USABLE:
+            return outcome
+        self.stamp = int(stamp)
+        self._last_input = (accel, gyro, q, thrust)
+        self.n_fixes += outcome == FIX
+        self.n_bad_readings += outcome == BAD_FIX
+        if do_balance:
+            self._act_cov_n += 1
+            self._grasp_lever = lever
+        return outcome
+
+    def _python_step(
+        self, stamp, accel_imu, gyro_imu, joint_pos_rad, thrust_command, base_pos_world,
+        base_quat_world,
+    ) -> WrenchMessage | None:  # fmt: skip
+        """``step`` for any readings: missing or non-finite ones held, the filters started."""
+        missing = accel_imu is None
+        readings = [
+            None if x is None else np.asarray(x, dtype=float)
+            for x in (accel_imu, gyro_imu, joint_pos_rad, thrust_command)
+        ]
+        for (name, shape), x in zip(self._reading_shapes, readings, strict=True):
+            if x is not None and x.shape != shape:
+                raise ValueError(f"{name} must have shape {shape}, got {x.shape}")
+        if stamp <= self.stamp:
+            raise ValueError(f"stamps must increase: got {stamp} after {self.stamp}")
+        self.stamp = int(stamp)
+        # One check for the usual case (every reading present and finite), then per reading;
+        # the readings in one vector serve the pre-filter too.
+        usable = [True] * 4
+        raw = None if missing else self.pre.raw_input(*readings)
+        if raw is None or not np.isfinite(raw).all():
+            usable = [x is not None and bool(np.all(np.isfinite(x))) for x in readings]
+        if not all(usable):
+            if missing:
+                self.n_missing_imu += 1
+            if any(x is not None and not ok for x, ok in zip(readings, usable, strict=True)):
+                self.n_bad_readings += 1
+            self._tainted_until = stamp + self.taint_steps
+            if self._last_input is None:
+                return None
+            # Hold the previous sample of each unusable signal only.
+            readings = [
+                x if ok else last
+                for x, ok, last in zip(readings, usable, self._last_input, strict=True)
+            ]
+            raw = self.pre.raw_input(*readings)
+        self._last_input = tuple(readings)
+        accel, gyro, q, thrust = readings
+        self.pre.step_raw(raw)
+        fix = self._update_attitude(gyro, base_pos_world, base_quat_world)
+        if stamp % self.regressor_every == 0:
+            self._filter_balance(thrust)
+        if stamp % self.update_every or stamp < self.warmup_steps:
+            return None
+        return self._record_instant(stamp, q, fix)
+
+    def _filter_balance(self, thrust_command: np.ndarray) -> None:
+        m = self.pre.motion()
+        balance, rot_bg, pos_bg = balance_in_grasp_frame(
+            self.robot, m.w_base, m.wd_base, m.acc_base, m.q, m.qd, m.qdd, self.pre.thrust()
+        )
+        # Per-step covariance of the actuation noise, carried into the grasp frame.
+        to_grasp = grasp_from_base(rot_bg, pos_bg) @ self._thrust_to_base
+        std = self._actuation_abs + self._actuation_rel * np.abs(thrust_command)
+        self._act_cov_sum += (to_grasp * std**2) @ to_grasp.T
+        self._act_cov_n += 1
+        self._grasp_lever = math.sqrt(pos_bg @ pos_bg)
+        self.balance_filter.step(balance.to_vector())
+
+    def _update_attitude(self, gyro_imu, base_pos_world, base_quat_world) -> bool:
+        """Attitude from the last fix, propagated with the gyro between fixes."""
+        if base_quat_world is not None and base_pos_world is not None:
+            quat = np.asarray(base_quat_world, dtype=float)
+            pos = np.asarray(base_pos_world, dtype=float)
+            if quat.shape != (4,) or pos.shape != (3,):
+                raise ValueError("base_pos_world must be (3,) and base_quat_world (4,)")
+            if np.all(np.isfinite(quat)) and np.all(np.isfinite(pos)) and np.linalg.norm(quat) > 0:
+                self._rot_world_base = np.ascontiguousarray(quat_to_mat(quat))
+                self._pos_world_base = np.array(pos, dtype=float)
+                self.n_fixes += 1
+                return True
+            self.n_bad_readings += 1
+        if self._rot_world_base is not None:
+            w_base = self._imu_rot @ gyro_imu
+            self._rot_world_base = self._rot_world_base @ exp_so3(self.dt_s * w_base)
+        return False
+
+    def _record_instant(self, stamp: int, q_raw: np.ndarray, fix: bool) -> WrenchMessage | None:
+        b = Balance.from_vector(self.balance_filter.state[0].copy())
+        wrench_grasp = b.thrust - b.links
+        # Per-step actuation covariance averaged over this update's window (grasp frame).
+        act_cov = self._act_cov_sum / max(self._act_cov_n, 1)
+        self._act_cov_sum = np.zeros((6, 6))
+        self._act_cov_n = 0
+        tainted = stamp <= self._tainted_until
+        motion = {}
+        jac = None
+        if self.motion_fusion != "none":
+            m = self.pre.motion()
+            jac = balance_motion_jacobians(
+                self.robot, m.w_base, m.wd_base, m.acc_base, m.q, m.qd, m.qdd
+            )
+            motion = {
+                "grasp_acc": b.regressor[:3, 0].copy(),
+                "motion_links_jac": jac[0],
+                "motion_grasp_jac": grasp_acc_map(jac[1]),
+                "motion_var": self._motion_var,
+                "motion_band": self._motion_band,
+            }
+        self._pending[stamp] = _Instant(
+            thrust=b.thrust.copy(),
+            links=b.links.copy(),
+            regressor=b.regressor.copy(),
+            act_cov=act_cov,
+            tainted=tainted,
+            motion_jac=jac,
+        )
+        if self._rot_world_base is None:
+            return None  # no attitude yet: nothing meaningful to publish
+        # The grasp pose for the relative-grasp average uses the current encoders, not the
+        # filtered (delayed) angles, so that it matches the fix in time.
+        rot_bg, pos_bg = self.robot_grasp_pose(q_raw)
+        rot_wb = self._rot_world_base
+        rot_wg = rot_wb @ rot_bg
+        pos_wg = self._pos_world_base + rot_wb @ pos_bg
+        if fix:
+            self._own_fix[stamp] = (rot_wg, pos_wg)
+            for p in self.peers:
+                msg = self._peer_msgs.get((p, stamp))
+                if msg is not None and msg.fix:
+                    self._accumulate_relative(p, msg)
+        rot_world = np.zeros((6, 6))
+        rot_world[:3, :3] = rot_world[3:, 3:] = rot_wg
+        return WrenchMessage(
+            sender=self.index,
+            stamp=stamp,
+            wrench_grasp=wrench_grasp,
+            wrench_world=rot_world @ wrench_grasp,
+            grasp_pos_world=pos_wg,
+            grasp_rot_world=rot_wg,
+            fix=fix,
+            wrench_cov_grasp=act_cov,
+            tainted=tainted,
+            **motion,
+        )
+

@@ -1,0 +1,68 @@
+"""The cargo estimator's prior on the cargo's standard parameters pi (10,) in the grasp frame:
+a generic mean (``default_prior``), its covariance from standard deviations of the physical
+quantities (``prior_covariance``) and the random walk per update (``DEFAULT_PROCESS_STD_REL``).
+
+pi = [m, h_x, h_y, h_z, I_xx, I_yy, I_zz, I_xy, I_xz, I_yz] (kg, kg m, kg m^2), h = m c, I about
+the grasp frame's origin (``estimator.inertia``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .inertia import (
+    inertia_to_vec,
+    mass_com_inertia_from_params,
+    params_from_mass_com_inertia,
+    vec_to_inertia,
+)
+from .rne import RobotDescription
+
+# Prior standard deviations (see `prior_covariance`): mass 3 kg, centre of mass 0.15 m per axis,
+# moments of inertia about the centre of mass 0.1 kg m^2, products 0.03 kg m^2: wide for a cargo
+# of a few kilograms and tens of centimetres, so the data, not the prior, decide.
+DEFAULT_PRIOR_STD = (3.0, 0.15, 0.1, 0.03)
+
+# Random walk of the parameters per update, as a fraction of the prior standard deviations.
+DEFAULT_PROCESS_STD_REL = 1e-5
+
+
+def default_prior(robot: RobotDescription) -> np.ndarray:
+    """A generic prior in the grasp frame: a 3 kg, 0.3 m cube whose centre is 0.2 m beyond the
+    grasp, along -z of the grasp frame (the fingers point along -z, into the cargo)."""
+    del robot
+    side = 0.3
+    mass = 3.0
+    return params_from_mass_com_inertia(
+        mass, np.array([0.0, 0.0, -0.2]), np.eye(3) * mass * side**2 / 6
+    )
+
+
+def prior_covariance(
+    prior_params: np.ndarray,
+    std: tuple[float, float, float, float] = DEFAULT_PRIOR_STD,
+    step: float = 1e-6,
+) -> np.ndarray:
+    """Covariance of pi (10, 10) for independent errors of the prior's physical quantities:
+    ``std`` = (mass kg, centre of mass m per axis, moments of inertia about the centre of mass
+    kg m^2, products of inertia kg m^2), carried to pi = (m, m c, I_origin) through the map's
+    Jacobian at ``prior_params`` (central differences)."""
+    std = np.asarray(std, dtype=float)
+    if std.shape != (4,) or not np.all(np.isfinite(std)) or np.any(std <= 0):
+        raise ValueError(f"prior std must be 4 positive numbers (kg, m, kg m^2, kg m^2), got {std}")
+    mass, com, inertia = mass_com_inertia_from_params(np.asarray(prior_params, dtype=float))
+    phys = np.concatenate(([mass], com, inertia_to_vec(inertia)))
+    sd = np.repeat(std, (1, 3, 3, 3))
+    jac = np.empty((10, 10))
+    for k in range(10):
+        d = np.zeros(10)
+        d[k] = step
+        plus, minus = phys + d, phys - d
+        jac[:, k] = (
+            params_from_mass_com_inertia(plus[0], plus[1:4], vec_to_inertia(plus[4:]))
+            - params_from_mass_com_inertia(minus[0], minus[1:4], vec_to_inertia(minus[4:]))
+        ) / (2 * step)
+    cov = (jac * sd**2) @ jac.T
+    return 0.5 * (cov + cov.T)
+
+
