@@ -1,0 +1,106 @@
+"""The estimator's compiled per-step path against its Python path, and the env's team estimation
+(``envs.estimation``) against the messages it was given."""
+
+import numpy as np
+import pytest
+
+from astrocargo.envs import astrobee_cargo_v0
+from astrocargo.envs.world import World
+from astrocargo.estimator import per_step
+from astrocargo.estimator.cargo_estimator import CargoEstimator
+
+DT = 1.0 / 62.5
+
+
+def _readings(n_steps: int, seed: int = 3) -> list[tuple]:
+    """Smooth, noisy readings of a moving robot, with a fix every 5th step and one bad sample."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(n_steps)[:, None] * DT
+    accel = 0.01 * np.sin(0.7 * t + [0.0, 1.0, 2.0]) + 1e-3 * rng.normal(size=(n_steps, 3))
+    gyro = 0.05 * np.sin(0.3 * t + [0.5, 1.5, 2.5]) + 2e-4 * rng.normal(size=(n_steps, 3))
+    q = np.array([1.5, 0.0]) + 0.2 * np.sin(0.4 * t + [0.0, 1.0])
+    thrust = 0.1 * np.sin(0.5 * t + np.arange(6))
+    pos = 0.01 * t * [1.0, 0.5, 0.0]
+    quat = np.array([1.0, 0.0, 0.0, 0.0])
+    accel[40 % n_steps, 1] = np.nan  # one non-finite sample: the Python path holds the last
+    out = []
+    for k in range(n_steps):
+        fix = k % 5 == 0
+        out.append((k, accel[k], gyro[k], q[k], thrust[k], pos[k] if fix else None,
+                    quat if fix else None))  # fmt: skip
+    return out
+
+
+def _run(est: CargoEstimator, readings, as_lists: bool) -> list:
+    messages = []
+    for k, accel, gyro, q, thrust, pos, quat in readings:
+        args = [accel, gyro, q, thrust, pos, quat]
+        if as_lists:  # not float64 arrays: the compiled call refuses them, Python takes them
+            args = [None if a is None else a.tolist() for a in args]
+        messages.append(est.step(k, *args))
+    return messages
+
+
+def test_compiled_step_equals_python_path():
+    robot = World(1).robot_model(0)
+    readings = _readings(200)
+    compiled = CargoEstimator(robot, 0, [], DT, warmup_s=0.5)
+    python = CargoEstimator(robot, 0, [], DT, warmup_s=0.5)
+    calls = []
+    original = per_step.estimator_step
+
+    def counted(*args):
+        calls.append(1)
+        return original(*args)
+
+    per_step.estimator_step = counted
+    try:
+        got = _run(compiled, readings, as_lists=False)
+        n_compiled = len(calls)
+        expected = _run(python, readings, as_lists=True)
+    finally:
+        per_step.estimator_step = original
+    assert n_compiled > 150  # the compiled call was made (and refused the lists)
+    assert compiled.counters == python.counters
+    assert compiled.counters["bad_readings"] == 1
+    sent = [(a, b) for a, b in zip(got, expected, strict=True) if a is not None]
+    assert len(sent) > 10
+    for a, b in sent:
+        np.testing.assert_array_equal(a.wrench_grasp, b.wrench_grasp)
+        np.testing.assert_array_equal(a.wrench_world, b.wrench_world)
+        np.testing.assert_array_equal(a.wrench_cov_grasp, b.wrench_cov_grasp)
+        assert a.tainted == b.tainted and a.fix == b.fix
+    np.testing.assert_array_equal(compiled.pre.filter.state, python.pre.filter.state)
+    np.testing.assert_array_equal(compiled.balance_filter.state, python.balance_filter.state)
+    np.testing.assert_array_equal(compiled._rot_world_base, python._rot_world_base)
+
+
+def test_compiled_step_raises_on_bad_shape_like_python():
+    est = CargoEstimator(World(1).robot_model(0), 0, [], DT)
+    readings = _readings(50)
+    _run(est, readings[:2], as_lists=False)
+    k, accel, gyro, q, thrust, _, _ = readings[2]
+    with pytest.raises(ValueError, match="joint_pos_rad"):
+        est.step(k, accel, gyro, np.zeros(3), thrust)
+    with pytest.raises(ValueError, match="stamps must increase"):
+        est.step(1, accel, gyro, q, thrust)
+
+
+def test_peer_slots_hold_the_latest_delivered_message():
+    env = astrobee_cargo_v0.parallel_env(n_robots=3, noise="nominal")
+    env.reset(seed=2)
+    steps = 300  # past the estimators' warm-up: messages have been sent
+    for _ in range(steps):
+        env.step({a: np.zeros(8) for a in env.agents})
+    sim = env.sim
+    wrench, age, valid, arm = sim.estimation.peer_slot_values(np.ones(3, dtype=bool), steps)
+    assert valid.all()
+    for i in range(3):
+        for p, j in enumerate(j for j in range(3) if j != i):
+            msg = sim.peer_msgs[i][j]
+            np.testing.assert_array_equal(wrench[i, p], msg.wrench_world)
+            assert age[i, p] == pytest.approx((steps - msg.stamp) * sim.dt_s)
+            np.testing.assert_array_equal(arm[i, p], sim.estimation.sent_arm[j][msg.stamp])
+    sim.estimation.forget(0, 1)
+    wrench, _, valid, _ = sim.estimation.peer_slot_values(np.array([True, True, False]), steps)
+    assert valid[0].tolist() == [0.0, 1.0] and not valid[2].any() and not wrench[2].any()
