@@ -51,8 +51,10 @@ from astrocargo.estimator.inertia import (
     principal_moments,
     transform_params,
 )
+from astrocargo.estimator.motion import balance_noise_map, condition_on_mismatch, grasp_acc_map
 from astrocargo.estimator.rne import (
     RobotDescription,
+    balance_motion_jacobians,
     body_regressor,
     grasp_from_base,
     grasp_pose,
@@ -76,33 +78,80 @@ from .excitation import (
 
 
 # ------------------------------------------------------------------------------- ESTIMATOR COUPLING
-# The ONE place that reads CargoEstimator's noise model (meas_cov, _actuation_abs/_rel and
-# update_every: the terms of CargoEstimator.process's meas_cov, and sensor_cov_at). When the
-# estimator offers a public method for its per-update measurement covariance, repoint this
-# function to it; nothing else in this module depends on how R is built.
-def estimator_measurement_cov(
+# The ONE place that reads CargoEstimator's noise model: its fields meas_cov, _actuation_abs,
+# _actuation_rel, update_every, motion_fusion, _motion_var, _motion_band, _mismatch_model_var
+# and sensor_cov_at, and the public functions of estimator.motion that its _motion_noise calls.
+# It restates _motion_noise's assembly of the maps at a configuration (no readings). When the
+# estimator offers a public method for its per-update measurement covariance at a
+# configuration (estimator/noise_model.py), repoint this function to it; nothing else in this
+# module depends on how R is built.
+def estimator_noise_terms(
     estimator: CargoEstimator,
+    robots: list[RobotDescription],
+    relative_grasps: dict[int, tuple[np.ndarray, np.ndarray]],
     cargo_grasp: np.ndarray,
-    commands: np.ndarray,
-    noise_maps: np.ndarray,
-    lever_m: np.ndarray,
-) -> np.ndarray:
-    """R_k (N, 6, 6) of the estimator's update at each of N samples, robot 0's grasp frame:
+    joint_angles: np.ndarray,
+) -> dict:
+    """The parts of the estimator's per-update measurement covariance (``CargoEstimator.process``)
 
-        R_k = meas_cov + (sum_j M_j diag(s_j^2) M_j^T) / update_every + c diag(F, F, F, N, N, N),
+        R = meas_cov + (sum_j M_j diag(s_j^2) M_j^T) / update_every + motion_cov,
 
-    s_j = abs + rel |u_j| robot j's actuation noise per axis at its command ``commands``
-    (N, n, 6) [N; N m], M_j = ``noise_maps`` (N, n, 6, 6) (thrust site -> robot 0's grasp
-    frame), and the errors-in-variables term at the cargo ``cargo_grasp`` (10,) (grasp frame) as
-    its estimate and base-to-grasp lever ``lever_m`` (N,) m: F = (M a)^2 + (m_c L q)^2,
-    N = (J wd)^2 + (M L a)^2 + (m_c |c| L q)^2, with M the robot-plus-cargo mass (kg), J the
-    inertia about the grasp (kg m^2), a, wd, q the accelerometer, angular-acceleration and
-    joint-acceleration noise after the estimator's filters, c its correlation factor."""
+    s_j = actuation_abs + actuation_rel |u_j| per axis of robot j's command u_j [N; N m],
+    M_j its thrust site -> robot 0's grasp frame G (assembled by the caller), at one team
+    configuration: every robot at ``joint_angles`` (n_joints,) rad, peers' grasps
+    ``relative_grasps`` {j: (rotation, position m)} in G, the cargo ``cargo_grasp`` (10,) (G) as
+    the estimate. ``motion_cov`` (6, 6) is the sensors' noise on the filtered motion
+    (``estimator.motion``): E Sigma E^T over robot 0 and its peers with E = d(links + Y pi)/dxi,
+    conditioned on the peers' grasp-acceleration mismatches for ``motion_fusion="team"``
+    (``condition_on_mismatch``; its covariance does not depend on the observed mismatch),
+    unconditioned for "own" or without peers, the scalar ``sensor_cov_at`` for "none". The
+    Jacobians are exact and depend on the joint angles only (the balance is affine in
+    xi = (a_B, wd_B, qdd) with coefficients free of the angular and joint rates), so this is
+    the estimator's covariance at every instant of that configuration.
+
+    Returns {"meas_cov", "motion_cov": (6, 6); "actuation_abs", "actuation_rel": (6,);
+    "update_every": int}."""
     est = estimator
-    std = est._actuation_abs + est._actuation_rel * np.abs(commands)  # (N, n, 6)
-    act = np.einsum("nkij,nkj,nklj->nil", noise_maps, std**2, noise_maps)
-    sensor = est.sensor_cov_at(np.asarray(cargo_grasp, dtype=float), lever_m)
-    return est.meas_cov + act / est.update_every + sensor
+    q = np.asarray(joint_angles, dtype=float)
+    zero3, zero_q = np.zeros(3), np.zeros(q.size)
+    params = np.asarray(cargo_grasp, dtype=float)
+
+    def jacobians(robot):
+        return balance_motion_jacobians(robot, zero3, zero3, zero3, q, zero_q, zero_q)
+
+    d_links, d_y = jacobians(robots[0])
+    if est.motion_fusion == "none":
+        lever = float(np.linalg.norm(grasp_pose(robots[0], q)[1]))
+        motion_cov = est.sensor_cov_at(params, lever)
+    else:
+        noise_maps = [balance_noise_map(d_links, d_y, params)]
+        variances, bands = [est._motion_var], [est._motion_band]
+        own_rows, peer_blocks = [], []
+        for j, (rot, pos) in sorted(relative_grasps.items()):
+            links_j, y_j = jacobians(robots[j])
+            noise_maps.append(wrench_transform(rot, pos) @ links_j)
+            variances.append(est._motion_var)
+            bands.append(est._motion_band)
+            own_rows.append(-grasp_acc_map(d_y, pos))
+            peer_blocks.append(rot @ grasp_acc_map(y_j))
+        mismatch_maps, mismatch = [], None
+        if est.motion_fusion == "team" and peer_blocks:
+            mismatch_maps = [np.vstack(own_rows)]
+            for k, block in enumerate(peer_blocks):
+                column = [np.zeros_like(block)] * len(peer_blocks)
+                column[k] = block
+                mismatch_maps.append(np.vstack(column))
+            mismatch = np.zeros(3 * len(peer_blocks))
+        motion_cov = condition_on_mismatch(
+            noise_maps, mismatch_maps, variances, mismatch, bands, est._mismatch_model_var
+        )[1]
+    return {
+        "meas_cov": est.meas_cov.copy(),
+        "motion_cov": motion_cov,
+        "actuation_abs": est._actuation_abs.copy(),
+        "actuation_rel": est._actuation_rel.copy(),
+        "update_every": int(est.update_every),
+    }
 
 
 # ------------------------------------------------------------------------------- the model
@@ -186,6 +235,7 @@ class ExcitationModel:
         }
         # Peer j's wrench into robot 0's grasp frame, the relative grasp the estimator is given.
         self.relative_known = {j: wrench_transform(rot, pos) for j, (rot, pos) in relative.items()}
+        self.relative_grasps = relative
         self.estimator = CargoEstimator(
             self.robots[0],
             0,
@@ -235,16 +285,22 @@ class ExcitationModel:
                 robot.thrust_rot, robot.thrust_pos
             )
             noise_maps.append(to_grasp if j == 0 else self.relative_known[j] @ to_grasp)
-        lever0 = float(
-            np.linalg.norm(grasp_pose(self.robots[0], np.array([TILT_DEPLOYED_RAD, pan]))[1])
+        # The estimator's noise at this configuration (a function of the joint angles only).
+        terms = estimator_noise_terms(
+            self.estimator,
+            self.robots,
+            self.relative_grasps,
+            self.cargo_grasp,
+            np.array([TILT_DEPLOYED_RAD, pan]),
         )
+        self._noise_terms = terms
         return {
             "mass": mass,
             "com": com,
             "inertia": inertia,
             "alloc": alloc,
             "noise": np.stack(noise_maps),
-            "lever": lever0,
+            "motion_cov": terms["motion_cov"],
         }
 
     def _tabulate(self) -> None:
@@ -290,11 +346,15 @@ class ExcitationModel:
         return tuple(np.einsum("nij,nj->ni", rot_gw, v) for v in (acc, motion.w, motion.wd))
 
     def measurement_cov(self, motion: Motion, commands: np.ndarray) -> np.ndarray:
-        """R (N, 6, 6) of the estimator's update at each sample (module docstring)."""
+        """R (N, 6, 6) of the estimator's update at each sample (``estimator_noise_terms``):
+        meas_cov + (sum_j M_j diag(s_j^2) M_j^T) / update_every + motion_cov at the planned pan
+        (the motion covariance interpolated linearly between the tabulated pans, a convex
+        combination of covariances), ``commands`` (N, n_robots, 6)."""
         team = self.team(motion.pan)
-        return estimator_measurement_cov(
-            self.estimator, self.cargo_grasp, commands, team["noise"], team["lever"]
-        )
+        terms = self._noise_terms
+        std = terms["actuation_abs"] + terms["actuation_rel"] * np.abs(commands)  # (N, n, 6)
+        act = np.einsum("nkij,nkj,nklj->nil", team["noise"], std**2, team["noise"])
+        return terms["meas_cov"] + act / terms["update_every"] + team["motion_cov"]
 
     def update_times(
         self, duration_s: float, every: int = 1
