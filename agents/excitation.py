@@ -121,6 +121,25 @@ class Motion:
     pan_acc: np.ndarray
 
 
+def reference_motion(reference, t: np.ndarray) -> Motion:
+    """The ``Motion`` of any reference (a callable t -> ``Reference``, e.g. ``Trajectory``)
+    on the time grid ``t`` (N,) s, so that a designer's model can score the analytic
+    trajectories the same way as a design; the pan's acceleration by central differences
+    (second order) of the pan rate."""
+    t = np.atleast_1d(np.asarray(t, dtype=float))
+    refs = [reference(float(x)) for x in t]
+
+    def stack(name: str) -> np.ndarray:
+        return np.array([getattr(r, name) for r in refs], dtype=float)
+
+    pan_rate = stack("pan_rate")
+    pan_acc = np.gradient(pan_rate, t) if t.size > 1 else np.zeros_like(pan_rate)
+    return Motion(
+        t, stack("pos"), stack("vel"), stack("acc"), stack("rot"), stack("w"), stack("wd"),
+        stack("pan"), pan_rate, pan_acc,
+    )  # fmt: skip
+
+
 def fourier_dofs(
     coeffs: np.ndarray, period_s: float, duration_s: float, ramp_s: float, t: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -74,6 +74,7 @@ from .excitation import (
     Motion,
     aisle_half_extents,
     assembly_hull,
+    reference_motion,
 )
 
 
@@ -459,6 +460,11 @@ class DesignSettings:
     pan_rate_scale_radps: float = 0.08
     spin: bool = True  # design secular (yaw, roll, pitch) rates too
     spin_scale_radps: float = 0.05
+    # What the bounds are scored against: {"principal_rel": scalar or 3 (ascending moments),
+    # "mass_rel", "com_m"}; None: the issue's TARGETS. The bounds a reference trajectory gets
+    # (``ExcitationDesigner.reference_bounds``) make the objective the worst improvement over
+    # that trajectory.
+    targets: dict | None = None
 
 
 class ExcitationDesigner:
@@ -471,6 +477,15 @@ class ExcitationDesigner:
         if s.n_harmonics < 1 or s.duration_s < 2 * s.ramp_s:
             raise ValueError("need n_harmonics >= 1 and duration_s >= 2 ramp_s")
         self.period_s = s.period_s or s.duration_s / 2
+        targets = TARGETS if s.targets is None else s.targets
+        self.targets = np.concatenate(
+            (
+                np.broadcast_to(np.asarray(targets["principal_rel"], float), (3,)),
+                [float(targets["mass_rel"]), float(targets["com_m"])],
+            )
+        )
+        if not np.all(self.targets > 0):
+            raise ValueError(f"targets must be positive, got {targets}")
         # Limits on every update instant from t = 0; information on every
         # ``sample_updates``-th instant after the warm-up, weighted to stand for all.
         self.times, _, used = model.update_times(s.duration_s)
@@ -529,12 +544,17 @@ class ExcitationDesigner:
             "commands": cmd,
         }
 
-    @staticmethod
-    def _ratios(bounds: dict) -> np.ndarray:
-        return np.array(
-            [b / TARGETS["principal_rel"] for b in bounds["principal_rel"]]
-            + [bounds["mass_rel"] / TARGETS["mass_rel"], bounds["com_m"] / TARGETS["com_m"]]
-        )
+    def _ratios(self, bounds: dict) -> np.ndarray:
+        """bound / target: the three principal moments (ascending), mass, centre of mass."""
+        values = list(bounds["principal_rel"]) + [bounds["mass_rel"], bounds["com_m"]]
+        return np.array(values) / self.targets
+
+    def reference_bounds(self, reference) -> dict:
+        """The bounds (``ExcitationModel.bounds``) a reference trajectory (t -> ``Reference``,
+        e.g. ``Trajectory("figure8_tumble")``) gets on the designer's own grid of update
+        instants, as a design is scored: usable as ``DesignSettings.targets``."""
+        motion = reference_motion(reference, self.times[self.used])
+        return self.model.bounds(self.model.fisher(motion, self.weight))
 
     def objective_and_constraints(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """log(bound_i / target_i) (5,) and the constraints (>= 0 where satisfied): every
@@ -657,7 +677,11 @@ class ExcitationDesigner:
         info = {
             "predicted_bounds": filtered,
             "predicted_bounds_unfiltered": self.evaluate(design)["bounds"],
-            "targets": TARGETS,
+            "targets": {
+                "principal_rel": self.targets[:3].tolist(),
+                "mass_rel": float(self.targets[3]),
+                "com_m": float(self.targets[4]),
+            },
             "max_violation": ev["max_violation"],
             "peak_thrust_ratio_per_axis": thrust.max(axis=(0, 1)).tolist(),
             "binding": sorted(ev["max_violation"], key=lambda k: -ev["max_violation"][k])[0],

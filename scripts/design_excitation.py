@@ -26,6 +26,7 @@ from astrocargo.agents.excitation_design import (  # noqa: E402
     Limits,
     model_for_world,
 )
+from astrocargo.agents.trajectories import Trajectory  # noqa: E402
 from astrocargo.envs.sensors import NOISE_PROFILES, estimator_noise_kwargs, noise_profile  # noqa: E402
 from astrocargo.envs.world import World  # noqa: E402
 from astrocargo.estimator.inertia import params_from_mass_com_inertia  # noqa: E402
@@ -46,6 +47,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--thrust-margin", type=float, default=Limits.thrust_margin)
     p.add_argument("--clearance", type=float, default=Limits.clearance_m, help="m")
     p.add_argument("--no-pan", action="store_true", help="keep the arms deployed")
+    p.add_argument(
+        "--relative-to",
+        choices=Trajectory.NAMES,
+        default=None,
+        help="score the bounds against this trajectory's predicted bounds (maximise the worst "
+        "improvement over it) instead of the issue's targets",
+    )
     p.add_argument("--out", default=None, help="JSON (default excite_<N>robots.json)")
     args = p.parse_args(argv)
 
@@ -58,7 +66,7 @@ def main(argv: list[str] | None = None) -> int:
     model = model_for_world(
         world, cargo, estimator_noise_kwargs(noise_profile(args.noise)), limits=limits
     )
-    settings = DesignSettings(
+    settings = dict(
         duration_s=args.duration,
         n_harmonics=args.harmonics,
         period_s=args.period,
@@ -68,10 +76,17 @@ def main(argv: list[str] | None = None) -> int:
         maxiter=args.maxiter,
         pan=not args.no_pan,
     )
+    # The figure-eight tumble's predicted bounds on the designer's own grid (the yardstick).
+    tumble = ExcitationDesigner(model, DesignSettings(**settings)).reference_bounds(
+        Trajectory(args.relative_to or "figure8_tumble")
+    )
+    if args.relative_to:
+        settings["targets"] = {k: tumble[k] for k in ("principal_rel", "mass_rel", "com_m")}
     start = time.perf_counter()
-    design = ExcitationDesigner(model, settings).run(verbose=True)
+    design = ExcitationDesigner(model, DesignSettings(**settings)).run(verbose=True)
     info = design.info
     info["noise"] = args.noise
+    info["reference_bounds"] = {"trajectory": args.relative_to or "figure8_tumble", **tumble}
     out = args.out or f"excite_{args.robots}robots.json"
     design.save(out)
     b = info["predicted_bounds"]
@@ -80,7 +95,10 @@ def main(argv: list[str] | None = None) -> int:
         f"{', '.join(f'{100 * x:.2f}' for x in b['principal_rel'])} %, mass "
         f"{100 * b['mass_rel']:.2f} %, CoM {1e3 * b['com_m']:.2f} mm; binding: {info['binding']} "
         f"(worst normalised value {info['max_violation'][info['binding']]:+.3f}); peak thrust / "
-        f"limit per axis {np.round(info['peak_thrust_ratio_per_axis'], 2).tolist()}\nwritten {out}"
+        f"limit per axis {np.round(info['peak_thrust_ratio_per_axis'], 2).tolist()}\n"
+        f"{info['reference_bounds']['trajectory']} on the same grid: principal "
+        f"{', '.join(f'{100 * x:.2f}' for x in tumble['principal_rel'])} %, mass "
+        f"{100 * tumble['mass_rel']:.2f} %, CoM {1e3 * tumble['com_m']:.2f} mm\nwritten {out}"
     )
     return 0
 
