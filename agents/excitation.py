@@ -214,6 +214,28 @@ class ExcitationDesign:
             raise ValueError(f"spin_radps must be 3 finite rates, got {self.spin_radps!r}")
         object.__setattr__(self, "spin_radps", spin)
 
+    def scaled(self, factor: float) -> ExcitationDesign:
+        """The design with the cargo's motion (position and attitude series, spins) times
+        ``factor`` in (0, 1] and the pan unchanged: headroom for the feedback (the commands fall
+        roughly in proportion, the bounds rise roughly as 1 / factor). ``info`` records the
+        factor (``"scaled"``, cumulative); its predictions are the unscaled design's until
+        re-described (``ExcitationDesigner.describe``)."""
+        if not 0 < factor <= 1:
+            raise ValueError(f"factor must be in (0, 1], got {factor!r}")
+        coeffs = self.coeffs.copy()
+        coeffs[:PAN_DOF] *= factor
+        info = {**self.info, "scaled": float(self.info.get("scaled", 1.0)) * factor}
+        return ExcitationDesign(
+            coeffs,
+            self.period_s,
+            self.duration_s,
+            self.ramp_s,
+            self.n_robots,
+            self.center_m,
+            info,
+            tuple(factor * x for x in self.spin_radps),
+        )
+
     def to_dict(self) -> dict:
         return {
             "kind": "astrocargo.excitation",

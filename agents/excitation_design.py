@@ -7,10 +7,13 @@ What the estimator sees (``estimator.cargo_estimator``): per update instant k (e
 ``update_every`` control steps after ``warmup_s``) the wrench balance in robot 0's grasp frame G,
 z_k = A_k pi + b_k + e_k, with A_k = ``rne.body_regressor`` of G's motion (G is fixed to the
 cargo: its acceleration, angular velocity and acceleration follow from the cargo's) and e_k of
-covariance R_k = meas_cov + (sum_j M_j diag(s_j^2) M_j^T) / update_every + sensor_cov, where
+covariance R_k = meas_cov + (sum_j M_j diag(s_j^2) M_j^T) / update_every + motion_cov, where
 s_j = abs + rel |u_j| is robot j's actuation noise per axis at its command u_j, M_j carries it
 into G (``grasp_from_base`` of the thrust site; peers through the known relative grasp) and
-sensor_cov is the estimator's errors-in-variables term at the design cargo. The Fisher
+motion_cov is the sensors' noise on the filtered motion as the estimator models it
+(``estimator.motion``, ``motion_fusion``: every robot's E Sigma E^T, conditioned on the peers'
+grasp-acceleration mismatches), at the design cargo. It depends on the joint angles only, so it
+is tabulated over the pan like the team's geometry (``estimator_noise_terms``). The Fisher
 information F = sum_k A_k^T R_k^-1 A_k and the Cramer-Rao bounds of mass, centre of mass and
 principal moments (``baselines.derived_covariance``) are what ``scripts/benchmark_estimation.py``
 computes from a flight's recording.
@@ -21,7 +24,9 @@ I_c wd + w x I_c w (cargo axes), is shared by ``CooperativeController``'s alloca
 weighted by each robot's limits) on the design cargo, at the planned pan.
 
 Objective: the worst of log(bound_i / target_i) over the three principal moments (relative),
-the mass (relative) and the centre of mass (norm of the per-axis bounds, m), minimised in
+the mass (relative) and the centre of mass (norm of the per-axis bounds, m); the targets are
+the issue's (``TARGETS``) or a reference trajectory's own bounds (``DesignSettings.targets``,
+``reference_bounds``: then the worst improvement over it is maximised); minimised in
 epigraph form (minimise z subject to log(bound_i / target_i) <= z), a minimax. Constraints, at
 every sample of a time grid: every robot's command per axis within (1 - ``thrust_margin``) of
 its limit (the rest is left to the feedback), every point of the assembly's collision hull

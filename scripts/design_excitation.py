@@ -20,6 +20,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 
+from astrocargo.agents.excitation import ExcitationDesign  # noqa: E402
 from astrocargo.agents.excitation_design import (  # noqa: E402
     DesignSettings,
     ExcitationDesigner,
@@ -47,6 +48,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--thrust-margin", type=float, default=Limits.thrust_margin)
     p.add_argument("--clearance", type=float, default=Limits.clearance_m, help="m")
     p.add_argument("--no-pan", action="store_true", help="keep the arms deployed")
+    p.add_argument(
+        "--rescale",
+        default=None,
+        metavar="DESIGN",
+        help="no search: scale this design's cargo motion by --scale and describe it",
+    )
+    p.add_argument("--scale", type=float, default=1.0, help="with --rescale, in (0, 1]")
     p.add_argument(
         "--relative-to",
         choices=Trajectory.NAMES,
@@ -83,7 +91,15 @@ def main(argv: list[str] | None = None) -> int:
     if args.relative_to:
         settings["targets"] = {k: tumble[k] for k in ("principal_rel", "mass_rel", "com_m")}
     start = time.perf_counter()
-    design = ExcitationDesigner(model, DesignSettings(**settings)).run(verbose=True)
+    designer = ExcitationDesigner(model, DesignSettings(**settings))
+    if args.rescale:
+        old = ExcitationDesign.load(args.rescale).scaled(args.scale)
+        design = designer.describe(old)
+        design.info.update(
+            {k: old.info[k] for k in ("scaled", "settings", "runtime_s") if k in old.info}
+        )
+    else:
+        design = designer.run(verbose=True)
     info = design.info
     info["noise"] = args.noise
     info["reference_bounds"] = {"trajectory": args.relative_to or "figure8_tumble", **tumble}

@@ -128,8 +128,17 @@ def _controller_commands(model, ref, pan: float) -> list[np.ndarray]:
     return [u * max(controller.last_ratio, 1.0) for u in commands]
 
 
-def test_shipped_design_respects_limits_through_the_allocation(model):
-    design = shipped_design(2)
+@pytest.mark.parametrize("n_robots", [1, 2, 3])
+def test_shipped_design_respects_limits_through_the_allocation(model, n_robots):
+    """Every shipped design (1, 2 and 3 robots) within its servo range and rate, its thrust
+    margin through the controller's own allocation and its wall clearance."""
+    from astrocargo.agents.excitation_design import model_for_world
+
+    if n_robots != model.n_robots:
+        model = model_for_world(
+            World(n_robots), estimator_kwargs=estimator_noise_kwargs(noise_profile("nominal"))
+        )
+    design = shipped_design(n_robots)
     traj = DesignedTrajectory(design)
     lim = model.limits
     # Servo range and rate at the control rate.
@@ -148,6 +157,32 @@ def test_shipped_design_respects_limits_through_the_allocation(model):
     # Wall clearance of the assembly's hull.
     reach = np.abs(m.pos[:, :, None] + m.rot @ model.hull.T).max(axis=2)
     assert np.all(reach + lim.clearance_m <= model.aisle_half * (1 + 1e-6))
+
+
+def test_reference_bounds_score_a_trajectory_as_a_design(model):
+    """``reference_bounds`` of a design flown as a reference (``reference_motion`` through
+    ``traj(t)``) equals the designer's own score of that design, and a design scaled down
+    moves less and gets wider bounds."""
+    settings = DesignSettings(duration_s=40.0, n_harmonics=2, ramp_s=8.0)
+    designer = ExcitationDesigner(model, settings)
+    design = _random_design(n_harm=2)
+    design = ExcitationDesign(design.coeffs * 0.3, 20.0, 40.0, 8.0, 2, spin_radps=(0.02, 0, 0))
+    got = designer.reference_bounds(DesignedTrajectory(design))
+    want = designer.evaluate(design)["bounds"]
+    np.testing.assert_allclose(got["principal_rel"], want["principal_rel"], rtol=1e-6)
+    assert got["mass_rel"] == pytest.approx(want["mass_rel"], rel=1e-6)
+    small = design.scaled(0.5)
+    assert small.info["scaled"] == 0.5 and small.spin_radps[0] == pytest.approx(0.01)
+    np.testing.assert_array_equal(small.coeffs[6], design.coeffs[6])  # the pan stays
+    wider = designer.evaluate(small)["bounds"]
+    assert all(
+        w > 1.5 * b for w, b in zip(wider["principal_rel"], want["principal_rel"], strict=True)
+    )
+    # Scored against the design's own bounds, the design's ratios are 1.
+    mine = ExcitationDesigner(model, DesignSettings(**{**settings.__dict__, "targets": got}))
+    np.testing.assert_allclose(mine.evaluate(design)["ratios"], 1.0, rtol=1e-6)
+    with pytest.raises(ValueError, match="factor"):
+        design.scaled(0.0)
 
 
 def test_tabulated_allocation_matches_the_controller(model):
