@@ -51,9 +51,10 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # tiny matrices: threads onl
 import numpy as np  # noqa: E402
 import stable_baselines3  # noqa: E402
 import torch  # noqa: E402
-from stable_baselines3 import PPO, SAC  # noqa: E402
+from stable_baselines3 import PPO, SAC, TD3  # noqa: E402
 from stable_baselines3.common.base_class import BaseAlgorithm  # noqa: E402
 from stable_baselines3.common.callbacks import BaseCallback, CheckpointCallback  # noqa: E402
+from stable_baselines3.common.noise import NormalActionNoise  # noqa: E402
 from stable_baselines3.common.vec_env import (  # noqa: E402
     DummyVecEnv,
     SubprocVecEnv,
@@ -62,26 +63,29 @@ from stable_baselines3.common.vec_env import (  # noqa: E402
     VecNormalize,
 )
 
-from astrocargo.agents.trajectories import Trajectory  # noqa: E402
 from astrocargo.envs.sensors import NOISE_PROFILES  # noqa: E402
 from astrocargo.envs.world import MAX_ROBOTS  # noqa: E402
 from astrocargo.envs.wrappers import (  # noqa: E402
-    LEARNING_TASK,
+    LEARNING_TASKS,
     CentralizedCargoEnv,
+    check_decision_args,
     make_vec_env,
 )
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the sibling cli.py, ray_backend.py
 from cli import (  # noqa: E402
     Formatter,
+    nonnegative_float,
     nonnegative_int,
     output_dir,
     positive_float,
     positive_int,
+    trajectory,
 )
 from ray_backend import import_ray, ray_connection  # noqa: E402
 
-ALGOS = {"ppo": PPO, "sac": SAC}
+ALGOS = {"ppo": PPO, "sac": SAC, "td3": TD3}
+DEFAULT_TASK = "cargo"
 VIEWS = ("shared", "central")
 BACKENDS = ("sb3", "rllib")
 RLLIB_ENV = "astrocargo_v0"  # RLlib's registry name of the wrapped parallel env
@@ -129,6 +133,19 @@ HYPERPARAMS: dict[str, dict[str, Any]] = {
         "gradient_steps": 1,
         "policy_kwargs": {"net_arch": [64, 64]},
     },
+    "td3": {
+        "learning_rate": 1e-3,
+        "buffer_size": 300_000,
+        "batch_size": 256,
+        "learning_starts": 5_000,
+        "gamma": 0.99,
+        "tau": 0.005,
+        "train_freq": 1,
+        "gradient_steps": 1,
+        # Gaussian exploration noise on the action (std, in action units): NormalActionNoise.
+        "action_noise_std": 0.1,
+        "policy_kwargs": {"net_arch": [64, 64]},
+    },
 }
 
 
@@ -160,18 +177,27 @@ class TrackingCostCallback(BaseCallback):
 
 
 def env_kwargs(args: argparse.Namespace) -> dict[str, Any]:
-    """Keyword arguments of ``astrobee_cargo_v0.parallel_env`` for this run."""
-    return {
-        "n_robots": args.robots,
-        "trajectory": args.trajectory,
-        "noise": args.noise,
-        "max_cycles": args.max_cycles,
-        "control_hz": args.control_hz,
-        "observe_estimates": args.estimates,
-        # The estimators do not change the physics: without their outputs in the observation
-        # they are only cost, so they are switched off (evaluate.py runs them, to score them).
-        "estimators": args.estimates,
-    }
+    """Keyword arguments of ``cargo_env_fn`` for this run: the task's, then the flags' and
+    ``--env`` overrides, ``residual_scale`` and the estimators."""
+    kwargs = {**LEARNING_TASKS[args.task], "n_robots": args.robots}
+    for flag in ("trajectory", "noise", "max_cycles", "control_hz", "action_repeat"):
+        if getattr(args, flag) is not None:
+            kwargs[flag] = getattr(args, flag)
+    kwargs.update(dict(args.env or []))
+    kwargs["residual_scale"] = args.residual_scale
+    # The estimators do not change the physics: without their outputs in the observation they
+    # are only cost, so they are switched off (evaluate.py runs them, to score them); a reward
+    # with an information term needs them.
+    kwargs["observe_estimates"] = args.estimates
+    kwargs["estimators"] = args.estimates or bool(kwargs.get("w_info", 0.0))
+    return kwargs
+
+
+def bare_env_kwargs(args: argparse.Namespace) -> dict[str, Any]:
+    """``env_kwargs`` without the decision wrapper's (RLlib's env is the bare parallel env)."""
+    kwargs = env_kwargs(args)
+    del kwargs["residual_scale"], kwargs["action_repeat"]
+    return kwargs
 
 
 def make_training_env(args: argparse.Namespace, seed: int, log_dir: Path | None = None) -> VecEnv:
@@ -197,6 +223,13 @@ def build_model(
     hyper = {**HYPERPARAMS[args.algo], **dict(args.hyperparams or [])}
     venv = make_training_env(args, seed, log_dir)
     venv = VecNormalize(venv, norm_obs=True, norm_reward=True, gamma=hyper["gamma"])
+    kwargs = dict(hyper)
+    noise_std = kwargs.pop("action_noise_std", None)
+    if noise_std is not None:
+        n_actions = venv.action_space.shape[0]
+        kwargs["action_noise"] = NormalActionNoise(
+            np.zeros(n_actions), np.full(n_actions, noise_std)
+        )
     model = ALGOS[args.algo](
         "MlpPolicy",
         venv,
@@ -204,7 +237,7 @@ def build_model(
         verbose=args.verbose,
         tensorboard_log=None if log_dir is None else str(log_dir / "tb"),
         device="cpu",
-        **hyper,
+        **kwargs,
     )
     return model, hyper
 
@@ -220,6 +253,7 @@ def train(args: argparse.Namespace) -> tuple[BaseAlgorithm, Path]:
     config = {
         "algo": args.algo,
         "view": args.view,
+        "task": args.task,
         "seed": seed,
         "timesteps": args.timesteps,
         "copies": args.copies,
@@ -293,7 +327,7 @@ def build_rllib_config(args: argparse.Namespace, seed: int, hyper: dict[str, Any
     training = {k: v for k, v in hyper.items() if k not in model_keys}
     return (
         PPOConfig()
-        .environment(RLLIB_ENV, env_config=env_kwargs(args))
+        .environment(RLLIB_ENV, env_config=bare_env_kwargs(args))
         .framework("torch")
         .env_runners(
             num_env_runners=args.env_runners,
@@ -328,7 +362,7 @@ def train_rllib(args: argparse.Namespace) -> Path:
         "timesteps": args.timesteps,
         "env_runners": args.env_runners,
         "ray_address": args.ray_address,
-        "env_kwargs": env_kwargs(args),
+        "env_kwargs": bare_env_kwargs(args),
         "hyperparams": hyper,
         "versions": {
             "python": platform.python_version(),
@@ -451,14 +485,38 @@ def build_parser() -> argparse.ArgumentParser:
         help="observe the estimators' cargo estimates",
     )
     parser.add_argument(
-        "--trajectory", default=LEARNING_TASK["trajectory"], choices=Trajectory.NAMES
+        "--task",
+        choices=sorted(LEARNING_TASKS),
+        default=DEFAULT_TASK,
+        help="the learning task (LEARNING_TASKS of astrocargo.envs.wrappers); the flags below "
+        "override its entries",
+    )
+    parser.add_argument("--trajectory", default=None, type=trajectory)
+    parser.add_argument(
+        "--max-cycles", type=positive_int, default=None, help="control steps per episode"
+    )
+    parser.add_argument("--noise", default=None, choices=sorted(NOISE_PROFILES))
+    parser.add_argument("--control-hz", type=positive_float, default=None, help="env rate")
+    parser.add_argument(
+        "--action-repeat",
+        type=positive_int,
+        default=None,
+        help="control steps per decision of the policy (DecisionEnv)",
     )
     parser.add_argument(
-        "--max-cycles", type=positive_int, default=LEARNING_TASK["max_cycles"], help="steps/episode"
+        "--residual-scale",
+        type=nonnegative_float,
+        default=0.0,
+        help="> 0: residual policy, the env gets the scripted no-model action plus this times "
+        "the policy's action (DecisionEnv); 0: the policy's action alone",
     )
-    parser.add_argument("--noise", default=LEARNING_TASK["noise"], choices=sorted(NOISE_PROFILES))
     parser.add_argument(
-        "--control-hz", type=positive_float, default=LEARNING_TASK["control_hz"], help="policy rate"
+        "--env",
+        nargs="+",
+        type=parse_override,
+        metavar="KEY=VALUE",
+        help="override the task's env arguments, values as Python literals "
+        "(w_info=2.0 'cargo_mass_kg=(1.0, 20.0)')",
     )
     parser.add_argument("--torch-threads", type=positive_int, default=1)
     parser.add_argument(
@@ -490,7 +548,13 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         parser.error("--timesteps must be a positive integer")
     if not 1 <= args.robots <= MAX_ROBOTS:
         parser.error(f"--robots must be in 1..{MAX_ROBOTS}, got {args.robots}")
+    try:
+        check_decision_args(args.residual_scale, args.action_repeat or 1)
+    except ValueError as err:
+        parser.error(str(err))
     if args.backend == "rllib":
+        if args.residual_scale or env_kwargs(args)["action_repeat"] != 1:
+            parser.error("--backend rllib trains on the bare env: no residual, no action repeat")
         if args.algo != "ppo" or args.view != "shared":
             parser.error("--backend rllib trains PPO in the shared view only")
         try:
