@@ -63,6 +63,7 @@ from stable_baselines3.common.vec_env import (  # noqa: E402
     VecNormalize,
 )
 
+from astrocargo.agents.trajectories import Trajectory  # noqa: E402
 from astrocargo.envs.sensors import NOISE_PROFILES  # noqa: E402
 from astrocargo.envs.world import MAX_ROBOTS  # noqa: E402
 from astrocargo.envs.wrappers import (  # noqa: E402
@@ -80,7 +81,6 @@ from cli import (  # noqa: E402
     output_dir,
     positive_float,
     positive_int,
-    trajectory,
 )
 from ray_backend import import_ray, ray_connection  # noqa: E402
 
@@ -491,7 +491,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="the learning task (LEARNING_TASKS of astrocargo.envs.wrappers); the flags below "
         "override its entries",
     )
-    parser.add_argument("--trajectory", default=None, type=trajectory)
+    parser.add_argument("--trajectory", default=None, choices=Trajectory.NAMES)
     parser.add_argument(
         "--max-cycles", type=positive_int, default=None, help="control steps per episode"
     )
