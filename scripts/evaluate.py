@@ -148,7 +148,9 @@ class TrainedPolicy:
         if samples is not None:
             model_path = run_dir / "checkpoints" / f"rl_model_{samples}_steps.zip"
             stats_path = run_dir / "checkpoints" / f"rl_model_vecnormalize_{samples}_steps.pkl"
-        self.model = algo.load(model_path, device="cpu")
+        from astrocargo.envs.wrappers import fast_inference
+
+        self.model = fast_inference(algo.load(model_path, device="cpu"))
         with open(stats_path, "rb") as f:
             self.normalizer = pickle.load(f)
         self.normalizer.training = False

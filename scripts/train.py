@@ -70,6 +70,7 @@ from astrocargo.envs.wrappers import (  # noqa: E402
     LEARNING_TASKS,
     CentralizedCargoEnv,
     check_decision_args,
+    fast_inference,
     make_vec_env,
 )
 
@@ -239,7 +240,7 @@ def build_model(
         device="cpu",
         **kwargs,
     )
-    return model, hyper
+    return fast_inference(model), hyper
 
 
 def train(args: argparse.Namespace) -> tuple[BaseAlgorithm, Path]:
