@@ -87,8 +87,8 @@ BOUND_METRICS = (
 )
 MASS_CONV_TOL = 0.05  # mass_conv_s: the mass error stays within this (relative) from then on
 POLICY_HELP = (
-    "'zero', 'scripted[:MODEL][@TRAJECTORY]' (MODEL estimate, none or truth) or a run folder of "
-    "scripts/train.py (with model.zip and config.json)"
+    "'zero', 'scripted' or a run folder of scripts/train.py (with model.zip and config.json); "
+    "'scripted:MODEL@TRAJECTORY' picks the cargo model (estimate, none, truth) and trajectory"
 )
 
 

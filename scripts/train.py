@@ -87,6 +87,7 @@ from ray_backend import import_ray, ray_connection  # noqa: E402
 
 ALGOS = {"ppo": PPO, "sac": SAC, "td3": TD3}
 DEFAULT_TASK = "cargo"
+RLLIB_TASK = "figure8_10s"  # RLlib trains on the bare env: a task without DecisionEnv
 VIEWS = ("shared", "central")
 BACKENDS = ("sb3", "rllib")
 RLLIB_ENV = "astrocargo_v0"  # RLlib's registry name of the wrapped parallel env
@@ -180,7 +181,7 @@ class TrackingCostCallback(BaseCallback):
 def env_kwargs(args: argparse.Namespace) -> dict[str, Any]:
     """Keyword arguments of ``cargo_env_fn`` for this run: the task's, then the flags' and
     ``--env`` overrides, ``residual_scale`` and the estimators."""
-    kwargs = {**LEARNING_TASKS[args.task], "n_robots": args.robots}
+    kwargs = {**LEARNING_TASKS[task_name(args)], "n_robots": args.robots}
     for flag in ("trajectory", "noise", "max_cycles", "control_hz", "action_repeat"):
         if getattr(args, flag) is not None:
             kwargs[flag] = getattr(args, flag)
@@ -192,6 +193,13 @@ def env_kwargs(args: argparse.Namespace) -> dict[str, Any]:
     kwargs["observe_estimates"] = args.estimates
     kwargs["estimators"] = args.estimates or bool(kwargs.get("w_info", 0.0))
     return kwargs
+
+
+def task_name(args: argparse.Namespace) -> str:
+    """``--task``, else the backend's default: SB3 ``DEFAULT_TASK``, RLlib ``RLLIB_TASK``."""
+    if args.task is not None:
+        return args.task
+    return RLLIB_TASK if args.backend == "rllib" else DEFAULT_TASK
 
 
 def bare_env_kwargs(args: argparse.Namespace) -> dict[str, Any]:
@@ -254,7 +262,7 @@ def train(args: argparse.Namespace) -> tuple[BaseAlgorithm, Path]:
     config = {
         "algo": args.algo,
         "view": args.view,
-        "task": args.task,
+        "task": task_name(args),
         "seed": seed,
         "timesteps": args.timesteps,
         "copies": args.copies,
@@ -488,9 +496,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--task",
         choices=sorted(LEARNING_TASKS),
-        default=DEFAULT_TASK,
-        help="the learning task (LEARNING_TASKS of astrocargo.envs.wrappers); the flags below "
-        "override its entries",
+        default=None,
+        help=f"the learning task (LEARNING_TASKS of astrocargo.envs.config); the flags below "
+        f"override its entries; none: {DEFAULT_TASK}, with --backend rllib {RLLIB_TASK}",
     )
     parser.add_argument("--trajectory", default=None, choices=Trajectory.NAMES)
     parser.add_argument(
@@ -554,10 +562,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     except ValueError as err:
         parser.error(str(err))
     if args.backend == "rllib":
-        if args.residual_scale or env_kwargs(args)["action_repeat"] != 1:
-            parser.error("--backend rllib trains on the bare env: no residual, no action repeat")
         if args.algo != "ppo" or args.view != "shared":
             parser.error("--backend rllib trains PPO in the shared view only")
+        if args.residual_scale or env_kwargs(args)["action_repeat"] != 1:
+            parser.error("--backend rllib trains on the bare env: no residual, no action repeat")
         try:
             import_ray("--backend rllib needs Ray and RLlib")
         except ImportError as err:
