@@ -74,10 +74,16 @@ def _make_cargo_env(
     return env
 
 
+RESIDUAL_DIM = 6  # a residual acts on the thrust entries of the action (force, torque)
+
+
 def residual_actions(base: np.ndarray, residual: np.ndarray, residual_scale: float) -> np.ndarray:
-    """The action sent to the env, a_env = a_base + residual_scale * a (any shape; the env then
-    clips each entry to [-1, 1])."""
-    return np.asarray(base, dtype=np.float64) + residual_scale * np.asarray(residual, np.float64)
+    """The action sent to the env: thrust entries a_env[:6] = a_base[:6] + residual_scale * a,
+    the arm targets a_env[6:] = a_base[6:] (``base`` (..., 8), ``residual`` (..., 6); the env
+    then clips each entry to [-1, 1])."""
+    out = np.array(base, dtype=np.float64)
+    out[..., :RESIDUAL_DIM] += residual_scale * np.asarray(residual, dtype=np.float64)
+    return out
 
 
 def check_decision_args(residual_scale: Any, action_repeat: Any) -> tuple[float, int]:
@@ -98,14 +104,19 @@ class DecisionEnv(ParallelEnv):
 
     Each control step k of a decision's ``action_repeat`` steps sends robot i
 
-        a_env,i(k) = a_base,i(k) + residual_scale * a_i       (residual_scale > 0)
-        a_env,i(k) = a_i                                      (residual_scale = 0)
+        residual_scale > 0:  a_env,i(k)[:6] = a_base,i(k)[:6] + residual_scale * a_i,
+                             a_env,i(k)[6:] = a_base,i(k)[6:]
+        residual_scale = 0:  a_env,i(k) = a_i
 
-    with a_i in [-1, 1]^8 the policy's action, held over the decision, and a_base,i(k) the
+    with a_i the policy's action, held over the decision: with a residual a_i in [-1, 1]^6 acts
+    on the thrust (force, torque; the action space is then 6-dimensional) and the arm targets
+    are the scripted controller's (noise on the arm targets swings the arms and, with them, the
+    grasp: a residual of std 0.02 on all eight entries multiplied the cargo's position error by
+    five, docs/learning.md); without, a_i in [-1, 1]^8 is the whole action. a_base,i(k) is the
     action of ``ObservationController`` with ``cargo_model="none"`` (the cooperative controller
-    that models the robots only, no cargo) from the observation of step k: the scripted
-    feedback runs at the control rate, the residual at the decision rate. The env clips the sum
-    to [-1, 1]. Zero residual actions are the no-model scripted controller. The controller reads
+    that models the robots only, no cargo) from the observation of step k: the scripted feedback
+    runs at the control rate, the residual at the decision rate. The env clips each entry to
+    [-1, 1]. Zero residual actions are the no-model scripted controller. The controller reads
     only the observation, never the truth.
 
     A decision returns the last step's observations, terminations, truncations and infos and
@@ -123,6 +134,7 @@ class DecisionEnv(ParallelEnv):
         self.render_mode = env.render_mode
         self.controller: Any = None
         self._obs: dict[str, np.ndarray] = {}
+        self._residual_space = spaces.Box(-1.0, 1.0, (RESIDUAL_DIM,), np.float32)
 
     @property
     def agents(self) -> list[str]:
@@ -142,7 +154,8 @@ class DecisionEnv(ParallelEnv):
         return self.env.observation_space(agent)
 
     def action_space(self, agent: str) -> spaces.Space:
-        return self.env.action_space(agent)
+        space = self.env.action_space(agent)
+        return self._residual_space if self.residual_scale else space
 
     def reset(self, seed: int | None = None, options: dict | None = None) -> tuple[dict, dict]:
         from astrocargo.agents.controllers import ObservationController
