@@ -60,7 +60,7 @@ from astrocargo.agents.controllers import CARGO_MODELS, ObservationController  #
 from astrocargo.agents.excitation import is_trajectory_name, trajectory_choices  # noqa: E402
 from astrocargo.agents.trajectories import Trajectory  # noqa: E402
 from astrocargo.envs import astrobee_cargo_v0  # noqa: E402
-from astrocargo.envs.config import LEARNING_TASKS  # noqa: E402
+from astrocargo.envs.config import LEARNING_TASKS, REWARD_TERMS  # noqa: E402
 from astrocargo.envs.sensors import NOISE_PROFILES  # noqa: E402
 from astrocargo.envs.world import MAX_ROBOTS  # noqa: E402
 
@@ -238,11 +238,14 @@ def run_episode(
     policy.reset(env)
     agents = env.possible_agents
     total, pos_errs, att_errs, times, mass_errs, saturated, step = 0.0, [], [], [], [], [], 0
+    terms = dict.fromkeys(REWARD_TERMS, 0.0)
     while env.agents:
         obs = np.stack([obs_dict[a] for a in agents])
         actions = policy.act(obs)
         obs_dict, rewards, _, _, infos = env.step(dict(zip(agents, actions, strict=True)))
         total += float(np.mean([rewards[a] for a in agents]))
+        for term in REWARD_TERMS:
+            terms[term] += float(np.mean([infos[a][f"reward_{term}"] for a in agents]))
         pos, att = env.sim.tracking_error()
         pos_errs.append(pos)
         att_errs.append(att)
@@ -270,6 +273,7 @@ def run_episode(
         "mass_conv_s": float("nan") if conv is None else conv,
         "saturated": float(np.mean(saturated)),
         "wall_contact": float(last[0]["termination_reason"] == "wall_contact"),
+        **{f"return_{term}": value for term, value in terms.items()},
     }
     if bound:
         row.update(principal_bounds(env.sim))
@@ -311,6 +315,7 @@ def summarise(rows: list[dict]) -> dict:
     in an episode where the mass error never stays within the tolerance)."""
     summary = {}
     keys = [k for k, _, _ in METRICS] + [k for k, _ in BOUND_METRICS if k in rows[0]]
+    keys += [f"return_{term}" for term in REWARD_TERMS]
     for key in keys:
         values = np.array([r[key] for r in rows], dtype=float)
         finite = values[np.isfinite(values)] if values.ndim == 1 else values
