@@ -10,6 +10,10 @@
   reset; later episodes continue each copy's own generator, so a run is reproducible.
 - ``SlotController``: runs a controller that acts on one copy's observations (n_robots, obs_dim)
   (e.g. ``ObservationController``) on all the slots of a ``SharedPolicyVecEnv``.
+- ``DecisionEnv``: the parallel env as a learned policy sees it: one decision every
+  ``action_repeat`` control steps, optionally a residual added to the thrust of the scripted
+  no-model controller (``cargo_env_fn(residual_scale=..., action_repeat=...)`` builds it).
+- ``fast_inference``: SB3's ``predict`` without its per-call overhead, the same actions.
 - ``CentralizedCargoEnv``: a single-agent ``gymnasium.Env`` in which one policy drives all robots:
   the observation is the robots' observations concatenated in agent order, the action the robots'
   actions concatenated, the reward the robots' mean reward. Registered as ``ENV_ID``

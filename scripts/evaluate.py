@@ -555,7 +555,7 @@ def plot_curves(curves: dict, baselines: list[dict], path: Path) -> None:
             ax.axhline(
                 base["summary"][key]["mean"], color="k", ls=style, lw=1, label=base["policy"]
             )
-        ax.set_xlabel("decisions (policy steps of one copy)")
+        ax.set_xlabel("decisions (samples / robots, all copies together)")
         ax.set_ylabel(label)
         ax.grid(alpha=0.3)
     handles, labels = axes[0].get_legend_handles_labels()

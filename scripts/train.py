@@ -5,16 +5,19 @@ Two views of the multi-robot env:
   (``SharedPolicyVecEnv``: every robot of every copy is one slot);
 - ``central``: one policy sees all observations and sends all actions (``CentralizedCargoEnv``).
 
-Observations and rewards are normalised with ``VecNormalize``. The run folder receives
-``model.zip``, ``vecnormalize.pkl``, ``config.json`` (every setting, the seed, the wall time),
-``monitor.csv`` (one row per finished episode of one robot or of the central agent) and
-TensorBoard logs under ``tb/``. ``--timesteps`` counts samples as SB3 does: one per robot per
-control step in the shared view (environment steps = timesteps / robots), one per control step
-in the central view.
+The task is one of ``LEARNING_TASKS`` (``--task``, default ``cargo``: 1-20 kg cargo, 30 s, env
+at 62.5 Hz, decisions at 12.5 Hz); ``--residual-scale S`` > 0 trains a residual policy whose
+action, times S, is added to the thrust of the scripted no-model controller (``DecisionEnv``).
+PPO, SAC or TD3 (``--algo``). Observations and rewards are normalised with ``VecNormalize``.
+The run folder receives ``model.zip``, ``vecnormalize.pkl``, ``config.json`` (every setting, the
+task, the seed, the wall time), ``monitor.csv`` (one row per finished episode of one robot or of
+the central agent), ``checkpoints/`` and TensorBoard logs under ``tb/``. ``--timesteps`` counts
+samples as SB3 does: one per robot per decision in the shared view (decisions = timesteps /
+robots; a decision is ``action_repeat`` control steps), one per decision in the central view.
 
-    .venv/bin/python scripts/train.py --algo ppo --robots 2 --timesteps 600000 --copies 2 \\
-        --seed 1 --checkpoint-every 50000 --log-dir runs/ppo_est
-    .venv/bin/python scripts/train.py ... --no-estimates --log-dir runs/ppo_noest
+    .venv/bin/python scripts/train.py --task cargo --algo ppo --residual-scale 0.3 \\
+        --timesteps 300000 --copies 2 --seed 1 --checkpoint-every 50000 --log-dir runs/res_est_1
+    .venv/bin/python scripts/train.py ... --no-estimates --log-dir runs/res_noest_1
     .venv/bin/tensorboard --logdir runs
 
 ``--backend rllib`` (needs the ray extra, ``bash scripts/setup.sh --dev``) trains PPO with RLlib
@@ -472,9 +475,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--timesteps",
         type=int,
         default=600_000,
-        help="training length in samples, as SB3 counts them: one per robot per control step in "
-        "the shared view (environment steps = timesteps / robots), one per control step in the "
-        "central view",
+        help="training length in samples, as SB3 counts them: one per robot per decision in the "
+        "shared view (decisions = timesteps / robots, a decision being --action-repeat control "
+        "steps), one per decision in the central view",
     )
     parser.add_argument("--copies", type=positive_int, default=2, help="environment copies")
     parser.add_argument(

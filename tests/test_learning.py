@@ -449,3 +449,22 @@ def test_evaluate_bins_masses_and_bounds_the_principal_moments(tmp_path):
     worst = [max(e["filter_principal_rel"]) for e in estimate["episodes"]]
     worst_tumble = [max(e["filter_principal_rel"]) for e in tumble["episodes"]]
     assert np.all(np.array(worst_tumble) < np.array(worst))
+
+
+def test_train_parses_tasks_and_the_residual(capsys, tmp_path):
+    train = _load_script("train")
+    out = str(tmp_path)
+    args = train.parse_args(["--residual-scale", "0.3", "--env", "w_info=2.0", "--log-dir", out])
+    kwargs = train.env_kwargs(args)
+    assert kwargs["cargo_mass_kg"] == LEARNING_TASKS["cargo"]["cargo_mass_kg"]
+    assert kwargs["residual_scale"] == 0.3 and kwargs["action_repeat"] == 5
+    assert kwargs["w_info"] == 2.0 and kwargs["estimators"]
+    # An information reward keeps the estimators running when they are not observed.
+    args = train.parse_args(["--task", "excitation", "--no-estimates", "--log-dir", out])
+    kwargs = train.env_kwargs(args)
+    assert kwargs["estimators"] and not kwargs["observe_estimates"]
+    args = train.parse_args(["--task", "cargo", "--no-estimates", "--log-dir", out])
+    assert not train.env_kwargs(args)["estimators"]
+    with pytest.raises(SystemExit):
+        train.parse_args(["--backend", "rllib", "--residual-scale", "0.3", "--log-dir", out])
+    assert "no residual, no action repeat" in capsys.readouterr().err
