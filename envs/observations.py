@@ -180,6 +180,12 @@ class ObservationBuilder:
         self.grasp_pos = np.array([r.grasp_pos for r in robots], dtype=float)
         self.handrail_rot = np.array([rot for rot, _ in handrail_pose], dtype=float)
         self.handrail_pos = np.array([pos for _, pos in handrail_pose], dtype=float)
+        # What ``assemble`` takes besides the step's values, in one tuple (its argument order).
+        self.constants = (
+            self.own_starts, self.peer_starts, self.estimate_start, self.link_parent,
+            self.link_rot, self.link_pos, self.link_axis, self.grasp_link, self.grasp_rot,
+            self.grasp_pos, self.handrail_rot, self.handrail_pos,
+        )  # fmt: skip
 
     def build(self, acting, rot, base_pos, base_vel, w, q, target, ref_rot, ref_vecs, ref_pan,
               peer_wrench, peer_age, peer_valid, estimates, qd=None,
