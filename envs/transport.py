@@ -271,8 +271,8 @@ class CargoTransport:
         self._qpos, self._qvel, self._ctrl = data.qpos, data.qvel, data.ctrl
         self._xpos, self._xmat, self._warnings = data.xpos, data.xmat, data.warning.number
         self._sensor_views = (
-            data.cvel, data.site_xpos, data.site_xmat, data.subtree_com, data.sensordata
-        )
+            data.cvel, data.site_xpos, data.site_xmat, data.subtree_com, data.sensordata,
+        )  # fmt: skip
         self._cargo_pose = (data.xpos, data.xmat, self.world.cargo_body)
         self._saved_qpos = np.full(self.model.nq, np.nan)
         self._saved_qvel = np.full(self.model.nv, np.nan)
