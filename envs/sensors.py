@@ -201,6 +201,14 @@ def noisy_readings(v0, r0, dt_s, cvel, site_xpos, site_xmat, subtree_com, bodies
     the pose too, the attitude perturbed in the body frame: q exp(noise). Returns accel, gyro,
     joints, pos, quat (zeros without a fix)."""
     v1, r1 = imu_site_state(cvel, site_xpos, site_xmat, subtree_com, bodies, roots, sites)
+    return _readings_from(
+        v0, r0, v1, r1, dt_s, sensordata, joint_adr, pos_adr, quat_adr, noise, fix
+    )
+
+
+@njit(cache=True)
+def _readings_from(v0, r0, v1, r1, dt_s, sensordata, joint_adr, pos_adr, quat_adr, noise, fix):
+    """``noisy_readings`` from the IMU states at the period's start and end."""
     accel_mean, gyro_mean = imu_period_means(v0, r0, v1, r1, dt_s)
     n = accel_mean.shape[0]
     accel, gyro = accel_mean + noise[:, 0:3], gyro_mean + noise[:, 3:6]
@@ -230,11 +238,14 @@ def read_into(v0, r0, dt_s, cvel, site_xpos, site_xmat, subtree_com, imu_index, 
               has_imu, has_fix):  # fmt: skip
     """``noisy_readings`` of the H robots in the world written into rows ``rows`` (H,) of the
     (N, ...) readings ``accel``, ``gyro``, ``joints``, ``pos``, ``quat``, ``has_imu`` and
-    ``has_fix`` (every IMU frame arrives; a fix where ``fix``); the other rows are cleared."""
-    values = noisy_readings(
-        v0, r0, dt_s, cvel, site_xpos, site_xmat, subtree_com, imu_index[0], imu_index[1],
-        imu_index[2], sensordata, joint_adr, pos_adr, quat_adr, noise, fix,
-    )  # fmt: skip
+    ``has_fix`` (every IMU frame arrives; a fix where ``fix``); the other rows are cleared.
+    The IMU states now replace ``v0`` and ``r0``: the start of the next period."""
+    v1, r1 = imu_site_state(
+        cvel, site_xpos, site_xmat, subtree_com, imu_index[0], imu_index[1], imu_index[2]
+    )
+    values = _readings_from(
+        v0, r0, v1, r1, dt_s, sensordata, joint_adr, pos_adr, quat_adr, noise, fix
+    )
     accel[:], gyro[:], joints[:], pos[:], quat[:] = 0.0, 0.0, 0.0, 0.0, 0.0
     has_imu[:], has_fix[:] = False, False
     for k in range(rows.shape[0]):
@@ -242,6 +253,8 @@ def read_into(v0, r0, dt_s, cvel, site_xpos, site_xmat, subtree_com, imu_index, 
         accel[i], gyro[i], joints[i] = values[0][k], values[1][k], values[2][k]
         pos[i], quat[i] = values[3][k], values[4][k]
         has_imu[i], has_fix[i] = True, fix
+    v0[:] = v1
+    r0[:] = r1
 
 
 # Noise draws per robot and reading, in the order they are drawn: (name, size).
@@ -316,8 +329,9 @@ class SensorSuite:
         """``read_arrays``' numbers at ``time_s`` written into ``out`` (one row per robot index;
         the robots of this world in ``rows``) from ``views`` (the data's cvel, site_xpos,
         site_xmat, subtree_com, sensordata), for a period that began at ``start`` (the IMUs'
-        velocities (n, 3) and rotations (n, 3, 3), ``imu_state_into``, and the time); the noise
-        is drawn here."""
+        velocities (n, 3) and rotations (n, 3, 3), ``imu_state_into``, and the time; the first
+        two are overwritten with the IMU states now, the next period's start); the noise is
+        drawn here."""
         v0, r0, t0 = start
         cvel, site_xpos, site_xmat, subtree_com, sensordata = views
         out.time_s = time_s

@@ -301,12 +301,12 @@ class CargoTransport:
         self.released_momentum: dict[int, np.ndarray] = {}
         self.world.set_cargo(*self.cargo)
         self.world.reset_data(self.data)
-        self._kinematics_done()
         self.true_params = self.world.cargo_params()
         self.true_params_grasp = [
             self.world.cargo_params_in_grasp_frame(i) for i in range(self.n_robots)
         ]
         self.sensors = SensorSuite(self.world, self.profile, sensor_rng)
+        self._kinematics_done()
         self.channel = CommChannel(
             self.n_robots, *self.comm_args, self.dt_s, comm_rng, fault_rng=self.fault_rng
         )
@@ -424,8 +424,8 @@ class CargoTransport:
         data = mujoco.MjData(world.model)
         world.load_state(self.world, self.data, data)
         self._bind_world(world, data)
-        self._kinematics_done()
         self.sensors = SensorSuite(world, self.profile, self.sensors.rng)
+        self._kinematics_done()
         for i in released:
             self.channel.disconnect(i)
         for i in self.holding:
@@ -447,13 +447,23 @@ class CargoTransport:
             self._thrust_ctrl, self._arm_ctrl, self._ctrl, self._n_clipped, self._effort,
             self._saturation,
         )  # fmt: skip
+        # The IMU states that started the period: kept from the last reading while qpos and
+        # qvel are as the last step (or reset) left them.
+        self._kinematics_current = same_state(
+            self._qpos, self._qvel, self._saved_qpos, self._saved_qvel
+        )
+        if not self._kinematics_current:
+            self._imu_period_start()
+        self._period_start_s = float(self.data.time)
+        return commands
+
+    def _imu_period_start(self) -> None:
+        """The IMUs' velocities and rotations now, as the start of a period."""
         cvel, site_xpos, site_xmat, subtree_com, _ = self._sensor_views
         imu_state_into(
             self._imu_v0, self._imu_r0, cvel, site_xpos, site_xmat, subtree_com,
             self.sensors.imu_index,
         )  # fmt: skip
-        self._period_start_s = float(self.data.time)
-        return commands
 
     def _thrust_scale(self) -> np.ndarray:
         """Delivered over commanded thrust (H,) of the robots in the world: the propulsion
@@ -482,9 +492,7 @@ class CargoTransport:
         ``mj_RungeKutta``): the same numbers with one position stage less."""
         m, d = self.model, self.data
         n_step = self.frame_skip
-        if self._skip_allowed and same_state(
-            self._qpos, self._qvel, self._saved_qpos, self._saved_qvel
-        ):
+        if self._skip_allowed and self._kinematics_current:
             mujoco.mj_checkPos(m, d)
             mujoco.mj_checkVel(m, d)
             mujoco.mj_sensorVel(m, d)
@@ -500,9 +508,11 @@ class CargoTransport:
 
     def _kinematics_done(self) -> None:
         """The data's position and velocity stages are those of its qpos and qvel now (after
-        ``mj_forward``): the next step may skip them (``_advance_physics``)."""
+        ``mj_forward``): the next step may skip them (``_advance_physics``) and start its
+        period from the IMU states now."""
         self._saved_qpos[:] = self._qpos
         self._saved_qvel[:] = self._qvel
+        self._imu_period_start()
 
     def _read_sensors(self, k: int) -> SensorReadings:
         """Every robot's readings, one row per robot index (nothing valid in the rows of robots
