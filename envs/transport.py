@@ -10,7 +10,6 @@ from typing import Any
 
 import mujoco
 import numpy as np
-from numba import njit
 
 from astrocargo.agents.excitation import make_trajectory
 from astrocargo.agents.trajectories import Reference
@@ -29,14 +28,10 @@ from astrocargo.envs.config import (
     REWARD_TERMS,
     EnvConfig,
 )
-from astrocargo.envs.faults import (
-    FAULT_COUNTERS,
-    NO_FAULT_COUNTS,
-    Fault,
-    parse_release_at,
-)
+from astrocargo.envs.faults import FaultSchedule, parse_release_at
 from astrocargo.envs.navigation import BaseNavigator
 from astrocargo.envs.observations import ObservationBuilder, observation_layout
+from astrocargo.envs.physics import PeriodStepper
 from astrocargo.envs.rewards import (  # noqa: F401 (re-exported)
     ROTATION_WEIGHT_M_PER_RAD,
     all_finite,
@@ -62,32 +57,7 @@ from astrocargo.estimator.inertia import (
 SENT_ARM_KEPT = 1000  # messages' arm states kept per sender (160 s at one per 10 steps)
 LOG_STD_FLOOR = 1e-12
 REWARD_KEYS = tuple(f"reward_{t}" for t in REWARD_TERMS)  # their names in infos
-# MuJoCo's instability warnings: on a bad qpos, qvel or qacc it resets the state to the model's
-# initial one (and counts the warning), so after one the physics no longer continues.
-_UNSTABLE = np.array(
-    [int(getattr(mujoco.mjtWarning, f"mjWARN_BAD{x}")) for x in ("QPOS", "QVEL", "QACC")]
-)
 TERMINATION_REASONS = ("wall_contact", "non_finite", "released")  # "released": one agent
-_STAGE_VEL = int(mujoco.mjtStage.mjSTAGE_VEL)
-
-
-@njit(cache=True)
-def state_finite(qpos, qvel, warnings, unstable, saved_qpos, saved_qvel):
-    """Whether the physics state is finite and MuJoCo counted none of the ``unstable``
-    warnings; the state is copied to ``saved_qpos``, ``saved_qvel`` (what the next step's
-    kinematics check compares against)."""
-    saved_qpos[:] = qpos
-    saved_qvel[:] = qvel
-    for w in unstable:
-        if warnings[w] > 0:
-            return False
-    return all_finite(qpos) and all_finite(qvel)
-
-
-@njit(cache=True)
-def same_state(qpos, qvel, saved_qpos, saved_qvel):
-    """Whether qpos and qvel are still those saved (NaN counts as changed)."""
-    return np.array_equal(qpos, saved_qpos) and np.array_equal(qvel, saved_qvel)
 
 
 @dataclass(frozen=True)
@@ -138,8 +108,7 @@ class CargoTransport:
         # world without the robot, see _release), and state() keeps its layout.
         self._full_world = self.world
         self._full_data = mujoco.MjData(self.world.model)
-        # Each fault with the control steps [first, end) it is active at.
-        self._fault_windows = [(f, *f.steps(self.dt_s)) for f in self.faults]
+        self.fault_schedule = FaultSchedule(self.faults, self.dt_s, self.n_robots)
         self.release_steps = parse_release_at(c.release_at, self.n_robots, self.dt_s)
         self.comm_args = (c.comm_latency, c.comm_drop, c.comm_noise)
         CommChannel(self.n_robots, *self.comm_args, self.dt_s, np.random.default_rng(0))
@@ -236,18 +205,12 @@ class CargoTransport:
         self.holding = world.holding
         self._acting_mask = np.zeros(self.n_robots, dtype=np.bool_)
         self._acting_mask[list(self.holding)] = True
-        # Index of the holding robots' rows in per-robot arrays: a slice (no copy) for all.
-        everyone = len(self.holding) == self.n_robots
-        self._rows: slice | list[int] = slice(None) if everyone else list(self.holding)
-        self._row_index = np.array(self.holding, dtype=np.int64)
-        self._unit_thrust_scale = np.ones(len(self.holding))
+        self._row_index = np.array(self.holding, dtype=np.int64)  # their rows, robot index
+        self._unit_scale = np.ones(len(self.holding))
         # The IMUs' velocities (H, 3) and rotations (H, 3, 3) at the start of the period.
         n_world = len(self.holding)
         self._imu_v0, self._imu_r0 = np.zeros((n_world, 3)), np.zeros((n_world, 3, 3))
-        # The first mj_step of a period may skip the kinematics under RK4 (_advance_physics).
-        opt = self.model.opt
-        fwdinv = opt.enableflags & int(mujoco.mjtEnableBit.mjENBL_FWDINV)
-        self._skip_allowed = opt.integrator == mujoco.mjtIntegrator.mjINT_RK4 and not fwdinv
+        self._physics = PeriodStepper(self.model, data, self.frame_skip)
         self._thrust_ctrl = np.array([h.thrust_actuators for h in world.robots], dtype=int)
         self._arm_ctrl = np.array([h.arm_actuators for h in world.robots], dtype=int)
         # Which robot (index), the cargo (n_robots) or the module (-1) each geom belongs to.
@@ -260,22 +223,16 @@ class CargoTransport:
         # Where this world's qpos, qvel and bodies go in state()'s fixed layout.
         self._state_qpos, self._state_qvel, self._state_body = world.layout_in(self._full_world)
 
-    _VIEWS = ("_qpos", "_qvel", "_ctrl", "_xpos", "_xmat", "_warnings", "_sensor_views",
-              "_cargo_pose")  # fmt: skip
+    _VIEWS = ("_ctrl", "_xpos", "_xmat", "_sensor_views", "_cargo_pose")
 
     def _bind_views(self) -> None:
-        """Views of the data's arrays used every step (each property access builds a new one).
-        The kinematics check (``_advance_physics``) starts unset: the first step computes
-        everything."""
+        """Views of the data's arrays used every step (each property access builds a new one)."""
         data = self.data
-        self._qpos, self._qvel, self._ctrl = data.qpos, data.qvel, data.ctrl
-        self._xpos, self._xmat, self._warnings = data.xpos, data.xmat, data.warning.number
+        self._ctrl, self._xpos, self._xmat = data.ctrl, data.xpos, data.xmat
         self._sensor_views = (
             data.cvel, data.site_xpos, data.site_xmat, data.subtree_com, data.sensordata,
         )  # fmt: skip
         self._cargo_pose = (data.xpos, data.xmat, self.world.cargo_body)
-        self._saved_qpos = np.full(self.model.nq, np.nan)
-        self._saved_qvel = np.full(self.model.nv, np.nan)
 
     # A copy (copy.deepcopy, pickle) gets its own MjData: the views are rebound to it, not copied
     # as detached arrays.
@@ -293,7 +250,6 @@ class CargoTransport:
         sensor_rng, comm_rng, cargo_rng = rng.spawn(3)
         # Spawned only with faults, so that a run without them draws as it always did.
         self.fault_rng = rng.spawn(1)[0] if self.faults else None
-        self.fault_counts = {k: np.zeros(self.n_robots, dtype=np.int64) for k in FAULT_COUNTERS}
         self.cargo = self.cargo_draw.sample(cargo_rng, self.world)
         if self.world is not self._full_world:  # robots let go last episode
             self._bind_world(self._full_world, self._full_data)
@@ -310,11 +266,7 @@ class CargoTransport:
         self.channel = CommChannel(
             self.n_robots, *self.comm_args, self.dt_s, comm_rng, fault_rng=self.fault_rng
         )
-        for fault, first, end in self._fault_windows:
-            if fault.kind == "comm_burst":
-                self.channel.add_burst(fault.robot, first, end, fault.prob)
-            elif fault.kind == "comm_delay":
-                self.channel.add_delay(fault.robot, first, end, fault.delay_s)
+        self.fault_schedule.reset(self.fault_rng, self.channel)
         self.estimators = self._make_estimators() if self.use_estimators else []
         self.navigator = BaseNavigator(self.robots, self.dt_s, self.profile)
         nav = self.navigator
@@ -376,10 +328,7 @@ class CargoTransport:
         self.step_count += 1
         k = self.step_count
         commands = self._apply_commands(actions)
-        self._advance_physics()
-        finite = state_finite(
-            self._qpos, self._qvel, self._warnings, _UNSTABLE, self._saved_qpos, self._saved_qvel
-        )
+        finite = self._physics.advance(self._kinematics_current)
         readings = self._read_sensors(k)
         self._update_estimators(readings, commands, k)
         self.navigator.update(readings, acting_mask)
@@ -443,15 +392,15 @@ class CargoTransport:
         commands = command_period(
             actions, self._acting_mask, self.thrust_limits, self._joint_low, self._joint_high,
             ARM_SPEED_RADPS * self.dt_s, self.dt_s, self.arm_targets, self.arm_rates, noise,
-            self.sensors.actuation_std, self._thrust_scale(), self._row_index,
+            self.sensors.actuation_std,
+            self.fault_schedule.thrust_scale(self.step_count, self.holding, self._unit_scale),
+            self._row_index,
             self._thrust_ctrl, self._arm_ctrl, self._ctrl, self._n_clipped, self._effort,
             self._saturation,
         )  # fmt: skip
         # The IMU states that started the period: kept from the last reading while qpos and
         # qvel are as the last step (or reset) left them.
-        self._kinematics_current = same_state(
-            self._qpos, self._qvel, self._saved_qpos, self._saved_qvel
-        )
+        self._kinematics_current = self._physics.unchanged()
         if not self._kinematics_current:
             self._imu_period_start()
         self._period_start_s = float(self.data.time)
@@ -465,53 +414,11 @@ class CargoTransport:
             self.sensors.imu_index,
         )  # fmt: skip
 
-    def _thrust_scale(self) -> np.ndarray:
-        """Delivered over commanded thrust (H,) of the robots in the world: the propulsion
-        faults active at this step (counted), else ones."""
-        if not self._fault_windows:
-            return self._unit_thrust_scale
-        scale = self._unit_thrust_scale.copy()
-        weakened = set()
-        for fault in self._active_faults("propulsion", self.step_count):
-            if fault.robot in self.holding:
-                scale[self.holding.index(fault.robot)] *= fault.scale
-                weakened.add(fault.robot)
-        if weakened:
-            self.fault_counts["propulsion_steps"][list(weakened)] += 1
-        return scale
-
-    def _advance_physics(self) -> None:
-        """``mj_step`` ``frame_skip`` times, then the stages of ``mj_forward`` that the step
-        reads: positions, contacts and position sensors, then velocities (the acceleration
-        stage stays as the last ``mj_step`` left it, for the state before its integration).
-
-        The first ``mj_step`` of a period would recompute the position and velocity stages of
-        the very qpos and qvel the previous step ended with: while they are unchanged (and the
-        integrator is RK4, the MJCF's) it is run as its parts without them (``mj_step``'s checks,
-        the velocity sensors, ``mj_forwardSkip`` from the acceleration stage, ``mj_checkAcc``,
-        ``mj_RungeKutta``): the same numbers with one position stage less."""
-        m, d = self.model, self.data
-        n_step = self.frame_skip
-        if self._skip_allowed and self._kinematics_current:
-            mujoco.mj_checkPos(m, d)
-            mujoco.mj_checkVel(m, d)
-            mujoco.mj_sensorVel(m, d)
-            mujoco.mj_forwardSkip(m, d, _STAGE_VEL, 0)
-            mujoco.mj_checkAcc(m, d)
-            mujoco.mj_RungeKutta(m, d, 4)
-            n_step -= 1
-        if n_step:
-            mujoco.mj_step(m, d, nstep=n_step)
-        mujoco.mj_fwdPosition(m, d)
-        mujoco.mj_sensorPos(m, d)
-        mujoco.mj_fwdVelocity(m, d)
-
     def _kinematics_done(self) -> None:
         """The data's position and velocity stages are those of its qpos and qvel now (after
-        ``mj_forward``): the next step may skip them (``_advance_physics``) and start its
-        period from the IMU states now."""
-        self._saved_qpos[:] = self._qpos
-        self._saved_qvel[:] = self._qvel
+        ``mj_forward``): the next step may skip them (``envs.physics``) and start its period
+        from the IMU states now."""
+        self._physics.forward_done()
         self._imu_period_start()
 
     def _read_sensors(self, k: int) -> SensorReadings:
@@ -524,47 +431,8 @@ class CargoTransport:
         start = (self._imu_v0, self._imu_r0, self._period_start_s)
         time_s = float(self.data.time)
         self.sensors.read_into(self._sensor_views, time_s, fix, start, self._row_index, readings)
-        if self._fault_windows:
-            self._apply_reading_faults(readings, k)
+        self.fault_schedule.apply_to_readings(readings.has_imu, readings.has_fix, k)
         return readings
-
-    def _apply_reading_faults(self, readings: SensorReadings, k: int) -> None:
-        """Clear the IMU frames and fixes that the faults of step ``k`` take away (counted)."""
-        for fault in self._active_faults("imu_dropout", k):
-            i = fault.robot
-            if not readings.has_imu[i]:
-                continue  # let go, or two overlapping dropouts
-            if fault.prob < 1.0 and self.fault_rng.random() >= fault.prob:
-                continue
-            readings.has_imu[i] = False
-            self.fault_counts["imu_frames_missing"][i] += 1
-        for fault in self._active_faults("localization_outage", k):
-            i = fault.robot
-            if readings.has_fix[i]:
-                readings.has_fix[i] = False
-                self.fault_counts["fixes_missing"][i] += 1
-
-    def _active_faults(self, kind: str, k: int) -> list[Fault]:
-        """The faults of ``kind`` active at control step ``k``."""
-        if not self._fault_windows:
-            return []
-        return [f for f, first, end in self._fault_windows if f.kind == kind and first <= k < end]
-
-    def _fault_infos(self) -> list[dict[str, Any]]:
-        """Every robot's injected-fault counters (episode totals) and the kinds active now."""
-        if not self._fault_windows:  # none injected: every counter stays 0
-            return [{**NO_FAULT_COUNTS, "active": []} for _ in range(self.n_robots)]
-        counts = {k: v.tolist() for k, v in self.fault_counts.items()}
-        counts.update({f"messages_{k}": v.tolist() for k, v in self.channel.fault_stats.items()})
-        active: list[list[str]] = [[] for _ in range(self.n_robots)]
-        k = self.step_count
-        for f, first, end in self._fault_windows:
-            if first <= k < end:
-                active[f.robot].append(f.kind)
-        return [
-            {**{name: c[i] for name, c in counts.items()}, "active": active[i]}
-            for i in range(self.n_robots)
-        ]
 
     def _update_estimators(self, readings: SensorReadings, commands: np.ndarray, k: int) -> None:
         """Each estimator ingests its own packet and command; messages go through the channel;
@@ -741,7 +609,7 @@ class CargoTransport:
         per_robot = list(zip(*terms, strict=True))
         n_clipped, wall_contacts = n_clipped.tolist(), wall_contacts.tolist()
         saturated = [0.0] * self.n_robots if saturated is None else saturated.tolist()
-        faults = self._fault_infos()
+        faults = self.fault_schedule.infos(self.step_count, self.channel.fault_stats)
         time_s, releases = float(self.data.time), len(self.released_at_s)
         for i in robots:
             info: dict[str, Any] = dict(zip(REWARD_KEYS, per_robot[i], strict=True))
