@@ -187,6 +187,8 @@ class FaultSchedule:
     def apply_to_readings(self, has_imu: np.ndarray, has_fix: np.ndarray, k: int) -> None:
         """Clear (in place) the IMU frames and fixes that the faults of step ``k`` take away
         (counted); an IMU dropout with ``prob`` < 1 draws from ``rng``."""
+        if not self.windows:
+            return
         for fault in self.active("imu_dropout", k):
             i = fault.robot
             if not has_imu[i]:
