@@ -11,7 +11,6 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from astrocargo.envs.config import REWARD_TERMS
 from astrocargo.envs.observations import assemble
 from astrocargo.estimator.geometry import log_so3, matmul3
 
@@ -50,25 +49,6 @@ def mix_rewards(track, effort, info, robot_contacts, cargo_contacts, acting, wei
             mixed[t, i] = weights[t] * (shared * team[t] + (1.0 - shared) * individual[t, i])
             rewards[i] += mixed[t, i]
     return mixed, rewards
-
-
-def reward_terms(
-    track: float,
-    effort: np.ndarray,
-    info: np.ndarray,
-    robot_contacts: np.ndarray,
-    cargo_contacts: int,
-    acting: np.ndarray,
-    weights: np.ndarray,
-    shared: float,
-) -> tuple[dict[str, list[float]], np.ndarray]:
-    """Every term per robot by name, weighted and mixed, and the reward per robot; the contact
-    term counts a robot's own contacts plus the cargo's (team: every contact)."""
-    mixed, rewards = mix_rewards(
-        float(track), effort, info, robot_contacts, int(cargo_contacts), acting, weights,
-        float(shared),
-    )  # fmt: skip
-    return dict(zip(REWARD_TERMS, mixed.tolist(), strict=True)), rewards
 
 
 @njit(cache=True)
