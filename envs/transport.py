@@ -334,7 +334,7 @@ class CargoTransport:
         self.navigator.update(readings, acting_mask)
         self.readings = readings
 
-        robot_contacts, cargo_contacts = self._wall_contacts()
+        robot_contacts, cargo_contacts, n_contacts = self._wall_contacts()
         # A release due with a non-finite state does not happen: the episode ends (non_finite).
         released = ()
         if self.release_steps and finite:
@@ -351,7 +351,7 @@ class CargoTransport:
         reason = None
         if not finite:
             reason = "non_finite"
-        elif cargo_contacts or robot_contacts.any():
+        elif n_contacts > 0:
             reason = "wall_contact"
         infos = self._get_infos(
             self._mixed.tolist(), self._n_clipped, robot_contacts + cargo_contacts, reason,
@@ -495,12 +495,12 @@ class CargoTransport:
             return np.zeros(self.n_robots)
         return self._log_std_now
 
-    def _wall_contacts(self) -> tuple[np.ndarray, int]:
-        """Contacts with the module per robot, and those of the cargo."""
+    def _wall_contacts(self) -> tuple[np.ndarray, int, int]:
+        """Contacts with the module per robot, those of the cargo, and all of them."""
         ncon = self.data.ncon
         per_robot = np.zeros(self.n_robots, dtype=int)
         if ncon == 0:
-            return per_robot, 0
+            return per_robot, 0, 0
         geoms = self.data.contact.geom[:ncon]
         wall = self._wall_geom[geoms]
         owner = self._geom_owner[geoms]
@@ -508,7 +508,8 @@ class CargoTransport:
         hit = wall[:, 0] ^ wall[:, 1]
         other = np.where(wall[:, 0], owner[:, 1], owner[:, 0])[hit]
         per_robot += np.bincount(other[other < self.n_robots], minlength=self.n_robots)
-        return per_robot, int(np.sum(other == self.n_robots))
+        cargo = int(np.sum(other == self.n_robots))
+        return per_robot, cargo, int(per_robot.sum()) + cargo
 
     # ------------------------------------------------------------------ observations
     def reference(self) -> Reference:
@@ -615,16 +616,18 @@ class CargoTransport:
             info: dict[str, Any] = dict(zip(REWARD_KEYS, per_robot[i], strict=True))
             if i in released:
                 info["released_momentum"] = self.released_momentum[i].copy()
-            info["termination_reason"] = reason or ("released" if i in released else None)
-            info["releases"] = releases
-            info["holding"] = list(self.holding)
-            info["time_s"] = time_s
-            info["clipped_actions"] = n_clipped[i]
-            info["saturated"] = saturated[i]
-            info["wall_contacts"] = wall_contacts[i]
-            info["true_params"] = self.true_params_grasp[i].copy()
-            info["comm"] = comm
-            info["faults"] = faults[i]
+            info.update(
+                termination_reason=reason or ("released" if i in released else None),
+                releases=releases,
+                holding=list(self.holding),
+                time_s=time_s,
+                clipped_actions=n_clipped[i],
+                saturated=saturated[i],
+                wall_contacts=wall_contacts[i],
+                true_params=self.true_params_grasp[i].copy(),
+                comm=comm,
+                faults=faults[i],
+            )
             if self.estimators:
                 info.update(
                     estimate=self.est_mean[i].copy(),
