@@ -50,7 +50,8 @@ def test_period_stepper_equals_mj_step_bit_for_bit():
     assert skipped == 398  # all but the two pushed periods skipped the first kinematics
 
 
-def test_period_stepper_reports_a_non_finite_state():
+def test_period_stepper_reports_a_non_finite_state(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)  # MuJoCo writes its warning to MUJOCO_LOG.TXT in the cwd
     world = World(1)
     data = world.make_data()
     stepper = PeriodStepper(world.model, data, 1)
