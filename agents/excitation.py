@@ -121,6 +121,25 @@ class Motion:
     pan_acc: np.ndarray
 
 
+def reference_motion(reference, t: np.ndarray) -> Motion:
+    """The ``Motion`` of any reference (a callable t -> ``Reference``, e.g. ``Trajectory``)
+    on the time grid ``t`` (N,) s, so that a designer's model can score the analytic
+    trajectories the same way as a design; the pan's acceleration by central differences
+    (second order) of the pan rate."""
+    t = np.atleast_1d(np.asarray(t, dtype=float))
+    refs = [reference(float(x)) for x in t]
+
+    def stack(name: str) -> np.ndarray:
+        return np.array([getattr(r, name) for r in refs], dtype=float)
+
+    pan_rate = stack("pan_rate")
+    pan_acc = np.gradient(pan_rate, t) if t.size > 1 else np.zeros_like(pan_rate)
+    return Motion(
+        t, stack("pos"), stack("vel"), stack("acc"), stack("rot"), stack("w"), stack("wd"),
+        stack("pan"), pan_rate, pan_acc,
+    )  # fmt: skip
+
+
 def fourier_dofs(
     coeffs: np.ndarray, period_s: float, duration_s: float, ramp_s: float, t: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -194,6 +213,28 @@ class ExcitationDesign:
         if len(spin) != 3 or not all(math.isfinite(x) for x in spin):
             raise ValueError(f"spin_radps must be 3 finite rates, got {self.spin_radps!r}")
         object.__setattr__(self, "spin_radps", spin)
+
+    def scaled(self, factor: float) -> ExcitationDesign:
+        """The design with the cargo's motion (position and attitude series, spins) times
+        ``factor`` in (0, 1] and the pan unchanged: headroom for the feedback (the commands fall
+        roughly in proportion, the bounds rise roughly as 1 / factor). ``info`` records the
+        factor (``"scaled"``, cumulative); its predictions are the unscaled design's until
+        re-described (``ExcitationDesigner.describe``)."""
+        if not 0 < factor <= 1:
+            raise ValueError(f"factor must be in (0, 1], got {factor!r}")
+        coeffs = self.coeffs.copy()
+        coeffs[:PAN_DOF] *= factor
+        info = {**self.info, "scaled": float(self.info.get("scaled", 1.0)) * factor}
+        return ExcitationDesign(
+            coeffs,
+            self.period_s,
+            self.duration_s,
+            self.ramp_s,
+            self.n_robots,
+            self.center_m,
+            info,
+            tuple(factor * x for x in self.spin_radps),
+        )
 
     def to_dict(self) -> dict:
         return {

@@ -7,10 +7,13 @@ What the estimator sees (``estimator.cargo_estimator``): per update instant k (e
 ``update_every`` control steps after ``warmup_s``) the wrench balance in robot 0's grasp frame G,
 z_k = A_k pi + b_k + e_k, with A_k = ``rne.body_regressor`` of G's motion (G is fixed to the
 cargo: its acceleration, angular velocity and acceleration follow from the cargo's) and e_k of
-covariance R_k = meas_cov + (sum_j M_j diag(s_j^2) M_j^T) / update_every + sensor_cov, where
+covariance R_k = meas_cov + (sum_j M_j diag(s_j^2) M_j^T) / update_every + motion_cov, where
 s_j = abs + rel |u_j| is robot j's actuation noise per axis at its command u_j, M_j carries it
 into G (``grasp_from_base`` of the thrust site; peers through the known relative grasp) and
-sensor_cov is the estimator's errors-in-variables term at the design cargo. The Fisher
+motion_cov is the sensors' noise on the filtered motion as the estimator models it
+(``estimator.motion``, ``motion_fusion``: every robot's E Sigma E^T, conditioned on the peers'
+grasp-acceleration mismatches), at the design cargo. It depends on the joint angles only, so it
+is tabulated over the pan like the team's geometry (``estimator_noise_terms``). The Fisher
 information F = sum_k A_k^T R_k^-1 A_k and the Cramer-Rao bounds of mass, centre of mass and
 principal moments (``baselines.derived_covariance``) are what ``scripts/benchmark_estimation.py``
 computes from a flight's recording.
@@ -21,7 +24,9 @@ I_c wd + w x I_c w (cargo axes), is shared by ``CooperativeController``'s alloca
 weighted by each robot's limits) on the design cargo, at the planned pan.
 
 Objective: the worst of log(bound_i / target_i) over the three principal moments (relative),
-the mass (relative) and the centre of mass (norm of the per-axis bounds, m), minimised in
+the mass (relative) and the centre of mass (norm of the per-axis bounds, m); the targets are
+the issue's (``TARGETS``) or a reference trajectory's own bounds (``DesignSettings.targets``,
+``reference_bounds``: then the worst improvement over it is maximised); minimised in
 epigraph form (minimise z subject to log(bound_i / target_i) <= z), a minimax. Constraints, at
 every sample of a time grid: every robot's command per axis within (1 - ``thrust_margin``) of
 its limit (the rest is left to the feedback), every point of the assembly's collision hull
@@ -51,8 +56,10 @@ from astrocargo.estimator.inertia import (
     principal_moments,
     transform_params,
 )
+from astrocargo.estimator.motion import balance_noise_map, condition_on_mismatch, grasp_acc_map
 from astrocargo.estimator.rne import (
     RobotDescription,
+    balance_motion_jacobians,
     body_regressor,
     grasp_from_base,
     grasp_pose,
@@ -72,37 +79,85 @@ from .excitation import (
     Motion,
     aisle_half_extents,
     assembly_hull,
+    reference_motion,
 )
 
 
 # ------------------------------------------------------------------------------- ESTIMATOR COUPLING
-# The ONE place that reads CargoEstimator's noise model (meas_cov, _actuation_abs/_rel and
-# update_every: the terms of CargoEstimator.process's meas_cov, and sensor_cov_at). When the
-# estimator offers a public method for its per-update measurement covariance, repoint this
-# function to it; nothing else in this module depends on how R is built.
-def estimator_measurement_cov(
+# The ONE place that reads CargoEstimator's noise model: its fields meas_cov, _actuation_abs,
+# _actuation_rel, update_every, motion_fusion, _motion_var, _motion_band, _mismatch_model_var
+# and sensor_cov_at, and the public functions of estimator.motion that its _motion_noise calls.
+# It restates _motion_noise's assembly of the maps at a configuration (no readings). When the
+# estimator offers a public method for its per-update measurement covariance at a
+# configuration (estimator/noise_model.py), repoint this function to it; nothing else in this
+# module depends on how R is built.
+def estimator_noise_terms(
     estimator: CargoEstimator,
+    robots: list[RobotDescription],
+    relative_grasps: dict[int, tuple[np.ndarray, np.ndarray]],
     cargo_grasp: np.ndarray,
-    commands: np.ndarray,
-    noise_maps: np.ndarray,
-    lever_m: np.ndarray,
-) -> np.ndarray:
-    """R_k (N, 6, 6) of the estimator's update at each of N samples, robot 0's grasp frame:
+    joint_angles: np.ndarray,
+) -> dict:
+    """The parts of the estimator's per-update measurement covariance (``CargoEstimator.process``)
 
-        R_k = meas_cov + (sum_j M_j diag(s_j^2) M_j^T) / update_every + c diag(F, F, F, N, N, N),
+        R = meas_cov + (sum_j M_j diag(s_j^2) M_j^T) / update_every + motion_cov,
 
-    s_j = abs + rel |u_j| robot j's actuation noise per axis at its command ``commands``
-    (N, n, 6) [N; N m], M_j = ``noise_maps`` (N, n, 6, 6) (thrust site -> robot 0's grasp
-    frame), and the errors-in-variables term at the cargo ``cargo_grasp`` (10,) (grasp frame) as
-    its estimate and base-to-grasp lever ``lever_m`` (N,) m: F = (M a)^2 + (m_c L q)^2,
-    N = (J wd)^2 + (M L a)^2 + (m_c |c| L q)^2, with M the robot-plus-cargo mass (kg), J the
-    inertia about the grasp (kg m^2), a, wd, q the accelerometer, angular-acceleration and
-    joint-acceleration noise after the estimator's filters, c its correlation factor."""
+    s_j = actuation_abs + actuation_rel |u_j| per axis of robot j's command u_j [N; N m],
+    M_j its thrust site -> robot 0's grasp frame G (assembled by the caller), at one team
+    configuration: every robot at ``joint_angles`` (n_joints,) rad, peers' grasps
+    ``relative_grasps`` {j: (rotation, position m)} in G, the cargo ``cargo_grasp`` (10,) (G) as
+    the estimate. ``motion_cov`` (6, 6) is the sensors' noise on the filtered motion
+    (``estimator.motion``): E Sigma E^T over robot 0 and its peers with E = d(links + Y pi)/dxi,
+    conditioned on the peers' grasp-acceleration mismatches for ``motion_fusion="team"``
+    (``condition_on_mismatch``; its covariance does not depend on the observed mismatch),
+    unconditioned for "own" or without peers, the scalar ``sensor_cov_at`` for "none". The
+    Jacobians are exact and depend on the joint angles only (the balance is affine in
+    xi = (a_B, wd_B, qdd) with coefficients free of the angular and joint rates), so this is
+    the estimator's covariance at every instant of that configuration.
+
+    Returns {"meas_cov", "motion_cov": (6, 6); "actuation_abs", "actuation_rel": (6,);
+    "update_every": int}."""
     est = estimator
-    std = est._actuation_abs + est._actuation_rel * np.abs(commands)  # (N, n, 6)
-    act = np.einsum("nkij,nkj,nklj->nil", noise_maps, std**2, noise_maps)
-    sensor = est.sensor_cov_at(np.asarray(cargo_grasp, dtype=float), lever_m)
-    return est.meas_cov + act / est.update_every + sensor
+    q = np.asarray(joint_angles, dtype=float)
+    zero3, zero_q = np.zeros(3), np.zeros(q.size)
+    params = np.asarray(cargo_grasp, dtype=float)
+
+    def jacobians(robot):
+        return balance_motion_jacobians(robot, zero3, zero3, zero3, q, zero_q, zero_q)
+
+    d_links, d_y = jacobians(robots[0])
+    if est.motion_fusion == "none":
+        lever = float(np.linalg.norm(grasp_pose(robots[0], q)[1]))
+        motion_cov = est.sensor_cov_at(params, lever)
+    else:
+        noise_maps = [balance_noise_map(d_links, d_y, params)]
+        variances, bands = [est._motion_var], [est._motion_band]
+        own_rows, peer_blocks = [], []
+        for j, (rot, pos) in sorted(relative_grasps.items()):
+            links_j, y_j = jacobians(robots[j])
+            noise_maps.append(wrench_transform(rot, pos) @ links_j)
+            variances.append(est._motion_var)
+            bands.append(est._motion_band)
+            own_rows.append(-grasp_acc_map(d_y, pos))
+            peer_blocks.append(rot @ grasp_acc_map(y_j))
+        mismatch_maps, mismatch = [], None
+        if est.motion_fusion == "team" and peer_blocks:
+            mismatch_maps = [np.vstack(own_rows)]
+            for k, block in enumerate(peer_blocks):
+                column = [np.zeros_like(block)] * len(peer_blocks)
+                column[k] = block
+                mismatch_maps.append(np.vstack(column))
+            mismatch = np.zeros(3 * len(peer_blocks))
+        motion_cov = condition_on_mismatch(
+            noise_maps, mismatch_maps, variances, mismatch, bands, est._mismatch_model_var
+        )[1]
+    return {
+        "meas_cov": est.meas_cov.copy(),
+        "motion_cov": motion_cov,
+        "actuation_abs": est._actuation_abs.copy(),
+        "actuation_rel": est._actuation_rel.copy(),
+        "update_every": int(est.update_every),
+    }
 
 
 # ------------------------------------------------------------------------------- the model
@@ -186,6 +241,7 @@ class ExcitationModel:
         }
         # Peer j's wrench into robot 0's grasp frame, the relative grasp the estimator is given.
         self.relative_known = {j: wrench_transform(rot, pos) for j, (rot, pos) in relative.items()}
+        self.relative_grasps = relative
         self.estimator = CargoEstimator(
             self.robots[0],
             0,
@@ -235,16 +291,22 @@ class ExcitationModel:
                 robot.thrust_rot, robot.thrust_pos
             )
             noise_maps.append(to_grasp if j == 0 else self.relative_known[j] @ to_grasp)
-        lever0 = float(
-            np.linalg.norm(grasp_pose(self.robots[0], np.array([TILT_DEPLOYED_RAD, pan]))[1])
+        # The estimator's noise at this configuration (a function of the joint angles only).
+        terms = estimator_noise_terms(
+            self.estimator,
+            self.robots,
+            self.relative_grasps,
+            self.cargo_grasp,
+            np.array([TILT_DEPLOYED_RAD, pan]),
         )
+        self._noise_terms = terms
         return {
             "mass": mass,
             "com": com,
             "inertia": inertia,
             "alloc": alloc,
             "noise": np.stack(noise_maps),
-            "lever": lever0,
+            "motion_cov": terms["motion_cov"],
         }
 
     def _tabulate(self) -> None:
@@ -290,11 +352,15 @@ class ExcitationModel:
         return tuple(np.einsum("nij,nj->ni", rot_gw, v) for v in (acc, motion.w, motion.wd))
 
     def measurement_cov(self, motion: Motion, commands: np.ndarray) -> np.ndarray:
-        """R (N, 6, 6) of the estimator's update at each sample (module docstring)."""
+        """R (N, 6, 6) of the estimator's update at each sample (``estimator_noise_terms``):
+        meas_cov + (sum_j M_j diag(s_j^2) M_j^T) / update_every + motion_cov at the planned pan
+        (the motion covariance interpolated linearly between the tabulated pans, a convex
+        combination of covariances), ``commands`` (N, n_robots, 6)."""
         team = self.team(motion.pan)
-        return estimator_measurement_cov(
-            self.estimator, self.cargo_grasp, commands, team["noise"], team["lever"]
-        )
+        terms = self._noise_terms
+        std = terms["actuation_abs"] + terms["actuation_rel"] * np.abs(commands)  # (N, n, 6)
+        act = np.einsum("nkij,nkj,nklj->nil", team["noise"], std**2, team["noise"])
+        return terms["meas_cov"] + act / terms["update_every"] + team["motion_cov"]
 
     def update_times(
         self, duration_s: float, every: int = 1
@@ -399,6 +465,11 @@ class DesignSettings:
     pan_rate_scale_radps: float = 0.08
     spin: bool = True  # design secular (yaw, roll, pitch) rates too
     spin_scale_radps: float = 0.05
+    # What the bounds are scored against: {"principal_rel": scalar or 3 (ascending moments),
+    # "mass_rel", "com_m"}; None: the issue's TARGETS. The bounds a reference trajectory gets
+    # (``ExcitationDesigner.reference_bounds``) make the objective the worst improvement over
+    # that trajectory.
+    targets: dict | None = None
 
 
 class ExcitationDesigner:
@@ -411,6 +482,15 @@ class ExcitationDesigner:
         if s.n_harmonics < 1 or s.duration_s < 2 * s.ramp_s:
             raise ValueError("need n_harmonics >= 1 and duration_s >= 2 ramp_s")
         self.period_s = s.period_s or s.duration_s / 2
+        targets = TARGETS if s.targets is None else s.targets
+        self.targets = np.concatenate(
+            (
+                np.broadcast_to(np.asarray(targets["principal_rel"], float), (3,)),
+                [float(targets["mass_rel"]), float(targets["com_m"])],
+            )
+        )
+        if not np.all(self.targets > 0):
+            raise ValueError(f"targets must be positive, got {targets}")
         # Limits on every update instant from t = 0; information on every
         # ``sample_updates``-th instant after the warm-up, weighted to stand for all.
         self.times, _, used = model.update_times(s.duration_s)
@@ -469,12 +549,17 @@ class ExcitationDesigner:
             "commands": cmd,
         }
 
-    @staticmethod
-    def _ratios(bounds: dict) -> np.ndarray:
-        return np.array(
-            [b / TARGETS["principal_rel"] for b in bounds["principal_rel"]]
-            + [bounds["mass_rel"] / TARGETS["mass_rel"], bounds["com_m"] / TARGETS["com_m"]]
-        )
+    def _ratios(self, bounds: dict) -> np.ndarray:
+        """bound / target: the three principal moments (ascending), mass, centre of mass."""
+        values = list(bounds["principal_rel"]) + [bounds["mass_rel"], bounds["com_m"]]
+        return np.array(values) / self.targets
+
+    def reference_bounds(self, reference) -> dict:
+        """The bounds (``ExcitationModel.bounds``) a reference trajectory (t -> ``Reference``,
+        e.g. ``Trajectory("figure8_tumble")``) gets on the designer's own grid of update
+        instants, as a design is scored: usable as ``DesignSettings.targets``."""
+        motion = reference_motion(reference, self.times[self.used])
+        return self.model.bounds(self.model.fisher(motion, self.weight))
 
     def objective_and_constraints(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """log(bound_i / target_i) (5,) and the constraints (>= 0 where satisfied): every
@@ -597,7 +682,11 @@ class ExcitationDesigner:
         info = {
             "predicted_bounds": filtered,
             "predicted_bounds_unfiltered": self.evaluate(design)["bounds"],
-            "targets": TARGETS,
+            "targets": {
+                "principal_rel": self.targets[:3].tolist(),
+                "mass_rel": float(self.targets[3]),
+                "com_m": float(self.targets[4]),
+            },
             "max_violation": ev["max_violation"],
             "peak_thrust_ratio_per_axis": thrust.max(axis=(0, 1)).tolist(),
             "binding": sorted(ev["max_violation"], key=lambda k: -ev["max_violation"][k])[0],

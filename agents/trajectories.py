@@ -255,6 +255,18 @@ def _evaluate_arrays(t: float, shape: _Shape) -> tuple[np.ndarray, np.ndarray, n
     return rot, vecs, np.array([pan, pan_rate])
 
 
+@njit(cache=True)
+def _evaluate_arrays_of(t, moving, tumble, pan_ramp, center_m, figure8_amp_m, figure8_harmonic,
+                        omega_radps, ramp_s, tumble_amp_rad, tumble_omega_radps):  # fmt: skip
+    """``_evaluate_arrays`` with the ``_Shape`` given field by field (numba types a tuple's
+    fields one by one in Python at each call, separate arguments at C speed)."""
+    shape = _Shape(
+        moving, tumble, pan_ramp, center_m, figure8_amp_m, figure8_harmonic, omega_radps,
+        ramp_s, tumble_amp_rad, tumble_omega_radps,
+    )  # fmt: skip
+    return _evaluate_arrays(t, shape)
+
+
 class Trajectory:
     """A named reference: ``Trajectory(name, fast=False)(t)`` -> ``Reference`` at t (s);
     ``arrays(t)`` packs the same numbers for the env's per-step kernels."""
@@ -304,4 +316,4 @@ class Trajectory:
     def arrays(self, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The reference at ``t`` as arrays (the same numbers as ``self(t)``): rotation (3, 3);
         pos, vel, acc, w, wd as the rows of a (5, 3), world axes; (pan, pan_rate) (2,)."""
-        return _evaluate_arrays(float(t), self._shape)
+        return _evaluate_arrays_of(float(t), *self._shape)

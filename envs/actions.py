@@ -52,3 +52,46 @@ def scale_actions(actions, acting, thrust_limits, arm_targets, joint_low, joint_
             move = min(max(wanted - arm_targets[i, j], -max_move_rad), max_move_rad)
             targets[i, j] = min(max(arm_targets[i, j] + move, joint_low[i, j]), joint_high[i, j])
     return clipped, n_clipped, effort, commands, targets
+
+
+@njit(cache=True)
+def thrust_saturation(actions: np.ndarray, clipped: np.ndarray) -> np.ndarray:
+    """Per row, the share of the requested thrust a robot could not deliver: 1 - |a_c| / |a|
+    over the six thrust entries of the action a as given and a_c as clipped to [-1, 1] (0 for
+    a zero request), in [0, 1]."""
+    wanted = np.sqrt((actions[:, :6] ** 2).sum(axis=1))
+    delivered = np.sqrt((clipped[:, :6] ** 2).sum(axis=1))
+    return np.where(wanted > 0, 1.0 - delivered / np.maximum(wanted, 1e-300), 0.0)
+
+
+@njit(cache=True)
+def command_period(actions, acting, thrust_limits, joint_low, joint_high, max_move_rad, dt_s,
+                   arm_targets, arm_rates, noise, actuation_std, thrust_scale, rows, thrust_ctrl,
+                   arm_ctrl, ctrl, n_clipped, effort, saturation):  # fmt: skip
+    """One period's commands, in place: ``scale_actions`` for every robot (servo targets
+    ``arm_targets`` (N, 2) and their rate ``arm_rates`` = (q' - q) / dt, effort sum(a^2) and
+    clipped entries (N,), ``thrust_saturation`` (N,), zero for robots not ``acting``); returns the
+    thrust commands (N, 6). MuJoCo's controls ``ctrl`` of the robots in the world (``rows``, (H,)
+    robot indices; ``thrust_ctrl`` (H, 6), ``arm_ctrl`` (H, 2) actuator ids) get the delivered
+    wrench u_d = s (u + (std_abs + std_rel |u|) n) with the standard normals ``noise`` (H, 6),
+    ``actuation_std`` rows (std_abs, std_rel) and the thrust scale s (H,) of faults, and the
+    servo targets."""
+    clipped, clipped_count, effort_now, commands, targets = scale_actions(
+        actions, acting, thrust_limits, arm_targets, joint_low, joint_high, max_move_rad,
+        ARM_DEPLOYED, ARM_OFFSET_RAD,
+    )  # fmt: skip
+    saturated = thrust_saturation(actions, clipped)
+    for i in range(actions.shape[0]):
+        n_clipped[i], effort[i] = clipped_count[i], effort_now[i]
+        saturation[i] = saturated[i] if acting[i] else 0.0
+        arm_rates[i] = (targets[i] - arm_targets[i]) / dt_s
+        arm_targets[i] = targets[i]
+    for k in range(rows.shape[0]):
+        u = commands[rows[k]]
+        std = actuation_std[0] + actuation_std[1] * np.abs(u)
+        delivered = (u + std * noise[k]) * thrust_scale[k]
+        for j in range(thrust_ctrl.shape[1]):
+            ctrl[thrust_ctrl[k, j]] = delivered[j]
+        for j in range(arm_ctrl.shape[1]):
+            ctrl[arm_ctrl[k, j]] = arm_targets[rows[k], j]
+    return commands

@@ -336,6 +336,7 @@ from astrocargo.envs.transport import (  # noqa: F401
     TERMINATION_REASONS,
     CargoTransport,
     StepResult,
+    all_finite,
 )
 
 # Tracking camera: looking down the aisle (+x) from 1.5 m behind the cargo and 0.55 m above it,
@@ -451,22 +452,32 @@ class AstrobeeCargoEnv(ParallelEnv):
             raise RuntimeError(
                 "the episode has ended (or reset() was never called): call reset() before step()"
             )
-        live = self.agents[:]
-        result = self.sim.step(self._action_array(actions))
+        live = self.agents  # replaced below, never changed in place
+        result = self.sim.step_checked(self._action_array(actions))
         truncated = self.sim.step_count >= self.max_cycles
-        released = {self.possible_agents[i] for i in result.released}
-        reward_values = result.rewards.tolist()
-        rewards = {a: reward_values[self._index[a]] for a in live}
-        terminations = {a: result.terminated or a in released for a in live}
+        rewards, obs, infos = self._by_live(
+            live, (result.rewards.tolist(), result.observations, result.infos)
+        )
+        if result.released:
+            released = {self.possible_agents[i] for i in result.released}
+            terminations = {a: result.terminated or a in released for a in live}
+        else:
+            terminations = dict.fromkeys(live, result.terminated)
         truncations = dict.fromkeys(live, truncated)
-        obs = self._by_agent(result.observations, live)
-        infos = self._by_agent(result.infos, live)
-        self.agents = [a for a in live if not (terminations[a] or truncations[a])]
-        if not self.agents:
-            self._episode_over = True
+        if result.terminated or truncated or result.released:
+            self.agents = [a for a in live if not (terminations[a] or truncations[a])]
+            if not self.agents:
+                self._episode_over = True
         if self.render_mode == "human":
             self.render()
         return obs, rewards, terminations, truncations, infos
+
+    def _by_live(self, live: list[str], columns: tuple) -> list[dict[str, Any]]:
+        """Each of ``columns`` (indexed by robot) as a dict over the ``live`` agents."""
+        if len(live) == len(self.possible_agents):  # live is possible_agents, in index order
+            return [dict(zip(live, values, strict=True)) for values in columns]
+        rows = [self._index[a] for a in live]
+        return [{a: values[i] for a, i in zip(live, rows, strict=True)} for values in columns]
 
     def _action_array(self, actions: dict[str, np.ndarray]) -> np.ndarray:
         """Every live agent's validated action in one array (rows of robots that have let go:
@@ -474,23 +485,33 @@ class AstrobeeCargoEnv(ParallelEnv):
         ``aec_to_parallel`` does."""
         if not isinstance(actions, dict):
             raise ValueError(f"actions must be a dict agent -> array, got {type(actions).__name__}")
+        agents = self.agents
+        # Every live agent's action at once; anything off (an unknown agent, missing, ragged,
+        # not finite) takes the checks below, which say what is wrong.
+        stacked = None
+        if len(actions) == len(agents):
+            try:
+                stacked = np.array([actions[a] for a in agents], dtype=np.float64)
+            except (KeyError, TypeError, ValueError):
+                stacked = None
+        if (
+            stacked is not None
+            and stacked.shape == (len(agents), ACTION_DIM)
+            and all_finite(stacked)
+        ):
+            if len(agents) == self.sim.n_robots:
+                return stacked
+            out = np.zeros((self.sim.n_robots, ACTION_DIM))
+            out[self._live_rows()] = stacked
+            return out
+        return self._checked_action_array(actions)
+
+    def _checked_action_array(self, actions: dict[str, np.ndarray]) -> np.ndarray:
+        """``_action_array`` agent by agent: ``ValueError`` says which action is wrong."""
         for agent in actions:
             if agent not in self._index:
                 raise ValueError(f"action for unknown agent {agent!r}; agents: {self.agents}")
         out = np.zeros((self.sim.n_robots, ACTION_DIM))
-        # Every live agent's action at once; anything off (missing, ragged, not finite) takes
-        # the agent-by-agent checks below, which say what is wrong.
-        try:
-            stacked = np.array([actions[a] for a in self.agents], dtype=np.float64)
-        except (KeyError, TypeError, ValueError):
-            stacked = None
-        if (
-            stacked is not None
-            and stacked.shape == (len(self.agents), ACTION_DIM)
-            and np.isfinite(stacked).all()
-        ):
-            out[self._live_rows()] = stacked
-            return out
         for agent in self.agents:
             i = self._index[agent]
             if agent not in actions:

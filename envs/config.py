@@ -30,6 +30,53 @@ RENDER_CAMERA_TRACK = "track"
 MAX_RENDER_SIZE = {"render_width": 1280, "render_height": 720}  # the MJCF's offscreen buffer
 REWARD_TERMS = ("track", "effort", "info", "contact")
 
+# The learning tasks of scripts/train.py and evaluate.py (``--task NAME``): keyword arguments of
+# ``cargo_env_fn`` (those of ``astrobee_cargo_v0.parallel_env`` plus ``action_repeat``, the control
+# steps per decision of the policy). docs/learning.md gives the measurements behind each choice.
+LEARNING_TASKS: dict[str, dict[str, Any]] = {
+    # The first task: the first 10 s of the figure-eight (the reference starts moving from rest),
+    # the default 5 kg cargo (only its centre of mass drawn), the env and the policy at 12.5 Hz:
+    # 125 decisions. Too short for the mass estimate to converge, and at 12.5 Hz the estimators
+    # stall (docs/learning.md).
+    "figure8_10s": {
+        "trajectory": "figure8_yaw",
+        "control_hz": 12.5,
+        "max_cycles": 125,
+        "noise": "nominal",
+        "action_repeat": 1,
+    },
+    # The cargo varies: its mass uniform in [1, 20] kg at each reset (centre of mass uniform in
+    # +-3 cm, inertia that of a uniform box of the bag's size and the drawn mass); 30 s of the
+    # figure-eight; the env (scripted feedback, estimators) at the GNC rate 62.5 Hz, the policy
+    # deciding at 12.5 Hz (every fifth control step): 375 decisions. The scripted controller's
+    # mass estimate is within 5 % by about 6 s for 5-20 kg.
+    "cargo": {
+        "trajectory": "figure8_yaw",
+        "control_hz": 62.5,
+        "max_cycles": 1875,
+        "noise": "nominal",
+        "cargo_mass_kg": (1.0, 20.0),
+        "action_repeat": 5,
+    },
+    # Learned excitation: 90 s of the tumbling figure-eight (the flight time of the designed
+    # ``excite`` trajectory), the default 5 kg cargo, the information reward (decrease of the
+    # estimate's sum(log std) per step) with tracking (the leash that keeps the cargo in the
+    # aisle) and a strong contact penalty; 62.5 Hz env, decisions at 12.5 Hz. Weights: with the
+    # env's defaults (w_info 1, w_effort 0.01) the scripted controller's 90 s on ``excite`` score
+    # below those on the tumble (information +4 against effort -29); w_info 10 and w_effort
+    # 0.001 rank the more informative flight first (docs/learning.md).
+    "excitation": {
+        "trajectory": "figure8_tumble",
+        "control_hz": 62.5,
+        "max_cycles": 5625,
+        "noise": "nominal",
+        "w_info": 10.0,
+        "w_effort": 0.001,
+        "w_contact": 10.0,
+        "action_repeat": 5,
+    },
+}
+
 
 @dataclass(frozen=True)
 class EnvConfig:

@@ -141,3 +141,80 @@ def parse_release_at(release_at: Any, n_robots: int, dt_s: float) -> dict[int, i
         # The first control instant k * dt at or after time_s (k >= 1: never at reset).
         steps[int(robot)] = max(1, math.ceil(time_s / dt_s - 1e-9))
     return steps
+
+
+class FaultSchedule:
+    """An episode's faults at the control steps they act at, and what they did: per robot,
+    the counters ``FAULT_COUNTERS`` (episode totals). ``rng``: the faults' own generator (None
+    without faults, so that a run without them draws as it always did)."""
+
+    def __init__(self, faults: tuple[Fault, ...], dt_s: float, n_robots: int) -> None:
+        # Each fault with the control steps [first, end) it is active at.
+        self.windows = [(f, *f.steps(dt_s)) for f in faults]
+        self.n_robots = n_robots
+        self.rng: np.random.Generator | None = None
+        self.counts = {k: np.zeros(n_robots, dtype=np.int64) for k in FAULT_COUNTERS}
+
+    def reset(self, rng: np.random.Generator | None, channel: Any) -> None:
+        """Start an episode: counters to zero, the channel's bursts and delays scheduled."""
+        self.rng = rng
+        self.counts = {k: np.zeros(self.n_robots, dtype=np.int64) for k in FAULT_COUNTERS}
+        for fault, first, end in self.windows:
+            if fault.kind == "comm_burst":
+                channel.add_burst(fault.robot, first, end, fault.prob)
+            elif fault.kind == "comm_delay":
+                channel.add_delay(fault.robot, first, end, fault.delay_s)
+
+    def active(self, kind: str, k: int) -> list[Fault]:
+        """The faults of ``kind`` active at control step ``k``."""
+        return [f for f, first, end in self.windows if f.kind == kind and first <= k < end]
+
+    def thrust_scale(self, k: int, holding: tuple[int, ...], unit: np.ndarray) -> np.ndarray:
+        """Delivered over commanded thrust (H,) of the ``holding`` robots at step ``k``: the
+        propulsion faults' scales (``unit``, ones, without any); the steps are counted."""
+        if not self.windows:
+            return unit
+        scale = unit.copy()
+        weakened = set()
+        for fault in self.active("propulsion", k):
+            if fault.robot in holding:
+                scale[holding.index(fault.robot)] *= fault.scale
+                weakened.add(fault.robot)
+        if weakened:
+            self.counts["propulsion_steps"][list(weakened)] += 1
+        return scale
+
+    def apply_to_readings(self, has_imu: np.ndarray, has_fix: np.ndarray, k: int) -> None:
+        """Clear (in place) the IMU frames and fixes that the faults of step ``k`` take away
+        (counted); an IMU dropout with ``prob`` < 1 draws from ``rng``."""
+        if not self.windows:
+            return
+        for fault in self.active("imu_dropout", k):
+            i = fault.robot
+            if not has_imu[i]:
+                continue  # let go, or two overlapping dropouts
+            if fault.prob < 1.0 and self.rng.random() >= fault.prob:
+                continue
+            has_imu[i] = False
+            self.counts["imu_frames_missing"][i] += 1
+        for fault in self.active("localization_outage", k):
+            i = fault.robot
+            if has_fix[i]:
+                has_fix[i] = False
+                self.counts["fixes_missing"][i] += 1
+
+    def infos(self, k: int, channel_stats: dict[str, np.ndarray]) -> list[dict[str, Any]]:
+        """Every robot's counters (with the channel's ``channel_stats`` as messages_<name>)
+        and the kinds of its faults active at step ``k``."""
+        if not self.windows:  # none injected: every counter stays 0
+            return [{**NO_FAULT_COUNTS, "active": []} for _ in range(self.n_robots)]
+        counts = {name: v.tolist() for name, v in self.counts.items()}
+        counts.update({f"messages_{name}": v.tolist() for name, v in channel_stats.items()})
+        active: list[list[str]] = [[] for _ in range(self.n_robots)]
+        for f, first, end in self.windows:
+            if first <= k < end:
+                active[f.robot].append(f.kind)
+        return [
+            {**{name: c[i] for name, c in counts.items()}, "active": active[i]}
+            for i in range(self.n_robots)
+        ]

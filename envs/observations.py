@@ -84,28 +84,41 @@ def grasp_pose(link_parent, link_rot, link_pos, link_axis, grasp_link, grasp_rot
 
 
 @njit(cache=True)
+def _put(row, start, value):
+    """row[start : start + len(value)] = value."""
+    for k in range(value.shape[0]):
+        row[start + k] = value[k]
+
+
+@njit(cache=True)
+def _put_in_base(row, start, rot, a, b):
+    """row[start : start + 3] = R^T (a - b): a difference of world vectors in base axes (as
+    ``matvec3(rot.T, a - b)``, without temporaries)."""
+    for i in range(3):
+        total = 0.0
+        for k in range(3):
+            total += rot[k, i] * (a[k] - b[k])
+        row[start + i] = total
+
+
+@njit(cache=True)
 def _own_blocks(out, starts, rot, base_pos, base_vel, w, q, target, rot_ref, pos_ref, vel_ref,
                 ref_vecs, ref_pan, qd):  # fmt: skip
-    """Write the OWN_BLOCKS of one row at ``starts``; ref_vecs rows: the cargo reference's
-    position, velocity, acceleration, angular velocity and angular acceleration (world)."""
-    rot_t = rot.T
-    values = [
-        matvec3(rot_t, base_pos - pos_ref),
-        matvec3(rot_t, base_vel - vel_ref),
-        log_so3(matmul3(rot_ref.T, rot)),
-        w,
-        q,
-        target,
-        matvec3(rot_t, ref_vecs[0] - base_pos),
-        matvec3(rot_t, ref_vecs[1]),
-        matvec3(rot_t, ref_vecs[2]),
-        matvec3(rot_t, ref_vecs[3]),
-        matvec3(rot_t, ref_vecs[4]),
-        ref_pan,
-        qd,
-    ]
-    for block, value in enumerate(values):
-        out[starts[block] : starts[block] + value.shape[0]] = value
+    """Write the OWN_BLOCKS of one row at ``starts`` (in OWN_BLOCKS order); ref_vecs rows: the
+    cargo reference's position, velocity, acceleration, angular velocity and angular
+    acceleration (world)."""
+    zero = np.zeros(3)
+    _put_in_base(out, starts[0], rot, base_pos, pos_ref)
+    _put_in_base(out, starts[1], rot, base_vel, vel_ref)
+    _put(out, starts[2], log_so3(matmul3(rot_ref.T, rot)))
+    _put(out, starts[3], w)
+    _put(out, starts[4], q)
+    _put(out, starts[5], target)
+    _put_in_base(out, starts[6], rot, ref_vecs[0], base_pos)
+    for block in range(1, 5):  # the reference's velocity ... angular acceleration
+        _put_in_base(out, starts[6 + block], rot, ref_vecs[block], zero)
+    _put(out, starts[11], ref_pan)
+    _put(out, starts[12], qd)
 
 
 @njit(cache=True)
@@ -117,6 +130,7 @@ def assemble(out, acting, own_starts, peer_starts, estimate_start, rot, base_pos
     as they are. Robots are rows of the (N, ...) inputs; peer_* (N, P, ...) hold the latest
     message of each peer slot (wrench in world axes; peer_arm (N, P, 4): the sender's arm angles
     and rates); estimates (N, 20) or (N, 0); qd (N, 2) the own arm rates."""
+    zero = np.zeros(3)
     for i in range(out.shape[0]):
         if not acting[i]:
             continue
@@ -132,18 +146,16 @@ def assemble(out, acting, own_starts, peer_starts, estimate_start, rot, base_pos
             row, own_starts, rot[i], base_pos[i], base_vel[i], w[i], q[i], target[i], rot_ref,
             pos_ref, vel_ref, ref_vecs, ref_pan, qd[i],
         )  # fmt: skip
-        rot_t = rot[i].T
         for p in range(peer_starts.shape[0]):
             s_wrench, s_age, s_valid = peer_starts[p, 0], peer_starts[p, 1], peer_starts[p, 2]
-            row[s_wrench : s_wrench + 3] = matvec3(rot_t, peer_wrench[i, p, :3])
-            row[s_wrench + 3 : s_wrench + 6] = matvec3(rot_t, peer_wrench[i, p, 3:])
+            _put_in_base(row, s_wrench, rot[i], peer_wrench[i, p, :3], zero)
+            _put_in_base(row, s_wrench + 3, rot[i], peer_wrench[i, p, 3:], zero)
             row[s_age] = peer_age[i, p]
             row[s_valid] = peer_valid[i, p]
-            s_q, s_qd = peer_starts[p, 3], peer_starts[p, 4]
-            row[s_q : s_q + 2] = peer_arm[i, p, :2]
-            row[s_qd : s_qd + 2] = peer_arm[i, p, 2:]
+            _put(row, peer_starts[p, 3], peer_arm[i, p, :2])
+            _put(row, peer_starts[p, 4], peer_arm[i, p, 2:])
         if estimates.shape[1] > 0:
-            row[estimate_start : estimate_start + estimates.shape[1]] = estimates[i]
+            _put(row, estimate_start, estimates[i])
 
 
 class ObservationBuilder:
@@ -180,6 +192,12 @@ class ObservationBuilder:
         self.grasp_pos = np.array([r.grasp_pos for r in robots], dtype=float)
         self.handrail_rot = np.array([rot for rot, _ in handrail_pose], dtype=float)
         self.handrail_pos = np.array([pos for _, pos in handrail_pose], dtype=float)
+        # What ``assemble`` takes besides the step's values, in one tuple (its argument order).
+        self.constants = (
+            self.own_starts, self.peer_starts, self.estimate_start, self.link_parent,
+            self.link_rot, self.link_pos, self.link_axis, self.grasp_link, self.grasp_rot,
+            self.grasp_pos, self.handrail_rot, self.handrail_pos,
+        )  # fmt: skip
 
     def build(self, acting, rot, base_pos, base_vel, w, q, target, ref_rot, ref_vecs, ref_pan,
               peer_wrench, peer_age, peer_valid, estimates, qd=None,

@@ -1,13 +1,18 @@
 """The reward terms (the env docstring's section Rewards): per robot, the team's and its own
 (individual) value of each term, mixed as shared * team + (1 - shared) * individual and
-weighted; the reward is their sum."""
+weighted; the reward is their sum. ``observe_and_reward`` is the step's one compiled call after
+the physics, sensing and navigation: the observations (``envs.observations``), then the rewards.
+
+Tracking term: -(|p - p_ref| + ROTATION_WEIGHT_M_PER_RAD |log(R_ref^T R)|) of the true cargo
+frame pose (p, R) against the reference (p_ref, R_ref), m and rad."""
 
 from __future__ import annotations
 
 import numpy as np
 from numba import njit
 
-from astrocargo.envs.config import REWARD_TERMS
+from astrocargo.envs.observations import assemble
+from astrocargo.estimator.geometry import log_so3, matmul3
 
 ROTATION_WEIGHT_M_PER_RAD = 0.5  # tracking term: metres of position error per radian
 
@@ -46,20 +51,57 @@ def mix_rewards(track, effort, info, robot_contacts, cargo_contacts, acting, wei
     return mixed, rewards
 
 
-def reward_terms(
-    track: float,
-    effort: np.ndarray,
-    info: np.ndarray,
-    robot_contacts: np.ndarray,
-    cargo_contacts: int,
-    acting: np.ndarray,
-    weights: np.ndarray,
-    shared: float,
-) -> tuple[dict[str, list[float]], np.ndarray]:
-    """Every term per robot by name, weighted and mixed, and the reward per robot; the contact
-    term counts a robot's own contacts plus the cargo's (team: every contact)."""
-    mixed, rewards = mix_rewards(
-        float(track), effort, info, robot_contacts, int(cargo_contacts), acting, weights,
-        float(shared),
+@njit(cache=True)
+def tracking_errors(pos, rot, ref_pos, ref_rot):
+    """Position error |p - p_ref| (m) and rotation angle error |log(R_ref^T R)| (rad)."""
+    offset = pos - ref_pos
+    angle = log_so3(matmul3(ref_rot.T, rot))
+    return np.sqrt(np.sum(offset * offset)), np.sqrt(np.sum(angle * angle))
+
+
+@njit(cache=True)
+def all_finite(values):
+    """Whether every entry of a contiguous array is finite (no temporary, unlike np.isfinite)."""
+    for x in values.ravel():
+        if not np.isfinite(x):
+            return False
+    return True
+
+
+@njit(cache=True)
+def observe_and_reward(obs, acting, builder, nav, q, target, ref, peers, estimates, qd,
+                       cargo_pose, finite, effort, info, contacts, weights, shared, mixed,
+                       rewards):  # fmt: skip
+    """The observations of the ``acting`` robots into ``obs`` (N, obs_dim), zeros elsewhere
+    (``assemble``: ``builder`` is ``ObservationBuilder.constants``, ``nav`` the navigator's
+    (rot, base_pos, base_vel, w_base), ``ref`` the reference's arrays, ``peers`` the peer slots'
+    (wrench, age, valid, arm)); a non-finite entry is zeroed and makes the step not ``finite``.
+    Then the weighted, mixed terms ``mixed`` (4, N) and ``rewards`` (N,) of ``mix_rewards``:
+    tracking of the cargo pose ``cargo_pose`` (xpos, xmat, cargo body) when finite, else 0;
+    effort -``effort``; ``info``; ``contacts`` (per robot (N,), the cargo's). Returns finite."""
+    obs[:] = 0.0
+    assemble(
+        obs, acting, builder[0], builder[1], builder[2], nav[0], nav[1], nav[2], nav[3], q,
+        target, builder[3], builder[4], builder[5], builder[6], builder[7], builder[8],
+        builder[9], builder[10], builder[11], ref[0], ref[1], ref[2], peers[0], peers[1],
+        peers[2], estimates, qd, peers[3],
     )  # fmt: skip
-    return dict(zip(REWARD_TERMS, mixed.tolist(), strict=True)), rewards
+    if not all_finite(obs):
+        finite = False
+        flat = obs.ravel()
+        for k in range(flat.shape[0]):
+            if not np.isfinite(flat[k]):
+                flat[k] = 0.0
+    track = 0.0
+    if finite:
+        xpos, xmat, body = cargo_pose
+        pos_err, angle_err = tracking_errors(
+            xpos[body], xmat[body].reshape(3, 3), ref[1][0], ref[0]
+        )
+        track = -(pos_err + ROTATION_WEIGHT_M_PER_RAD * angle_err)
+    terms, total = mix_rewards(
+        track, -effort, info, contacts[0], contacts[1], acting, weights, shared
+    )
+    mixed[:] = terms
+    rewards[:] = total
+    return finite

@@ -141,6 +141,15 @@ class SensorReadings:
         fix = (self.base_pos_world[k], self.base_quat_world[k]) if self.has_fix[k] else (None,) * 2
         return SensorPacket(self.time_s, *imu, self.joint_pos_rad[k], *fix)
 
+    @classmethod
+    def empty(cls, n_rows: int, n_joints: int = 2) -> SensorReadings:
+        """Readings of ``n_rows`` robots, every value zero, nothing valid."""
+        return cls(
+            0.0, np.zeros((n_rows, 3)), np.zeros((n_rows, 3)), np.zeros((n_rows, n_joints)),
+            np.zeros((n_rows, 3)), np.zeros((n_rows, 4)), np.zeros(n_rows, dtype=np.bool_),
+            np.zeros(n_rows, dtype=np.bool_),
+        )  # fmt: skip
+
     def in_rows(self, rows: list[int], n_rows: int) -> SensorReadings:
         """These readings as rows ``rows`` of ``n_rows`` (the others: zeros, nothing valid)."""
         out = []
@@ -192,6 +201,14 @@ def noisy_readings(v0, r0, dt_s, cvel, site_xpos, site_xmat, subtree_com, bodies
     the pose too, the attitude perturbed in the body frame: q exp(noise). Returns accel, gyro,
     joints, pos, quat (zeros without a fix)."""
     v1, r1 = imu_site_state(cvel, site_xpos, site_xmat, subtree_com, bodies, roots, sites)
+    return _readings_from(
+        v0, r0, v1, r1, dt_s, sensordata, joint_adr, pos_adr, quat_adr, noise, fix
+    )
+
+
+@njit(cache=True)
+def _readings_from(v0, r0, v1, r1, dt_s, sensordata, joint_adr, pos_adr, quat_adr, noise, fix):
+    """``noisy_readings`` from the IMU states at the period's start and end."""
     accel_mean, gyro_mean = imu_period_means(v0, r0, v1, r1, dt_s)
     n = accel_mean.shape[0]
     accel, gyro = accel_mean + noise[:, 0:3], gyro_mean + noise[:, 3:6]
@@ -202,6 +219,42 @@ def noisy_readings(v0, r0, dt_s, cvel, site_xpos, site_xmat, subtree_com, bodies
             pos[k] = sensordata[pos_adr[k]] + noise[k, 8:11]
             quat[k] = quat_mul(sensordata[quat_adr[k]], rotvec_to_quat(noise[k, 11:14]))
     return accel, gyro, joints, pos, quat
+
+
+@njit(cache=True)
+def imu_state_into(v0, r0, cvel, site_xpos, site_xmat, subtree_com, imu_index):
+    """``imu_site_state`` of the IMUs ``imu_index`` (3, H: bodies, roots, sites) written into
+    ``v0`` (H, 3) and ``r0`` (H, 3, 3): the start of a control period."""
+    vel, rot = imu_site_state(
+        cvel, site_xpos, site_xmat, subtree_com, imu_index[0], imu_index[1], imu_index[2]
+    )
+    v0[:] = vel
+    r0[:] = rot
+
+
+@njit(cache=True)
+def read_into(v0, r0, dt_s, cvel, site_xpos, site_xmat, subtree_com, imu_index, sensordata,
+              joint_adr, pos_adr, quat_adr, noise, fix, rows, accel, gyro, joints, pos, quat,
+              has_imu, has_fix):  # fmt: skip
+    """``noisy_readings`` of the H robots in the world written into rows ``rows`` (H,) of the
+    (N, ...) readings ``accel``, ``gyro``, ``joints``, ``pos``, ``quat``, ``has_imu`` and
+    ``has_fix`` (every IMU frame arrives; a fix where ``fix``); the other rows are cleared.
+    The IMU states now replace ``v0`` and ``r0``: the start of the next period."""
+    v1, r1 = imu_site_state(
+        cvel, site_xpos, site_xmat, subtree_com, imu_index[0], imu_index[1], imu_index[2]
+    )
+    values = _readings_from(
+        v0, r0, v1, r1, dt_s, sensordata, joint_adr, pos_adr, quat_adr, noise, fix
+    )
+    accel[:], gyro[:], joints[:], pos[:], quat[:] = 0.0, 0.0, 0.0, 0.0, 0.0
+    has_imu[:], has_fix[:] = False, False
+    for k in range(rows.shape[0]):
+        i = rows[k]
+        accel[i], gyro[i], joints[i] = values[0][k], values[1][k], values[2][k]
+        pos[i], quat[i] = values[3][k], values[4][k]
+        has_imu[i], has_fix[i] = True, fix
+    v0[:] = v1
+    r0[:] = r1
 
 
 # Noise draws per robot and reading, in the order they are drawn: (name, size).
@@ -230,6 +283,8 @@ class SensorSuite:
         self._joint_adr = np.array([[a["tilt_pos"], a["pan_pos"]] for a in adr], dtype=np.int64)
         self._pos_adr = np.array([a["base_pos"] + np.arange(3) for a in adr], dtype=np.int64)
         self._quat_adr = np.array([a["base_quat"] + np.arange(4) for a in adr], dtype=np.int64)
+        # The IMUs' bodies, their roots and sites (3, n), as read_into and imu_state_into take.
+        self.imu_index = np.array([self._imu_bodies, self._imu_roots, self._imu_sites])
         p = profile
         draws = _NOISE_DRAWS + _FIX_DRAWS
         self._noise_std = np.repeat(
@@ -240,6 +295,7 @@ class SensorSuite:
         self._n_draws_fix = sum(size for _, size in draws)
         self._actuation_abs = np.repeat([p.force_std_n, p.torque_std_nm], 3)
         self._actuation_rel = np.repeat([p.force_rel, p.torque_rel], 3)
+        self.actuation_std = np.array([self._actuation_abs, self._actuation_rel])  # (2, 6)
         self._start: tuple[np.ndarray, np.ndarray, float] | None = None
 
     def _imu_state(self, data: mujoco.MjData) -> tuple[np.ndarray, np.ndarray, float]:
@@ -261,6 +317,31 @@ class SensorSuite:
         readings = self.read_arrays(data, step)
         return [readings.packet(k) for k in range(len(readings.has_imu))]
 
+    def draw_noise(self, fix: bool) -> np.ndarray:
+        """The noise of one reading of every robot (n, draws), ``_NOISE_DRAWS`` then, at a
+        localization fix, ``_FIX_DRAWS``: standard deviation times a standard normal."""
+        n_draws = self._n_draws_fix if fix else self._n_draws
+        n = len(self._imu_sites)
+        return self._noise_std[:n_draws] * self.rng.standard_normal((n, n_draws))
+
+    def read_into(self, views: tuple, time_s: float, fix: bool, start: tuple,
+                  rows: np.ndarray, out: SensorReadings) -> None:  # fmt: skip
+        """``read_arrays``' numbers at ``time_s`` written into ``out`` (one row per robot index;
+        the robots of this world in ``rows``) from ``views`` (the data's cvel, site_xpos,
+        site_xmat, subtree_com, sensordata), for a period that began at ``start`` (the IMUs'
+        velocities (n, 3) and rotations (n, 3, 3), ``imu_state_into``, and the time; the first
+        two are overwritten with the IMU states now, the next period's start); the noise is
+        drawn here."""
+        v0, r0, t0 = start
+        cvel, site_xpos, site_xmat, subtree_com, sensordata = views
+        out.time_s = time_s
+        read_into(
+            v0, r0, time_s - t0, cvel, site_xpos, site_xmat, subtree_com, self.imu_index,
+            sensordata, self._joint_adr, self._pos_adr, self._quat_adr, self.draw_noise(fix),
+            fix, rows, out.accel_imu, out.gyro_imu, out.joint_pos_rad, out.base_pos_world,
+            out.base_quat_world, out.has_imu, out.has_fix,
+        )  # fmt: skip
+
     def read_arrays(self, data: mujoco.MjData, step: int) -> SensorReadings:
         """``read``'s readings as arrays, one row per robot (the same numbers)."""
         p = self.profile
@@ -272,8 +353,7 @@ class SensorSuite:
         time_s = float(data.time)
         if time_s <= t0:
             raise ValueError("read() needs begin_period() at the start of the period")
-        n_draws = self._n_draws_fix if fix else self._n_draws
-        noise = self._noise_std[:n_draws] * self.rng.standard_normal((n, n_draws))
+        noise = self.draw_noise(fix)
         readings = noisy_readings(
             v0, r0, time_s - t0, data.cvel, data.site_xpos, data.site_xmat, data.subtree_com,
             self._imu_bodies, self._imu_roots, self._imu_sites, data.sensordata,

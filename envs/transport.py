@@ -10,7 +10,6 @@ from typing import Any
 
 import mujoco
 import numpy as np
-from numba import njit
 
 from astrocargo.agents.excitation import make_trajectory
 from astrocargo.agents.trajectories import Reference
@@ -19,8 +18,9 @@ from astrocargo.envs.actions import (  # noqa: F401 (re-exported)
     ARM_DEPLOYED,
     ARM_OFFSET_RAD,
     ARM_SPEED_RADPS,
+    command_period,
     first_non_finite,
-    scale_actions,
+    thrust_saturation,
 )
 from astrocargo.envs.cargo import CARGO_COM_SPREAD_M, CargoDraw  # noqa: F401
 from astrocargo.envs.comms import CommChannel
@@ -34,53 +34,29 @@ from astrocargo.envs.estimation import (  # noqa: F401 (re-exported)
     TeamEstimation,
     make_estimators,
 )
-from astrocargo.envs.faults import (
-    FAULT_COUNTERS,
-    NO_FAULT_COUNTS,
-    Fault,
-    parse_release_at,
-)
+from astrocargo.envs.faults import FaultSchedule, parse_release_at
 from astrocargo.envs.navigation import BaseNavigator
 from astrocargo.envs.observations import ObservationBuilder, observation_layout
-from astrocargo.envs.rewards import ROTATION_WEIGHT_M_PER_RAD, reward_terms
-from astrocargo.envs.sensors import SensorReadings, SensorSuite, estimator_noise_kwargs
+from astrocargo.envs.physics import PeriodStepper
+from astrocargo.envs.rewards import (  # noqa: F401 (re-exported)
+    ROTATION_WEIGHT_M_PER_RAD,
+    all_finite,
+    observe_and_reward,
+    tracking_errors,
+)
+from astrocargo.envs.sensors import (
+    SensorReadings,
+    SensorSuite,
+    estimator_noise_kwargs,
+    imu_state_into,
+)
 from astrocargo.envs.sensors import noise_profile as get_noise_profile
 from astrocargo.envs.world import ARM_DEPLOYED_RAD, MAX_TIMESTEP_S, World
 from astrocargo.estimator.cargo_estimator import CargoEstimator
-from astrocargo.estimator.geometry import log_so3, mat_to_quat, matmul3, quat_to_mat
+from astrocargo.estimator.geometry import mat_to_quat, quat_to_mat
 
 REWARD_KEYS = tuple(f"reward_{t}" for t in REWARD_TERMS)  # their names in infos
-# MuJoCo's instability warnings: on a bad qpos, qvel or qacc it resets the state to the model's
-# initial one (and counts the warning), so after one the physics no longer continues.
-_UNSTABLE = np.array(
-    [int(getattr(mujoco.mjtWarning, f"mjWARN_BAD{x}")) for x in ("QPOS", "QVEL", "QACC")]
-)
 TERMINATION_REASONS = ("wall_contact", "non_finite", "released")  # "released": one agent
-
-
-@njit(cache=True)
-def all_finite(values):
-    """Whether every entry of a contiguous array is finite (no temporary, unlike np.isfinite)."""
-    for x in values.ravel():
-        if not math.isfinite(x):
-            return False
-    return True
-
-
-@njit(cache=True)
-def thrust_saturation(actions: np.ndarray, clipped: np.ndarray) -> np.ndarray:
-    """Per row, the share of the requested thrust a robot could not deliver: 1 - |a_c| / |a|
-    over the six thrust entries of the action a as given and a_c as clipped to [-1, 1] (0 for
-    a zero request), in [0, 1]."""
-    wanted = np.sqrt((actions[:, :6] ** 2).sum(axis=1))
-    delivered = np.sqrt((clipped[:, :6] ** 2).sum(axis=1))
-    return np.where(wanted > 0, 1.0 - delivered / np.maximum(wanted, 1e-300), 0.0)
-
-
-def tracking_errors(pos, rot, ref_pos, ref_rot):
-    """Position error |p - p_ref| (m) and rotation angle error |log(R_ref^T R)| (rad)."""
-    angle = log_so3(matmul3(ref_rot.T, rot))
-    return np.linalg.norm(pos - ref_pos), np.linalg.norm(angle)
 
 
 @dataclass(frozen=True)
@@ -131,8 +107,7 @@ class CargoTransport:
         # world without the robot, see _release), and state() keeps its layout.
         self._full_world = self.world
         self._full_data = mujoco.MjData(self.world.model)
-        # Each fault with the control steps [first, end) it is active at.
-        self._fault_windows = [(f, *f.steps(self.dt_s)) for f in self.faults]
+        self.fault_schedule = FaultSchedule(self.faults, self.dt_s, self.n_robots)
         self.release_steps = parse_release_at(c.release_at, self.n_robots, self.dt_s)
         self.comm_args = (c.comm_latency, c.comm_drop, c.comm_noise)
         CommChannel(self.n_robots, *self.comm_args, self.dt_s, np.random.default_rng(0))
@@ -154,6 +129,7 @@ class CargoTransport:
         self._joint_low, self._joint_high = self.joint_ranges[..., 0], self.joint_ranges[..., 1]
         self._bind_world(self._full_world, self._full_data)
         self._init_layouts()
+        self._init_step_arrays()
         if self.use_estimators:  # fail early on bad estimator settings
             self._make_estimators()
         self.step_count = 0
@@ -190,6 +166,19 @@ class CargoTransport:
         self.state_dim = 1 + full.nq + full.nv + 13 * (full.nbody - 1)
         self.state_dim += 10 + 21 + 2 * self.n_robots + self.n_robots
 
+    def _init_step_arrays(self) -> None:
+        """The per-robot arrays every step rewrites in place (what the step hands out is new)."""
+        n = self.n_robots
+        self._n_clipped, self._effort = np.zeros(n, dtype=np.int64), np.zeros(n)
+        self._saturation, self._no_info = np.zeros(n), np.zeros(n)
+        self._mixed = np.zeros((len(REWARD_TERMS), n))  # the weighted, mixed terms
+        self._readings = SensorReadings.empty(n)  # without estimators: reused every step
+        # Peer slots without estimators: no message is ever sent.
+        self._no_peers = (
+            np.zeros((n, n - 1, 6)), np.zeros((n, n - 1)), np.zeros((n, n - 1)),
+            np.zeros((n, n - 1, 4)),
+        )  # fmt: skip
+
     def _make_estimators(self) -> list[CargoEstimator]:
         return make_estimators(
             self.robots, self.dt_s, self.estimator_kwargs, self.world.relative_grasp
@@ -203,9 +192,12 @@ class CargoTransport:
         self.holding = world.holding
         self._acting_mask = np.zeros(self.n_robots, dtype=np.bool_)
         self._acting_mask[list(self.holding)] = True
-        # Index of the holding robots' rows in per-robot arrays: a slice (no copy) for all.
-        everyone = len(self.holding) == self.n_robots
-        self._rows: slice | list[int] = slice(None) if everyone else list(self.holding)
+        self._row_index = np.array(self.holding, dtype=np.int64)  # their rows, robot index
+        self._unit_scale = np.ones(len(self.holding))
+        # The IMUs' velocities (H, 3) and rotations (H, 3, 3) at the start of the period.
+        n_world = len(self.holding)
+        self._imu_v0, self._imu_r0 = np.zeros((n_world, 3)), np.zeros((n_world, 3, 3))
+        self._physics = PeriodStepper(self.model, data, self.frame_skip)
         self._thrust_ctrl = np.array([h.thrust_actuators for h in world.robots], dtype=int)
         self._arm_ctrl = np.array([h.arm_actuators for h in world.robots], dtype=int)
         # Which robot (index), the cargo (n_robots) or the module (-1) each geom belongs to.
@@ -218,13 +210,16 @@ class CargoTransport:
         # Where this world's qpos, qvel and bodies go in state()'s fixed layout.
         self._state_qpos, self._state_qvel, self._state_body = world.layout_in(self._full_world)
 
-    _VIEWS = ("_qpos", "_qvel", "_ctrl", "_xpos", "_xmat", "_warnings")
+    _VIEWS = ("_ctrl", "_xpos", "_xmat", "_sensor_views", "_cargo_pose")
 
     def _bind_views(self) -> None:
         """Views of the data's arrays used every step (each property access builds a new one)."""
         data = self.data
-        self._qpos, self._qvel, self._ctrl = data.qpos, data.qvel, data.ctrl
-        self._xpos, self._xmat, self._warnings = data.xpos, data.xmat, data.warning.number
+        self._ctrl, self._xpos, self._xmat = data.ctrl, data.xpos, data.xmat
+        self._sensor_views = (
+            data.cvel, data.site_xpos, data.site_xmat, data.subtree_com, data.sensordata,
+        )  # fmt: skip
+        self._cargo_pose = (data.xpos, data.xmat, self.world.cargo_body)
 
     # A copy (copy.deepcopy, pickle) gets its own MjData: the views are rebound to it, not copied
     # as detached arrays.
@@ -242,7 +237,6 @@ class CargoTransport:
         sensor_rng, comm_rng, cargo_rng = rng.spawn(3)
         # Spawned only with faults, so that a run without them draws as it always did.
         self.fault_rng = rng.spawn(1)[0] if self.faults else None
-        self.fault_counts = {k: np.zeros(self.n_robots, dtype=np.int64) for k in FAULT_COUNTERS}
         self.cargo = self.cargo_draw.sample(cargo_rng, self.world)
         if self.world is not self._full_world:  # robots let go last episode
             self._bind_world(self._full_world, self._full_data)
@@ -255,19 +249,18 @@ class CargoTransport:
             self.world.cargo_params_in_grasp_frame(i) for i in range(self.n_robots)
         ]
         self.sensors = SensorSuite(self.world, self.profile, sensor_rng)
+        self._kinematics_done()
         self.channel = CommChannel(
             self.n_robots, *self.comm_args, self.dt_s, comm_rng, fault_rng=self.fault_rng
         )
-        for fault, first, end in self._fault_windows:
-            if fault.kind == "comm_burst":
-                self.channel.add_burst(fault.robot, first, end, fault.prob)
-            elif fault.kind == "comm_delay":
-                self.channel.add_delay(fault.robot, first, end, fault.delay_s)
+        self.fault_schedule.reset(self.fault_rng, self.channel)
         self.estimators = self._make_estimators() if self.use_estimators else []
         self.estimation = TeamEstimation(
             self.n_robots, self.estimators, self.true_params_grasp, self.dt_s
         )
         self.navigator = BaseNavigator(self.robots, self.dt_s, self.profile)
+        nav = self.navigator
+        self._nav_state = (nav.rot, nav.base_pos, nav.base_vel, nav.w_base)
         self.arm_targets = np.tile(np.asarray(ARM_DEPLOYED_RAD), (self.n_robots, 1))
         self.arm_rates = np.zeros((self.n_robots, 2))  # the servo targets' rate, rad/s
         self.peer_msgs = self.estimation.peer_msgs  # per receiver: sender -> latest message
@@ -280,11 +273,10 @@ class CargoTransport:
         self.readings = readings
         self._refresh_estimates()
         self._log_std_sum = self._estimate_log_std_sums()
-        everyone = self.holding
         obs = self._get_obs(self._acting_mask)
-        zero_terms = {t: [0.0] * self.n_robots for t in REWARD_TERMS}
+        zero_terms = [[0.0] * self.n_robots for _ in REWARD_TERMS]
         none = np.zeros(self.n_robots, dtype=int)
-        infos = self._get_infos(zero_terms, none, none, None, everyone, ())
+        infos = self._get_infos(zero_terms, none, none, None, self.holding, ())
         return obs, infos
 
     def _read_at_rest(self) -> SensorReadings:
@@ -309,52 +301,50 @@ class CargoTransport:
             raise ValueError(
                 f"actions must have shape {(self.n_robots, ACTION_DIM)}, got {actions.shape}"
             )
-        acting = self.holding  # the robots of this step, those letting go at its end included
-        acting_mask = self._acting_mask
-        bad = first_non_finite(actions, acting_mask)
+        bad = first_non_finite(actions, self._acting_mask)
         if bad >= 0:
             raise ValueError(f"actions of robot {bad} are not all finite")
-        previous_targets = self.arm_targets
-        clipped, n_clipped, effort, commands, self.arm_targets = scale_actions(
-            actions, acting_mask, self.thrust_limits, self.arm_targets, self._joint_low,
-            self._joint_high, ARM_SPEED_RADPS * self.dt_s, ARM_DEPLOYED, ARM_OFFSET_RAD,
-        )  # fmt: skip
-        self.arm_rates = (self.arm_targets - previous_targets) / self.dt_s
-        saturated = np.where(acting_mask, thrust_saturation(actions, clipped), 0.0)
+        return self.step_checked(actions)
+
+    def step_checked(self, actions: np.ndarray) -> StepResult:
+        """``step`` of actions already checked: float64 (n_robots, 8), every acting row finite
+        (what the PettingZoo layer hands over after its own checks)."""
+        if not self._ready:
+            raise RuntimeError("call reset() before step(), and again after the episode ended")
+        acting = self.holding  # the robots of this step, those letting go at its end included
+        acting_mask = self._acting_mask
         self.step_count += 1
         k = self.step_count
-
-        self._apply_commands(commands)
-        mujoco.mj_step(self.model, self.data, nstep=self.frame_skip)
-        self._forward_kinematics()
-        finite = self._physics_finite()
+        commands = self._apply_commands(actions)
+        finite = self._physics.advance(self._kinematics_current)
         readings = self._read_sensors(k)
         self._update_estimators(readings, commands, k)
-        self.navigator.update(readings, self._acting_mask)
+        self.navigator.update(readings, acting_mask)
         self.readings = readings
 
-        robot_contacts, cargo_contacts = self._wall_contacts()
+        robot_contacts, cargo_contacts, n_contacts = self._wall_contacts()
         # A release due with a non-finite state does not happen: the episode ends (non_finite).
         released = ()
         if self.release_steps and finite:
             released = tuple(i for i in acting if self.release_steps.get(i) == k)
         if released:
             self._release(released)
-        obs = self._get_obs(acting_mask)
-        if not all_finite(obs):
-            finite = False
-            obs = np.nan_to_num(obs, nan=0.0, posinf=0.0, neginf=0.0)
+        obs, rewards = np.empty((self.n_robots, self.obs_dim)), np.empty(self.n_robots)
+        finite = observe_and_reward(
+            obs, acting_mask, *self._observe_inputs(acting_mask), self._cargo_pose, finite,
+            self._effort,
+            self._info_gain(), (robot_contacts, cargo_contacts), self._weights,
+            self.shared_reward, self._mixed, rewards,
+        )  # fmt: skip
         reason = None
         if not finite:
             reason = "non_finite"
-        elif robot_contacts.sum() + cargo_contacts > 0:
+        elif n_contacts > 0:
             reason = "wall_contact"
-        terms, rewards = self._get_rewards(
-            -effort, robot_contacts, cargo_contacts, finite, acting_mask
-        )
         infos = self._get_infos(
-            terms, n_clipped, robot_contacts + cargo_contacts, reason, acting, released, saturated
-        )
+            self._mixed.tolist(), self._n_clipped, robot_contacts + cargo_contacts, reason,
+            acting, released, self._saturation,
+        )  # fmt: skip
         if reason is not None or not self.holding:
             self._ready = False
         return StepResult(obs, rewards, reason is not None, reason, infos, released)
@@ -372,6 +362,7 @@ class CargoTransport:
         world.load_state(self.world, self.data, data)
         self._bind_world(world, data)
         self.sensors = SensorSuite(world, self.profile, self.sensors.rng)
+        self._kinematics_done()
         for i in released:
             self.channel.disconnect(i)
         for i in self.holding:
@@ -381,81 +372,55 @@ class CargoTransport:
                 self.estimators[i].set_peers([j for j in self.holding if j != i])
 
     # ------------------------------------------------------------------ one step, in order
-    def _apply_commands(self, commands: np.ndarray) -> None:
-        """Write d.ctrl of the robots holding the cargo: the thrust ``commands`` (n_robots, 6)
-        with actuation noise and the servo targets; start the period."""
-        rows = self._rows
-        delivered = self.sensors.actuate(commands[rows])  # row k: robot holding[k]
-        weakened = set()
-        for fault in self._active_faults("propulsion", self.step_count):
-            if fault.robot in self.holding:
-                delivered[self.holding.index(fault.robot)] *= fault.scale
-                weakened.add(fault.robot)
-        if weakened:
-            self.fault_counts["propulsion_steps"][list(weakened)] += 1
-        self._ctrl[self._thrust_ctrl] = delivered
-        self._ctrl[self._arm_ctrl] = self.arm_targets[rows]
-        self.sensors.begin_period(self.data)
+    def _apply_commands(self, actions: np.ndarray) -> np.ndarray:
+        """Scale the ``actions`` (``command_period``) and write d.ctrl of the robots holding the
+        cargo: the thrust commands with actuation noise (drawn here, ``SensorSuite.actuate``'s
+        draws) and the servo targets; start the period. Returns the thrust commands (N, 6)."""
+        noise = self.sensors.rng.standard_normal((len(self.holding), 6))
+        commands = command_period(
+            actions, self._acting_mask, self.thrust_limits, self._joint_low, self._joint_high,
+            ARM_SPEED_RADPS * self.dt_s, self.dt_s, self.arm_targets, self.arm_rates, noise,
+            self.sensors.actuation_std,
+            self.fault_schedule.thrust_scale(self.step_count, self.holding, self._unit_scale),
+            self._row_index,
+            self._thrust_ctrl, self._arm_ctrl, self._ctrl, self._n_clipped, self._effort,
+            self._saturation,
+        )  # fmt: skip
+        # The IMU states that started the period: kept from the last reading while qpos and
+        # qvel are as the last step (or reset) left them.
+        self._kinematics_current = self._physics.unchanged()
+        if not self._kinematics_current:
+            self._imu_period_start()
+        self._period_start_s = float(self.data.time)
+        return commands
 
-    def _forward_kinematics(self) -> None:
-        """The stages of ``mj_forward`` that the step reads after ``mj_step``: positions,
-        contacts and position sensors, then velocities. The acceleration stage (qacc,
-        constraint forces, acceleration sensors) is left as ``mj_step`` computed it, for the
-        state before its last integration: nothing here reads it, and the next ``mj_step``
-        recomputes it from qpos, qvel, ctrl and the solver's warm start."""
-        mujoco.mj_fwdPosition(self.model, self.data)
-        mujoco.mj_sensorPos(self.model, self.data)
-        mujoco.mj_fwdVelocity(self.model, self.data)
+    def _imu_period_start(self) -> None:
+        """The IMUs' velocities and rotations now, as the start of a period."""
+        cvel, site_xpos, site_xmat, subtree_com, _ = self._sensor_views
+        imu_state_into(
+            self._imu_v0, self._imu_r0, cvel, site_xpos, site_xmat, subtree_com,
+            self.sensors.imu_index,
+        )  # fmt: skip
 
-    def _physics_finite(self) -> bool:
-        unstable = self._warnings[_UNSTABLE].any()
-        return bool(
-            all_finite(self._qpos) and all_finite(self._qvel) and not unstable
-        )
+    def _kinematics_done(self) -> None:
+        """The data's position and velocity stages are those of its qpos and qvel now (after
+        ``mj_forward``): the next step may skip them (``envs.physics``) and start its period
+        from the IMU states now."""
+        self._physics.forward_done()
+        self._imu_period_start()
 
     def _read_sensors(self, k: int) -> SensorReadings:
         """Every robot's readings, one row per robot index (nothing valid in the rows of robots
         that have let go), with the faults of step ``k`` applied (after the sensor noise draws,
-        so a run with faults draws the same noise as one without)."""
-        readings = self.sensors.read_arrays(self.data, k)
-        if not isinstance(self._rows, slice):  # some robots let go: their rows stay empty
-            readings = readings.in_rows(self._rows, self.n_robots)
-        for fault in self._active_faults("imu_dropout", k):
-            i = fault.robot
-            if not readings.has_imu[i]:
-                continue  # let go, or two overlapping dropouts
-            if fault.prob < 1.0 and self.fault_rng.random() >= fault.prob:
-                continue
-            readings.has_imu[i] = False
-            self.fault_counts["imu_frames_missing"][i] += 1
-        for fault in self._active_faults("localization_outage", k):
-            i = fault.robot
-            if readings.has_fix[i]:
-                readings.has_fix[i] = False
-                self.fault_counts["fixes_missing"][i] += 1
+        so a run with faults draws the same noise as one without). Fresh arrays while
+        estimators run (they may keep a reading), else the same ones every step."""
+        readings = SensorReadings.empty(self.n_robots) if self.estimators else self._readings
+        fix = k % self.profile.localization_every == 0
+        start = (self._imu_v0, self._imu_r0, self._period_start_s)
+        time_s = float(self.data.time)
+        self.sensors.read_into(self._sensor_views, time_s, fix, start, self._row_index, readings)
+        self.fault_schedule.apply_to_readings(readings.has_imu, readings.has_fix, k)
         return readings
-
-    def _active_faults(self, kind: str, k: int) -> list[Fault]:
-        """The faults of ``kind`` active at control step ``k``."""
-        if not self._fault_windows:
-            return []
-        return [f for f, first, end in self._fault_windows if f.kind == kind and first <= k < end]
-
-    def _fault_infos(self) -> list[dict[str, Any]]:
-        """Every robot's injected-fault counters (episode totals) and the kinds active now."""
-        if not self._fault_windows:  # none injected: every counter stays 0
-            return [{**NO_FAULT_COUNTS, "active": []} for _ in range(self.n_robots)]
-        counts = {k: v.tolist() for k, v in self.fault_counts.items()}
-        counts.update({f"messages_{k}": v.tolist() for k, v in self.channel.fault_stats.items()})
-        active: list[list[str]] = [[] for _ in range(self.n_robots)]
-        k = self.step_count
-        for f, first, end in self._fault_windows:
-            if first <= k < end:
-                active[f.robot].append(f.kind)
-        return [
-            {**{name: c[i] for name, c in counts.items()}, "active": active[i]}
-            for i in range(self.n_robots)
-        ]
 
     def _update_estimators(self, readings: SensorReadings, commands: np.ndarray, k: int) -> None:
         """The team's estimation of step ``k`` (``TeamEstimation.step``); the estimates are
@@ -481,12 +446,12 @@ class CargoTransport:
             return np.zeros(self.n_robots)
         return self.estimation.log_std_sums
 
-    def _wall_contacts(self) -> tuple[np.ndarray, int]:
-        """Contacts with the module per robot, and those of the cargo."""
+    def _wall_contacts(self) -> tuple[np.ndarray, int, int]:
+        """Contacts with the module per robot, those of the cargo, and all of them."""
         ncon = self.data.ncon
         per_robot = np.zeros(self.n_robots, dtype=int)
         if ncon == 0:
-            return per_robot, 0
+            return per_robot, 0, 0
         geoms = self.data.contact.geom[:ncon]
         wall = self._wall_geom[geoms]
         owner = self._geom_owner[geoms]
@@ -494,7 +459,8 @@ class CargoTransport:
         hit = wall[:, 0] ^ wall[:, 1]
         other = np.where(wall[:, 0], owner[:, 1], owner[:, 0])[hit]
         per_robot += np.bincount(other[other < self.n_robots], minlength=self.n_robots)
-        return per_robot, int(np.sum(other == self.n_robots))
+        cargo = int(np.sum(other == self.n_robots))
+        return per_robot, cargo, int(per_robot.sum()) + cargo
 
     # ------------------------------------------------------------------ observations
     def reference(self) -> Reference:
@@ -519,15 +485,24 @@ class CargoTransport:
 
     def _get_obs(self, acting: np.ndarray) -> np.ndarray:
         """Observations of the ``acting`` robots (bool (N,); the others' rows zeros), from the
-        layout (``envs.observations``). A peer that has let go of the cargo has its slot zeroed: its
-        messages are forgotten (``_release``)."""
-        ref_rot, ref_vecs, ref_pan = self._reference_arrays()
-        nav = self.navigator
-        peer_wrench, peer_age, peer_valid, peer_arm = self._peer_slot_values(acting)
+        layout (``envs.observations``)."""
+        _, nav, q, target, ref, peers, estimates, qd = self._observe_inputs(acting)
         return self._observations.build(
-            acting, nav.rot, nav.base_pos, nav.base_vel, nav.w_base, self.readings.joint_pos_rad,
-            self.arm_targets, ref_rot, ref_vecs, ref_pan, peer_wrench, peer_age, peer_valid,
-            self._estimates, self.arm_rates, peer_arm,
+            acting, *nav, q, target, *ref, *peers[:3], estimates, qd, peers[3]
+        )
+
+    def _observe_inputs(self, acting: np.ndarray) -> tuple:
+        """What ``rewards.observe_and_reward`` takes for the observations, after ``obs`` and
+        ``acting``. A peer that has let go of the cargo has its slot zeroed: its messages are
+        forgotten (``_release``)."""
+        if self.estimators:
+            peer_wrench, peer_age, peer_valid, peer_arm = self._peer_slot_values(acting)
+            peers = (peer_wrench, peer_age, peer_valid, peer_arm)
+        else:
+            peers = self._no_peers
+        return (
+            self._observations.constants, self._nav_state, self.readings.joint_pos_rad,
+            self.arm_targets, self._reference_arrays(), peers, self._estimates, self.arm_rates,
         )  # fmt: skip
 
     def _peer_slot_values(self, acting: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -541,37 +516,19 @@ class CargoTransport:
         ref_rot, ref_vecs, _ = self._reference_arrays()
         return tracking_errors(self._xpos[b], self._xmat[b].reshape(3, 3), ref_vecs[0], ref_rot)
 
-    def _get_rewards(
-        self,
-        effort: np.ndarray,
-        robot_contacts: np.ndarray,
-        cargo_contacts: int,
-        finite: bool,
-        acting: np.ndarray,
-    ) -> tuple[dict[str, list[float]], np.ndarray]:
-        """Every reward term per robot, weighted and mixed (team vs individual), and their sum
-        per robot; ``effort`` is -|a|^2 per robot; the team of this step is the ``acting``
-        robots (bool (N,); the others' rows zeros)."""
-        if finite:
-            pos_err, angle_err = self.tracking_error()
-            track = -(pos_err + ROTATION_WEIGHT_M_PER_RAD * angle_err)
-        else:
-            track = 0.0
-        info = np.zeros(self.n_robots)  # without estimators: no information gained
-        if self.estimators:
-            log_std = self._estimate_log_std_sums()
-            gain = self._log_std_sum - log_std
-            self._log_std_sum = log_std
-            if np.isfinite(gain).all():
-                info = gain
-        return reward_terms(
-            track, effort, info, robot_contacts, cargo_contacts, acting, self._weights,
-            self.shared_reward,
-        )  # fmt: skip
+    def _info_gain(self) -> np.ndarray:
+        """The info term per robot: this step's decrease of each estimate's sum of log standard
+        deviations (zeros without estimators, or when it is not finite)."""
+        if not self.estimators:  # without estimators: no information gained
+            return self._no_info
+        log_std = self._estimate_log_std_sums()
+        gain = self._log_std_sum - log_std
+        self._log_std_sum = log_std
+        return gain if np.isfinite(gain).all() else np.zeros(self.n_robots)
 
     def _get_infos(
         self,
-        terms: dict[str, list[float]],
+        terms: list[list[float]],
         n_clipped: np.ndarray,
         wall_contacts: np.ndarray,
         reason: str | None,
@@ -579,22 +536,23 @@ class CargoTransport:
         released: tuple[int, ...],
         saturated: np.ndarray | None = None,
     ) -> list[dict[str, Any] | None]:
-        """Infos of ``robots`` (None for the others); ``released``: those letting go now;
+        """Infos of ``robots`` (None for the others); ``terms``: the weighted, mixed reward
+        terms in ``REWARD_TERMS`` order, each per robot; ``released``: those letting go now;
         ``saturated`` (n_robots,): ``thrust_saturation`` of this step (zeros at reset)."""
         infos: list[dict[str, Any] | None] = [None] * self.n_robots
         comm = dict(self.channel.stats)
-        rewards = [terms[t] for t in REWARD_TERMS]
+        per_robot = list(zip(*terms, strict=True))
         n_clipped, wall_contacts = n_clipped.tolist(), wall_contacts.tolist()
         saturated = [0.0] * self.n_robots if saturated is None else saturated.tolist()
-        faults = self._fault_infos()
-        time_s = float(self.data.time)
+        faults = self.fault_schedule.infos(self.step_count, self.channel.fault_stats)
+        time_s, releases = float(self.data.time), len(self.released_at_s)
         for i in robots:
-            info: dict[str, Any] = {key: r[i] for key, r in zip(REWARD_KEYS, rewards, strict=True)}
+            info: dict[str, Any] = dict(zip(REWARD_KEYS, per_robot[i], strict=True))
             if i in released:
                 info["released_momentum"] = self.released_momentum[i].copy()
             info.update(
                 termination_reason=reason or ("released" if i in released else None),
-                releases=len(self.released_at_s),
+                releases=releases,
                 holding=list(self.holding),
                 time_s=time_s,
                 clipped_actions=n_clipped[i],

@@ -10,6 +10,10 @@
   reset; later episodes continue each copy's own generator, so a run is reproducible.
 - ``SlotController``: runs a controller that acts on one copy's observations (n_robots, obs_dim)
   (e.g. ``ObservationController``) on all the slots of a ``SharedPolicyVecEnv``.
+- ``DecisionEnv``: the parallel env as a learned policy sees it: one decision every
+  ``action_repeat`` control steps, optionally a residual added to the thrust of the scripted
+  no-model controller (``cargo_env_fn(residual_scale=..., action_repeat=...)`` builds it).
+- ``fast_inference``: SB3's ``predict`` without its per-call overhead, the same actions.
 - ``CentralizedCargoEnv``: a single-agent ``gymnasium.Env`` in which one policy drives all robots:
   the observation is the robots' observations concatenated in agent order, the action the robots'
   actions concatenated, the reward the robots' mean reward. Registered as ``ENV_ID``
@@ -47,27 +51,169 @@ from stable_baselines3.common.vec_env.base_vec_env import (
 )
 
 from astrocargo.envs import ENV_ID  # noqa: F401  (registered by astrocargo/envs/__init__.py)
+from astrocargo.envs.config import LEARNING_TASKS
 
-# The learning task of scripts/train.py, evaluate.py and the training benchmark: the first 10 s
-# of the figure-eight (the reference starts moving from rest), nominal noise, the policy acting
-# at 12.5 Hz (every fifth GNC period) so that a 10 s episode is 125 decisions.
-LEARNING_TASK: dict[str, Any] = {
-    "trajectory": "figure8_yaw",
-    "control_hz": 12.5,
-    "max_cycles": 125,
-    "noise": "nominal",
-}
+# The task of the training benchmark (scripts/benchmark_performance.py).
+LEARNING_TASK: dict[str, Any] = LEARNING_TASKS["figure8_10s"]
 
 
-def cargo_env_fn(**env_kwargs: Any) -> Callable[[], ParallelEnv]:
-    """A picklable factory of ``astrobee_cargo_v0.parallel_env(**env_kwargs)``."""
-    return functools.partial(_make_cargo_env, **env_kwargs)
+def cargo_env_fn(
+    residual_scale: float = 0.0, action_repeat: int = 1, **env_kwargs: Any
+) -> Callable[[], ParallelEnv]:
+    """A picklable factory of ``astrobee_cargo_v0.parallel_env(**env_kwargs)``, wrapped in
+    ``DecisionEnv(env, residual_scale, action_repeat)`` unless those are 0 and 1."""
+    return functools.partial(
+        _make_cargo_env, residual_scale=residual_scale, action_repeat=action_repeat, **env_kwargs
+    )
 
 
-def _make_cargo_env(**env_kwargs: Any) -> ParallelEnv:
+def _make_cargo_env(
+    residual_scale: float = 0.0, action_repeat: int = 1, **env_kwargs: Any
+) -> ParallelEnv:
     from astrocargo.envs import astrobee_cargo_v0
 
-    return astrobee_cargo_v0.parallel_env(**env_kwargs)
+    env = astrobee_cargo_v0.parallel_env(**env_kwargs)
+    if residual_scale or action_repeat != 1:
+        return DecisionEnv(env, residual_scale, action_repeat)
+    return env
+
+
+RESIDUAL_DIM = 6  # a residual acts on the thrust entries of the action (force, torque)
+
+
+def residual_actions(base: np.ndarray, residual: np.ndarray, residual_scale: float) -> np.ndarray:
+    """The action sent to the env: thrust entries a_env[:6] = a_base[:6] + residual_scale * a,
+    the arm targets a_env[6:] = a_base[6:] (``base`` (..., 8), ``residual`` (..., 6); the env
+    then clips each entry to [-1, 1])."""
+    out = np.array(base, dtype=np.float64)
+    out[..., :RESIDUAL_DIM] += residual_scale * np.asarray(residual, dtype=np.float64)
+    return out
+
+
+def check_decision_args(residual_scale: Any, action_repeat: Any) -> tuple[float, int]:
+    """``residual_scale`` a number >= 0, ``action_repeat`` a positive integer (ValueError)."""
+    scale = float(residual_scale)
+    if not np.isfinite(scale) or scale < 0.0:
+        raise ValueError(f"residual_scale must be a number >= 0, got {residual_scale!r}")
+    if isinstance(action_repeat, bool) or not isinstance(action_repeat, int | np.integer):
+        raise ValueError(f"action_repeat must be a positive integer, got {action_repeat!r}")
+    if action_repeat < 1:
+        raise ValueError(f"action_repeat must be a positive integer, got {action_repeat!r}")
+    return scale, int(action_repeat)
+
+
+class DecisionEnv(ParallelEnv):
+    """The env as a learned policy sees it: one decision every ``action_repeat`` control steps,
+    and optionally a residual on top of the scripted controller.
+
+    Each control step k of a decision's ``action_repeat`` steps sends robot i
+
+        residual_scale > 0:  a_env,i(k)[:6] = a_base,i(k)[:6] + residual_scale * a_i,
+                             a_env,i(k)[6:] = a_base,i(k)[6:]
+        residual_scale = 0:  a_env,i(k) = a_i
+
+    with a_i the policy's action, held over the decision: with a residual a_i in [-1, 1]^6 acts
+    on the thrust (force, torque; the action space is then 6-dimensional) and the arm targets
+    are the scripted controller's (noise on the arm targets swings the arms and, with them, the
+    grasp: a residual of std 0.02 on all eight entries multiplied the cargo's position error by
+    five, docs/learning.md); without, a_i in [-1, 1]^8 is the whole action. a_base,i(k) is the
+    action of ``ObservationController`` with ``cargo_model="none"`` (the cooperative controller
+    that models the robots only, no cargo) from the observation of step k: the scripted feedback
+    runs at the control rate, the residual at the decision rate. The env clips each entry to
+    [-1, 1]. Zero residual actions are the no-model scripted controller. The controller reads
+    only the observation, never the truth.
+
+    A decision returns the last step's observations, terminations, truncations and infos and
+    the sum of its steps' rewards; it ends early when the episode ends. Each agent's info gets
+    ``decision_steps`` (control steps made), ``saturated_mean`` (the mean of ``saturated`` over
+    them) and, with a residual, ``base_action`` (a_base of the last step). ``max_cycles`` of
+    the wrapped env counts control steps: an episode has max_cycles / action_repeat decisions.
+    """
+
+    def __init__(self, env: ParallelEnv, residual_scale: float = 0.0, action_repeat: int = 1):
+        self.residual_scale, self.action_repeat = check_decision_args(residual_scale, action_repeat)
+        self.env = env
+        self.possible_agents = list(env.possible_agents)
+        self.metadata = env.metadata
+        self.render_mode = env.render_mode
+        self.controller: Any = None
+        self._obs: dict[str, np.ndarray] = {}
+        self._residual_space = spaces.Box(-1.0, 1.0, (RESIDUAL_DIM,), np.float32)
+
+    @property
+    def agents(self) -> list[str]:
+        return self.env.agents
+
+    @property
+    def sim(self) -> Any:
+        """The wrapped env's ``CargoTransport``."""
+        return self.env.sim
+
+    def __getattr__(self, name: str) -> Any:
+        if name.startswith("_") or name == "env":
+            raise AttributeError(name)
+        return getattr(self.env, name)  # max_cycles, ... of the wrapped env
+
+    def observation_space(self, agent: str) -> spaces.Space:
+        return self.env.observation_space(agent)
+
+    def action_space(self, agent: str) -> spaces.Space:
+        space = self.env.action_space(agent)
+        return self._residual_space if self.residual_scale else space
+
+    def reset(self, seed: int | None = None, options: dict | None = None) -> tuple[dict, dict]:
+        from astrocargo.agents.controllers import ObservationController
+
+        obs, infos = self.env.reset(seed=seed, options=options)
+        if self.residual_scale:
+            self.controller = ObservationController.for_env(self.env, "none")
+        self._obs = obs
+        return obs, infos
+
+    def base_actions(self) -> dict[str, np.ndarray]:
+        """a_base of every live agent from the last observation (zeros without a residual)."""
+        live = {a: self._obs[a] for a in self.env.agents}
+        if not self.residual_scale:
+            return {a: np.zeros(8) for a in live}
+        return self.controller.predict(live)[0] if live else {}
+
+    def step(self, actions: dict[str, np.ndarray]) -> tuple:
+        total = dict.fromkeys(self.possible_agents, 0.0)
+        saturated = dict.fromkeys(self.possible_agents, 0.0)
+        steps = 0
+        while True:
+            base = self.base_actions()
+            if self.residual_scale:
+                sent = {
+                    a: residual_actions(base[a], actions[a], self.residual_scale)
+                    for a in self.env.agents
+                }
+            else:
+                sent = {a: actions[a] for a in self.env.agents}
+            obs, rewards, terms, truncs, infos = self.env.step(sent)
+            self._obs = obs
+            steps += 1
+            for a, r in rewards.items():
+                total[a] += float(r)
+                saturated[a] += float(infos[a].get("saturated", 0.0))
+            ended = any(terms[a] or truncs[a] for a in rewards)
+            if ended or steps == self.action_repeat:
+                break
+        for a, info in infos.items():
+            info["decision_steps"] = steps
+            info["saturated_mean"] = saturated[a] / steps
+            if self.residual_scale and a in base:
+                info["base_action"] = base[a]
+        return obs, {a: total[a] for a in rewards}, terms, truncs, infos
+
+    def render(self) -> Any:
+        return self.env.render()
+
+    def state(self) -> np.ndarray:
+        return self.env.state()
+
+    def close(self) -> None:
+        self.env.close()
 
 
 # --------------------------------------------------------------------------- one copy
@@ -314,6 +460,32 @@ def make_vec_env(
     if seed is not None:
         venv.seed(seed)
     return venv
+
+
+def fast_inference(model: Any) -> Any:
+    """Cut SB3's per-call overhead of ``model.predict`` without changing its actions:
+
+    - ``policy.set_training_mode(mode)`` (which ``predict`` calls every time, and which walks
+      every submodule through ``nn.Module.train``) returns at once when the policy is already
+      in that mode;
+    - torch's argument validation of distributions (``Normal``'s loc/scale checks at every
+      construction) is switched off process-wide
+      (``torch.distributions.Distribution.set_default_validate_args(False)``): it checks
+      arguments only, the samples and log-probabilities are the same.
+
+    Returns ``model``."""
+    import torch
+
+    torch.distributions.Distribution.set_default_validate_args(False)
+    policy = model.policy
+    set_mode = policy.set_training_mode
+
+    def set_training_mode(mode: bool) -> None:
+        if policy.training != mode:
+            set_mode(mode)
+
+    policy.set_training_mode = set_training_mode
+    return model
 
 
 class SlotController:

@@ -170,7 +170,7 @@ def standard_cases(seeds: int, duration: float) -> list[Case]:
     # attitude error, then a wall contact), so the single-robot scenarios fly the paper's
     # figure8_yaw; the multi-robot ones fly the tumble (and 2 robots the yaw too).
     # Time to certainty compares excite, tumble and yaw at 1, 2 and 3 robots (certainty_name);
-    # there is no 1-robot excite design: that case reports "no design".
+    # a team size without an excite design reports "no design".
     scenarios = [
         ("yaw: 1 robot, fixed arm", "figure8_yaw", dict(robots=1, pan=False)),
         ("yaw: 1 robot, pan ramp", "figure8_yaw", dict(robots=1)),

@@ -20,12 +20,14 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 
+from astrocargo.agents.excitation import ExcitationDesign  # noqa: E402
 from astrocargo.agents.excitation_design import (  # noqa: E402
     DesignSettings,
     ExcitationDesigner,
     Limits,
     model_for_world,
 )
+from astrocargo.agents.trajectories import Trajectory  # noqa: E402
 from astrocargo.envs.sensors import NOISE_PROFILES, estimator_noise_kwargs, noise_profile  # noqa: E402
 from astrocargo.envs.world import World  # noqa: E402
 from astrocargo.estimator.inertia import params_from_mass_com_inertia  # noqa: E402
@@ -46,6 +48,20 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--thrust-margin", type=float, default=Limits.thrust_margin)
     p.add_argument("--clearance", type=float, default=Limits.clearance_m, help="m")
     p.add_argument("--no-pan", action="store_true", help="keep the arms deployed")
+    p.add_argument(
+        "--rescale",
+        default=None,
+        metavar="DESIGN",
+        help="no search: scale this design's cargo motion by --scale and describe it",
+    )
+    p.add_argument("--scale", type=float, default=1.0, help="with --rescale, in (0, 1]")
+    p.add_argument(
+        "--relative-to",
+        choices=Trajectory.NAMES,
+        default=None,
+        help="score the bounds against this trajectory's predicted bounds (maximise the worst "
+        "improvement over it) instead of the issue's targets",
+    )
     p.add_argument("--out", default=None, help="JSON (default excite_<N>robots.json)")
     args = p.parse_args(argv)
 
@@ -58,7 +74,7 @@ def main(argv: list[str] | None = None) -> int:
     model = model_for_world(
         world, cargo, estimator_noise_kwargs(noise_profile(args.noise)), limits=limits
     )
-    settings = DesignSettings(
+    settings = dict(
         duration_s=args.duration,
         n_harmonics=args.harmonics,
         period_s=args.period,
@@ -68,10 +84,25 @@ def main(argv: list[str] | None = None) -> int:
         maxiter=args.maxiter,
         pan=not args.no_pan,
     )
+    # The figure-eight tumble's predicted bounds on the designer's own grid (the yardstick).
+    tumble = ExcitationDesigner(model, DesignSettings(**settings)).reference_bounds(
+        Trajectory(args.relative_to or "figure8_tumble")
+    )
+    if args.relative_to:
+        settings["targets"] = {k: tumble[k] for k in ("principal_rel", "mass_rel", "com_m")}
     start = time.perf_counter()
-    design = ExcitationDesigner(model, settings).run(verbose=True)
+    designer = ExcitationDesigner(model, DesignSettings(**settings))
+    if args.rescale:
+        old = ExcitationDesign.load(args.rescale).scaled(args.scale)
+        design = designer.describe(old)
+        design.info.update(
+            {k: old.info[k] for k in ("scaled", "settings", "runtime_s") if k in old.info}
+        )
+    else:
+        design = designer.run(verbose=True)
     info = design.info
     info["noise"] = args.noise
+    info["reference_bounds"] = {"trajectory": args.relative_to or "figure8_tumble", **tumble}
     out = args.out or f"excite_{args.robots}robots.json"
     design.save(out)
     b = info["predicted_bounds"]
@@ -80,7 +111,10 @@ def main(argv: list[str] | None = None) -> int:
         f"{', '.join(f'{100 * x:.2f}' for x in b['principal_rel'])} %, mass "
         f"{100 * b['mass_rel']:.2f} %, CoM {1e3 * b['com_m']:.2f} mm; binding: {info['binding']} "
         f"(worst normalised value {info['max_violation'][info['binding']]:+.3f}); peak thrust / "
-        f"limit per axis {np.round(info['peak_thrust_ratio_per_axis'], 2).tolist()}\nwritten {out}"
+        f"limit per axis {np.round(info['peak_thrust_ratio_per_axis'], 2).tolist()}\n"
+        f"{info['reference_bounds']['trajectory']} on the same grid: principal "
+        f"{', '.join(f'{100 * x:.2f}' for x in tumble['principal_rel'])} %, mass "
+        f"{100 * tumble['mass_rel']:.2f} %, CoM {1e3 * tumble['com_m']:.2f} mm\nwritten {out}"
     )
     return 0
 

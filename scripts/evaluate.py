@@ -1,21 +1,33 @@
 """Score policies on the same seeded episodes of the Astrobee cargo env.
 
 A policy is a run folder of scripts/train.py (``model.zip``, ``vecnormalize.pkl``,
-``config.json``), ``scripted`` (``ObservationController`` with ``--cargo-model``) or ``zero``
+``config.json``), ``scripted`` (``ObservationController`` with ``--cargo-model``; ``scripted:none``,
+``scripted:truth`` pick the cargo model, ``scripted@excite`` flies another trajectory) or ``zero``
 (all actions zero). Episode k of every policy is reset with seed ``--seed + k``: the same cargo
-and the same noise draws. The estimators always run (they do not change the physics), so their
-errors are reported whatever the policy observes. Per policy it prints mean and spread (standard
-deviation over episodes) of the return (mean over robots), the cargo tracking error (true pose,
-mean over the episode and at its end), and the estimators' errors at the end of the episode
-(mean over robots); ``--json`` writes every episode and the summaries.
+and the same noise draws. With ``--mass-bins`` each bin [low, high) of cargo masses gets its own
+``--episodes`` episodes (the mass drawn uniformly within the bin, seeds ``--seed + k`` again).
+Every episode runs at the env's control rate: a trained policy decides every ``action_repeat``
+steps (its ``DecisionEnv``) and, if residual, its action is added to the scripted no-model
+action of every step, exactly as in training. The estimators always run (they do not change
+the physics), so their errors are reported whatever the policy observes.
+
+Per policy (and bin) it prints mean and spread (standard deviation over episodes) of the
+return (mean over robots), the cargo tracking error (true pose, mean over the episode and at
+its end), the estimators' errors at the end (mean over robots), the time after which the mass
+error stays within 5 %, the saturation share (``infos["saturated"]``, mean over steps and
+robots) and the episodes ended by wall contact; ``--bound`` adds robot 0's principal-moment
+bound at the end (Cramer-Rao bound of its updates, relative, and the filter's own spread).
+``--ablation`` groups run folders into arms (same configuration but the seed) and prints, per
+mass bin, each arm's mean and spread over seeds and whether the difference between arms that
+differ only in observing the estimates exceeds that spread. ``--json`` writes everything.
 
     .venv/bin/python scripts/evaluate.py --policy runs/ppo_est runs/ppo_noest zero scripted \\
         --episodes 10 --json runs/eval.json
     MUJOCO_GL=egl .venv/bin/python scripts/evaluate.py --policy runs/ppo_est --video out/videos
 
-The task (robots, trajectory, episode length, noise) comes from the first run folder's
-configuration, else from the flags (default: ``LEARNING_TASK`` of ``astrocargo.envs.wrappers``,
-2 robots).
+The task (robots, trajectory, episode length, noise, cargo) comes from the first run folder's
+configuration, else from ``--task`` (``LEARNING_TASKS`` of ``astrocargo.envs.config``), and the
+flags override it.
 """
 
 from __future__ import annotations
@@ -44,12 +56,15 @@ from cli import (  # noqa: E402
     positive_int,
 )
 
-from astrocargo.agents.controllers import ObservationController  # noqa: E402
+from astrocargo.agents.controllers import CARGO_MODELS, ObservationController  # noqa: E402
+from astrocargo.agents.excitation import is_trajectory_name, trajectory_choices  # noqa: E402
 from astrocargo.agents.trajectories import Trajectory  # noqa: E402
 from astrocargo.envs import astrobee_cargo_v0  # noqa: E402
+from astrocargo.envs.config import LEARNING_TASKS, REWARD_TERMS  # noqa: E402
 from astrocargo.envs.sensors import NOISE_PROFILES  # noqa: E402
 from astrocargo.envs.world import MAX_ROBOTS  # noqa: E402
 
+DEFAULT_TASK = "cargo"
 # Stable-Baselines3 and torch (astrocargo.envs.wrappers imports them) load after the command line
 # is parsed: --help and argument errors answer at once.
 
@@ -62,6 +77,18 @@ METRICS = (
     ("mass_rel_err", "mass err", "{:9.4f}"),
     ("com_err_m", "CoM err m", "{:9.4f}"),
     ("principal_rel_err", "inertia err", "{:9.4f}"),
+    ("mass_conv_s", "mass 5% s", "{:9.1f}"),
+    ("saturated", "saturated", "{:9.4f}"),
+    ("wall_contact", "wall", "{:9.2f}"),
+)
+BOUND_METRICS = (
+    ("bound_principal_rel", "bound I1/I2/I3"),
+    ("filter_principal_rel", "filter I1/I2/I3"),
+)
+MASS_CONV_TOL = 0.05  # mass_conv_s: the mass error stays within this (relative) from then on
+POLICY_HELP = (
+    "'zero', 'scripted' or a run folder of scripts/train.py (with model.zip and config.json); "
+    "'scripted:MODEL@TRAJECTORY' picks the cargo model (estimate, none, truth) and trajectory"
 )
 
 
@@ -73,6 +100,8 @@ class ZeroPolicy:
 
     name = "zero"
     observe_estimates = True
+    trajectory = None
+    decision = {}
 
     def reset(self, env) -> None:
         del env
@@ -82,13 +111,17 @@ class ZeroPolicy:
 
 
 class ScriptedPolicy:
-    """``ObservationController`` (rebuilt each episode: the "truth" model needs the new cargo)."""
+    """``ObservationController`` (rebuilt each episode: the "truth" model needs the new cargo),
+    on the task's trajectory or on ``trajectory``."""
 
     observe_estimates = True
+    decision = {}
 
-    def __init__(self, cargo_model: str) -> None:
+    def __init__(self, cargo_model: str, trajectory: str | None = None) -> None:
         self.cargo_model = cargo_model
-        self.name = f"scripted ({cargo_model})"
+        self.trajectory = trajectory
+        where = f" on {trajectory}" if trajectory else ""
+        self.name = f"scripted ({cargo_model}){where}"
 
     def reset(self, env) -> None:
         self.controller = ObservationController.for_env(env, self.cargo_model)
@@ -98,81 +131,135 @@ class ScriptedPolicy:
 
 
 class TrainedPolicy:
-    """A scripts/train.py run: its model, observation normalisation and view, deterministic."""
+    """A scripts/train.py run: its model, observation normalisation and view, deterministic,
+    acting at the env's control rate as its ``DecisionEnv`` did in training: a new decision every
+    ``action_repeat`` steps, held in between, added (times ``residual_scale``) to the scripted
+    no-model action of every step if residual."""
+
+    trajectory = None
 
     def __init__(self, run_dir: Path, samples: int | None = None) -> None:
         """The final model of ``run_dir``, or its checkpoint after ``samples``."""
-        from stable_baselines3 import PPO, SAC
+        from stable_baselines3 import PPO, SAC, TD3
 
         self.config = json.loads((run_dir / "config.json").read_text())
-        algo = {"ppo": PPO, "sac": SAC}[self.config["algo"]]
+        algo = {"ppo": PPO, "sac": SAC, "td3": TD3}[self.config["algo"]]
         model_path, stats_path = run_dir / "model.zip", run_dir / "vecnormalize.pkl"
         if samples is not None:
             model_path = run_dir / "checkpoints" / f"rl_model_{samples}_steps.zip"
             stats_path = run_dir / "checkpoints" / f"rl_model_vecnormalize_{samples}_steps.pkl"
-        self.model = algo.load(model_path, device="cpu")
+        from astrocargo.envs.wrappers import fast_inference
+
+        self.model = fast_inference(algo.load(model_path, device="cpu"))
         with open(stats_path, "rb") as f:
             self.normalizer = pickle.load(f)
         self.normalizer.training = False
         self.view = self.config["view"]
-        self.observe_estimates = self.config["env_kwargs"]["observe_estimates"]
+        kwargs = self.config["env_kwargs"]
+        self.observe_estimates = kwargs["observe_estimates"]
+        self.residual_scale = float(kwargs.get("residual_scale", 0.0))
+        self.action_repeat = int(kwargs.get("action_repeat", 1))
+        self.decision = {"residual_scale": self.residual_scale, "action_repeat": self.action_repeat}
         self.name = str(run_dir) if samples is None else f"{run_dir}@{samples}"
+        self.base = None
+        self.held: np.ndarray | None = None
+        self.steps = 0
 
     def reset(self, env) -> None:
-        del env
+        self.steps, self.held = 0, None
+        if self.residual_scale:
+            self.base = ObservationController.for_env(env, "none")
 
-    def act(self, obs: np.ndarray) -> np.ndarray:
+    def decide(self, obs: np.ndarray) -> np.ndarray:
+        """The model's deterministic action (n, 8) from the observations (n, obs_dim)."""
         n = obs.shape[0]
         if self.view == "central":
             obs = obs.reshape(1, -1)
         action, _ = self.model.predict(self.normalizer.normalize_obs(obs), deterministic=True)
         return np.asarray(action, dtype=np.float64).reshape(n, -1)
 
+    def act(self, obs: np.ndarray) -> np.ndarray:
+        from astrocargo.envs.wrappers import residual_actions
+
+        if self.steps % self.action_repeat == 0:
+            self.held = self.decide(obs)
+        self.steps += 1
+        if not self.residual_scale:
+            return self.held
+        return residual_actions(self.base.predict(obs)[0], self.held, self.residual_scale)
+
+
+def parse_scripted(spec: str) -> tuple[str, str | None] | None:
+    """(cargo model or '', trajectory or None) of 'scripted[:MODEL][@TRAJECTORY]', else None."""
+    head, _, trajectory = spec.partition("@")
+    name, _, model = head.partition(":")
+    if name != "scripted":
+        return None
+    return model, trajectory or None
+
 
 def check_policy_spec(spec: str) -> None:
-    """ValueError unless ``spec`` is 'zero', 'scripted' or a run folder of scripts/train.py."""
-    if spec in ("zero", "scripted"):
+    """ValueError unless ``spec`` is 'zero', a scripted spec or a run folder of scripts/train.py."""
+    if spec == "zero":
+        return
+    scripted = parse_scripted(spec)
+    if scripted is not None:
+        model, trajectory = scripted
+        if model and model not in CARGO_MODELS:
+            raise ValueError(f"cargo model must be one of {CARGO_MODELS}, got {model!r}")
+        if trajectory is not None and not is_trajectory_name(trajectory):
+            raise ValueError(f"unknown trajectory {trajectory!r}; {trajectory_choices()}")
         return
     run_dir = Path(spec)
     if not (run_dir / "model.zip").is_file() or not (run_dir / "config.json").is_file():
-        raise ValueError(
-            f"policy must be 'zero', 'scripted' or a run folder of scripts/train.py (with "
-            f"model.zip and config.json), got {spec!r}"
-        )
+        raise ValueError(f"policy must be {POLICY_HELP}, got {spec!r}")
 
 
 def make_policy(spec: str, cargo_model: str):
     check_policy_spec(spec)
     if spec == "zero":
         return ZeroPolicy()
-    if spec == "scripted":
-        return ScriptedPolicy(cargo_model)
+    scripted = parse_scripted(spec)
+    if scripted is not None:
+        return ScriptedPolicy(scripted[0] or cargo_model, scripted[1])
     return TrainedPolicy(Path(spec))
 
 
 # --------------------------------------------------------------------------- episodes
 
 
-def run_episode(policy, env, seed: int, frames: list | None = None, every: int = 8) -> dict:
-    """One seeded episode; returns its metrics."""
+def run_episode(
+    policy, env, seed: int, frames: list | None = None, every: int = 8, bound: bool = False
+) -> dict:
+    """One seeded episode at the env's control rate; returns its metrics."""
+    from astrocargo.estimator.baselines import convergence_time
+
     obs_dict, _ = env.reset(seed=seed)
     policy.reset(env)
     agents = env.possible_agents
-    total, pos_errs, att_errs, step = 0.0, [], [], 0
+    total, pos_errs, att_errs, times, mass_errs, saturated, step = 0.0, [], [], [], [], [], 0
+    terms = dict.fromkeys(REWARD_TERMS, 0.0)
     while env.agents:
         obs = np.stack([obs_dict[a] for a in agents])
         actions = policy.act(obs)
         obs_dict, rewards, _, _, infos = env.step(dict(zip(agents, actions, strict=True)))
         total += float(np.mean([rewards[a] for a in agents]))
+        for term in REWARD_TERMS:
+            terms[term] += float(np.mean([infos[a][f"reward_{term}"] for a in agents]))
         pos, att = env.sim.tracking_error()
         pos_errs.append(pos)
         att_errs.append(att)
+        times.append(infos[agents[0]]["time_s"])
+        mass_errs.append(float(np.mean([infos[a]["mass_rel_err"] for a in agents])))
+        saturated.append(float(np.mean([infos[a]["saturated"] for a in agents])))
         if frames is not None and step % every == 0:
             frames.append(env.render())
         step += 1
     last = [infos[a] for a in agents]
-    return {
+    conv = convergence_time(np.array(times), np.array(mass_errs), MASS_CONV_TOL)
+    row = {
         "seed": seed,
+        "cargo_mass_kg": float(env.sim.world.cargo_params()[0]),
         "steps": step,
         "termination_reason": last[0]["termination_reason"],
         "return": total,
@@ -183,41 +270,109 @@ def run_episode(policy, env, seed: int, frames: list | None = None, every: int =
         "mass_rel_err": float(np.mean([i["mass_rel_err"] for i in last])),
         "com_err_m": float(np.mean([i["com_err_m"] for i in last])),
         "principal_rel_err": float(np.mean([np.mean(i["principal_rel_err"]) for i in last])),
+        "mass_conv_s": float("nan") if conv is None else conv,
+        "saturated": float(np.mean(saturated)),
+        "wall_contact": float(last[0]["termination_reason"] == "wall_contact"),
+        **{f"return_{term}": value for term, value in terms.items()},
+    }
+    if bound:
+        row.update(principal_bounds(env.sim))
+    return row
+
+
+def principal_bounds(sim) -> dict[str, list[float]]:
+    """Robot 0's principal-moment spreads at the end, relative to the true moments, ascending:
+    the Cramer-Rao bound of its recorded updates (inf where not yet observable) and its
+    filter's own spread (``benchmark_estimation.bound_spreads``, ``group_spreads``)."""
+    from benchmark_estimation import bound_spreads, group_spreads
+
+    est, truth = sim.estimators[0], sim.true_params_grasp[0]
+    crlb = bound_spreads(est.log, len(est.log), truth)
+    spread = group_spreads(est.params_mean(), est.params_cov(), truth)
+    return {
+        "bound_principal_rel": [float(x) for x in crlb["principal_rel"]],
+        "filter_principal_rel": [float(x) for x in spread["principal_rel"]],
     }
 
 
-def evaluate(policy, task: dict[str, Any], episodes: int, seed: int, video: Path | None) -> dict:
-    """Every episode of one policy, and the mean and standard deviation of each metric."""
-    env = astrobee_cargo_v0.parallel_env(
-        **task,
-        observe_estimates=policy.observe_estimates,
-        estimators=True,
-        render_mode="rgb_array" if video else None,
-    )
-    start = time.perf_counter()
-    rows = []
-    for k in range(episodes):
-        frames = [] if video and k == 0 else None
-        rows.append(run_episode(policy, env, seed + k, frames))
-        if frames:
-            video.mkdir(parents=True, exist_ok=True)
-            safe = "".join(c if c.isalnum() else "_" for c in policy.name).strip("_")
-            save_gif(frames, video / f"{safe}.gif", fps=env.metadata["render_fps"] / 8)
-    env.close()
-    summary = {
-        key: {
-            "mean": float(np.mean([r[key] for r in rows])),
-            "std": float(np.std([r[key] for r in rows])),
+def mass_bins(edges: list[float] | None, task: dict[str, Any]) -> list[tuple[float, float]]:
+    """The (low, high) cargo mass ranges of the evaluation: the bins between ``edges``, or the
+    task's own range (one bin)."""
+    if edges:
+        return list(zip(edges[:-1], edges[1:], strict=True))
+    mass = task.get("cargo_mass_kg", 5.0)
+    low, high = (mass, mass) if np.isscalar(mass) else mass
+    return [(float(low), float(high))]
+
+
+def bin_name(bounds: tuple[float, float]) -> str:
+    low, high = bounds
+    return f"{low:g} kg" if low == high else f"{low:g}-{high:g} kg"
+
+
+def summarise(rows: list[dict]) -> dict:
+    """Mean and standard deviation over episodes of every metric (nan-aware: mass_conv_s is nan
+    in an episode where the mass error never stays within the tolerance)."""
+    summary = {}
+    keys = [k for k, _, _ in METRICS] + [k for k, _ in BOUND_METRICS if k in rows[0]]
+    keys += [f"return_{term}" for term in REWARD_TERMS]
+    for key in keys:
+        values = np.array([r[key] for r in rows], dtype=float)
+        finite = values[np.isfinite(values)] if values.ndim == 1 else values
+        summary[key] = {
+            "mean": (np.mean(finite, axis=0) if len(finite) else np.full(1, np.nan)).tolist(),
+            "std": (np.std(finite, axis=0) if len(finite) else np.full(1, np.nan)).tolist(),
         }
-        for key, _, _ in METRICS
-    }
+    summary["mass_conv_s"]["never"] = int(np.sum(np.isnan([r["mass_conv_s"] for r in rows])))
+    return summary
+
+
+def evaluate(
+    policy,
+    task: dict[str, Any],
+    episodes: int,
+    seed: int,
+    video: Path | None,
+    bins: list[tuple[float, float]] | None = None,
+    bound: bool = False,
+) -> dict:
+    """Every episode of one policy (per mass bin), and the mean and standard deviation of each
+    metric per bin and over all episodes."""
+    start = time.perf_counter()
+    rows, per_bin = [], {}
+    for bounds in bins or mass_bins(None, task):
+        kwargs = {**task, "cargo_mass_kg": bounds if bounds[1] > bounds[0] else bounds[0]}
+        if policy.trajectory:
+            kwargs["trajectory"] = policy.trajectory
+        env = astrobee_cargo_v0.parallel_env(
+            **kwargs,
+            observe_estimates=policy.observe_estimates,
+            estimators=True,
+            estimator_kwargs={"record": True} if bound else None,
+            render_mode="rgb_array" if video else None,
+        )
+        bin_rows = []
+        for k in range(episodes):
+            frames = [] if video and k == 0 and not rows else None
+            bin_rows.append(run_episode(policy, env, seed + k, frames, bound=bound))
+            if frames:
+                video.mkdir(parents=True, exist_ok=True)
+                safe = "".join(c if c.isalnum() else "_" for c in policy.name).strip("_")
+                save_gif(frames, video / f"{safe}.gif", fps=env.metadata["render_fps"] / 8)
+        env.close()
+        for r in bin_rows:
+            r["bin"] = bin_name(bounds)
+        per_bin[bin_name(bounds)] = summarise(bin_rows)
+        rows += bin_rows
     terminated = sum(r["termination_reason"] is not None for r in rows)
     return {
         "policy": policy.name,
         "observe_estimates": policy.observe_estimates,
+        "config": getattr(policy, "config", None),
         "wall_s": time.perf_counter() - start,
         "terminated_episodes": terminated,
-        "summary": summary,
+        "summary": summarise(rows),
+        "bins": per_bin,
         "episodes": rows,
     }
 
@@ -229,18 +384,123 @@ def save_gif(frames: list[np.ndarray], path: Path, fps: float) -> None:
     images[0].save(path, save_all=True, append_images=images[1:], duration=int(1000 / fps), loop=0)
 
 
+def _cell(stat: dict, fmt: str) -> str:
+    mean, std = np.atleast_1d(stat["mean"]), np.atleast_1d(stat["std"])
+    if len(mean) > 1:
+        return "/".join(fmt.format(m).strip() for m in mean)
+    return f"{fmt.format(mean[0]).strip()} +- {fmt.format(std[0]).strip()}"
+
+
 def print_table(results: list[dict]) -> None:
-    width = max(len(r["policy"]) for r in results) + 2
-    print(f"{'policy':<{width}}" + "".join(f"{label:>20}" for _, label, _ in METRICS))
+    width = max(len(r["policy"]) for r in results) + 14
+    bound = [(k, label) for k, label in BOUND_METRICS if k in results[0]["summary"]]
+    print(
+        f"{'policy':<{width}}"
+        + "".join(f"{label:>20}" for _, label, _ in METRICS)
+        + "".join(f"{label:>22}" for _, label in bound)
+    )
     for r in results:
-        cells = []
-        for key, _, fmt in METRICS:
-            s = r["summary"][key]
-            cells.append(f"{fmt.format(s['mean']).strip()} +- {fmt.format(s['std']).strip()}")
-        print(f"{r['policy']:<{width}}" + "".join(f"{c:>20}" for c in cells))
+        for name, summary in [("all", r["summary"])] + (
+            list(r["bins"].items()) if len(r["bins"]) > 1 else []
+        ):
+            cells = [_cell(summary[key], fmt) for key, _, fmt in METRICS]
+            cells += [_cell(summary[key], "{:.3f}") for key, _ in bound]
+            print(
+                f"{r['policy'] + ' [' + name + ']':<{width}}"
+                + "".join(f"{c:>20}" for c in cells[: len(METRICS)])
+                + "".join(f"{c:>22}" for c in cells[len(METRICS) :])
+            )
     for r in results:
         if r["terminated_episodes"]:
             print(f"{r['policy']}: {r['terminated_episodes']} episodes ended by termination")
+
+
+# --------------------------------------------------------------------------- ablation
+
+
+ABLATION_METRICS = ("track_pos_m", "track_att_rad", "return")
+
+
+def arm_key(config: dict) -> str:
+    """A run's arm: its configuration without the seed (algorithm, view, task, env arguments,
+    hyperparameters, training length)."""
+    kwargs = config["env_kwargs"]
+    residual = kwargs.get("residual_scale", 0.0)
+    kind = f"{config['algo'].upper()}{f' residual x{residual:g}' if residual else ''}"
+    obs = "with" if kwargs["observe_estimates"] else "without"
+    return f"{kind}, {config['view']}, task {config.get('task', '?')}, {obs} estimates"
+
+
+def ablation(results: list[dict]) -> dict:
+    """Per arm and mass bin: each seed's mean over the episodes, their mean and standard
+    deviation (ddof 1) over seeds; per pair of arms differing only in observing the estimates:
+    the difference of the means (with - without) and whether it exceeds the larger of the two
+    arms' seed spreads."""
+    arms: dict[str, dict] = {}
+    for r in results:
+        if r["config"] is None:
+            continue
+        arm = arms.setdefault(
+            arm_key(r["config"]), {"seeds": [], "bins": {}, "config": r["config"]}
+        )
+        arm["seeds"].append(r["config"]["seed"])
+        for name, summary in r["bins"].items():
+            per = arm["bins"].setdefault(name, {m: [] for m in ABLATION_METRICS})
+            for m in ABLATION_METRICS:
+                per[m].append(float(np.atleast_1d(summary[m]["mean"])[0]))
+    for arm in arms.values():
+        for per in arm["bins"].values():
+            for m in ABLATION_METRICS:
+                values = np.array(per[m])
+                spread = float(np.std(values, ddof=1)) if len(values) > 1 else float("nan")
+                per[m] = {"per_seed": values.tolist(), "mean": float(values.mean()), "std": spread}
+    pairs = []
+    for key, arm in arms.items():
+        if not arm["config"]["env_kwargs"]["observe_estimates"]:
+            continue
+        other = key.replace("with estimates", "without estimates")
+        if other not in arms:
+            continue
+        diffs = {}
+        for name, per in arm["bins"].items():
+            if name not in arms[other]["bins"]:
+                continue
+            base = arms[other]["bins"][name]
+            diffs[name] = {}
+            for m in ABLATION_METRICS:
+                diff = per[m]["mean"] - base[m]["mean"]
+                spread = max(per[m]["std"], base[m]["std"])
+                diffs[name][m] = {
+                    "with_minus_without": diff,
+                    "seed_spread": spread,
+                    "exceeds_spread": bool(abs(diff) > spread) if np.isfinite(spread) else None,
+                }
+        pairs.append({"with": key, "without": other, "bins": diffs})
+    for arm in arms.values():
+        del arm["config"]
+    return {"arms": arms, "pairs": pairs}
+
+
+def print_ablation(table: dict) -> None:
+    print("\nablation: per mass bin, mean over seeds (seed std; per seed), pos. error mm")
+    for key, arm in table["arms"].items():
+        print(f"  {key}: seeds {arm['seeds']}")
+        for name, per in arm["bins"].items():
+            s = per["track_pos_m"]
+            seeds = ", ".join(f"{1e3 * v:.1f}" for v in s["per_seed"])
+            print(f"    {name:>12}: {1e3 * s['mean']:.1f} ({1e3 * s['std']:.1f}; {seeds})")
+    for pair in table["pairs"]:
+        print(f"  {pair['with']} minus {pair['without']}:")
+        for name, d in pair["bins"].items():
+            x = d["track_pos_m"]
+            verdict = {True: "exceeds", False: "within", None: "one seed:"}[x["exceeds_spread"]]
+            print(
+                f"    {name:>12}: {1e3 * x['with_minus_without']:+.1f} mm, {verdict} the seed "
+                f"spread {1e3 * x['seed_spread']:.1f} mm"
+            )
+
+
+# --------------------------------------------------------------------------- curves
 
 
 def checkpoint_samples(run_dir: Path) -> list[int]:
@@ -249,16 +509,18 @@ def checkpoint_samples(run_dir: Path) -> list[int]:
     return sorted(int(p.stem.split("_")[-2]) for p in names)
 
 
-def learning_curves(runs: list[Path], task: dict, episodes: int, seed: int) -> dict:
+def learning_curves(
+    runs: list[Path], task: dict, episodes: int, seed: int, bins: list | None = None
+) -> dict:
     """Every checkpoint and the final model of each run, scored on the same episodes."""
     curves = {}
     for run_dir in runs:
         points = []
         final = TrainedPolicy(run_dir)
         for samples in checkpoint_samples(run_dir):
-            r = evaluate(TrainedPolicy(run_dir, samples), task, episodes, seed, None)
+            r = evaluate(TrainedPolicy(run_dir, samples), task, episodes, seed, None, bins)
             points.append({"samples": samples, **r["summary"]})
-        r = evaluate(final, task, episodes, seed, None)
+        r = evaluate(final, task, episodes, seed, None, bins)
         points.append({"samples": final.config["samples"], **r["summary"]})
         curves[str(run_dir)] = {"config": final.config, "points": points}
         print(f"  curve of {run_dir}: {len(points)} points")
@@ -266,7 +528,7 @@ def learning_curves(runs: list[Path], task: dict, episodes: int, seed: int) -> d
 
 
 def plot_curves(curves: dict, baselines: list[dict], path: Path) -> None:
-    """Return and mean cargo position error against environment steps, with baselines."""
+    """Return and mean cargo position error against decisions, with baselines."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -282,23 +544,22 @@ def plot_curves(curves: dict, baselines: list[dict], path: Path) -> None:
             config = curve["config"]
             robots = config["env_kwargs"]["n_robots"]
             steps = [p["samples"] / robots for p in curve["points"]]
-            mean = np.array([p[key]["mean"] for p in curve["points"]])
-            std = np.array([p[key]["std"] for p in curve["points"]])
-            obs = "with" if config["env_kwargs"]["observe_estimates"] else "without"
+            mean = np.array([p[key]["mean"] for p in curve["points"]], dtype=float)
+            std = np.array([p[key]["std"] for p in curve["points"]], dtype=float)
             minutes = config.get("wall_s", float("nan")) / 60
             # The training's wall time goes in the legend: notes at the curves' ends overlap.
-            name = f"PPO {obs} estimates, seed {config.get('seed', '?')} ({minutes:.0f} min)"
+            name = f"{arm_key(config)}, seed {config.get('seed', '?')} ({minutes:.0f} min)"
             line = ax.plot(steps, mean, marker="o", ms=3, label=name)[0]
             ax.fill_between(steps, mean - std, mean + std, color=line.get_color(), alpha=0.2)
         for base, style in zip(baselines, ("-.", "--", ":"), strict=False):
             ax.axhline(
                 base["summary"][key]["mean"], color="k", ls=style, lw=1, label=base["policy"]
             )
-        ax.set_xlabel("environment steps (control steps of one copy)")
+        ax.set_xlabel("decisions (samples / robots, all copies together)")
         ax.set_ylabel(label)
         ax.grid(alpha=0.3)
     handles, labels = axes[0].get_legend_handles_labels()
-    fig.legend(handles, labels, fontsize=8, loc="outside lower center", ncols=min(3, len(labels)))
+    fig.legend(handles, labels, fontsize=8, loc="outside lower center", ncols=min(2, len(labels)))
     fig.suptitle(
         "Deterministic policy on the same seeded episodes (mean +- std over episodes; "
         "training wall time in brackets)"
@@ -308,23 +569,60 @@ def plot_curves(curves: dict, baselines: list[dict], path: Path) -> None:
     plt.close(fig)
 
 
+# --------------------------------------------------------------------------- command line
+
+
+def mass_edges(text: str) -> list[float]:
+    """'1,7,13,20': increasing bin edges (kg), at least two."""
+    try:
+        edges = [float(x) for x in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected numbers separated by commas, got {text!r}"
+        ) from None
+    if len(edges) < 2 or np.any(np.diff(edges) <= 0) or edges[0] <= 0:
+        raise argparse.ArgumentTypeError(f"expected >= 2 increasing positive edges, got {text!r}")
+    return edges
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=Formatter)
-    parser.add_argument("--policy", nargs="+", default=[], help="run folders, 'zero' or 'scripted'")
+    parser.add_argument("--policy", nargs="+", default=[], help=POLICY_HELP)
     parser.add_argument(
         "--curve", nargs="+", type=Path, default=[], help="run folders: score every checkpoint"
     )
     parser.add_argument("--plot", type=Path, metavar="PNG", help="learning curves (with --curve)")
-    parser.add_argument("--cargo-model", default="estimate", choices=("estimate", "none", "truth"))
-    parser.add_argument("--episodes", type=positive_int, default=10)
+    parser.add_argument("--cargo-model", default="estimate", choices=CARGO_MODELS)
+    parser.add_argument("--episodes", type=positive_int, default=10, help="per mass bin")
     parser.add_argument(
         "--seed", type=nonnegative_int, default=1000, help="episode k uses seed + k"
+    )
+    parser.add_argument(
+        "--task",
+        default=None,
+        choices=sorted(LEARNING_TASKS),
+        help=f"none: the first run's, else {DEFAULT_TASK}",
     )
     parser.add_argument("--robots", type=int, default=None, help="none: the run's, else 2")
     parser.add_argument("--trajectory", default=None, choices=Trajectory.NAMES)
     parser.add_argument("--max-cycles", type=positive_int, default=None)
     parser.add_argument("--noise", default=None, choices=sorted(NOISE_PROFILES))
     parser.add_argument("--control-hz", type=positive_float, default=None)
+    parser.add_argument(
+        "--mass-bins",
+        type=mass_edges,
+        default=None,
+        metavar="EDGES",
+        help="kg, e.g. 1,7.33,13.67,20: --episodes per bin; none: the task's cargo",
+    )
+    parser.add_argument(
+        "--bound",
+        action="store_true",
+        help="robot 0's principal-moment bound at the end (records the estimators' updates)",
+    )
+    parser.add_argument(
+        "--ablation", action="store_true", help="group run folders into arms over seeds"
+    )
     parser.add_argument("--json", type=Path, metavar="FILE", help="write the results here")
     parser.add_argument("--video", type=Path, metavar="DIR", help="GIF of episode 0 per policy")
     return parser
@@ -358,29 +656,47 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     return args
 
 
+TASK_FLAGS = ("robots", "trajectory", "max_cycles", "noise", "control_hz")
+
+
+def task_of(args: argparse.Namespace, trained: list[dict]) -> dict[str, Any]:
+    """The env arguments of the evaluation: the first run's (its decision wrapper's and
+    observation's left out: each policy brings its own), else ``--task``'s; the flags override."""
+    if trained and args.task is None:
+        task = dict(trained[0]["env_kwargs"])
+    else:
+        task = {**LEARNING_TASKS[args.task or DEFAULT_TASK], "n_robots": 2}
+    for key in ("residual_scale", "action_repeat", "observe_estimates", "estimators"):
+        task.pop(key, None)
+    for flag in TASK_FLAGS:
+        value = getattr(args, flag)
+        if value is not None:
+            task["n_robots" if flag == "robots" else flag] = value
+    if isinstance(task.get("cargo_mass_kg"), list):
+        task["cargo_mass_kg"] = tuple(task["cargo_mass_kg"])
+    return task
+
+
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
-    from astrocargo.envs.wrappers import LEARNING_TASK
-
     policies = [make_policy(spec, args.cargo_model) for spec in args.policy]
     trained = [p.config for p in policies if isinstance(p, TrainedPolicy)]
     trained += [json.loads((run / "config.json").read_text()) for run in args.curve]
-    base = trained[0]["env_kwargs"] if trained else {**LEARNING_TASK, "n_robots": 2}
-    task = {
-        "n_robots": args.robots or base["n_robots"],
-        "trajectory": args.trajectory or base["trajectory"],
-        "max_cycles": args.max_cycles or base["max_cycles"],
-        "noise": args.noise or base["noise"],
-        "control_hz": args.control_hz or base["control_hz"],
-    }
+    task = task_of(args, trained)
+    bins = mass_bins(args.mass_bins, task)
     print(f"seed {args.seed} (episodes {args.seed}..{args.seed + args.episodes - 1}); task {task}")
     results = []
     for policy in policies:
-        results.append(evaluate(policy, task, args.episodes, args.seed, args.video))
+        results.append(
+            evaluate(policy, task, args.episodes, args.seed, args.video, bins, args.bound)
+        )
         print(f"  {policy.name}: {results[-1]['wall_s']:.0f} s")
     if results:
         print_table(results)
-    curves = learning_curves(args.curve, task, args.episodes, args.seed) if args.curve else {}
+    table = ablation(results) if args.ablation else None
+    if table is not None:
+        print_ablation(table)
+    curves = learning_curves(args.curve, task, args.episodes, args.seed, bins) if args.curve else {}
     if curves and args.plot is not None:
         baselines = [
             r for r, p in zip(results, policies, strict=True) if not isinstance(p, TrainedPolicy)
@@ -388,13 +704,27 @@ def main(argv: list[str] | None = None) -> int:
         plot_curves(curves, baselines, args.plot)
         print(f"wrote {args.plot}")
     if args.json is not None:
-        out = {"seed": args.seed, "episodes": args.episodes, "task": task, "results": results}
+        out = {
+            "seed": args.seed,
+            "episodes": args.episodes,
+            "task": task,
+            "mass_bins": [list(b) for b in bins],
+            "results": results,
+        }
+        if table is not None:
+            out["ablation"] = table
         if curves:
             out["curves"] = curves
         args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(out, indent=2) + "\n")
+        args.json.write_text(json.dumps(out, indent=2, default=_json_default) + "\n")
         print(f"wrote {args.json}")
     return 0
+
+
+def _json_default(x: Any) -> Any:
+    if isinstance(x, np.generic | np.ndarray):
+        return x.tolist()
+    raise TypeError(f"not JSON-serialisable: {type(x)}")
 
 
 if __name__ == "__main__":

@@ -5,16 +5,19 @@ Two views of the multi-robot env:
   (``SharedPolicyVecEnv``: every robot of every copy is one slot);
 - ``central``: one policy sees all observations and sends all actions (``CentralizedCargoEnv``).
 
-Observations and rewards are normalised with ``VecNormalize``. The run folder receives
-``model.zip``, ``vecnormalize.pkl``, ``config.json`` (every setting, the seed, the wall time),
-``monitor.csv`` (one row per finished episode of one robot or of the central agent) and
-TensorBoard logs under ``tb/``. ``--timesteps`` counts samples as SB3 does: one per robot per
-control step in the shared view (environment steps = timesteps / robots), one per control step
-in the central view.
+The task is one of ``LEARNING_TASKS`` (``--task``, default ``cargo``: 1-20 kg cargo, 30 s, env
+at 62.5 Hz, decisions at 12.5 Hz); ``--residual-scale S`` > 0 trains a residual policy whose
+action, times S, is added to the thrust of the scripted no-model controller (``DecisionEnv``).
+PPO, SAC or TD3 (``--algo``). Observations and rewards are normalised with ``VecNormalize``.
+The run folder receives ``model.zip``, ``vecnormalize.pkl``, ``config.json`` (every setting, the
+task, the seed, the wall time), ``monitor.csv`` (one row per finished episode of one robot or of
+the central agent), ``checkpoints/`` and TensorBoard logs under ``tb/``. ``--timesteps`` counts
+samples as SB3 does: one per robot per decision in the shared view (decisions = timesteps /
+robots; a decision is ``action_repeat`` control steps), one per decision in the central view.
 
-    .venv/bin/python scripts/train.py --algo ppo --robots 2 --timesteps 600000 --copies 2 \\
-        --seed 1 --checkpoint-every 50000 --log-dir runs/ppo_est
-    .venv/bin/python scripts/train.py ... --no-estimates --log-dir runs/ppo_noest
+    .venv/bin/python scripts/train.py --task cargo --algo ppo --residual-scale 0.3 \\
+        --timesteps 300000 --copies 2 --seed 1 --checkpoint-every 50000 --log-dir runs/res_est_1
+    .venv/bin/python scripts/train.py ... --no-estimates --log-dir runs/res_noest_1
     .venv/bin/tensorboard --logdir runs
 
 ``--backend rllib`` (needs the ray extra, ``bash scripts/setup.sh --dev``) trains PPO with RLlib
@@ -51,9 +54,10 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # tiny matrices: threads onl
 import numpy as np  # noqa: E402
 import stable_baselines3  # noqa: E402
 import torch  # noqa: E402
-from stable_baselines3 import PPO, SAC  # noqa: E402
+from stable_baselines3 import PPO, SAC, TD3  # noqa: E402
 from stable_baselines3.common.base_class import BaseAlgorithm  # noqa: E402
 from stable_baselines3.common.callbacks import BaseCallback, CheckpointCallback  # noqa: E402
+from stable_baselines3.common.noise import NormalActionNoise  # noqa: E402
 from stable_baselines3.common.vec_env import (  # noqa: E402
     DummyVecEnv,
     SubprocVecEnv,
@@ -66,14 +70,17 @@ from astrocargo.agents.trajectories import Trajectory  # noqa: E402
 from astrocargo.envs.sensors import NOISE_PROFILES  # noqa: E402
 from astrocargo.envs.world import MAX_ROBOTS  # noqa: E402
 from astrocargo.envs.wrappers import (  # noqa: E402
-    LEARNING_TASK,
+    LEARNING_TASKS,
     CentralizedCargoEnv,
+    check_decision_args,
+    fast_inference,
     make_vec_env,
 )
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the sibling cli.py, ray_backend.py
 from cli import (  # noqa: E402
     Formatter,
+    nonnegative_float,
     nonnegative_int,
     output_dir,
     positive_float,
@@ -81,7 +88,9 @@ from cli import (  # noqa: E402
 )
 from ray_backend import import_ray, ray_connection  # noqa: E402
 
-ALGOS = {"ppo": PPO, "sac": SAC}
+ALGOS = {"ppo": PPO, "sac": SAC, "td3": TD3}
+DEFAULT_TASK = "cargo"
+RLLIB_TASK = "figure8_10s"  # RLlib trains on the bare env: a task without DecisionEnv
 VIEWS = ("shared", "central")
 BACKENDS = ("sb3", "rllib")
 RLLIB_ENV = "astrocargo_v0"  # RLlib's registry name of the wrapped parallel env
@@ -129,6 +138,19 @@ HYPERPARAMS: dict[str, dict[str, Any]] = {
         "gradient_steps": 1,
         "policy_kwargs": {"net_arch": [64, 64]},
     },
+    "td3": {
+        "learning_rate": 1e-3,
+        "buffer_size": 300_000,
+        "batch_size": 256,
+        "learning_starts": 5_000,
+        "gamma": 0.99,
+        "tau": 0.005,
+        "train_freq": 1,
+        "gradient_steps": 1,
+        # Gaussian exploration noise on the action (std, in action units): NormalActionNoise.
+        "action_noise_std": 0.1,
+        "policy_kwargs": {"net_arch": [64, 64]},
+    },
 }
 
 
@@ -160,18 +182,34 @@ class TrackingCostCallback(BaseCallback):
 
 
 def env_kwargs(args: argparse.Namespace) -> dict[str, Any]:
-    """Keyword arguments of ``astrobee_cargo_v0.parallel_env`` for this run."""
-    return {
-        "n_robots": args.robots,
-        "trajectory": args.trajectory,
-        "noise": args.noise,
-        "max_cycles": args.max_cycles,
-        "control_hz": args.control_hz,
-        "observe_estimates": args.estimates,
-        # The estimators do not change the physics: without their outputs in the observation
-        # they are only cost, so they are switched off (evaluate.py runs them, to score them).
-        "estimators": args.estimates,
-    }
+    """Keyword arguments of ``cargo_env_fn`` for this run: the task's, then the flags' and
+    ``--env`` overrides, ``residual_scale`` and the estimators."""
+    kwargs = {**LEARNING_TASKS[task_name(args)], "n_robots": args.robots}
+    for flag in ("trajectory", "noise", "max_cycles", "control_hz", "action_repeat"):
+        if getattr(args, flag) is not None:
+            kwargs[flag] = getattr(args, flag)
+    kwargs.update(dict(args.env or []))
+    kwargs["residual_scale"] = args.residual_scale
+    # The estimators do not change the physics: without their outputs in the observation they
+    # are only cost, so they are switched off (evaluate.py runs them, to score them); a reward
+    # with an information term needs them.
+    kwargs["observe_estimates"] = args.estimates
+    kwargs["estimators"] = args.estimates or bool(kwargs.get("w_info", 0.0))
+    return kwargs
+
+
+def task_name(args: argparse.Namespace) -> str:
+    """``--task``, else the backend's default: SB3 ``DEFAULT_TASK``, RLlib ``RLLIB_TASK``."""
+    if args.task is not None:
+        return args.task
+    return RLLIB_TASK if args.backend == "rllib" else DEFAULT_TASK
+
+
+def bare_env_kwargs(args: argparse.Namespace) -> dict[str, Any]:
+    """``env_kwargs`` without the decision wrapper's (RLlib's env is the bare parallel env)."""
+    kwargs = env_kwargs(args)
+    del kwargs["residual_scale"], kwargs["action_repeat"]
+    return kwargs
 
 
 def make_training_env(args: argparse.Namespace, seed: int, log_dir: Path | None = None) -> VecEnv:
@@ -197,6 +235,13 @@ def build_model(
     hyper = {**HYPERPARAMS[args.algo], **dict(args.hyperparams or [])}
     venv = make_training_env(args, seed, log_dir)
     venv = VecNormalize(venv, norm_obs=True, norm_reward=True, gamma=hyper["gamma"])
+    kwargs = dict(hyper)
+    noise_std = kwargs.pop("action_noise_std", None)
+    if noise_std is not None:
+        n_actions = venv.action_space.shape[0]
+        kwargs["action_noise"] = NormalActionNoise(
+            np.zeros(n_actions), np.full(n_actions, noise_std)
+        )
     model = ALGOS[args.algo](
         "MlpPolicy",
         venv,
@@ -204,9 +249,9 @@ def build_model(
         verbose=args.verbose,
         tensorboard_log=None if log_dir is None else str(log_dir / "tb"),
         device="cpu",
-        **hyper,
+        **kwargs,
     )
-    return model, hyper
+    return fast_inference(model), hyper
 
 
 def train(args: argparse.Namespace) -> tuple[BaseAlgorithm, Path]:
@@ -220,6 +265,7 @@ def train(args: argparse.Namespace) -> tuple[BaseAlgorithm, Path]:
     config = {
         "algo": args.algo,
         "view": args.view,
+        "task": task_name(args),
         "seed": seed,
         "timesteps": args.timesteps,
         "copies": args.copies,
@@ -293,7 +339,7 @@ def build_rllib_config(args: argparse.Namespace, seed: int, hyper: dict[str, Any
     training = {k: v for k, v in hyper.items() if k not in model_keys}
     return (
         PPOConfig()
-        .environment(RLLIB_ENV, env_config=env_kwargs(args))
+        .environment(RLLIB_ENV, env_config=bare_env_kwargs(args))
         .framework("torch")
         .env_runners(
             num_env_runners=args.env_runners,
@@ -328,7 +374,7 @@ def train_rllib(args: argparse.Namespace) -> Path:
         "timesteps": args.timesteps,
         "env_runners": args.env_runners,
         "ray_address": args.ray_address,
-        "env_kwargs": env_kwargs(args),
+        "env_kwargs": bare_env_kwargs(args),
         "hyperparams": hyper,
         "versions": {
             "python": platform.python_version(),
@@ -429,9 +475,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--timesteps",
         type=int,
         default=600_000,
-        help="training length in samples, as SB3 counts them: one per robot per control step in "
-        "the shared view (environment steps = timesteps / robots), one per control step in the "
-        "central view",
+        help="training length in samples, as SB3 counts them: one per robot per decision in the "
+        "shared view (decisions = timesteps / robots, a decision being --action-repeat control "
+        "steps), one per decision in the central view",
     )
     parser.add_argument("--copies", type=positive_int, default=2, help="environment copies")
     parser.add_argument(
@@ -451,14 +497,38 @@ def build_parser() -> argparse.ArgumentParser:
         help="observe the estimators' cargo estimates",
     )
     parser.add_argument(
-        "--trajectory", default=LEARNING_TASK["trajectory"], choices=Trajectory.NAMES
+        "--task",
+        choices=sorted(LEARNING_TASKS),
+        default=None,
+        help=f"the learning task (LEARNING_TASKS of astrocargo.envs.config); the flags below "
+        f"override its entries; none: {DEFAULT_TASK}, with --backend rllib {RLLIB_TASK}",
+    )
+    parser.add_argument("--trajectory", default=None, choices=Trajectory.NAMES)
+    parser.add_argument(
+        "--max-cycles", type=positive_int, default=None, help="control steps per episode"
+    )
+    parser.add_argument("--noise", default=None, choices=sorted(NOISE_PROFILES))
+    parser.add_argument("--control-hz", type=positive_float, default=None, help="env rate")
+    parser.add_argument(
+        "--action-repeat",
+        type=positive_int,
+        default=None,
+        help="control steps per decision of the policy (DecisionEnv)",
     )
     parser.add_argument(
-        "--max-cycles", type=positive_int, default=LEARNING_TASK["max_cycles"], help="steps/episode"
+        "--residual-scale",
+        type=nonnegative_float,
+        default=0.0,
+        help="> 0: residual policy, the env gets the scripted no-model action plus this times "
+        "the policy's action (DecisionEnv); 0: the policy's action alone",
     )
-    parser.add_argument("--noise", default=LEARNING_TASK["noise"], choices=sorted(NOISE_PROFILES))
     parser.add_argument(
-        "--control-hz", type=positive_float, default=LEARNING_TASK["control_hz"], help="policy rate"
+        "--env",
+        nargs="+",
+        type=parse_override,
+        metavar="KEY=VALUE",
+        help="override the task's env arguments, values as Python literals "
+        "(w_info=2.0 'cargo_mass_kg=(1.0, 20.0)')",
     )
     parser.add_argument("--torch-threads", type=positive_int, default=1)
     parser.add_argument(
@@ -490,9 +560,15 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         parser.error("--timesteps must be a positive integer")
     if not 1 <= args.robots <= MAX_ROBOTS:
         parser.error(f"--robots must be in 1..{MAX_ROBOTS}, got {args.robots}")
+    try:
+        check_decision_args(args.residual_scale, args.action_repeat or 1)
+    except ValueError as err:
+        parser.error(str(err))
     if args.backend == "rllib":
         if args.algo != "ppo" or args.view != "shared":
             parser.error("--backend rllib trains PPO in the shared view only")
+        if args.residual_scale or env_kwargs(args)["action_repeat"] != 1:
+            parser.error("--backend rllib trains on the bare env: no residual, no action repeat")
         try:
             import_ray("--backend rllib needs Ray and RLlib")
         except ImportError as err:

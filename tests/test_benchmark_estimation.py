@@ -77,9 +77,12 @@ def test_time_to_certainty_is_when_the_spread_stays_below_its_target():
     assert got == {"mass_rel": 4.0, "com_m": 1.0, "principal_rel": None}
 
 
-def test_excite_without_a_design_is_a_no_design_row():
-    """One robot has no shipped design: its case reports "no design" at once, and the
-    time-to-certainty table says so instead of failing."""
+def test_excite_without_a_design_is_a_no_design_row(monkeypatch):
+    """A team size without a shipped design (simulated: every size ships one now) reports "no
+    design" at once, and the time-to-certainty table says so instead of failing."""
+    import astrocargo.agents.excitation
+
+    monkeypatch.setattr(astrocargo.agents.excitation, "has_design", lambda n: False)
     bench = _module()
     case = bench.Case(bench.certainty_name("excite", 1), robots=1, trajectory="excite", seed=0)
     result = bench.run_case(case)

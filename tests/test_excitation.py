@@ -18,14 +18,19 @@ from astrocargo.agents.excitation import (
 from astrocargo.agents.excitation_design import (
     DesignSettings,
     ExcitationDesigner,
-    estimator_measurement_cov,
+    estimator_noise_terms,
 )
 from astrocargo.envs.sensors import estimator_noise_kwargs, noise_profile
 from astrocargo.envs.world import World
-from astrocargo.estimator.cargo_estimator import default_prior
-from astrocargo.estimator.geometry import quat_to_mat
-from astrocargo.estimator.inertia import transform_params
-from astrocargo.estimator.rne import body_regressor, grasp_from_base, grasp_pose, wrench_transform
+from astrocargo.estimator.cargo_estimator import CargoEstimator, WrenchMessage, _Instant
+from astrocargo.estimator.motion import grasp_acc_map
+from astrocargo.estimator.rne import (
+    balance_motion_jacobians,
+    body_regressor,
+    grasp_from_base,
+    grasp_pose,
+    wrench_transform,
+)
 
 DT = 1.0 / 62.5
 
@@ -123,8 +128,17 @@ def _controller_commands(model, ref, pan: float) -> list[np.ndarray]:
     return [u * max(controller.last_ratio, 1.0) for u in commands]
 
 
-def test_shipped_design_respects_limits_through_the_allocation(model):
-    design = shipped_design(2)
+@pytest.mark.parametrize("n_robots", [1, 2, 3])
+def test_shipped_design_respects_limits_through_the_allocation(model, n_robots):
+    """Every shipped design (1, 2 and 3 robots) within its servo range and rate, its thrust
+    margin through the controller's own allocation and its wall clearance."""
+    from astrocargo.agents.excitation_design import model_for_world
+
+    if n_robots != model.n_robots:
+        model = model_for_world(
+            World(n_robots), estimator_kwargs=estimator_noise_kwargs(noise_profile("nominal"))
+        )
+    design = shipped_design(n_robots)
     traj = DesignedTrajectory(design)
     lim = model.limits
     # Servo range and rate at the control rate.
@@ -145,6 +159,32 @@ def test_shipped_design_respects_limits_through_the_allocation(model):
     assert np.all(reach + lim.clearance_m <= model.aisle_half * (1 + 1e-6))
 
 
+def test_reference_bounds_score_a_trajectory_as_a_design(model):
+    """``reference_bounds`` of a design flown as a reference (``reference_motion`` through
+    ``traj(t)``) equals the designer's own score of that design, and a design scaled down
+    moves less and gets wider bounds."""
+    settings = DesignSettings(duration_s=40.0, n_harmonics=2, ramp_s=8.0)
+    designer = ExcitationDesigner(model, settings)
+    design = _random_design(n_harm=2)
+    design = ExcitationDesign(design.coeffs * 0.3, 20.0, 40.0, 8.0, 2, spin_radps=(0.02, 0, 0))
+    got = designer.reference_bounds(DesignedTrajectory(design))
+    want = designer.evaluate(design)["bounds"]
+    np.testing.assert_allclose(got["principal_rel"], want["principal_rel"], rtol=1e-6)
+    assert got["mass_rel"] == pytest.approx(want["mass_rel"], rel=1e-6)
+    small = design.scaled(0.5)
+    assert small.info["scaled"] == 0.5 and small.spin_radps[0] == pytest.approx(0.01)
+    np.testing.assert_array_equal(small.coeffs[6], design.coeffs[6])  # the pan stays
+    wider = designer.evaluate(small)["bounds"]
+    assert all(
+        w > 1.5 * b for w, b in zip(wider["principal_rel"], want["principal_rel"], strict=True)
+    )
+    # Scored against the design's own bounds, the design's ratios are 1.
+    mine = ExcitationDesigner(model, DesignSettings(**{**settings.__dict__, "targets": got}))
+    np.testing.assert_allclose(mine.evaluate(design)["ratios"], 1.0, rtol=1e-6)
+    with pytest.raises(ValueError, match="factor"):
+        design.scaled(0.0)
+
+
 def test_tabulated_allocation_matches_the_controller(model):
     traj = DesignedTrajectory(_random_design(n_harm=2))
     times = np.array([5.0, 17.0, 33.0, 49.0])
@@ -157,7 +197,7 @@ def test_tabulated_allocation_matches_the_controller(model):
 
 def test_predicted_fisher_equals_the_regressor_on_the_designs_motion(model):
     """The model's F against a per-sample computation from the Reference, the controller's
-    commands and the estimator's noise pieces."""
+    commands and the estimator's noise pieces at each sample's own pan (no table)."""
     est = model.estimator
     traj = DesignedTrajectory(_random_design(n_harm=2))
     times = np.arange(4.0, 60.0, 0.8)
@@ -186,48 +226,84 @@ def test_predicted_fisher_equals_the_regressor_on_the_designs_motion(model):
                 est.actuation_noise[[1, 3]], 3
             ) * np.abs(u)
             cov += to_grasp @ np.diag(std**2) @ to_grasp.T
-        lever = np.linalg.norm(
-            grasp_pose(model.robots[0], np.array([TILT_DEPLOYED_RAD, ref.pan]))[1]
-        )
-        r = est.meas_cov + cov / est.update_every + _sensor_cov(model, lever)
+        motion_cov = estimator_noise_terms(
+            est,
+            model.robots,
+            model.relative_grasps,
+            model.cargo_grasp,
+            np.array([TILT_DEPLOYED_RAD, ref.pan]),
+        )["motion_cov"]
+        r = est.meas_cov + cov / est.update_every + motion_cov
         fisher += a.T @ np.linalg.solve(r, a)
     predicted = model.fisher(traj.motion(times))
     np.testing.assert_allclose(predicted, fisher, rtol=5e-3, atol=5e-3 * np.abs(fisher).max())
 
 
-def test_sensor_covariance_is_the_estimators():
-    """With the estimator's own prior as the design cargo, the model's errors-in-variables
-    covariance equals CargoEstimator._sensor_cov at that estimate."""
+def _team_estimators(n_robots: int, fusion: str):
+    """Each robot's CargoEstimator of an n-robot team (the grasp layout known), as the env
+    builds them, and the world."""
+    world = World(n_robots)
+    kwargs = {**estimator_noise_kwargs(noise_profile("nominal")), "motion_fusion": fusion}
+    ests = []
+    for i in range(n_robots):
+        peers = [j for j in range(n_robots) if j != i]
+        relative = {j: world.relative_grasp(i, j) for j in peers}
+        ests.append(
+            CargoEstimator(world.robot_model(i), i, peers, DT, relative_grasps=relative, **kwargs)
+        )
+    return world, ests
+
+
+@pytest.mark.parametrize("n_robots, fusion", [(1, "team"), (2, "team"), (3, "team"), (2, "own")])
+def test_motion_covariance_is_the_estimators(n_robots, fusion):
+    """At a configuration, ``estimator_noise_terms``'s motion covariance equals the one the
+    estimator itself builds (``CargoEstimator._motion_noise``) from instants and messages of
+    robots moving arbitrarily (the covariance does not depend on the rates, the accelerations or
+    the observed mismatch), and it is not the scalar model of ``motion_fusion="none"``."""
     from astrocargo.agents.excitation_design import model_for_world
 
-    world = World(2)
-    robot = world.robot_model(0)
-    site = world.handrail_sites[0]
-    rot = quat_to_mat(np.asarray(world.model.site_quat[site], dtype=float))
-    pos = world.model.site_pos[site].copy()
-    prior_grasp = default_prior(robot)
-    cargo = transform_params(prior_grasp, rot, pos)  # grasp frame -> cargo frame
-    kwargs = estimator_noise_kwargs(noise_profile("nominal"))
-    model = model_for_world(world, cargo, kwargs)
-    np.testing.assert_allclose(model.cargo_grasp, prior_grasp, atol=1e-12)
-    est = model.estimator
-    lever = 0.3
-    est._grasp_lever = lever
-    np.testing.assert_allclose(_sensor_cov(model, lever), est._sensor_cov(), rtol=1e-12)
-
-
-def _sensor_cov(model, lever_m: float) -> np.ndarray:
-    """The errors-in-variables term of ``estimator_measurement_cov``: R minus meas_cov at zero
-    actuation noise maps."""
-    n = model.n_robots
-    r = estimator_measurement_cov(
-        model.estimator,
-        model.cargo_grasp,
-        np.zeros((1, n, 6)),
-        np.zeros((1, n, 6, 6)),
-        np.array([lever_m]),
-    )[0]
-    return r - model.estimator.meas_cov
+    world, ests = _team_estimators(n_robots, fusion)
+    kwargs = {**estimator_noise_kwargs(noise_profile("nominal")), "motion_fusion": fusion}
+    model = model_for_world(world, estimator_kwargs=kwargs)
+    est = ests[0]
+    est.ukf.x = model.cargo_grasp.copy()  # the estimate at the design cargo
+    rng = np.random.default_rng(3)
+    q = np.array([TILT_DEPLOYED_RAD, 0.23])
+    msgs, inst = [], None
+    for i, e in enumerate(ests):
+        w, wd, acc, qd, qdd = (rng.normal(0.0, 0.05, k) for k in (3, 3, 3, 2, 2))
+        d_links, d_y = balance_motion_jacobians(e.robot, w, wd, acc, q, qd, qdd)
+        if i == 0:
+            inst = _Instant(
+                np.zeros(6), np.zeros(6), rng.normal(size=(6, 10)), np.zeros((6, 6)), False,
+                (d_links, d_y),
+            )  # fmt: skip
+            continue
+        msgs.append(
+            WrenchMessage(
+                i, 0, np.zeros(6), np.zeros(6), np.zeros(3), np.eye(3), False, np.zeros((6, 6)),
+                grasp_acc=rng.normal(0.0, 0.01, 3), motion_links_jac=d_links,
+                motion_grasp_jac=grasp_acc_map(d_y), motion_var=e._motion_var,
+                motion_band=e._motion_band,
+            )
+        )  # fmt: skip
+    _, expected = est._motion_noise(inst, msgs)
+    terms = estimator_noise_terms(
+        model.estimator, model.robots, model.relative_grasps, model.cargo_grasp, q
+    )
+    np.testing.assert_allclose(
+        terms["motion_cov"], expected, rtol=1e-9, atol=1e-12 * np.abs(expected).max()
+    )
+    np.testing.assert_allclose(terms["meas_cov"], est.meas_cov, rtol=1e-12)
+    # The designer's table at that pan holds it too.
+    np.testing.assert_allclose(
+        model.team(np.array([0.23]))["motion_cov"][0],
+        expected,
+        rtol=0.05,
+        atol=0.05 * np.abs(expected).max(),
+    )
+    scalar = est.sensor_cov_at(model.cargo_grasp, np.linalg.norm(grasp_pose(est.robot, q)[1]))
+    assert np.abs(terms["motion_cov"] - scalar).max() > 0.1 * np.abs(scalar).max()
 
 
 def test_designer_improves_on_its_start(model):

@@ -20,13 +20,18 @@ from stable_baselines3.common.env_checker import check_env as sb3_check_env
 
 from astrocargo.agents.controllers import ObservationController
 from astrocargo.envs import astrobee_cargo_v0
+from astrocargo.envs.config import LEARNING_TASKS
 from astrocargo.envs.wrappers import (
     ENV_ID,
     CentralizedCargoEnv,
+    DecisionEnv,
     SharedPolicyVecEnv,
     SlotController,
+    cargo_env_fn,
+    fast_inference,
     make_vec_env,
 )
+from astrocargo.estimator.inertia import mass_com_inertia_from_params
 
 ROOT = Path(__file__).resolve().parents[1]
 FAST = {
@@ -211,11 +216,17 @@ def trained_runs(tmp_path_factory):
         + common
         + ["--hyperparams", "learning_starts=32", "batch_size=16", "buffer_size=1000"]
     )
-    assert ppo == sac == 0
+    res = train.main(
+        ["--algo", "ppo", "--copies", "1", "--timesteps", "64", "--log-dir", str(base / "res")]
+        + ["--residual-scale", "0.3", "--action-repeat", "2", "--no-estimates"]
+        + common
+        + ["--hyperparams", "n_steps=32", "batch_size=32", "n_epochs=1"]
+    )
+    assert ppo == sac == res == 0
     return base
 
 
-@pytest.mark.parametrize("run", ["ppo", "sac"])
+@pytest.mark.parametrize("run", ["ppo", "sac", "res"])
 def test_training_saves_and_loads_same_actions(trained_runs, run):
     evaluate = _load_script("evaluate")
     run_dir = trained_runs / run
@@ -223,15 +234,15 @@ def test_training_saves_and_loads_same_actions(trained_runs, run):
     assert config["seed"] == 4 and config["samples"] >= config["timesteps"]
     assert (run_dir / "monitor.csv").is_file() and any((run_dir / "tb").iterdir())
     policy = evaluate.TrainedPolicy(run_dir)
-    env = astrobee_cargo_v0.parallel_env(**config["env_kwargs"])
+    env = cargo_env_fn(**config["env_kwargs"])()
     obs, _ = env.reset(seed=0)
     obs = np.stack(list(obs.values()))
     # The same policy object again from disk, and its normalised, deterministic actions.
     again = evaluate.TrainedPolicy(run_dir)
-    np.testing.assert_array_equal(policy.act(obs), again.act(obs))
+    np.testing.assert_array_equal(policy.decide(obs), again.decide(obs))
     flat = obs.reshape(1, -1) if config["view"] == "central" else obs
     direct, _ = again.model.predict(again.normalizer.normalize_obs(flat), deterministic=True)
-    np.testing.assert_array_equal(policy.act(obs), direct.reshape(2, 8))
+    np.testing.assert_array_equal(policy.decide(obs), direct.reshape(2, -1))
 
 
 def test_training_run_saves_the_in_memory_policy(tmp_path):
@@ -264,3 +275,196 @@ def test_evaluate_scores_policies_on_the_same_episodes(trained_runs, tmp_path):
     zero, scripted = results["results"][1:]
     # The scripted controller follows the reference that the zero policy lets go.
     assert scripted["summary"]["final_pos_m"]["mean"] < zero["summary"]["final_pos_m"]["mean"]
+
+
+# --------------------------------------------------------------------------- tasks, decisions
+
+
+def test_cargo_task_draws_masses_over_its_range_with_matching_inertia():
+    task = {**LEARNING_TASKS["cargo"], "max_cycles": 5, "noise": "ideal", "estimators": False}
+    task["observe_estimates"] = False
+    env = cargo_env_fn(**task)()
+    masses = []
+    for seed in range(12):
+        env.reset(seed=seed)
+        world = env.sim.world
+        mass, com, inertia = mass_com_inertia_from_params(world.cargo_params())
+        masses.append(mass)
+        # The inertia about the centre of mass is the uniform box's of the drawn mass.
+        np.testing.assert_allclose(inertia, world.uniform_cargo_inertia(mass), atol=1e-12)
+        assert np.all(np.abs(com) <= 0.03 + 1e-12)
+    low, high = LEARNING_TASKS["cargo"]["cargo_mass_kg"]
+    assert low <= min(masses) and max(masses) <= high
+    assert max(masses) - min(masses) > 0.5 * (high - low)
+    env.close()
+
+
+def test_zero_residual_is_the_scripted_no_model_controller():
+    kwargs = {**FAST, "max_cycles": 12}
+    env = astrobee_cargo_v0.parallel_env(**kwargs)
+    wrapped = DecisionEnv(astrobee_cargo_v0.parallel_env(**kwargs), residual_scale=0.4)
+    obs, _ = env.reset(seed=7)
+    wobs, _ = wrapped.reset(seed=7)
+    controller = ObservationController.for_env(env, "none")
+    zeros = dict.fromkeys(env.possible_agents, np.zeros(6))
+    assert wrapped.action_space("astrobee_0").shape == (6,)  # thrust only
+    while env.agents:
+        obs, rewards, *_ = env.step(controller.predict(obs)[0])
+        wobs, wrewards, _, _, winfos = wrapped.step(zeros)
+        for a in env.possible_agents:
+            np.testing.assert_array_equal(obs[a], wobs[a])
+            assert rewards[a] == wrewards[a]
+    assert not wrapped.agents and winfos["astrobee_0"]["decision_steps"] == 1
+
+
+def test_action_repeat_holds_the_action_and_sums_the_rewards():
+    kwargs = {**FAST, "max_cycles": 7}
+    env = astrobee_cargo_v0.parallel_env(**kwargs)
+    wrapped = DecisionEnv(astrobee_cargo_v0.parallel_env(**kwargs), action_repeat=3)
+    env.reset(seed=2)
+    wrapped.reset(seed=2)
+    action = dict.fromkeys(env.possible_agents, np.array([0.5, -0.3, 0.2, 0.1, 0, 0, 0, 0.2]))
+    steps = []
+    while wrapped.agents:
+        wobs, wrewards, _, truncs, infos = wrapped.step(action)
+        total = dict.fromkeys(env.possible_agents, 0.0)
+        for _ in range(infos["astrobee_0"]["decision_steps"]):
+            obs, rewards, *_ = env.step(action)
+            for a in rewards:
+                total[a] += rewards[a]
+        steps.append(infos["astrobee_0"]["decision_steps"])
+        for a in env.possible_agents:
+            np.testing.assert_array_equal(obs[a], wobs[a])
+            assert wrewards[a] == pytest.approx(total[a], rel=1e-12)
+    assert steps == [3, 3, 1] and all(truncs.values())  # the episode ends within a decision
+
+
+@pytest.mark.parametrize(
+    "kwargs", [{"residual_scale": -0.1}, {"action_repeat": 0}, {"action_repeat": 1.5}]
+)
+def test_decision_env_rejects_bad_arguments(kwargs):
+    with pytest.raises(ValueError):
+        DecisionEnv(astrobee_cargo_v0.parallel_env(**FAST), **kwargs)
+
+
+def test_evaluation_replays_a_residual_policy_as_in_training(trained_runs):
+    """evaluate.py's TrainedPolicy at the control rate (repeat and residual done by itself) and
+    the training env's DecisionEnv driven by the same model make the same episode."""
+    evaluate = _load_script("evaluate")
+    policy = evaluate.TrainedPolicy(trained_runs / "res")
+    kwargs = policy.config["env_kwargs"]
+    assert kwargs["residual_scale"] == 0.3 and kwargs["action_repeat"] == 2
+    wrapped = cargo_env_fn(**kwargs)()
+    bare = astrobee_cargo_v0.parallel_env(
+        **{k: v for k, v in kwargs.items() if k not in ("residual_scale", "action_repeat")}
+    )
+    wobs, _ = wrapped.reset(seed=3)
+    obs, _ = bare.reset(seed=3)
+    policy.reset(bare)
+    agents = bare.possible_agents
+    moved = False
+    while wrapped.agents:
+        decision = policy.decide(np.stack([wobs[a] for a in agents]))
+        moved |= bool(np.any(decision))
+        wobs, *_ = wrapped.step(dict(zip(agents, decision, strict=True)))
+        for _ in range(2):
+            if bare.agents:
+                obs, *_ = bare.step(
+                    dict(zip(agents, policy.act(np.stack([obs[a] for a in agents])), strict=True))
+                )
+        for a in agents:
+            np.testing.assert_array_equal(obs[a], wobs[a])
+    assert moved  # the residual is not zero: the comparison tests the residual path
+
+
+def test_fast_inference_keeps_the_actions(trained_runs):
+    from stable_baselines3 import PPO
+
+    run = trained_runs / "ppo"
+    obs = np.random.default_rng(1).normal(
+        size=(4, PPO.load(run / "model.zip").observation_space.shape[0])
+    )
+    plain, fast = PPO.load(run / "model.zip"), fast_inference(PPO.load(run / "model.zip"))
+    for deterministic in (True, False):
+        plain.set_random_seed(5)  # torch's global generator: seed right before each call
+        a, _ = plain.predict(obs, deterministic=deterministic)
+        fast.set_random_seed(5)
+        b, _ = fast.predict(obs, deterministic=deterministic)
+        np.testing.assert_array_equal(a, b)
+    fast.policy.set_training_mode(True)  # a change of mode still reaches every submodule
+    assert all(m.training for m in fast.policy.modules())
+    fast.policy.set_training_mode(False)
+    assert not any(m.training for m in fast.policy.modules())
+
+
+def test_ablation_compares_arms_with_the_seed_spread():
+    evaluate = _load_script("evaluate")
+
+    def result(observe, seed, light, heavy):
+        config = {
+            "algo": "ppo",
+            "view": "shared",
+            "task": "cargo",
+            "seed": seed,
+            "env_kwargs": {"observe_estimates": observe, "residual_scale": 0.3},
+        }
+        bins = {
+            name: {m: {"mean": value, "std": 0.0} for m in evaluate.ABLATION_METRICS}
+            for name, value in (("light", light), ("heavy", heavy))
+        }
+        return {"config": config, "bins": bins}
+
+    results = [result(True, s, 0.010 + 0.001 * s, 0.004 + 0.0001 * s) for s in (1, 2, 3)]
+    results += [result(False, s, 0.011 + 0.001 * s, 0.020 + 0.0001 * s) for s in (1, 2, 3)]
+    table = evaluate.ablation(results)
+    assert len(table["arms"]) == 2 and len(table["pairs"]) == 1
+    arm = table["arms"][table["pairs"][0]["with"]]
+    assert arm["seeds"] == [1, 2, 3]
+    assert arm["bins"]["light"]["track_pos_m"]["std"] == pytest.approx(0.001)
+    diffs = table["pairs"][0]["bins"]
+    assert diffs["light"]["track_pos_m"]["with_minus_without"] == pytest.approx(-0.001)
+    assert diffs["light"]["track_pos_m"]["exceeds_spread"] is False  # 1 mm, spread 1 mm
+    assert diffs["heavy"]["track_pos_m"]["with_minus_without"] == pytest.approx(-0.016)
+    assert diffs["heavy"]["track_pos_m"]["exceeds_spread"] is True
+
+
+def test_evaluate_bins_masses_and_bounds_the_principal_moments(tmp_path):
+    evaluate = _load_script("evaluate")
+    out = tmp_path / "eval.json"
+    argv = ["--policy", "scripted", "scripted:none@figure8_tumble", "--episodes", "1"]
+    argv += ["--task", "cargo", "--max-cycles", "400", "--mass-bins", "1,5,20", "--bound"]
+    assert evaluate.main(argv + ["--json", str(out)]) == 0
+    results = json.loads(out.read_text())
+    assert results["mass_bins"] == [[1.0, 5.0], [5.0, 20.0]]
+    estimate, tumble = results["results"]
+    assert tumble["policy"] == "scripted (none) on figure8_tumble"
+    for r in (estimate, tumble):
+        masses = [e["cargo_mass_kg"] for e in r["episodes"]]
+        assert 1 <= masses[0] < 5 <= masses[1] <= 20
+        assert [e["bin"] for e in r["episodes"]] == ["1-5 kg", "5-20 kg"]
+        for e in r["episodes"]:
+            assert len(e["bound_principal_rel"]) == 3 and e["steps"] == 400
+            assert 0 <= e["saturated"] <= 1 and e["wall_contact"] == 0
+    # Tumbling reveals the principal moments that the yaw ramp leaves to the prior.
+    worst = [max(e["filter_principal_rel"]) for e in estimate["episodes"]]
+    worst_tumble = [max(e["filter_principal_rel"]) for e in tumble["episodes"]]
+    assert np.all(np.array(worst_tumble) < np.array(worst))
+
+
+def test_train_parses_tasks_and_the_residual(capsys, tmp_path):
+    train = _load_script("train")
+    out = str(tmp_path)
+    args = train.parse_args(["--residual-scale", "0.3", "--env", "w_info=2.0", "--log-dir", out])
+    kwargs = train.env_kwargs(args)
+    assert kwargs["cargo_mass_kg"] == LEARNING_TASKS["cargo"]["cargo_mass_kg"]
+    assert kwargs["residual_scale"] == 0.3 and kwargs["action_repeat"] == 5
+    assert kwargs["w_info"] == 2.0 and kwargs["estimators"]
+    # An information reward keeps the estimators running when they are not observed.
+    args = train.parse_args(["--task", "excitation", "--no-estimates", "--log-dir", out])
+    kwargs = train.env_kwargs(args)
+    assert kwargs["estimators"] and not kwargs["observe_estimates"]
+    args = train.parse_args(["--task", "cargo", "--no-estimates", "--log-dir", out])
+    assert not train.env_kwargs(args)["estimators"]
+    with pytest.raises(SystemExit):
+        train.parse_args(["--backend", "rllib", "--residual-scale", "0.3", "--log-dir", out])
+    assert "no residual, no action repeat" in capsys.readouterr().err
