@@ -40,24 +40,14 @@ def merwe_sigma_points(x: np.ndarray, P: np.ndarray, scale: float) -> tuple[np.n
     """Merwe sigma points (2n + 1, n) of (x, P) in filterpy's order, scale = sqrt(n + lambda):
     X_0 = x, X_(1+k) = x + scale L[:, k], X_(1+n+k) = x - scale L[:, k] with P = L L^T; and
     whether P is positive definite (the points are not usable when it is not)."""
-    sigmas = np.empty((2 * x.size + 1, x.size))
-    return sigmas, merwe_sigma_points_into(sigmas, x, P, scale)
-
-
-@njit(cache=True)
-def merwe_sigma_points_into(sigmas: np.ndarray, x: np.ndarray, P: np.ndarray, scale: float) -> bool:
-    """`merwe_sigma_points` written into ``sigmas`` (2n + 1, n); returns whether P is positive
-    definite (``sigmas`` is left unchanged when it is not)."""
     n = x.size
     lower, definite = cholesky_lower(P)
-    if not definite:
-        return False
     offsets = scale * lower.T  # row k: scale times column k of L
+    sigmas = np.empty((2 * n + 1, n))
     sigmas[0] = x
-    for k in range(n):
-        sigmas[1 + k] = x + offsets[k]
-        sigmas[1 + n + k] = x - offsets[k]
-    return True
+    sigmas[1 : n + 1] = x + offsets
+    sigmas[n + 1 :] = x - offsets
+    return sigmas, definite
 
 
 @njit(cache=True)
@@ -70,18 +60,6 @@ def unscented_transform(
     residuals = sigmas_h - mean
     cov = (Wc.reshape(-1, 1) * residuals).T @ residuals + noise_cov
     return mean, cov
-
-
-@njit(cache=True)
-def moments(x, sigmas, sigmas_h, Wm, Wc, noise_cov):
-    """The unscented transform and the cross-covariance in one pass over the sigma points:
-    (z_pred, S, P_xz) of `unscented_transform` and `cross_covariance`, each residual
-    Z_i - z_pred weighted by Wc_i once."""
-    z_pred = Wm @ sigmas_h
-    weighted = Wc.reshape(-1, 1) * (sigmas_h - z_pred)
-    S = weighted.T @ (sigmas_h - z_pred) + noise_cov
-    P_xz = (sigmas - x).T @ weighted
-    return z_pred, S, P_xz
 
 
 @njit(cache=True)
@@ -137,18 +115,16 @@ def unscented_update(arrays: tuple, z: np.ndarray, R: np.ndarray):
     x, P, _, sigmas, sigmas_h, y_out, S_out, P_xz_out, Wm, Wc, scalars = arrays
     if not _all_finite(sigmas_h):
         return BAD_H, math.nan
-    z_pred, S, P_xz = moments(x, sigmas, sigmas_h, Wm, Wc, R)
+    z_pred, S = unscented_transform(sigmas_h, Wm, Wc, R)
+    P_xz = cross_covariance(x, z_pred, sigmas, sigmas_h, Wc)
     S_lower, definite = cholesky_lower(S)
     if not definite:
         return BAD_S, math.nan
     # With S = L_S L_S^T, W = L_S^-1 P_zx and w = L_S^-1 y: K = P_xz S^-1 = W^T L_S^-1,
-    # NIS = y^T S^-1 y = w.w, K y = W^T w and K S K^T = W^T W (one forward substitution).
+    # NIS = y^T S^-1 y = w.w, K y = W^T w and K S K^T = W^T W.
     y = z - z_pred
-    rhs = np.empty((z.size, x.size + 1))
-    rhs[:, : x.size] = P_xz.T
-    rhs[:, x.size] = y
-    solved = solve_lower(S_lower, rhs)
-    W, w = np.ascontiguousarray(solved[:, : x.size]), np.ascontiguousarray(solved[:, x.size])
+    W = solve_lower(S_lower, np.ascontiguousarray(P_xz.T))
+    w = solve_lower(S_lower, y.reshape(-1, 1)).ravel()
     nis = w @ w
     log_det_S = 2.0 * np.log(np.diag(S_lower)).sum()
     log_likelihood = -0.5 * (nis + log_det_S + z.size * math.log(2.0 * math.pi))
@@ -177,8 +153,10 @@ def _predict_and_draw(arrays: tuple, R: np.ndarray, predict_first: bool):
         P += Q
     if not _all_finite(R):
         return BAD_R
-    if not merwe_sigma_points_into(sigmas, x, P, scalars[0]):
+    new_sigmas, definite = merwe_sigma_points(x, P, scalars[0])
+    if not definite:
         return BAD_P
+    sigmas[:] = new_sigmas
     return OK
 
 
