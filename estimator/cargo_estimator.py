@@ -299,7 +299,7 @@ class CargoEstimator:
         *,
         update_every: int = 10,
         force_std_n: float = 7e-5,
-        torque_std_nm: float = 3.4e-5,
+        torque_std_nm: float = 2.1e-5,
         actuation_noise: tuple[float, float, float, float] = (5e-3, 0.02, 5e-4, 0.02),
         prior_std: tuple[float, float, float, float] = DEFAULT_PRIOR_STD,
         process_std_rel: float = DEFAULT_PROCESS_STD_REL,
@@ -317,7 +317,7 @@ class CargoEstimator:
         relative_grasps: dict[int, tuple[np.ndarray, np.ndarray]] | None = None,
         record: bool = False,
         motion_fusion: str = "team",
-        mismatch_model_std: float = 3e-5,
+        mismatch_model_std: float = 1.7e-5,
     ) -> None:
         if motion_fusion not in MOTION_FUSION:
             raise ValueError(f"motion_fusion must be one of {MOTION_FUSION}, got {motion_fusion!r}")

@@ -144,7 +144,7 @@ class NoiseModel:
         self.grasp_ang_acc_noise = np.hypot(
             self.ang_acc_noise, np.sqrt(robot.n_joints) * self.joint_acc_noise
         )
-        self.mismatch_model_var = float(mismatch_model_std) ** 2
+        self.mismatch_model_var = self.correlated * float(mismatch_model_std) ** 2
         # Exact filter chain per motion source (``motion``).
         chain = filtered_motion_gains(dt_s, kinematics_cutoff_hz, cutoff_hz, regressor_every)
         factors = band_factors(chain, dt_s, kinematics_cutoff_hz, cutoff_hz, update_every)
