@@ -228,22 +228,11 @@ class CargoEstimator:
         prior_std: (mass kg, centre of mass m, moments kg m^2, products kg m^2) standard
             deviations of the prior (`prior_covariance`); ``process_std_rel``: random walk of the
             parameters per update, as a fraction of the prior's standard deviations.
-        force_std_n, torque_std_nm: the balance's model error, not a sensor's: what remains of
-            the filtered balance with no noise in it (the pre-filter's distortion of the
-            products of the motion, ``preprocess``), as the std of an independent residual per
-            decorrelation time. Measured on the 90 s tumble, 2 robots, with nothing entering the
-            balance (localization noise alone, the grasp layout known): force rows 5-8e-5 N,
-            moment rows 0.1-1.2e-5 N m (rms times the square root of the residual's correlation
-            sum, over the decorrelation factor). The moment floor is kept at 3.4e-5 N m, above
-            that: at 1.5e-5 the accelerometer-alone NEES rose to 79 (the team-conditioned
-            accelerometer noise is under-modelled in the moment rows, cause not found). The
-            sensors' noise is modelled separately (``motion_fusion``; ``_sensor_cov`` with
-            "none"), as is the actuation's.
+        force_std_n, torque_std_nm: the floors, the balance's model error (what remains of the
+            filtered balance with no noise in it), rms per update (``noise_model``).
         actuation_noise: (force_abs_n, force_rel, torque_abs_nm, torque_rel): the robot's known
-            propulsion accuracy, white per control step: std = abs + rel * |command| per axis.
-            Its covariance, carried into the grasp frame (force noise at the base becomes moment
-            noise about the grasp), is what the robot's own and the peers' (sent with their
-            messages) contributions to the measurement covariance are built from.
+            propulsion accuracy, white per control step: std = abs + rel * |command| per axis;
+            the peers' is sent with their messages.
         cutoff_hz: the slow filter of the wrench balance; ``kinematics_cutoff_hz``: the fast
             pre-filter of the raw signals; ``regressor_every``: control steps between balance
             evaluations (``update_every`` must be a multiple; 2, i.e. 31 Hz: the doubly
@@ -253,40 +242,27 @@ class CargoEstimator:
         history_s: how long an instant waits for its peers' messages before it is skipped.
         gate_prob: chi-square probability of the normalised innovation gate (None: no gating).
         sensor_noise: (accel_std m/s^2, gyro_std rad/s, encoder_std rad), white per control
-            step: the robot's known sensor specs. Through the slow filter they become noise on
-            the accelerations in the balance, which enters both the measurement and the regressor
-            (errors in variables); its effect at the current estimate is added to the
-            measurement covariance, and instants whose excitation does not stand above it are not
-            used (``min_excitation_snr``): hovering robots must not learn from their own noise.
+            step: the robot's known sensor specs. They enter the measurement (errors in
+            variables, ``motion_fusion``), and instants whose excitation does not stand above
+            them are not used (``min_excitation_snr``).
         min_excitation_snr: skip an instant unless its filtered linear or angular acceleration
             exceeds this many standard deviations of its noise (counted as skipped_low_excitation).
         peer_noise_std: (force N, moment N m) of the channel's additive noise on peers' wrenches.
-        localization_noise: (position m, attitude rad) of one localization fix. The relative pose
-            of two grasps is the average over N simultaneous fixes of both robots; its error
-            (position sqrt(2/N) sigma_p, attitude sqrt(2/N) sigma_theta) moves and turns the
-            peer's wrench, which enters the measurement covariance; peers are used only once
-            ``min_relative_fixes`` fixes are averaged.
+        localization_noise: (position m, attitude rad) of one fix; peers are used once
+            ``min_relative_fixes`` simultaneous fixes average their relative grasp pose.
         relative_grasps: known pose (rotation, position) of each peer's grasp frame in this
             robot's grasp frame, {peer: (rot, pos)}: the team's grasp plan (which handrails of
             the cargo they hold) is geometry, not inertia. Without it the pose is estimated from
             localization fixes; a fix-averaged pose is biased early on and that bias stays in the
             updates made with it (measured: 9 mm of CoM error on a 90 s nominal run).
         record: keep every accepted update's (z, A, b, R) in ``log`` for the batch baselines.
-        motion_fusion: how the motion's sensor noise (accelerometer, gyro, encoders) enters the
-            measurement (``motion``): "none": scalar blocks at the current estimate
-            (``_sensor_cov``); "own": its full structure E Sigma E^T through the exact filter
-            chain, this robot's and the peers' (their Jacobians and variances come with their
-            messages); "team" (default): that, conditioned on the mismatch of the grasp
-            accelerations the peers' IMUs report (the cargo is rigid: zero in truth), which
-            corrects the balance by E[n | d] and leaves Cov[n | d].
-        mismatch_model_std: m/s^2 per axis and update, the team mismatch's model error (what d
-            holds with perfect sensors: rms 0.6-2.8e-5 m/s^2 per axis on the 90 s tumble), added
-            to the mismatch's covariance so that the conditioning does not read it as sensor
-            noise (``motion.condition_on_mismatch``). The default is the largest axis's rms.
-            The accelerometer-alone NEES (2 robots, tumble, seed 0) is not monotonic in it
-            (0: 29; 9e-6: 52; 1.5e-5: 42; 3e-5: 14-19; 1e-4: 1.5), a sign that the
-            conditioning's per-update model (one static gain for sources of different colour)
-            is not the exact one.
+        motion_fusion: how the sensors' noise on the motion enters the measurement
+            (``NoiseModel.motion_noise``): "none" scalar blocks at the current estimate; "own"
+            its full structure through the exact filter chain, this robot's and the peers';
+            "team" (default) that, conditioned on the peers' grasp-acceleration mismatch (zero
+            in truth for a rigid cargo).
+        mismatch_model_std: m/s^2 per axis, rms per update of the mismatch's model error (what it
+            holds with perfect sensors), weighted like the floors (``noise_model``).
     """
 
     def __init__(
@@ -323,10 +299,6 @@ class CargoEstimator:
             raise ValueError(f"motion_fusion must be one of {MOTION_FUSION}, got {motion_fusion!r}")
         self.motion_fusion = motion_fusion
         self._mismatch_model_std = float(mismatch_model_std)
-        if not (np.isfinite(mismatch_model_std) and mismatch_model_std >= 0):
-            raise ValueError(
-                f"mismatch_model_std must be finite and >= 0, got {mismatch_model_std}"
-            )
         _check_arguments(
             index, peers, update_every, regressor_every, force_std_n, torque_std_nm, warmup_s,
             history_s, gate_prob, min_excitation_snr, process_std_rel, min_relative_fixes,
