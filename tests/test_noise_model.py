@@ -61,9 +61,7 @@ def test_conditioning_on_coloured_sources_is_never_overconfident(use_colour):
     mismatch_maps.append(np.hstack([np.eye(3), 0.3 * rng.normal(size=(3, 3))]))
     args = (noise_maps, mismatch_maps, [var, var])
     _, cov = condition_on_mismatch(*args, np.zeros(3), [band, band])
-    gain = np.column_stack(
-        [condition_on_mismatch(*args, e, [band, band])[0] for e in np.eye(3)]
-    )
+    gain = np.column_stack([condition_on_mismatch(*args, e, [band, band])[0] for e in np.eye(3)])
     n_rep, n_updates = 300, 400
     xi = _filtered_sources(rng, n_rep, n_updates, std)
     n = xi[..., :6] @ noise_maps[0].T + xi[..., 6:] @ noise_maps[1].T
@@ -109,7 +107,9 @@ def test_noise_model_rejects_bad_input():
     with pytest.raises(ValueError, match="sensor_noise"):
         NoiseModel(robot, 0.016, 10, 2, 0.25, 1.0, sensor_noise=(1e-3, -1, 0), **kw)
     with pytest.raises(ValueError, match="mismatch_model_std"):
-        NoiseModel(robot, 0.016, 10, 2, 0.25, 1.0, sensor_noise=(0, 0, 0), mismatch_model_std=-1, **kw)
+        NoiseModel(
+            robot, 0.016, 10, 2, 0.25, 1.0, sensor_noise=(0, 0, 0), mismatch_model_std=-1, **kw
+        )
     model = NoiseModel(robot, 0.016, 10, 2, 0.25, 1.0, sensor_noise=(0, 0, 0), **kw)
     with pytest.raises(ValueError, match="fusion"):
         model.motion_noise("peers", np.ones(10), None, np.zeros((6, 10)), [])
