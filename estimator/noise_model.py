@@ -96,6 +96,16 @@ class NoiseModel:
         localization_noise: (position m, attitude rad) of one fix.
         mismatch_model_std: rms per update and axis (m/s^2) of the team mismatch's model error
             (what it holds with perfect sensors), weighted like the floors.
+
+    The defaults' measured values (``CargoEstimator``; 90 s figure8_tumble, 2 robots, ``ideal``
+    sensors, seed 0, the residual at the true parameters): white-equivalent per update
+    (Bartlett sum of the autocovariance over 32 updates, 3 decorrelation times) over the number
+    of updates per decorrelation time, worst axis: moment rows 2.1e-5 N m with their mean
+    (0.8e-5 without: the y moment's 1.1e-5 mean is model error too, and with 1e-5 the
+    ideal-sensor NEES was 18); force rows 6.1e-5 N without their mean, 1.35e-4 with it, 7e-5
+    kept (a constant force is nearly orthogonal to the regressor's zero-mean acceleration
+    columns; with 1e-4 the ideal-sensor NEES fell to 2-4); the mismatch 1.0 / 2.3 / 1.6e-5 m/s^2
+    per axis without its mean, rms 1.7e-5.
     """
 
     def __init__(
