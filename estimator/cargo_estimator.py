@@ -274,7 +274,7 @@ class CargoEstimator:
         prior_params: np.ndarray | None = None,
         *,
         update_every: int = 10,
-        force_std_n: float = 7e-5,
+        force_std_n: float = 6.1e-5,
         torque_std_nm: float = 2.1e-5,
         actuation_noise: tuple[float, float, float, float] = (5e-3, 0.02, 5e-4, 0.02),
         prior_std: tuple[float, float, float, float] = DEFAULT_PRIOR_STD,
@@ -359,7 +359,6 @@ class CargoEstimator:
         self._act_cov_n = 0
         self._thrust_to_base = self.robot.thrust_to_base
         self._peer_noise_cov, self._peer_noise = n.peer_noise_cov, n.has_peer_noise
-        self._acc_noise, self._grasp_ang_acc_noise = n.acc_noise, n.grasp_ang_acc_noise
         self._motion_var, self._motion_band = n.motion.var, n.motion.band
 
     def _init_bookkeeping(self, relative_grasps, record: bool) -> None:
@@ -668,15 +667,7 @@ class CargoEstimator:
 
     def _excited(self, regressor: np.ndarray) -> bool:
         """Does the filtered motion of this instant stand above the noise of its measurement?"""
-        acc = regressor[:3, 0]
-        # The force rows' h-columns are skew(wd) + skew(w)^2: wd is their antisymmetric part.
-        h = regressor[:3, 1:4]
-        wd = 0.5 * np.array((h[2, 1] - h[1, 2], h[0, 2] - h[2, 0], h[1, 0] - h[0, 1]))
-        ang_noise = self._grasp_ang_acc_noise
-        lin_noise = np.hypot(self._acc_noise, self._grasp_lever * ang_noise)
-        snr_lin = np.linalg.norm(acc) / max(lin_noise, 1e-300)
-        snr_ang = np.linalg.norm(wd) / max(ang_noise, 1e-300)
-        return max(snr_lin, snr_ang) >= self.min_excitation_snr
+        return self.noise.excitation_snr(regressor, self._grasp_lever) >= self.min_excitation_snr
 
     def _relative_pose_cov(self, wrench: np.ndarray, n_fixes: int) -> np.ndarray:
         """Covariance a peer's wrench gains from the error of the averaged relative grasp pose."""

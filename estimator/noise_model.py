@@ -102,10 +102,9 @@ class NoiseModel:
     (Bartlett sum of the autocovariance over 32 updates, 3 decorrelation times) over the number
     of updates per decorrelation time, worst axis: moment rows 2.1e-5 N m with their mean
     (0.8e-5 without: the y moment's 1.1e-5 mean is model error too, and with 1e-5 the
-    ideal-sensor NEES was 18); force rows 6.1e-5 N without their mean, 1.35e-4 with it, 7e-5
-    kept (a constant force is nearly orthogonal to the regressor's zero-mean acceleration
-    columns; with 1e-4 the ideal-sensor NEES fell to 2-4); the mismatch 1.0 / 2.3 / 1.6e-5 m/s^2
-    per axis without its mean, rms 1.7e-5.
+    ideal-sensor NEES was 18); force rows 6.1e-5 N without their mean (1.35e-4 with it, at which
+    the ideal-sensor NEES fell to 2-4: the force rows' mean barely projects on the parameters);
+    the mismatch 1.0 / 2.3 / 1.6e-5 m/s^2 per axis without its mean, rms 1.7e-5.
     """
 
     def __init__(
@@ -177,6 +176,21 @@ class NoiseModel:
         f2 = float(wrench[:3] @ wrench[:3])
         n2 = float(wrench[3:] @ wrench[3:])
         return np.diag([var_att * f2] * 3 + [var_att * n2 + var_pos * f2] * 3)
+
+    def excitation_snr(self, regressor: np.ndarray, lever_m: float) -> float:
+        """How far the filtered motion of an instant stands above its noise: the larger of
+        |a_G| / sigma_lin and |wd| / sigma_ang, with the grasp's angular acceleration noise
+        sigma_ang (gyro and joints) and sigma_lin = hypot(sigma_a, L sigma_ang) at the
+        base-to-grasp lever L (m); a_G and wd from the filtered regressor (6, 10) (its force
+        rows' h-columns are skew(wd) + skew(w)^2: wd is their antisymmetric part)."""
+        acc = regressor[:3, 0]
+        h = regressor[:3, 1:4]
+        wd = 0.5 * np.array((h[2, 1] - h[1, 2], h[0, 2] - h[2, 0], h[1, 0] - h[0, 1]))
+        ang_noise = self.grasp_ang_acc_noise
+        lin_noise = np.hypot(self.acc_noise, lever_m * ang_noise)
+        snr_lin = np.linalg.norm(acc) / max(lin_noise, 1e-300)
+        snr_ang = np.linalg.norm(wd) / max(ang_noise, 1e-300)
+        return float(max(snr_lin, snr_ang))
 
     def sensor_cov_at(self, params: np.ndarray, lever_m: float | np.ndarray) -> np.ndarray:
         """Measurement covariance (..., 6, 6) from the sensors' noise on the filtered

@@ -93,7 +93,8 @@ def test_noise_model_is_the_estimator_s():
     # The floors and the mismatch's model error are white-equivalent per update alike.
     c = decorrelation_updates(est.balance_filter.delay_s, est.update_every * est.dt_s)
     assert model.correlated == pytest.approx(c) and c > 1
-    np.testing.assert_allclose(np.diag(model.floor_cov)[[0, 3]], c * np.array([7e-5, 2.1e-5]) ** 2)
+    floors = np.array([6.1e-5, 2.1e-5])
+    np.testing.assert_allclose(np.diag(model.floor_cov)[[0, 3]], c * floors**2)
     assert model.mismatch_model_var == pytest.approx(c * 1.7e-5**2)
     wrench = np.array([1.0, 0, 0, 0, 0, 0.1])
     pose = model.relative_pose_cov(wrench, 8)
@@ -113,3 +114,14 @@ def test_noise_model_rejects_bad_input():
     model = NoiseModel(robot, 0.016, 10, 2, 0.25, 1.0, sensor_noise=(0, 0, 0), **kw)
     with pytest.raises(ValueError, match="fusion"):
         model.motion_noise("peers", np.ones(10), None, np.zeros((6, 10)), [])
+
+
+def test_excitation_snr_counts_sigmas_of_the_filtered_motion():
+    """An instant whose grasp accelerates at k sigma of its linear noise (no rotation) stands
+    k sigma above it; a lever adds the angular noise to the linear one."""
+    model = CargoEstimator(_robot(), 0, [], 0.016).noise
+    regressor = np.zeros((6, 10))
+    assert model.excitation_snr(regressor, 0.4) == 0.0
+    regressor[:3, 0] = [7.0 * model.acc_noise, 0.0, 0.0]
+    assert model.excitation_snr(regressor, 0.0) == pytest.approx(7.0)
+    assert model.excitation_snr(regressor, 0.4) < 7.0
