@@ -42,6 +42,7 @@ from __future__ import annotations
 import copy
 import time
 from dataclasses import dataclass, fields
+from types import SimpleNamespace
 
 import numpy as np
 from scipy.optimize import minimize
@@ -56,7 +57,7 @@ from astrocargo.estimator.inertia import (
     principal_moments,
     transform_params,
 )
-from astrocargo.estimator.motion import balance_noise_map, condition_on_mismatch, grasp_acc_map
+from astrocargo.estimator.motion import grasp_acc_map
 from astrocargo.estimator.rne import (
     RobotDescription,
     balance_motion_jacobians,
@@ -84,13 +85,10 @@ from .excitation import (
 
 
 # ------------------------------------------------------------------------------- ESTIMATOR COUPLING
-# The ONE place that reads CargoEstimator's noise model: its fields meas_cov, _actuation_abs,
-# _actuation_rel, update_every, motion_fusion, _motion_var, _motion_band, _mismatch_model_var
-# and sensor_cov_at, and the public functions of estimator.motion that its _motion_noise calls.
-# It restates _motion_noise's assembly of the maps at a configuration (no readings). When the
-# estimator offers a public method for its per-update measurement covariance at a
-# configuration (estimator/noise_model.py), repoint this function to it; nothing else in this
-# module depends on how R is built.
+# The ONE place that reads CargoEstimator's noise model: its public NoiseModel
+# (``estimator.noise``: ``motion_noise``, the per-instant covariance the estimator's updates use),
+# meas_cov, the actuation noise and update_every. Nothing else in this module depends on how R is
+# built.
 def estimator_noise_terms(
     estimator: CargoEstimator,
     robots: list[RobotDescription],
@@ -106,14 +104,13 @@ def estimator_noise_terms(
     M_j its thrust site -> robot 0's grasp frame G (assembled by the caller), at one team
     configuration: every robot at ``joint_angles`` (n_joints,) rad, peers' grasps
     ``relative_grasps`` {j: (rotation, position m)} in G, the cargo ``cargo_grasp`` (10,) (G) as
-    the estimate. ``motion_cov`` (6, 6) is the sensors' noise on the filtered motion
-    (``estimator.motion``): E Sigma E^T over robot 0 and its peers with E = d(links + Y pi)/dxi,
-    conditioned on the peers' grasp-acceleration mismatches for ``motion_fusion="team"``
-    (``condition_on_mismatch``; its covariance does not depend on the observed mismatch),
-    unconditioned for "own" or without peers, the scalar ``sensor_cov_at`` for "none". The
-    Jacobians are exact and depend on the joint angles only (the balance is affine in
-    xi = (a_B, wd_B, qdd) with coefficients free of the angular and joint rates), so this is
-    the estimator's covariance at every instant of that configuration.
+    the estimate. ``motion_cov`` (6, 6) is ``NoiseModel.motion_noise``'s covariance (the
+    sensors' noise on the filtered motion, conditioned on the peers' grasp-acceleration
+    mismatches for ``motion_fusion="team"``; it does not depend on the observed mismatch, so
+    the peers' messages carry zero accelerations here). The Jacobians are exact and depend on
+    the joint angles only (the balance is affine in xi = (a_B, wd_B, qdd) with coefficients free
+    of the angular and joint rates), so this is the estimator's covariance at every instant of
+    that configuration.
 
     Returns {"meas_cov", "motion_cov": (6, 6); "actuation_abs", "actuation_rel": (6,);
     "update_every": int}."""
@@ -125,32 +122,22 @@ def estimator_noise_terms(
     def jacobians(robot):
         return balance_motion_jacobians(robot, zero3, zero3, zero3, q, zero_q, zero_q)
 
-    d_links, d_y = jacobians(robots[0])
-    if est.motion_fusion == "none":
-        lever = float(np.linalg.norm(grasp_pose(robots[0], q)[1]))
-        motion_cov = est.sensor_cov_at(params, lever)
-    else:
-        noise_maps = [balance_noise_map(d_links, d_y, params)]
-        variances, bands = [est._motion_var], [est._motion_band]
-        own_rows, peer_blocks = [], []
-        for j, (rot, pos) in sorted(relative_grasps.items()):
-            links_j, y_j = jacobians(robots[j])
-            noise_maps.append(wrench_transform(rot, pos) @ links_j)
-            variances.append(est._motion_var)
-            bands.append(est._motion_band)
-            own_rows.append(-grasp_acc_map(d_y, pos))
-            peer_blocks.append(rot @ grasp_acc_map(y_j))
-        mismatch_maps, mismatch = [], None
-        if est.motion_fusion == "team" and peer_blocks:
-            mismatch_maps = [np.vstack(own_rows)]
-            for k, block in enumerate(peer_blocks):
-                column = [np.zeros_like(block)] * len(peer_blocks)
-                column[k] = block
-                mismatch_maps.append(np.vstack(column))
-            mismatch = np.zeros(3 * len(peer_blocks))
-        motion_cov = condition_on_mismatch(
-            noise_maps, mismatch_maps, variances, mismatch, bands, est._mismatch_model_var
-        )[1]
+    spec = est.noise.motion
+    peers = []
+    for j, (rot, pos) in sorted(relative_grasps.items()):
+        links_j, y_j = jacobians(robots[j])
+        message = SimpleNamespace(
+            grasp_acc=np.zeros(3),
+            motion_links_jac=links_j,
+            motion_grasp_jac=grasp_acc_map(y_j),
+            motion_var=spec.var,
+            motion_band=spec.band,
+        )
+        peers.append((wrench_transform(rot, pos), message))
+    lever = float(np.linalg.norm(grasp_pose(robots[0], q)[1]))
+    motion_cov = est.noise.motion_noise(
+        est.motion_fusion, params, jacobians(robots[0]), np.zeros((6, 10)), peers, lever
+    )[1]
     return {
         "meas_cov": est.meas_cov.copy(),
         "motion_cov": motion_cov,

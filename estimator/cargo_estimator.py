@@ -69,13 +69,7 @@ import numpy as np
 from scipy.stats import chi2
 
 from .messages import WrenchMessage, _Instant, _RelativeGrasp  # noqa: F401 (re-exported)
-from .motion import (
-    balance_noise_map,
-    band_factors,
-    condition_on_mismatch,
-    filtered_motion_gains,
-    grasp_acc_map,
-)
+from .noise_model import MOTION_FUSION, NoiseModel
 from .per_step import EstimatorInputs
 from .preprocess import Preprocessor, StateVariableFilter
 from .prior import (  # noqa: F401 (re-exported)
@@ -86,9 +80,6 @@ from .prior import (  # noqa: F401 (re-exported)
 )
 from .rne import Balance, RobotDescription, grasp_pose, wrench_transform
 from .ukf import InertialParamUKF
-
-# Ways the motion's sensor noise enters the measurement (CargoEstimator's motion_fusion).
-MOTION_FUSION = ("none", "own", "team")
 
 
 def _check_arguments(
@@ -130,22 +121,11 @@ class CargoEstimator(EstimatorInputs):
         prior_std: (mass kg, centre of mass m, moments kg m^2, products kg m^2) standard
             deviations of the prior (`prior_covariance`); ``process_std_rel``: random walk of the
             parameters per update, as a fraction of the prior's standard deviations.
-        force_std_n, torque_std_nm: the balance's model error, not a sensor's: what remains of
-            the filtered balance with no noise in it (the pre-filter's distortion of the
-            products of the motion, ``preprocess``), as the std of an independent residual per
-            decorrelation time. Measured on the 90 s tumble, 2 robots, with nothing entering the
-            balance (localization noise alone, the grasp layout known): force rows 5-8e-5 N,
-            moment rows 0.1-1.2e-5 N m (rms times the square root of the residual's correlation
-            sum, over the decorrelation factor). The moment floor is kept at 3.4e-5 N m, above
-            that: at 1.5e-5 the accelerometer-alone NEES rose to 79 (the team-conditioned
-            accelerometer noise is under-modelled in the moment rows, cause not found). The
-            sensors' noise is modelled separately (``motion_fusion``; ``_sensor_cov`` with
-            "none"), as is the actuation's.
+        force_std_n, torque_std_nm: the floors, the balance's model error (what remains of the
+            filtered balance with no noise in it), rms per update (``noise_model``).
         actuation_noise: (force_abs_n, force_rel, torque_abs_nm, torque_rel): the robot's known
-            propulsion accuracy, white per control step: std = abs + rel * |command| per axis.
-            Its covariance, carried into the grasp frame (force noise at the base becomes moment
-            noise about the grasp), is what the robot's own and the peers' (sent with their
-            messages) contributions to the measurement covariance are built from.
+            propulsion accuracy, white per control step: std = abs + rel * |command| per axis;
+            the peers' is sent with their messages.
         cutoff_hz: the slow filter of the wrench balance; ``kinematics_cutoff_hz``: the fast
             pre-filter of the raw signals; ``regressor_every``: control steps between balance
             evaluations (``update_every`` must be a multiple; 2, i.e. 31 Hz: the doubly
@@ -155,40 +135,27 @@ class CargoEstimator(EstimatorInputs):
         history_s: how long an instant waits for its peers' messages before it is skipped.
         gate_prob: chi-square probability of the normalised innovation gate (None: no gating).
         sensor_noise: (accel_std m/s^2, gyro_std rad/s, encoder_std rad), white per control
-            step: the robot's known sensor specs. Through the slow filter they become noise on
-            the accelerations in the balance, which enters both the measurement and the regressor
-            (errors in variables); its effect at the current estimate is added to the
-            measurement covariance, and instants whose excitation does not stand above it are not
-            used (``min_excitation_snr``): hovering robots must not learn from their own noise.
+            step: the robot's known sensor specs. They enter the measurement (errors in
+            variables, ``motion_fusion``), and instants whose excitation does not stand above
+            them are not used (``min_excitation_snr``).
         min_excitation_snr: skip an instant unless its filtered linear or angular acceleration
             exceeds this many standard deviations of its noise (counted as skipped_low_excitation).
         peer_noise_std: (force N, moment N m) of the channel's additive noise on peers' wrenches.
-        localization_noise: (position m, attitude rad) of one localization fix. The relative pose
-            of two grasps is the average over N simultaneous fixes of both robots; its error
-            (position sqrt(2/N) sigma_p, attitude sqrt(2/N) sigma_theta) moves and turns the
-            peer's wrench, which enters the measurement covariance; peers are used only once
-            ``min_relative_fixes`` fixes are averaged.
+        localization_noise: (position m, attitude rad) of one fix; peers are used once
+            ``min_relative_fixes`` simultaneous fixes average their relative grasp pose.
         relative_grasps: known pose (rotation, position) of each peer's grasp frame in this
             robot's grasp frame, {peer: (rot, pos)}: the team's grasp plan (which handrails of
             the cargo they hold) is geometry, not inertia. Without it the pose is estimated from
             localization fixes; a fix-averaged pose is biased early on and that bias stays in the
             updates made with it (measured: 9 mm of CoM error on a 90 s nominal run).
         record: keep every accepted update's (z, A, b, R) in ``log`` for the batch baselines.
-        motion_fusion: how the motion's sensor noise (accelerometer, gyro, encoders) enters the
-            measurement (``motion``): "none": scalar blocks at the current estimate
-            (``_sensor_cov``); "own": its full structure E Sigma E^T through the exact filter
-            chain, this robot's and the peers' (their Jacobians and variances come with their
-            messages); "team" (default): that, conditioned on the mismatch of the grasp
-            accelerations the peers' IMUs report (the cargo is rigid: zero in truth), which
-            corrects the balance by E[n | d] and leaves Cov[n | d].
-        mismatch_model_std: m/s^2 per axis and update, the team mismatch's model error (what d
-            holds with perfect sensors: rms 0.6-2.8e-5 m/s^2 per axis on the 90 s tumble), added
-            to the mismatch's covariance so that the conditioning does not read it as sensor
-            noise (``motion.condition_on_mismatch``). The default is the largest axis's rms.
-            The accelerometer-alone NEES (2 robots, tumble, seed 0) is not monotonic in it
-            (0: 29; 9e-6: 52; 1.5e-5: 42; 3e-5: 14-19; 1e-4: 1.5), a sign that the
-            conditioning's per-update model (one static gain for sources of different colour)
-            is not the exact one.
+        motion_fusion: how the sensors' noise on the motion enters the measurement
+            (``NoiseModel.motion_noise``): "none" scalar blocks at the current estimate; "own"
+            its full structure through the exact filter chain, this robot's and the peers';
+            "team" (default) that, conditioned on the peers' grasp-acceleration mismatch (zero
+            in truth for a rigid cargo).
+        mismatch_model_std: m/s^2 per axis, rms per update of the mismatch's model error (what it
+            holds with perfect sensors), weighted like the floors (``noise_model``).
     """
 
     def __init__(
@@ -200,8 +167,8 @@ class CargoEstimator(EstimatorInputs):
         prior_params: np.ndarray | None = None,
         *,
         update_every: int = 10,
-        force_std_n: float = 7e-5,
-        torque_std_nm: float = 3.4e-5,
+        force_std_n: float = 6.1e-5,
+        torque_std_nm: float = 2.1e-5,
         actuation_noise: tuple[float, float, float, float] = (5e-3, 0.02, 5e-4, 0.02),
         prior_std: tuple[float, float, float, float] = DEFAULT_PRIOR_STD,
         process_std_rel: float = DEFAULT_PROCESS_STD_REL,
@@ -219,16 +186,12 @@ class CargoEstimator(EstimatorInputs):
         relative_grasps: dict[int, tuple[np.ndarray, np.ndarray]] | None = None,
         record: bool = False,
         motion_fusion: str = "team",
-        mismatch_model_std: float = 3e-5,
+        mismatch_model_std: float = 1.7e-5,
     ) -> None:
         if motion_fusion not in MOTION_FUSION:
             raise ValueError(f"motion_fusion must be one of {MOTION_FUSION}, got {motion_fusion!r}")
         self.motion_fusion = motion_fusion
         self._mismatch_model_std = float(mismatch_model_std)
-        if not (np.isfinite(mismatch_model_std) and mismatch_model_std >= 0):
-            raise ValueError(
-                f"mismatch_model_std must be finite and >= 0, got {mismatch_model_std}"
-            )
         _check_arguments(
             index, peers, update_every, regressor_every, force_std_n, torque_std_nm, warmup_s,
             history_s, gate_prob, min_excitation_snr, process_std_rel, min_relative_fixes,
@@ -273,66 +236,24 @@ class CargoEstimator(EstimatorInputs):
         self, force_std_n, torque_std_nm, actuation_noise, sensor_noise, peer_noise_std,
         localization_noise, cutoff_hz, kinematics_cutoff_hz,
     ) -> None:  # fmt: skip
-        """The measurement covariance's parts (see the constructor's arguments)."""
-        dt_s, robot = self.dt_s, self.robot
-        # Residuals of successive updates are correlated over the filter's decorrelation time
-        # 1 / (2 ENBW), ENBW = 3 w / 32 for (w / (s + w))^3: treating them as independent would
-        # make the filter overconfident, so the covariance is scaled by the number of updates that
-        # share one independent sample.
-        w = 3.0 / self.balance_filter.delay_s
-        correlated = max(1.0, (16.0 / (3.0 * w)) / (self.update_every * dt_s))
-        self.meas_cov = correlated * np.diag([force_std_n**2] * 3 + [torque_std_nm**2] * 3)
-        # White per-step noise of variance s^2 through the slow filter and sampled every
-        # update_every steps contributes s^2 / update_every per update (filtered variance
-        # s^2 2 ENBW dt times the same decorrelation factor as above).
-        self.actuation_noise = np.asarray(actuation_noise, dtype=float)
-        if self.actuation_noise.shape != (4,) or np.any(self.actuation_noise < 0):
-            raise ValueError("actuation_noise must be 4 non-negative numbers")
-        # Per axis of the thrust command: std = abs + rel * |command|.
-        self._actuation_abs = np.repeat(self.actuation_noise[[0, 2]], 3)
-        self._actuation_rel = np.repeat(self.actuation_noise[[1, 3]], 3)
+        """The measurement covariance's model (``noise_model.NoiseModel``) and the fields the
+        per-step path and the excitation designer read from it."""
+        self.noise = NoiseModel(
+            self.robot, self.dt_s, self.update_every, self.regressor_every, cutoff_hz,
+            kinematics_cutoff_hz, force_std_n=force_std_n, torque_std_nm=torque_std_nm,
+            actuation_noise=actuation_noise, sensor_noise=sensor_noise,
+            peer_noise_std=peer_noise_std, localization_noise=localization_noise,
+            mismatch_model_std=self._mismatch_model_std,
+        )  # fmt: skip
+        n = self.noise
+        self.meas_cov = n.floor_cov
+        self.actuation_noise = n.actuation_noise
+        self._actuation_abs, self._actuation_rel = n.actuation_abs, n.actuation_rel
         self._act_cov_sum = np.zeros((6, 6))
         self._act_cov_n = 0
-        self._thrust_to_base = robot.thrust_to_base
-        sensor_noise = np.asarray(sensor_noise, dtype=float)
-        if sensor_noise.shape != (3,) or np.any(sensor_noise < 0):
-            raise ValueError("sensor_noise must be 3 non-negative numbers")
-        peer_noise = np.asarray(peer_noise_std, dtype=float)
-        if peer_noise.shape != (2,) or np.any(peer_noise < 0):
-            raise ValueError("peer_noise_std must be 2 non-negative numbers")
-        self._peer_noise_cov = np.diag(np.repeat(peer_noise**2, 3))
-        self._peer_noise = bool(np.any(peer_noise > 0))  # else its covariance adds zeros
-        loc = np.asarray(localization_noise, dtype=float)
-        if loc.shape != (2,) or np.any(loc < 0):
-            raise ValueError("localization_noise must be 2 non-negative numbers")
-        self._loc_pos_std, self._loc_att_std = (float(x) for x in loc)
-        # Noise gains of the slow filter (impulse response energy of y, y', y''): white noise of
-        # std s per step becomes s * g on the filtered value and its derivatives.
-        gains = StateVariableFilter(1, dt_s, cutoff_hz).noise_gains()
-        # Accelerations in the balance: base linear (accelerometer, y), angular (gyro, y') and
-        # joint (encoders, y'').
-        self._acc_noise = sensor_noise[0] * gains[0]
-        self._ang_acc_noise = sensor_noise[1] * gains[1]
-        self._joint_acc_noise = sensor_noise[2] * gains[2]
-        # The grasp's angular accelerations carry the joints' (doubly differentiated encoders).
-        self._grasp_ang_acc_noise = np.hypot(
-            self._ang_acc_noise, np.sqrt(robot.n_joints) * self._joint_acc_noise
-        )
-        self._correlated = correlated
-        # The team mismatch's model error, per update (see the constructor's argument).
-        self._mismatch_model_var = self._mismatch_model_std**2
-        # Per-sample variance of the filtered motion's noise, xi = (a_B, wd_B, qdd) (``motion``),
-        # through the exact filter chain (pre-filter value / rate / second derivative, then the
-        # slow filter), and each source's weight per update for its colour (``band_factors``).
-        chain = filtered_motion_gains(dt_s, kinematics_cutoff_hz, cutoff_hz, self.regressor_every)
-        factors = band_factors(chain, dt_s, kinematics_cutoff_hz, cutoff_hz, self.update_every)
-        sizes = [3, 3, robot.n_joints]
-        self._motion_var = np.repeat((sensor_noise * chain) ** 2, sizes)
-        self._motion_band = np.repeat(factors, sizes)
-        self._robot_mass = robot.total_mass
-        self._robot_inertia = sum(
-            float(np.linalg.eigvalsh(link.inertia_com)[-1]) for link in robot.links
-        )
+        self._thrust_to_base = self.robot.thrust_to_base
+        self._peer_noise_cov, self._peer_noise = n.peer_noise_cov, n.has_peer_noise
+        self._motion_var, self._motion_band = n.motion.var, n.motion.band
 
     def _init_bookkeeping(self, relative_grasps, record: bool) -> None:
         """Counters, histories and the peers' relative grasps, at the start of a run."""
@@ -455,45 +376,13 @@ class CargoEstimator(EstimatorInputs):
         return done
 
     def _motion_noise(self, inst: _Instant, msgs: list) -> tuple[np.ndarray, np.ndarray]:
-        """Mean and covariance of the balance's motion noise at this instant (``motion``):
-        "none" (or a peer that sends no motion) the scalar ``_sensor_cov``; "own" E Sigma E^T
-        over this robot and the peers; "team" that conditioned on the peers' grasp-acceleration
-        mismatches d_j = R_ij a_Gj - (a_Gi + (skew(wd) + skew(w)^2) r_ij), zero in truth."""
-        if self.motion_fusion == "none" or any(m.motion_links_jac is None for m in msgs):
-            return np.zeros(6), self._sensor_cov()
-        d_links, d_y = inst.motion_jac
-        noise_maps = [balance_noise_map(d_links, d_y, self.ukf.params_mean())]
-        variances = [self._motion_var]
-        bands = [self._motion_band]
-        # Mismatch k (3 rows) = R_ik G_k dxi_k - G_i(point k) dxi_i: a block row per peer.
-        own_rows, peer_blocks, mismatch = [], [], []
-        for p, m in zip(self.peers, msgs, strict=True):
-            t = self._relative[p].transform()
-            rot = t[:3, :3]
-            lever = t[3:, :3] @ rot.T  # skew of the peer's grasp point in G
-            pos = np.array([lever[2, 1], lever[0, 2], lever[1, 0]])
-            noise_maps.append(t @ m.motion_links_jac)
-            variances.append(m.motion_var)
-            bands.append(m.motion_band)
-            own_rows.append(-grasp_acc_map(d_y, pos))
-            peer_blocks.append(rot @ m.motion_grasp_jac)
-            predicted = inst.regressor[:3, 0] + inst.regressor[:3, 1:4] @ pos
-            mismatch.append(rot @ m.grasp_acc - predicted)
-        if self.motion_fusion == "own" or not self.peers:
-            return condition_on_mismatch(noise_maps, [], variances, None, bands)
-        mismatch_maps = [np.vstack(own_rows)]
-        for k, block in enumerate(peer_blocks):
-            column = [np.zeros_like(block)] * len(peer_blocks)
-            column[k] = block
-            mismatch_maps.append(np.vstack(column))
-        return condition_on_mismatch(
-            noise_maps,
-            mismatch_maps,
-            variances,
-            np.concatenate(mismatch),
-            bands,
-            self._mismatch_model_var,
-        )
+        """Mean and covariance of the balance's motion noise at this instant
+        (``NoiseModel.motion_noise``)."""
+        peers = [(self._relative[p].transform(), m) for p, m in zip(self.peers, msgs, strict=True)]
+        return self.noise.motion_noise(
+            self.motion_fusion, self.ukf.params_mean(), inst.motion_jac, inst.regressor, peers,
+            self._grasp_lever,
+        )  # fmt: skip
 
     def _forget_before(self, horizon: int) -> None:
         """Drop the peers' messages and own fixes of stamps before ``horizon``."""
@@ -524,52 +413,21 @@ class CargoEstimator(EstimatorInputs):
 
     def _excited(self, regressor: np.ndarray) -> bool:
         """Does the filtered motion of this instant stand above the noise of its measurement?"""
-        acc = regressor[:3, 0]
-        # The force rows' h-columns are skew(wd) + skew(w)^2: wd is their antisymmetric part.
-        h = regressor[:3, 1:4]
-        wd = 0.5 * np.array((h[2, 1] - h[1, 2], h[0, 2] - h[2, 0], h[1, 0] - h[0, 1]))
-        ang_noise = self._grasp_ang_acc_noise
-        lin_noise = np.hypot(self._acc_noise, self._grasp_lever * ang_noise)
-        snr_lin = np.linalg.norm(acc) / max(lin_noise, 1e-300)
-        snr_ang = np.linalg.norm(wd) / max(ang_noise, 1e-300)
-        return max(snr_lin, snr_ang) >= self.min_excitation_snr
+        return self.noise.excitation_snr(regressor, self._grasp_lever) >= self.min_excitation_snr
 
     def _relative_pose_cov(self, wrench: np.ndarray, n_fixes: int) -> np.ndarray:
         """Covariance a peer's wrench gains from the error of the averaged relative grasp pose."""
-        shrink = 2.0 / max(n_fixes, 1)
-        var_att = shrink * self._loc_att_std**2
-        var_pos = shrink * self._loc_pos_std**2
-        f2 = float(wrench[:3] @ wrench[:3])
-        n2 = float(wrench[3:] @ wrench[3:])
-        return np.diag([var_att * f2] * 3 + [var_att * n2 + var_pos * f2] * 3)
+        return self.noise.relative_pose_cov(wrench, n_fixes)
 
     def _sensor_cov(self) -> np.ndarray:
         """``sensor_cov_at`` the current estimate and this robot's base-to-grasp lever."""
         return self.sensor_cov_at(self.ukf.params_mean(), self._grasp_lever)
 
     def sensor_cov_at(self, params: np.ndarray, lever_m: float | np.ndarray) -> np.ndarray:
-        """Measurement covariance (..., 6, 6) from the sensors' noise on the filtered
-        accelerations at the cargo ``params`` (10,) (grasp frame) and base-to-grasp lever(s)
-        ``lever_m`` (...) m, scalar per block, magnitudes only: force M sigma_a + m_c L sigma_qdd,
-        moment J sigma_wd + M L sigma_a + m_c |c| L sigma_qdd, with M the robot-plus-cargo mass,
-        L the lever and J the inertia about the grasp. The model of ``motion_fusion="none"``
-        (and of a peer that sends no motion); the excitation designer reads it too."""
-        m_c, i_xx, i_yy, i_zz = (float(x) for x in params[[0, 4, 5, 6]])
-        com = float(np.linalg.norm(params[1:4])) / m_c
-        lever = np.asarray(lever_m, dtype=float)
-        total = self._robot_mass + m_c
-        inertia = self._robot_inertia + self._robot_mass * lever**2 + max(i_xx, i_yy, i_zz)
-        force = (total * self._acc_noise) ** 2 + (m_c * lever * self._joint_acc_noise) ** 2
-        moment = (
-            (inertia * self._ang_acc_noise) ** 2
-            + (total * lever * self._acc_noise) ** 2
-            + (m_c * com * lever * self._joint_acc_noise) ** 2
-        )
-        cov = np.zeros(lever.shape + (6, 6))
-        axes = np.arange(3)
-        cov[..., axes, axes] = force[..., None]
-        cov[..., axes + 3, axes + 3] = moment[..., None]
-        return self._correlated * cov
+        """Measurement covariance (..., 6, 6) of the sensors' noise, scalar per block, at the cargo
+        ``params`` (10,) and base-to-grasp lever(s) ``lever_m`` (``NoiseModel.sensor_cov_at``);
+        the excitation designer reads it."""
+        return self.noise.sensor_cov_at(params, lever_m)
 
     def set_peers(self, peers: list[int] | tuple[int, ...]) -> None:
         """Change which robots hold the cargo (a robot released it). The pending instants are

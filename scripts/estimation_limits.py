@@ -7,7 +7,11 @@ own measurements and covariance) with the UKF's errors and NEES. This is the tab
 docs/estimation_limits.md:
 
     .venv/bin/python scripts/estimation_limits.py                       # the doc's table
+    .venv/bin/python scripts/estimation_limits.py --alone --seeds 0 1 2  # NEES per source
     .venv/bin/python scripts/estimation_limits.py --trajectory excite --seeds 0 1 2
+
+``--alone`` flies each noise source alone instead (the noise model's consistency: NEES with one
+source at a time) and prints the seeds' mean NEES per source against its 95 % band.
 """
 
 from __future__ import annotations
@@ -24,6 +28,8 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # before numpy: one thread p
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import benchmark_estimation as bench  # noqa: E402
 import cli  # noqa: E402
+import numpy as np  # noqa: E402
+from scipy.stats import chi2  # noqa: E402
 
 from astrocargo.envs import sensors  # noqa: E402
 
@@ -54,8 +60,31 @@ VARIANTS = (
         replace(NOMINAL, force_std_n=0.0, torque_std_nm=0.0),
     ),
 )
+_SILENT = replace(
+    NOMINAL, **_NO_SENSORS, force_std_n=0.0, force_rel=0.0, torque_std_nm=0.0, torque_rel=0.0
+)
+# Each source alone: (name, label, profile).
+ALONE = (
+    ("accelerometer", "accelerometer alone", replace(_SILENT, accel_std=NOMINAL.accel_std)),
+    ("gyro", "gyro alone", replace(_SILENT, gyro_std=NOMINAL.gyro_std)),
+    ("encoders", "encoders alone", replace(_SILENT, encoder_std_rad=NOMINAL.encoder_std_rad)),
+    (
+        "localization",
+        "localization alone",
+        replace(
+            _SILENT,
+            position_std_m=NOMINAL.position_std_m,
+            attitude_std_rad=NOMINAL.attitude_std_rad,
+        ),
+    ),
+    ("actuation_only", "actuation alone", replace(NOMINAL, **_NO_SENSORS)),
+    ("nominal", "every source", NOMINAL),
+)
+# The nominal bound's target against the perfect-sensor bound, on every principal moment.
+TARGET_RATIO = 1.3
+SENSOR_VARIANTS = ("no_accelerometer", "no_encoders", "no_gyro", "no_localization")
 # Registered under these names in this process and in the workers it forks.
-sensors.NOISE_PROFILES.update({f"limits_{name}": profile for name, _, profile in VARIANTS})
+sensors.NOISE_PROFILES.update({f"limits_{name}": profile for name, _, profile in VARIANTS + ALONE})
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -70,6 +99,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--duration", type=cli.positive_float, default=90.0, help="s, >= 8")
     parser.add_argument("--seeds", type=cli.nonnegative_int, nargs="+", default=[0], help=">= 0")
     parser.add_argument("--workers", type=cli.positive_int, default=2, help="processes")
+    parser.add_argument("--alone", action="store_true", help="each noise source alone: NEES")
     return parser
 
 
@@ -93,9 +123,13 @@ def _run(job: tuple[str, int, argparse.Namespace]) -> tuple[str, int, dict]:
 
 def main(argv: list[str] | None = None) -> None:
     args = parse_args(argv)
-    jobs = [(name, seed, args) for name, _, _ in VARIANTS for seed in args.seeds]
+    variants = ALONE if args.alone else VARIANTS
+    jobs = [(name, seed, args) for name, _, _ in variants for seed in args.seeds]
     with ProcessPoolExecutor(args.workers) as pool:
         results = list(pool.map(_run, jobs))
+    if args.alone:
+        _print_nees(results, args)
+        return
     perfect = {seed: r["crlb"] for name, seed, r in results if name == "actuation_only"}
     print(
         f"{args.robots} robots, {args.trajectory}, {args.duration:g} s, seeds {args.seeds}: "
@@ -122,6 +156,47 @@ def main(argv: list[str] | None = None) -> None:
             f"| {' / '.join(f'{100 * x:.1f}' for x in worst)} % "
             f"| {' / '.join(f'{nees:.1f}' for nees in (a['nees'] for a in agents))} |"
         )
+    print()
+    for seed in args.seeds:
+        ratios = {
+            name: _principal_ratio(r["crlb"], perfect[seed]) for name, s, r in results if s == seed
+        }
+        binding = [
+            labels[n] for n, x in ratios.items() if n in SENSOR_VARIANTS and x <= TARGET_RATIO
+        ]
+        print(
+            f"seed {seed}: nominal / perfect sensors, worst principal moment "
+            f"{ratios['nominal']:.2f}"
+            f" (target <= {TARGET_RATIO}); within it with one sensor removed: "
+            f"{', '.join(binding) or 'none'}"
+        )
+
+
+def _print_nees(results: list[tuple[str, int, dict]], args: argparse.Namespace) -> None:
+    """Per source alone: each seed's NEES (robot by robot) and the mean over seeds and robots
+    against the 95 % band of that mean (chi-square, 10 dof per robot and seed; the robots of one
+    seed share the noise, so the band counts the seeds only)."""
+    n = len(args.seeds)
+    low, high = (chi2.ppf(p, 10 * n) / n for p in (0.025, 0.975))
+    print(
+        f"{args.robots} robots, {args.trajectory}, {args.duration:g} s, seeds {args.seeds}: NEES "
+        f"(10 parameters) with each noise source alone; 95 % band of the mean [{low:.1f}, "
+        f"{high:.1f}]"
+    )
+    print("| noise | NEES per seed (robots) | mean | in band |")
+    print("|---|---|---|---|")
+    for name, label, _ in ALONE:
+        runs = [r for v, _, r in results if v == name]
+        per_seed = [[a["nees"] for a in r["agents"].values()] for r in runs]
+        mean = float(np.mean([np.mean(x) for x in per_seed]))
+        cells = "; ".join(" / ".join(f"{x:.1f}" for x in seed) for seed in per_seed)
+        print(f"| {label} | {cells} | {mean:.1f} | {'yes' if low <= mean <= high else 'no'} |")
+
+
+def _principal_ratio(bound: dict, perfect: dict) -> float:
+    """Worst ratio of two Cramer-Rao bounds over the principal moments."""
+    pairs = zip(bound["principal_rel_err"], perfect["principal_rel_err"], strict=True)
+    return max(a / b for a, b in pairs)
 
 
 if __name__ == "__main__":

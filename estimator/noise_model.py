@@ -1,0 +1,279 @@
+"""The measurement covariance of one robot's filtered wrench balance (``cargo_estimator``).
+
+The balance of update k, thrust_k = links_k + Y_k pi - sum_j T_ij W_j,k, is built from filtered
+signals (the pre-filter, then one slow filter over every balance term, sampled every
+``update_every`` control steps). Its error has four independent parts, each carried to the
+grasp frame G (moments about the grasp point) and summed:
+
+    R_k = R_model + R_act,k / update_every + R_motion,k + R_peer,k,
+
+- R_model, the floors: the balance's model error, what remains of the filtered balance with no
+  noise in it (the pre-filter's distortion of the products of the motion), as the variance of an
+  independent residual per update: c diag(f^2 I, t^2 I), c the number of updates per
+  decorrelation time of the slow filter (``decorrelation_updates``);
+- R_act: the actuation's white per-step noise (std abs + rel |command| per thruster axis, the
+  robot's own, and the peers' sent with their messages), averaged over the update's window;
+- R_motion: the sensors' noise on the motion the balance is built from (accelerometer, gyro,
+  encoders), carried through the balance's exact Jacobians and the filter chain (``motion``) and,
+  with the team's motion fusion, conditioned on what the peers' IMUs report (``motion_noise``);
+- R_peer: the channel's noise on the peers' wrenches and the error of a fix-averaged relative
+  grasp pose (``relative_pose_cov``).
+
+Correlated residuals are treated as independent updates at their white-equivalent level: a
+source of power spectral density S(f) (two-sided, per Hz) enters each update with the variance
+S(f) / (2 dt_update) at the highest level it reaches in the band of the excitation (f <= the slow
+filter's cutoff): conservative, never below the noise the band holds.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+
+from .motion import (
+    balance_noise_map,
+    band_factors,
+    condition_on_mismatch,
+    filtered_motion_gains,
+    grasp_acc_map,
+)
+from .preprocess import StateVariableFilter
+from .rne import RobotDescription
+
+# Ways the motion's sensor noise enters the measurement (``NoiseModel.motion_noise``).
+MOTION_FUSION = ("none", "own", "team")
+
+
+class PeerMotion(Protocol):
+    """What a peer sends about its filtered motion (the fields of ``WrenchMessage``)."""
+
+    grasp_acc: np.ndarray | None  # (3,) filtered acceleration of its grasp point, its G axes
+    motion_links_jac: np.ndarray | None  # (6, n) d links_G / d xi
+    motion_grasp_jac: np.ndarray | None  # (3, n) d grasp_acc / d xi
+    motion_var: np.ndarray | None  # (n,) per-sample variance of its filtered xi's noise
+    motion_band: np.ndarray | None  # (n,) each coordinate's weight per update
+
+
+def decorrelation_updates(slow_delay_s: float, update_s: float) -> float:
+    """Updates per decorrelation time of the slow filter (at least 1): residuals of successive
+    updates are correlated over 1 / (2 ENBW), ENBW = 3 w / 32 for (w / (s + w))^3 with
+    w = 3 / delay; a slowly varying residual of rms s enters each update as c s^2."""
+    w = 3.0 / slow_delay_s
+    return max(1.0, (16.0 / (3.0 * w)) / update_s)
+
+
+def _nonnegative(value, size: int, name: str) -> np.ndarray:
+    arr = np.asarray(value, dtype=float)
+    if arr.shape != (size,) or not np.all(np.isfinite(arr)) or np.any(arr < 0):
+        raise ValueError(f"{name} must be {size} finite non-negative numbers, got {value!r}")
+    return arr
+
+
+@dataclass(frozen=True)
+class MotionNoiseSpec:
+    """Per-sample variance of the filtered motion's noise xi = (a_B, wd_B, qdd) (``var``) and each
+    coordinate's weight per update for its colour (``band``, ``motion.band_factors``)."""
+
+    var: np.ndarray
+    band: np.ndarray
+
+
+class NoiseModel:
+    """One robot's measurement covariance (see the module docstring).
+
+    Args:
+        robot: the robot's known model; ``dt_s`` the control period; ``update_every`` and
+            ``regressor_every`` the control steps between updates and balance evaluations;
+            ``cutoff_hz`` and ``kinematics_cutoff_hz`` the slow filter and the pre-filter.
+        force_std_n, torque_std_nm: the balance's model error (R_model), rms per update of the
+            filtered residual with no noise entering the balance.
+        actuation_noise: (force_abs_n, force_rel, torque_abs_nm, torque_rel), white per control
+            step: std = abs + rel * |command| per thruster axis.
+        sensor_noise: (accel m/s^2, gyro rad/s, encoder rad), white per control step.
+        peer_noise_std: (force N, moment N m) of the channel's noise on peers' wrenches.
+        localization_noise: (position m, attitude rad) of one fix.
+        mismatch_model_std: rms per update and axis (m/s^2) of the team mismatch's model error
+            (what it holds with perfect sensors), weighted like the floors.
+
+    The defaults' measured values (``CargoEstimator``; 90 s figure8_tumble, 2 robots, ``ideal``
+    sensors, seed 0, the residual at the true parameters): white-equivalent per update
+    (Bartlett sum of the autocovariance over 32 updates, 3 decorrelation times) over the number
+    of updates per decorrelation time, worst axis: moment rows 2.1e-5 N m with their mean
+    (0.8e-5 without: the y moment's 1.1e-5 mean is model error too, and with 1e-5 the
+    ideal-sensor NEES was 18); force rows 6.1e-5 N without their mean (1.35e-4 with it, at which
+    the ideal-sensor NEES fell to 2-4: the force rows' mean barely projects on the parameters);
+    the mismatch 1.0 / 2.3 / 1.6e-5 m/s^2 per axis without its mean, rms 1.7e-5.
+    """
+
+    def __init__(
+        self,
+        robot: RobotDescription,
+        dt_s: float,
+        update_every: int,
+        regressor_every: int,
+        cutoff_hz: float,
+        kinematics_cutoff_hz: float,
+        *,
+        force_std_n: float,
+        torque_std_nm: float,
+        actuation_noise,
+        sensor_noise,
+        peer_noise_std=(0.0, 0.0),
+        localization_noise=(0.0, 0.0),
+        mismatch_model_std: float = 0.0,
+    ) -> None:
+        if not (force_std_n > 0 and torque_std_nm > 0):
+            raise ValueError("force_std_n and torque_std_nm must be positive")
+        if not (np.isfinite(mismatch_model_std) and mismatch_model_std >= 0):
+            raise ValueError(
+                f"mismatch_model_std must be finite and >= 0, got {mismatch_model_std}"
+            )
+        self.update_every = int(update_every)
+        slow = StateVariableFilter(1, dt_s * regressor_every, cutoff_hz)
+        self.correlated = decorrelation_updates(slow.delay_s, update_every * dt_s)
+        self.floor_cov = self.correlated * np.diag([force_std_n**2] * 3 + [torque_std_nm**2] * 3)
+        self.actuation_noise = _nonnegative(actuation_noise, 4, "actuation_noise")
+        self.actuation_abs = np.repeat(self.actuation_noise[[0, 2]], 3)
+        self.actuation_rel = np.repeat(self.actuation_noise[[1, 3]], 3)
+        sensor = _nonnegative(sensor_noise, 3, "sensor_noise")
+        peer = _nonnegative(peer_noise_std, 2, "peer_noise_std")
+        self.peer_noise_cov = np.diag(np.repeat(peer**2, 3))
+        self.has_peer_noise = bool(np.any(peer > 0))  # else its covariance adds zeros
+        loc = _nonnegative(localization_noise, 2, "localization_noise")
+        self.loc_pos_std, self.loc_att_std = (float(x) for x in loc)
+        # Scalar model (``sensor_cov_at``): white noise of std s per step through the slow filter
+        # becomes s * g on the filtered value and its derivatives.
+        gains = StateVariableFilter(1, dt_s, cutoff_hz).noise_gains()
+        self.acc_noise = sensor[0] * gains[0]
+        self.ang_acc_noise = sensor[1] * gains[1]
+        self.joint_acc_noise = sensor[2] * gains[2]
+        # The grasp's angular accelerations carry the joints' (doubly differentiated encoders).
+        self.grasp_ang_acc_noise = np.hypot(
+            self.ang_acc_noise, np.sqrt(robot.n_joints) * self.joint_acc_noise
+        )
+        self.mismatch_model_var = self.correlated * float(mismatch_model_std) ** 2
+        # Exact filter chain per motion source (``motion``).
+        chain = filtered_motion_gains(dt_s, kinematics_cutoff_hz, cutoff_hz, regressor_every)
+        factors = band_factors(chain, dt_s, kinematics_cutoff_hz, cutoff_hz, update_every)
+        sizes = [3, 3, robot.n_joints]
+        self.motion = MotionNoiseSpec(
+            var=np.repeat((sensor * chain) ** 2, sizes), band=np.repeat(factors, sizes)
+        )
+        self.robot_mass = robot.total_mass
+        self.robot_inertia = sum(
+            float(np.linalg.eigvalsh(link.inertia_com)[-1]) for link in robot.links
+        )
+
+    def relative_pose_cov(self, wrench: np.ndarray, n_fixes: int) -> np.ndarray:
+        """Covariance (6, 6) a peer's wrench (in G) gains from the error of a relative grasp pose
+        averaged over ``n_fixes`` simultaneous fixes of both robots (position sqrt(2 / N) sigma_p,
+        attitude sqrt(2 / N) sigma_theta): the force turns, the moment turns and moves."""
+        shrink = 2.0 / max(n_fixes, 1)
+        var_att = shrink * self.loc_att_std**2
+        var_pos = shrink * self.loc_pos_std**2
+        f2 = float(wrench[:3] @ wrench[:3])
+        n2 = float(wrench[3:] @ wrench[3:])
+        return np.diag([var_att * f2] * 3 + [var_att * n2 + var_pos * f2] * 3)
+
+    def excitation_snr(self, regressor: np.ndarray, lever_m: float) -> float:
+        """How far the filtered motion of an instant stands above its noise: the larger of
+        |a_G| / sigma_lin and |wd| / sigma_ang, with the grasp's angular acceleration noise
+        sigma_ang (gyro and joints) and sigma_lin = hypot(sigma_a, L sigma_ang) at the
+        base-to-grasp lever L (m); a_G and wd from the filtered regressor (6, 10) (its force
+        rows' h-columns are skew(wd) + skew(w)^2: wd is their antisymmetric part)."""
+        acc = regressor[:3, 0]
+        h = regressor[:3, 1:4]
+        wd = 0.5 * np.array((h[2, 1] - h[1, 2], h[0, 2] - h[2, 0], h[1, 0] - h[0, 1]))
+        ang_noise = self.grasp_ang_acc_noise
+        lin_noise = np.hypot(self.acc_noise, lever_m * ang_noise)
+        snr_lin = np.linalg.norm(acc) / max(lin_noise, 1e-300)
+        snr_ang = np.linalg.norm(wd) / max(ang_noise, 1e-300)
+        return float(max(snr_lin, snr_ang))
+
+    def sensor_cov_at(self, params: np.ndarray, lever_m: float | np.ndarray) -> np.ndarray:
+        """Measurement covariance (..., 6, 6) from the sensors' noise on the filtered
+        accelerations at the cargo ``params`` (10,) (grasp frame) and base-to-grasp lever(s)
+        ``lever_m`` (...) m, scalar per block, magnitudes only: force M sigma_a + m_c L sigma_qdd,
+        moment J sigma_wd + M L sigma_a + m_c |c| L sigma_qdd, with M the robot-plus-cargo mass,
+        L the lever and J the inertia about the grasp. The model of ``motion_fusion="none"``
+        (and of a peer that sends no motion)."""
+        m_c, i_xx, i_yy, i_zz = (float(x) for x in params[[0, 4, 5, 6]])
+        com = float(np.linalg.norm(params[1:4])) / m_c
+        lever = np.asarray(lever_m, dtype=float)
+        total = self.robot_mass + m_c
+        inertia = self.robot_inertia + self.robot_mass * lever**2 + max(i_xx, i_yy, i_zz)
+        force = (total * self.acc_noise) ** 2 + (m_c * lever * self.joint_acc_noise) ** 2
+        moment = (
+            (inertia * self.ang_acc_noise) ** 2
+            + (total * lever * self.acc_noise) ** 2
+            + (m_c * com * lever * self.joint_acc_noise) ** 2
+        )
+        cov = np.zeros(lever.shape + (6, 6))
+        axes = np.arange(3)
+        cov[..., axes, axes] = force[..., None]
+        cov[..., axes + 3, axes + 3] = moment[..., None]
+        return self.correlated * cov
+
+    def motion_noise(
+        self,
+        fusion: str,
+        params: np.ndarray,
+        motion_jac: tuple[np.ndarray, np.ndarray] | None,
+        regressor: np.ndarray,
+        peers: list[tuple[np.ndarray, PeerMotion]],
+        lever_m: float = 0.0,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Mean (6,) and covariance (6, 6) of the balance's motion noise at one recorded instant.
+
+        ``fusion`` one of ``MOTION_FUSION``; ``params`` the cargo's parameters (10,) in G;
+        ``motion_jac`` the instant's (d links (6, n), d Y (n, 6, 10)) (``rne``); ``regressor``
+        its filtered Y (6, 10); ``peers`` per peer (T_ij (6, 6) wrench transform G_j -> G_i, its
+        message); ``lever_m`` the base-to-grasp lever of the scalar model.
+
+        "none" (or a peer that sends no motion): zero mean, ``sensor_cov_at``. "own": E Sigma E^T
+        over this robot and the peers (``motion.condition_on_mismatch`` without a mismatch).
+        "team": that, conditioned on the peers' grasp-acceleration mismatches
+        d_j = R_ij a_Gj - (a_Gi + (skew(wd) + skew(w)^2) r_ij), zero in truth for a rigid cargo:
+        E[n | d] and Cov[n | d]."""
+        if fusion not in MOTION_FUSION:
+            raise ValueError(f"fusion must be one of {MOTION_FUSION}, got {fusion!r}")
+        if (
+            fusion == "none"
+            or motion_jac is None
+            or any(m.motion_links_jac is None for _, m in peers)
+        ):
+            return np.zeros(6), self.sensor_cov_at(params, lever_m)
+        d_links, d_y = motion_jac
+        noise_maps = [balance_noise_map(d_links, d_y, params)]
+        variances = [self.motion.var]
+        bands = [self.motion.band]
+        # Mismatch k (3 rows) = R_ik G_k dxi_k - G_i(point k) dxi_i: a block row per peer.
+        own_rows, peer_blocks, mismatch = [], [], []
+        for t, m in peers:
+            rot = t[:3, :3]
+            lever = t[3:, :3] @ rot.T  # skew of the peer's grasp point in G
+            pos = np.array([lever[2, 1], lever[0, 2], lever[1, 0]])
+            noise_maps.append(t @ m.motion_links_jac)
+            variances.append(m.motion_var)
+            bands.append(m.motion_band)
+            own_rows.append(-grasp_acc_map(d_y, pos))
+            peer_blocks.append(rot @ m.motion_grasp_jac)
+            predicted = regressor[:3, 0] + regressor[:3, 1:4] @ pos
+            mismatch.append(rot @ m.grasp_acc - predicted)
+        if fusion == "own" or not peers:
+            return condition_on_mismatch(noise_maps, [], variances, None, bands)
+        mismatch_maps = [np.vstack(own_rows)]
+        for k, block in enumerate(peer_blocks):
+            column = [np.zeros_like(block)] * len(peer_blocks)
+            column[k] = block
+            mismatch_maps.append(np.vstack(column))
+        return condition_on_mismatch(
+            noise_maps,
+            mismatch_maps,
+            variances,
+            np.concatenate(mismatch),
+            bands,
+            self.mismatch_model_var,
+        )
