@@ -39,7 +39,6 @@ design is scaled down, if need be, until every constraint holds on a 0.1 s grid.
 
 from __future__ import annotations
 
-import copy
 import time
 from dataclasses import dataclass, fields
 from types import SimpleNamespace
@@ -392,7 +391,7 @@ class ExcitationModel:
         stamps = np.arange(0, n_steps + 1, est.regressor_every)
         motion = trajectory.motion(stamps * self.dt_s)
         regs = body_regressor(*self.grasp_kinematics(motion)).reshape(-1, 60)
-        filt = copy.deepcopy(est.balance_filter)
+        filt = est.balance_layout_filter()
         out = np.zeros_like(regs)
         for k, row in enumerate(regs):
             out[k] = filt.step(np.concatenate((np.zeros(12), row)))[0][12:]

@@ -5,18 +5,22 @@ its IMU, its arm encoders, its localization fixes (at a lower rate) and its own 
 plus the messages of the other robots. It
 
 1. pre-filters its raw signals with a fast state-variable filter (``preprocess``, cutoff
-   ``kinematics_cutoff_hz``, 1 Hz), which also gives angular and joint accelerations;
-2. every ``regressor_every`` control steps propagates the kinematics out to its grasp and builds
-   the whole wrench balance of that instant in its grasp frame G (fixed to the cargo; moments
-   about the grasp point): thrust, the wrench its own links absorb and the cargo's body regressor
-   Y; then low-passes all of them, entry by entry, with one slow filter (cutoff ``cutoff_hz``).
-   The balance is linear in pi, so the filtered quantities satisfy it exactly
-   (H[thrust] = H[links] + H[Y] pi + sum_j T_ij H[W_j], T_ij constant for a rigid cargo):
-   the products of kinematic signals (centripetal and gyroscopic terms), computed at the fast
-   level and filtered afterwards, stay consistent. (Filtering the signals first and forming the
-   products afterwards left residuals of ~10 mN under the tumbling trajectory: the filter's phase
-   lag at 0.08 Hz differs from that of the squared signal at 0.16 Hz.) The slow filter is what
-   removes the noise of the doubly differentiated encoders;
+   ``kinematics_cutoff_hz``, 1 Hz), which gives the filtered motion the noise model linearises
+   the balance at;
+2. forms, every control step, the wrench balance of that instant in its grasp frame G (fixed to
+   the cargo; moments about the grasp point) in momentum form (``momentum``): Z = d/dt P + Q,
+   with P and Q (thrust, the momentum of its own links and their remainder, the cargo
+   regressor's momentum form, linear in pi) products of the readings through a fast rate filter
+   (``rate_cutoff_hz``, 8 Hz), so that no angular or joint acceleration enters; low-passes the
+   samples at ``kinematics_cutoff_hz`` and, every ``regressor_every`` steps, with one slow filter
+   (cutoff ``cutoff_hz``), and reads the balance out of that filter's value and derivative,
+   H[Z] = H'[P] + H[Q]. Every product is taken before the linear filters, so the filtered
+   quantities satisfy the balance exactly (H[thrust] = H[links] + H[Y] pi + sum_j T_ij H[W_j],
+   T_ij constant for a rigid cargo) whatever the motion's harmonics. (Products of pre-filtered
+   signals, the acceleration form ``rne.balance_in_grasp_frame``, left 1.5 / 6.5 % principal
+   moment errors under arm motion at the servos' rate limit; products of the raw signals
+   filtered afterwards, ~10 mN residuals under the tumbling trajectory.) The slow filter is
+   what removes the noise of the differentiated encoders;
 3. at each update instant (every ``update_every`` control steps) publishes the filtered wrench it
    applies to the cargo, H[thrust] - H[links], as a ``WrenchMessage`` (in its grasp frame and in
    world axes), with its grasp pose;
@@ -69,6 +73,7 @@ import numpy as np
 from scipy.stats import chi2
 
 from .messages import WrenchMessage, _Instant, _RelativeGrasp  # noqa: F401 (re-exported)
+from .momentum import SIZE as MOMENTUM_SIZE
 from .noise_model import MOTION_FUSION, NoiseModel
 from .per_step import EstimatorInputs
 from .preprocess import Preprocessor, StateVariableFilter
@@ -126,11 +131,15 @@ class CargoEstimator(EstimatorInputs):
         actuation_noise: (force_abs_n, force_rel, torque_abs_nm, torque_rel): the robot's known
             propulsion accuracy, white per control step: std = abs + rel * |command| per axis;
             the peers' is sent with their messages.
-        cutoff_hz: the slow filter of the wrench balance; ``kinematics_cutoff_hz``: the fast
-            pre-filter of the raw signals; ``regressor_every``: control steps between balance
-            evaluations (``update_every`` must be a multiple; 2, i.e. 31 Hz: the doubly
-            differentiated encoder noise leaves the 1 Hz pre-filter falling only as 1/f, and at
-            5 its aliases biased the 90 s nominal tumble to 4.7 % mass error, NEES 50);
+        cutoff_hz: the slow filter of the wrench balance; ``kinematics_cutoff_hz``: the
+            pre-filter of the raw signals and of the momentum form's samples;
+            ``rate_cutoff_hz``: the momentum form's rate filter (its derivative gives the joint
+            rates; None: 8 Hz, or a quarter of the control rate when that is lower; a 1 Hz one
+            distorted the products, raw differences of the encoders squared their noise into a
+            bias of the regressor, see ``momentum``); ``regressor_every``: control steps
+            between balance evaluations (``update_every`` must be a multiple; 2, i.e. 31 Hz:
+            the doubly differentiated encoder noise leaves the 1 Hz pre-filter falling only as
+            1/f, and at 5 its aliases biased the 90 s nominal tumble to 4.7 % mass error, NEES 50);
             ``warmup_s``: no update before.
         history_s: how long an instant waits for its peers' messages before it is skipped.
         gate_prob: chi-square probability of the normalised innovation gate (None: no gating).
@@ -187,6 +196,7 @@ class CargoEstimator(EstimatorInputs):
         record: bool = False,
         motion_fusion: str = "team",
         mismatch_model_std: float = 1.7e-5,
+        rate_cutoff_hz: float | None = None,
     ) -> None:
         if motion_fusion not in MOTION_FUSION:
             raise ValueError(f"motion_fusion must be one of {MOTION_FUSION}, got {motion_fusion!r}")
@@ -210,12 +220,20 @@ class CargoEstimator(EstimatorInputs):
             ("joint_pos_rad", (robot.n_joints,)),
             ("thrust_command", (6,)),
         )
-        self.pre = Preprocessor(robot, dt_s, kinematics_cutoff_hz)
+        if np.shape(sensor_noise) != (3,):
+            raise ValueError(f"sensor_noise must be 3 numbers, got {sensor_noise!r}")
+        self.pre = Preprocessor(
+            robot, dt_s, kinematics_cutoff_hz, encoder_std_rad=float(sensor_noise[2]),
+            rate_cutoff_hz=rate_cutoff_hz,
+        )  # fmt: skip
         self._imu_rot = np.asarray(robot.imu_rot, dtype=float)
-        # Slow filter over the whole balance (``Balance.to_vector``), grasp frame.
-        self.balance_filter = StateVariableFilter(Balance.SIZE, dt_s * regressor_every, cutoff_hz)
+        # Slow filter over the momentum form's samples (``momentum``), grasp frame.
+        self.cutoff_hz = float(cutoff_hz)
+        self.balance_filter = StateVariableFilter(
+            MOMENTUM_SIZE, dt_s * regressor_every, cutoff_hz
+        )
         # Memory of the filters: one delay (rollback after a gate) and four (taint).
-        memory_s = self.pre.delay_s + self.balance_filter.delay_s
+        memory_s = self.pre.momentum_delay_s + self.balance_filter.delay_s
         self.rollback_steps = int(np.ceil(memory_s / dt_s))
         self.taint_steps = int(np.ceil(4 * memory_s / dt_s))
         prior = default_prior(robot) if prior_params is None else np.asarray(prior_params, float)
@@ -289,6 +307,12 @@ class CargoEstimator(EstimatorInputs):
         self._snapshots: deque[tuple[int, np.ndarray, np.ndarray, int]] = deque(
             maxlen=self.rollback_steps // self.update_every + 1
         )
+
+    def balance_layout_filter(self) -> StateVariableFilter:
+        """A fresh slow filter like ``balance_filter`` over the ``Balance`` layout
+        (``Balance.to_vector``: thrust, links, Y row by row): what the balance's entries go
+        through after the products (the excitation designer's model of the estimator)."""
+        return StateVariableFilter(Balance.SIZE, self.dt_s * self.regressor_every, self.cutoff_hz)
 
     # ------------------------------------------------------------------ inputs
     def robot_grasp_pose(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

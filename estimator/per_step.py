@@ -4,19 +4,22 @@ When every reading of the step is present and finite, the estimator's per-step w
 
 1. the pre-filter step (``preprocess.Preprocessor``): u = T [gyro; accel; q; thrust], then
    x_k+1 = Ad x_k + b_value u_prev + b_slope (u - u_prev), u_prev = u on the held channels;
-2. the attitude (base frame B in world): from the localization fix when there is a usable one,
+2. the momentum form's chain (``momentum``): the rate filter's step on the same u, one sample
+   [thrust_G; P_links; Q_links; the cargo's P and Q arguments] of its outputs, and the product
+   filter's step on it;
+3. the attitude (base frame B in world): from the localization fix when there is a usable one,
    R_WB = R(quat), else propagated with the gyro, R_WB <- R_WB exp([R_BI w_imu dt]x);
-3. on every ``regressor_every``-th step, the wrench balance in the grasp frame G from the
-   filtered motion (``rne``: both Newton-Euler passes and the cargo's body regressor Y), the
-   per-step covariance of the actuation noise carried into G,
+4. on every ``regressor_every``-th step, the per-step covariance of the actuation noise carried
+   into the grasp frame G (at the rate filter's joint angles),
        Sigma_G += T_GB T_BS diag(std^2) T_BS^T T_GB^T,   std = abs + rel |command|,
-   and one step of the slow balance filter on [thrust_G; links_G; Y row by row].
+   and one step of the slow balance filter on the product filter's value; the balance is
+   read out of it at the update instants (``momentum.balance_from_filtered``).
 
 ``estimator_step`` does all of that in place on the estimator's arrays; its inputs are the
 readings as they come (IMU body axes, rad, m, N and N m) and it changes nothing when a reading
 is missing, non-finite or wrongly shaped (the estimator's Python path handles those). The
-equations are those of ``preprocess``, ``rne`` and ``geometry``, whose compiled functions it
-calls.
+equations are those of ``preprocess``, ``momentum`` and ``geometry``, whose compiled functions
+it calls; the Python path calls the same compiled sample (``momentum``).
 
 ``EstimatorInputs`` is the input side of ``CargoEstimator`` (its ``step``): it takes this call
 when it can and the Python path otherwise, and records the instants of the updates.
@@ -24,24 +27,15 @@ when it can and the Python path otherwise, and records the instants of the updat
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 from numba import boolean, float64, int64, njit, types
 
 from .geometry import exp_so3, quat_to_mat
 from .messages import WrenchMessage, _Instant
+from .momentum import balance_from_filtered, sample_from_rate_filter
 from .motion import grasp_acc_map
 from .preprocess import _first_order_hold_step
-from .rne import (
-    Balance,
-    RobotArrays,
-    _links_and_regressor,
-    balance_in_grasp_frame,
-    balance_motion_jacobians,
-    grasp_from_base,
-    point_acceleration,
-)
+from .rne import RobotArrays, _grasp_from_base, balance_motion_jacobians
 
 # Outcomes of `estimator_step` (its first return value).
 NOT_USABLE, NO_FIX, FIX, BAD_FIX = range(4)
@@ -90,33 +84,41 @@ def update_attitude(rot_world_base, pos_world_base, imu_rot, gyro, dt_s, fix_pos
 
 
 @njit(cache=True)
-def balance_step(arrays, pre_y, pre_yd, pre_ydd, nj, imu_pos_neg, thrust_to_base, act_abs,
-                 act_rel, act_cov_sum, thrust_command) -> tuple[np.ndarray, float]:  # fmt: skip
-    """The balance of the filtered motion in G: [thrust_G; links_G; Y row by row] (72,), after
-    adding this step's actuation covariance (grasp frame) to ``act_cov_sum``; and the lever
-    |p_BG| m. The pre-filter's outputs are [gyro (3); accel (3); q (nj); thrust (6)]."""
-    w, wd = pre_y[0:3], pre_yd[0:3]
-    acc_base = point_acceleration(pre_y[3:6], w, wd, imu_pos_neg)
-    q, qd, qdd = pre_y[6 : 6 + nj], pre_yd[6 : 6 + nj], pre_ydd[6 : 6 + nj]
-    links_g, y, to_grasp_b, _, grasp_pos = _links_and_regressor(
-        arrays, w, wd, acc_base, q, qd, qdd
-    )
-    thrust_g = to_grasp_b @ np.ascontiguousarray(pre_y[6 + nj : 12 + nj])
-    to_grasp = to_grasp_b @ thrust_to_base
+def momentum_step(arrays, imu_pos, qd_var, rate_ad, rate_b_value, rate_b_slope, rate_held,
+                  rate_state, rate_u_prev, prod_ad, prod_b_value, prod_b_slope, prod_held,
+                  prod_state, prod_u_prev, u) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """One step of the momentum form's chain in place (``preprocess.Preprocessor``): the rate
+    filter on the pre-filter's input ``u``, one momentum-form sample of its outputs
+    (``momentum.sample_from_rate_filter``) into the product filter. Returns G's pose in B
+    (rotation, origin m) at the rate filter's joint angles."""
+    filter_step(rate_ad, rate_b_value, rate_b_slope, rate_held, rate_state, rate_u_prev, u)
+    sample, grasp_rot, grasp_pos = sample_from_rate_filter(arrays, imu_pos, rate_state, qd_var)
+    filter_step(prod_ad, prod_b_value, prod_b_slope, prod_held, prod_state, prod_u_prev, sample)
+    return grasp_rot, grasp_pos
+
+
+@njit(cache=True)
+def actuation_cov_step(grasp_rot, grasp_pos, thrust_to_base, act_abs, act_rel, act_cov_sum,
+                       thrust_command) -> float:  # fmt: skip
+    """Add this step's actuation covariance, carried into G, to ``act_cov_sum``:
+    T_GB T_BS diag(std^2) T_BS^T T_GB^T, std = abs + rel |command|; returns the lever |p_BG| m."""
+    to_grasp = _grasp_from_base(grasp_rot, grasp_pos) @ thrust_to_base
     std = act_abs + act_rel * np.abs(thrust_command)
     act_cov_sum += (to_grasp * std**2) @ to_grasp.T
-    balance = np.concatenate((thrust_g, links_g, y.ravel()))
-    return balance, np.sqrt(grasp_pos @ grasp_pos)
+    return np.sqrt(grasp_pos @ grasp_pos)
 
 
 _V, _M, _T3 = float64[::1], float64[:, ::1], float64[:, :, ::1]
 _BOOLS = boolean[::1]
 _STEP_SIGNATURE = types.Tuple((int64, float64))(
     int64[::1], _M, _T3, _M, _V, _M, _T3, int64, _M, _V,  # RobotArrays
-    _M, _M, _V, _V, _BOOLS, _V,  # pre-filter constants, IMU lever
+    _M, _M, _V, _V, _BOOLS,  # pre-filter constants
+    _M, _V, _V, _BOOLS, _M, _V, _V, _BOOLS,  # rate and product filter constants
+    _V, _V,  # IMU position, joint-rate noise variance
     _M, _V, _V, _BOOLS,  # balance filter constants
     _M, _M, _V, _V, float64,  # IMU rotation, thrust site, actuation noise, dt
-    _M, _V, _M, _V, _M, _M, _V,  # states, actuation covariance sum, attitude
+    _M, _V, _M, _V, _M, _V, _M, _V,  # filter states and previous inputs
+    _M, _M, _V,  # actuation covariance sum, attitude
     _V, _V, _V, _V, _V, _V, boolean, boolean,  # readings, flags
 )
 
@@ -125,54 +127,63 @@ _STEP_SIGNATURE = types.Tuple((int64, float64))(
 def estimator_step(
     parent, joint_axis, rot_in_parent, pos_in_parent, mass, com, inertia_com, grasp_link,
     grasp_rot, grasp_pos, pre_to_input, pre_ad, pre_b_value, pre_b_slope, pre_held,
-    imu_pos_neg, bal_ad, bal_b_value, bal_b_slope, bal_held, imu_rot, thrust_to_base, act_abs,
-    act_rel, dt_s, pre_state, pre_u_prev, bal_state, bal_u_prev, act_cov_sum, rot_world_base,
+    rate_ad, rate_b_value, rate_b_slope, rate_held, prod_ad, prod_b_value, prod_b_slope,
+    prod_held, imu_pos, qd_var, bal_ad, bal_b_value, bal_b_slope, bal_held, imu_rot,
+    thrust_to_base, act_abs, act_rel, dt_s, pre_state, pre_u_prev, rate_state, rate_u_prev,
+    prod_state, prod_u_prev, bal_state, bal_u_prev, act_cov_sum, rot_world_base,
     pos_world_base, accel, gyro, q, thrust, fix_pos, fix_quat, has_fix, do_balance,
 ):  # fmt: skip
     """One common-path step (module docstring), in place on the filters' states and previous
-    inputs, the actuation covariance sum and the attitude. Both filters must be started and the
+    inputs, the actuation covariance sum and the attitude. Every filter must be started and the
     attitude known. Returns (outcome, lever |p_BG| m or NaN when no balance was filtered);
     outcome NOT_USABLE leaves everything unchanged."""
     nj = parent.shape[0] - 1
     if not _usable(nj, accel, gyro, q, thrust, fix_pos, fix_quat, has_fix):
         return NOT_USABLE, np.nan
-    raw = np.concatenate((gyro, accel, q, thrust))
-    filter_step(pre_ad, pre_b_value, pre_b_slope, pre_held, pre_state, pre_u_prev,
-                pre_to_input @ raw)  # fmt: skip
+    arrays = RobotArrays(
+        parent, joint_axis, rot_in_parent, pos_in_parent, mass, com, inertia_com, grasp_link,
+        grasp_rot, grasp_pos,
+    )  # fmt: skip
+    u = pre_to_input @ np.concatenate((gyro, accel, q, thrust))
+    filter_step(pre_ad, pre_b_value, pre_b_slope, pre_held, pre_state, pre_u_prev, u)
+    rot_bg, pos_bg = momentum_step(
+        arrays, imu_pos, qd_var, rate_ad, rate_b_value, rate_b_slope, rate_held, rate_state,
+        rate_u_prev, prod_ad, prod_b_value, prod_b_slope, prod_held, prod_state, prod_u_prev, u,
+    )  # fmt: skip
     outcome = update_attitude(
         rot_world_base, pos_world_base, imu_rot, gyro, dt_s, fix_pos, fix_quat, has_fix
     )
     if not do_balance:
         return outcome, np.nan
-    arrays = RobotArrays(
-        parent, joint_axis, rot_in_parent, pos_in_parent, mass, com, inertia_com, grasp_link,
-        grasp_rot, grasp_pos,
-    )  # fmt: skip
-    balance, lever = balance_step(
-        arrays, pre_state[0], pre_state[1], pre_state[2], nj, imu_pos_neg, thrust_to_base,
-        act_abs, act_rel, act_cov_sum, thrust,
-    )  # fmt: skip
-    filter_step(bal_ad, bal_b_value, bal_b_slope, bal_held, bal_state, bal_u_prev, balance)
+    lever = actuation_cov_step(
+        rot_bg, pos_bg, thrust_to_base, act_abs, act_rel, act_cov_sum, thrust
+    )
+    sample = np.ascontiguousarray(prod_state[0])
+    filter_step(bal_ad, bal_b_value, bal_b_slope, bal_held, bal_state, bal_u_prev, sample)
     return outcome, lever
 
 
 class EstimatorInputs:
     """The input side of ``CargoEstimator``: ``step`` and the recording of update instants.
-    It uses the estimator's filters (``pre``, ``balance_filter``), attitude, actuation
+    It uses the estimator's filters (``pre``, ``balance_filter`` over the momentum form's
+    channels), attitude, actuation
     covariance sum, counters and histories, which ``CargoEstimator.__init__`` creates."""
 
     def _compiled_step_constants(self) -> tuple:
         """The constant arguments of ``estimator_step``, in its order."""
         pre, bal = self.pre.filter, self.balance_filter
+        rate, prod = self.pre.rate_filter, self.pre.product_filter
 
         def c(a):
             return np.ascontiguousarray(a, dtype=float)
 
+        def f(filt):
+            return filt.ad, filt.b_value, c(filt.b_slope), filt._held
+
         return (
-            *self.robot.arrays, c(self.pre._to_input), pre.ad, pre.b_value, c(pre.b_slope),
-            pre._held, c(self.pre._imu_pos_neg), bal.ad, bal.b_value, c(bal.b_slope), bal._held,
-            c(self._imu_rot), c(self._thrust_to_base), c(self._actuation_abs),
-            c(self._actuation_rel), self.dt_s,
+            *self.robot.arrays, c(self.pre._to_input), *f(pre), *f(rate), *f(prod),
+            c(self.pre._imu_pos), c(self.pre.qd_var), *f(bal), c(self._imu_rot),
+            c(self._thrust_to_base), c(self._actuation_abs), c(self._actuation_rel), self.dt_s,
         )  # fmt: skip
 
     def step(
@@ -208,7 +219,7 @@ class EstimatorInputs:
 
     def _compiled_path_ready(self, stamp: int, accel_imu: np.ndarray | None) -> bool:
         """Can this step take ``estimator_step``: an IMU frame, an increasing stamp,
-        both filters started (the balance filter if this step feeds it) and an attitude?"""
+        the filters started (the balance filter if this step feeds it) and an attitude?"""
         return (
             accel_imu is not None
             and stamp > self.stamp
@@ -222,9 +233,11 @@ class EstimatorInputs:
         for a non-finite or wrongly shaped reading, or readings not float64 vectors."""
         do_balance = stamp % self.regressor_every == 0
         try:
+            pre, rate, prod = self.pre.filter, self.pre.rate_filter, self.pre.product_filter
             outcome, lever = estimator_step(
-                *self._step_constants, self.pre.filter.state, self.pre.filter._u_prev,
-                self.balance_filter.state, self.balance_filter._u_prev, self._act_cov_sum,
+                *self._step_constants, pre.state, pre._u_prev, rate.state, rate._u_prev,
+                prod.state, prod._u_prev, self.balance_filter.state, self.balance_filter._u_prev,
+                self._act_cov_sum,
                 self._rot_world_base, self._pos_world_base, accel, gyro, q, thrust,
                 pos if fix_given else _NO_POS, quat if fix_given else _NO_QUAT, fix_given,
                 do_balance,
@@ -289,17 +302,15 @@ class EstimatorInputs:
         return self._record_instant(stamp, q, fix)
 
     def _filter_balance(self, thrust_command: np.ndarray) -> None:
-        m = self.pre.motion()
-        balance, rot_bg, pos_bg = balance_in_grasp_frame(
-            self.robot, m.w_base, m.wd_base, m.acc_base, m.q, m.qd, m.qdd, self.pre.thrust()
-        )
-        # Per-step covariance of the actuation noise, carried into the grasp frame.
-        to_grasp = grasp_from_base(rot_bg, pos_bg) @ self._thrust_to_base
-        std = self._actuation_abs + self._actuation_rel * np.abs(thrust_command)
-        self._act_cov_sum += (to_grasp * std**2) @ to_grasp.T
+        """The actuation covariance of this step and the slow filter's step on the product
+        filter's value (the momentum form's samples, low-passed)."""
+        rot_bg, pos_bg = self.pre.grasp_pose
+        self._grasp_lever = actuation_cov_step(
+            rot_bg, pos_bg, np.ascontiguousarray(self._thrust_to_base), self._actuation_abs,
+            self._actuation_rel, self._act_cov_sum, np.ascontiguousarray(thrust_command),
+        )  # fmt: skip
         self._act_cov_n += 1
-        self._grasp_lever = math.sqrt(pos_bg @ pos_bg)
-        self.balance_filter.step(balance.to_vector())
+        self.balance_filter.step(self.pre.product_filter.state[0])
 
     def _update_attitude(self, gyro_imu, base_pos_world, base_quat_world) -> bool:
         """Attitude from the last fix, propagated with the gyro between fixes."""
@@ -320,7 +331,8 @@ class EstimatorInputs:
         return False
 
     def _record_instant(self, stamp: int, q_raw: np.ndarray, fix: bool) -> WrenchMessage | None:
-        b = Balance.from_vector(self.balance_filter.state[0].copy())
+        # H[Z] = H'[P] + H[Q] from the slow filter's value and derivative (``momentum``).
+        b = balance_from_filtered(self.balance_filter.state[0], self.balance_filter.state[1])
         wrench_grasp = b.thrust - b.links
         # Per-step actuation covariance averaged over this update's window (grasp frame).
         act_cov = self._act_cov_sum / max(self._act_cov_n, 1)

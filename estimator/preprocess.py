@@ -42,7 +42,13 @@ import numpy as np
 from numba import njit
 from scipy.linalg import expm, solve_discrete_lyapunov
 
+from . import momentum as momentum_form
 from .rne import Kinematics, RobotDescription, point_acceleration, propagate
+
+# The momentum form's rate filter (``Preprocessor``): fast enough that its departure from a pure
+# delay, (f / f_c)^2, is small for the arm's harmonics, slow enough to keep the encoders' noise
+# off the rates before they are multiplied.
+DEFAULT_RATE_CUTOFF_HZ = 8.0
 
 
 @njit(cache=True)
@@ -162,9 +168,27 @@ class Preprocessor:
     ``motion()`` then gives the base and joint motion (IMU lever arm r removed: the accelerometer
     measures the IMU point, a_imu = a_o + wd x r + w x (w x r)), ``kinematics()`` the link
     kinematics and ``thrust()`` the filtered thrust; all share the filter's delay.
+
+    Every step also forms the balance in momentum form (``momentum``): the same inputs pass a
+    fast filter of the same kind (``rate_filter``, ``rate_cutoff_hz``; it gives the joint rates
+    and takes the encoders' noise off the rates before they are multiplied), one momentum-form
+    sample is built from its outputs (gyro, IMU-point acceleration, q, qd, thrust) and low-passed
+    at ``cutoff_hz`` (``product_filter``): linear in the samples, so the slow filter downstream
+    gives G[Z] = G'[P] + G[Q] for the cascade G of both. The encoders' noise (``encoder_std_rad``,
+    white) that the rate filter leaves on qd, squared in Q's products of joint rates, is
+    subtracted in expectation (``momentum.momentum_sample``'s ``qd_var``). ``grasp_pose`` is
+    G's pose in B at the rate filter's joint angles. ``rate_cutoff_hz`` None:
+    ``DEFAULT_RATE_CUTOFF_HZ``, or a quarter of the sample rate when that is lower.
     """
 
-    def __init__(self, robot: RobotDescription, dt_s: float, cutoff_hz: float = 1.0) -> None:
+    def __init__(
+        self,
+        robot: RobotDescription,
+        dt_s: float,
+        cutoff_hz: float = 1.0,
+        encoder_std_rad: float = 0.0,
+        rate_cutoff_hz: float | None = None,
+    ) -> None:
         self.robot = robot
         nj = robot.n_joints
         self._gyro, self._accel = slice(0, 3), slice(3, 6)
@@ -181,6 +205,17 @@ class Preprocessor:
         rows = (self._gyro, self._accel, self._q, self._thrust)
         for block, row in zip(blocks, rows, strict=True):
             self._to_input[row, row] = block
+        rate_hz = (
+            min(DEFAULT_RATE_CUTOFF_HZ, 0.25 / dt_s) if rate_cutoff_hz is None else rate_cutoff_hz
+        )
+        self.rate_filter = StateVariableFilter(12 + nj, dt_s, rate_hz, held=held)
+        # Its y' of white encoder noise: variance (s g_yd)^2 per joint (``noise_gains``).
+        self.rate_noise_gains = self.rate_filter.noise_gains()
+        self.qd_var = np.full(nj, (encoder_std_rad * self.rate_noise_gains[1]) ** 2)
+        # The products' samples, linear from here on (first-order hold).
+        self.product_filter = StateVariableFilter(momentum_form.SIZE, dt_s, cutoff_hz)
+        self._imu_pos = np.ascontiguousarray(robot.imu_pos, dtype=float)
+        self.grasp_pose = (np.eye(3), np.zeros(3))
 
     def step(
         self,
@@ -203,7 +238,14 @@ class Preprocessor:
 
     def step_raw(self, raw: np.ndarray) -> None:
         """``step`` with the readings already in one vector (``raw_input``)."""
-        self.filter.step(self._to_input @ raw)
+        u = self._to_input @ raw
+        self.filter.step(u)
+        self.rate_filter.step(u)
+        sample, rot, pos = momentum_form._sample_from_rate_filter(
+            *self.robot.arrays, self._imu_pos, self.rate_filter.state, self.qd_var
+        )
+        self.product_filter.step(sample)
+        self.grasp_pose = (rot, pos)
 
     def motion(self) -> BaseAndJointMotion:
         """Filtered base and joint motion, base frame (copies of the filter's state)."""
@@ -224,3 +266,8 @@ class Preprocessor:
     @property
     def delay_s(self) -> float:
         return self.filter.delay_s
+
+    @property
+    def momentum_delay_s(self) -> float:
+        """Delay of the momentum form's chain before the slow filter (rate and product filters)."""
+        return self.rate_filter.delay_s + self.product_filter.delay_s

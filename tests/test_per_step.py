@@ -71,6 +71,12 @@ def test_compiled_step_equals_python_path():
         np.testing.assert_array_equal(a.wrench_cov_grasp, b.wrench_cov_grasp)
         assert a.tainted == b.tainted and a.fix == b.fix
     np.testing.assert_array_equal(compiled.pre.filter.state, python.pre.filter.state)
+    # The momentum form's chain (rate filter, products, product filter) took the same steps.
+    np.testing.assert_array_equal(compiled.pre.rate_filter.state, python.pre.rate_filter.state)
+    np.testing.assert_array_equal(
+        compiled.pre.product_filter.state, python.pre.product_filter.state
+    )
+    assert np.abs(compiled.balance_filter.state[1]).max() > 0  # the derivative output is used
     np.testing.assert_array_equal(compiled.balance_filter.state, python.balance_filter.state)
     np.testing.assert_array_equal(compiled._rot_world_base, python._rot_world_base)
 

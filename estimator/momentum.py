@@ -1,0 +1,283 @@
+"""The wrench balance in momentum form: its products formed before the balance's filters.
+
+Why. The balance (``rne``) is linear in the cargo's parameters pi but nonlinear in the motion:
+rotations by the joint angles, products of rates. A linear filter H commutes with the first
+(H[Y] pi = H[Y pi]) but not with the second (H[u v] != H[u] H[v]); filtering the signals before
+the products (the 1 Hz pre-filter that also supplies the accelerations) leaves a model error that
+grows with the harmonics of the motion (22 % of a principal moment at a 3 s servo period). Here
+every quantity of the balance is written as
+
+    Z(t) = d/dt P(t) + Q(t),
+
+with P and Q functions of the positions, the rates and the measured acceleration of the IMU point
+only (no angular or joint acceleration), evaluated at each sample (from the readings through a
+fast filter, see Filters). A linear time-invariant filter H then gives H[Z] = H'[P] + H[Q]
+exactly (H' its derivative output: d/dt H = H d/dt), whatever its cutoff.
+
+Frames and units. B is the base frame, G the grasp frame (rigid with the cargo), I the IMU point
+(rigid with the base). Every rate is inertial. ``R`` = R_BG maps G coordinates to B; a vector
+with suffix G is in G coordinates (x_G = R^T x_B). For a vector X, D X denotes its inertial time
+derivative; in the coordinates of G, which turns at w_G,
+
+    (D X)_G = d/dt X_G + w_G x X_G.                                                       (1)
+
+Velocities are taken relative to the frame that translates with I (no rotation): the velocity of
+a point x is nu(x) = d/dt (x - x_I) (m/s, inertial), which needs no absolute velocity, and the
+acceleration of x is a(x) = a_I + D nu(x), with a_I the accelerometer's reading (the IMU point's
+acceleration; the cabin is in free fall). With rho = x - x_g from G's origin x_g:
+
+Rate of change of momentum of rigid bodies k (mass m_k, centre of mass x_k, inertia I_k about it
+in current orientation, angular velocity w_k), as a wrench about G's origin:
+
+    f = sum m_k a(x_k) = D [sum m_k nu_k] + M a_I,
+    n = sum D(I_k w_k) + rho_k x m_k a(x_k)
+      = D [sum I_k w_k + m_k rho_k x nu_k] + (sum m_k rho_k) x a_I + nu_g x sum m_k nu_k,
+
+using rho_k x D nu_k = D(rho_k x nu_k) - D rho_k x nu_k and D rho_k = nu_k - nu_g (nu_g: the
+velocity of G's origin). With (1): P = [p; L] = [sum m_k nu_k; sum I_k w_k + m_k rho_k x nu_k]
+in G (N s, N m s) and
+
+    Q = [R^T M a_I; R^T ((sum m_k rho_k) x a_I + nu_g x p)] + [w_G x p_G; w_G x L_G].
+
+For the robot's own links this gives ``links`` of ``rne.Balance``. For the cargo, rigid with G
+(h = m c and I about G's origin constant in G), the same with nu(x) = nu_g + w x (x - x_g) gives
+Y pi = d/dt (P_Y pi) + Q_Y pi with, in ``rne.body_regressor``'s form Y(acc, w, wd),
+
+    P_Y = Y(nu_G, 0, w_G),     Q_Y = Y(c, w_G, 0),     c = R^T a_I + w_G x nu_G,
+
+since Y is linear in acc and wd at w = 0, wd_G = d/dt w_G, and a_G = d/dt nu_G + c by (1). The
+propulsion wrench in G is R-rotated and shifted, T_GB thrust_B, a sample product like the others.
+
+Filters. A sample of P and Q needs the rates of the joints, which the encoders give only
+through differences, and the raw difference (q_k - q_k-1) / dt carries 2^(1/2) s / dt of the
+encoders' noise s (0.09 rad/s at 1 mrad and 62.5 Hz against 0.12 rad/s of servo rate). Q's
+products of joint rates square it: in expectation var(qd) times Q at a unit joint rate, which
+``momentum_sample`` subtracts given the variance, but its fluctuation enters the regressor and
+the offset together and biases the fit (errors in variables: 10 % mass on the arm motion with the
+encoders' noise alone). So the readings first pass a fast filter F (``Preprocessor``'s rate
+filter, 8 Hz: the IMU's period means held, the encoders' points with a first-order hold, so its
+outputs describe one instant), whose derivative gives the joint rates; P and Q are formed from
+F's outputs. F does not commute with the products either, but its departure from a pure delay,
+of order (f / f_F)^2, is small at 8 Hz for motion below 1 Hz. The samples of P and Q are then
+low-passed (the pre-filter's cutoff, then the slow balance filter): linear from there on.
+
+Channels. The cargo's P_Y and Q_Y (60 entries each) are fixed linear maps of few numbers:
+P_Y = M_P [nu_G; w_G] (Y is linear in acc and wd), and, Y(c, w, 0) being linear in c and
+quadratic in w, Q_Y = M_Q [c; w_x^2, w_y^2, w_z^2, w_x w_y, w_x w_z, w_y w_z] (``CARGO_P_MAP``,
+``CARGO_Q_MAP``, (60, 6) and (60, 9)). A linear filter commutes with a constant map, H[M x] =
+M H[x], so the filters run on those 6 + 9 numbers (``SIZE`` = 33 channels with the thrust's and
+the links' 6 + 6 + 6) and the regressor is mapped out of the filtered ones exactly
+(``balance_from_filtered``).
+
+Units: P in N s and N m s, Q and the balance in N and N m, velocities m/s and rad/s.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from .rne import (
+    Balance,
+    RobotArrays,
+    RobotDescription,
+    _body_regressor,
+    _forward_pass,
+    _grasp_from_base,
+    _single,
+)
+
+# Layout of the momentum-form sample (``momentum_sample``'s vector), all in G.
+THRUST = slice(0, 6)  # propulsion wrench, N and N m about G's origin
+LINKS_P = slice(6, 12)  # links' momentum [p; L], N s and N m s
+LINKS_Q = slice(12, 18)  # links' non-derivative part, N and N m
+CARGO_P = slice(18, 24)  # [nu_G (m/s); w_G (rad/s)]: P_Y = CARGO_P_MAP [nu_G; w_G]
+CARGO_Q = slice(24, 33)  # [c (m/s^2); w_G's 6 products (rad/s)^2]: Q_Y = CARGO_Q_MAP [...]
+SIZE = 33
+# The pairs (i, j) of w_i w_j in CARGO_Q, after c.
+_PRODUCTS = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
+
+
+def _regressor_maps() -> tuple[np.ndarray, np.ndarray]:
+    """(M_P (60, 6), M_Q (60, 9)): Y(nu, 0, w).ravel() = M_P [nu; w] and
+    Y(c, w, 0).ravel() = M_Q [c; w_i w_j over ``_PRODUCTS``] (module docstring)."""
+    zero, unit = np.zeros(3), np.eye(3)
+    m_p = np.zeros((60, 6))
+    m_q = np.zeros((60, 9))
+    for i in range(3):
+        m_p[:, i] = _body_regressor(unit[i], zero, zero).ravel()
+        m_p[:, 3 + i] = _body_regressor(zero, zero, unit[i]).ravel()
+        m_q[:, i] = m_p[:, i]
+    square = [_body_regressor(zero, unit[i], zero).ravel() for i in range(3)]
+    for col, (i, j) in enumerate(_PRODUCTS):
+        if i == j:
+            m_q[:, 3 + col] = square[i]
+        else:  # the quadratic form's cross term
+            pair = _body_regressor(zero, unit[i] + unit[j], zero).ravel()
+            m_q[:, 3 + col] = pair - square[i] - square[j]
+    return m_p, m_q
+
+
+CARGO_P_MAP, CARGO_Q_MAP = _regressor_maps()
+
+
+@njit(cache=True)
+def _link_rates(arrays, rot, w_base, qd):
+    """Angular velocities (n_links, 3) of the links in B at the link frames ``rot``."""
+    n_links = arrays.parent.shape[0]
+    w = np.empty((n_links, 3))
+    w[0] = w_base
+    for k in range(1, n_links):
+        w[k] = w[arrays.parent[k]] + qd[k - 1] * (rot[k] @ arrays.joint_axis[k])
+    return w
+
+
+@njit(cache=True)
+def _momentum_terms(arrays, imu_pos, rot, pos, w, grasp_rot, grasp_pos, acc_imu, out):
+    """Fill out[6:SIZE] (P_links, Q_links, the cargo's P and Q arguments; module docstring) from
+    the link frames, their angular velocities ``w`` (n_links, 3) and the IMU point's
+    acceleration, all in B."""
+    n_links = arrays.parent.shape[0]
+    # Velocities of the link origins relative to the frame translating with the IMU point.
+    vel = np.empty((n_links, 3))
+    vel[0] = np.cross(w[0], -imu_pos)
+    for k in range(1, n_links):
+        p = arrays.parent[k]
+        vel[k] = vel[p] + np.cross(w[p], pos[k] - pos[p])
+    g = arrays.grasp_link
+    nu_g = vel[g] + np.cross(w[g], grasp_pos - pos[g])
+    momentum, ang_momentum, first_moment = np.zeros(3), np.zeros(3), np.zeros(3)
+    total_mass = 0.0
+    for k in range(n_links):
+        c = rot[k] @ arrays.com[k]
+        nu = vel[k] + np.cross(w[k], c)
+        rho = pos[k] + c - grasp_pos
+        m = arrays.mass[k]
+        inertia_b = rot[k] @ arrays.inertia_com[k] @ rot[k].T
+        momentum += m * nu
+        ang_momentum += inertia_b @ w[k] + m * np.cross(rho, nu)
+        first_moment += m * rho
+        total_mass += m
+    rot_t = np.ascontiguousarray(grasp_rot.T)
+    w_g = rot_t @ w[g]
+    p_g, l_g = rot_t @ momentum, rot_t @ ang_momentum
+    out[6:9], out[9:12] = p_g, l_g
+    out[12:15] = rot_t @ (total_mass * acc_imu) + np.cross(w_g, p_g)
+    out[15:18] = rot_t @ (np.cross(first_moment, acc_imu) + np.cross(nu_g, momentum)) + np.cross(
+        w_g, l_g
+    )
+    nu_gg = rot_t @ nu_g
+    out[18:21], out[21:24] = nu_gg, w_g
+    out[24:27] = rot_t @ acc_imu + np.cross(w_g, nu_gg)
+    for col in range(6):
+        i, j = _PRODUCTS[col]
+        out[27 + col] = w_g[i] * w_g[j]
+
+
+@njit(cache=True)
+def momentum_pass(arrays, imu_pos, w_base, acc_imu, q, qd, thrust_base, qd_var):
+    """One sample's momentum form in G (module docstring): the vector (``SIZE``,)
+    [thrust_G, P_links, Q_links, cargo P arguments, cargo Q arguments], less the expectation of
+    the joint-rate noise's square in Q (variances ``qd_var`` (nj,), ``momentum_sample``), and
+    G's pose in B (rotation, origin)."""
+    zero3 = np.zeros(3)
+    nj = q.shape[0]
+    rot, pos, w, _, _, grasp_rot, grasp_pos, _ = _forward_pass(
+        arrays, w_base, zero3, zero3, q, qd, np.zeros(nj)
+    )
+    out = np.empty(SIZE)
+    out[0:6] = _grasp_from_base(grasp_rot, grasp_pos) @ thrust_base
+    _momentum_terms(arrays, imu_pos, rot, pos, w, grasp_rot, grasp_pos, acc_imu, out)
+    # E[Q(n)] of zero-mean rate noise n: Q is quadratic in the rates (P linear), so it is
+    # sum_j var_j Q(e_j), e_j = 1 rad/s on joint j alone, base at rest, no acceleration.
+    unit_out = np.zeros(SIZE)
+    for j in range(nj):
+        if qd_var[j] > 0.0:
+            unit = np.zeros(nj)
+            unit[j] = 1.0
+            w_unit = _link_rates(arrays, rot, zero3, unit)
+            _momentum_terms(arrays, imu_pos, rot, pos, w_unit, grasp_rot, grasp_pos, zero3,
+                            unit_out)  # fmt: skip
+            out[LINKS_Q] -= qd_var[j] * unit_out[LINKS_Q]
+            out[CARGO_Q] -= qd_var[j] * unit_out[CARGO_Q]
+    return out, grasp_rot, grasp_pos
+
+
+@njit(cache=True)
+def sample_from_rate_filter(arrays, imu_pos, rate_state, qd_var):
+    """``momentum_pass`` of the rate filter's state (3, 12 + nj) over [gyro_B; the IMU point's
+    acceleration in B; q; thrust_B] (``preprocess.Preprocessor``): its values, and the joint
+    rates from its first derivative."""
+    nj = rate_state.shape[1] - 12
+    y, yd = rate_state[0], rate_state[1]
+    return momentum_pass(
+        arrays, imu_pos, np.ascontiguousarray(y[0:3]), np.ascontiguousarray(y[3:6]),
+        np.ascontiguousarray(y[6 : 6 + nj]), np.ascontiguousarray(yd[6 : 6 + nj]),
+        np.ascontiguousarray(y[6 + nj : 12 + nj]), qd_var,
+    )  # fmt: skip
+
+
+@njit(cache=True)
+def _sample_from_rate_filter(
+    parent, joint_axis, rot_in_parent, pos_in_parent, mass, com, inertia_com, grasp_link,
+    grasp_rot, grasp_pos, imu_pos, rate_state, qd_var,
+):  # fmt: skip
+    arrays = RobotArrays(
+        parent, joint_axis, rot_in_parent, pos_in_parent, mass, com, inertia_com, grasp_link,
+        grasp_rot, grasp_pos,
+    )  # fmt: skip
+    return sample_from_rate_filter(arrays, imu_pos, rate_state, qd_var)
+
+
+@njit(cache=True)
+def _momentum_sample(
+    parent, joint_axis, rot_in_parent, pos_in_parent, mass, com, inertia_com, grasp_link,
+    grasp_rot, grasp_pos, imu_pos, w_base, acc_imu, q, qd, thrust_base, qd_var,
+):  # fmt: skip
+    arrays = RobotArrays(
+        parent, joint_axis, rot_in_parent, pos_in_parent, mass, com, inertia_com, grasp_link,
+        grasp_rot, grasp_pos,
+    )  # fmt: skip
+    return momentum_pass(arrays, imu_pos, w_base, acc_imu, q, qd, thrust_base, qd_var)
+
+
+def momentum_sample(
+    robot: RobotDescription,
+    w_base: np.ndarray,
+    acc_imu: np.ndarray,
+    q: np.ndarray,
+    qd: np.ndarray,
+    thrust_base: np.ndarray,
+    qd_var: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One sample of the balance in momentum form (module docstring), G coordinates.
+
+    ``w_base`` (3,) rad/s: the base's angular velocity in B; ``acc_imu`` (3,) m/s^2: the IMU
+    point's acceleration in B; ``q``, ``qd`` (n_joints,) rad, rad/s; ``thrust_base`` (6,): the
+    propulsion wrench in B about B's origin. ``qd_var`` (n_joints,) (rad/s)^2: the variance of
+    the noise on ``qd``, whose square in Q's products of rates would bias it (its expectation
+    is subtracted; None: no noise). Returns the vector (``SIZE``,) [thrust_G (6), P_links (6),
+    Q_links (6), [nu_G; w_G] (6), [c; w_G's products] (9)] (slices ``THRUST`` ... ``CARGO_Q``)
+    and G's pose in B (rotation (3, 3), origin (3,) m)."""
+    nj = (robot.n_joints,)
+    var = np.zeros(nj) if qd_var is None else qd_var
+    args = [_single(x, shape, name) for x, shape, name in (
+        (w_base, (3,), "w_base"), (acc_imu, (3,), "acc_imu"), (q, nj, "q"), (qd, nj, "qd"),
+        (thrust_base, (6,), "thrust_base"), (var, nj, "qd_var"),
+    )]  # fmt: skip
+    imu_pos = np.ascontiguousarray(robot.imu_pos, dtype=float)
+    return _momentum_sample(*robot.arrays, imu_pos, *args)
+
+
+def cargo_regressor_parts(y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(P_Y, Q_Y) (6, 10) each of a momentum-form vector ``y`` (``SIZE``,) (or of its filtered
+    value or derivative: the maps are linear)."""
+    return (CARGO_P_MAP @ y[CARGO_P]).reshape(6, 10), (CARGO_Q_MAP @ y[CARGO_Q]).reshape(6, 10)
+
+
+def balance_from_filtered(y: np.ndarray, yd: np.ndarray) -> Balance:
+    """The filtered balance H[Z] = H'[P] + H[Q] from the balance filter's value ``y`` and
+    derivative ``yd`` outputs (``SIZE``,) of momentum-form samples."""
+    links = yd[LINKS_P] + y[LINKS_Q]
+    regressor = (CARGO_P_MAP @ yd[CARGO_P] + CARGO_Q_MAP @ y[CARGO_Q]).reshape(6, 10)
+    return Balance(np.array(y[THRUST]), links, regressor)
