@@ -208,7 +208,7 @@ def test_momentum_form_p_is_mujocos_momentum(seed):
     q, qd = data.qpos[list(h.arm_qpos_adr)], data.qvel[list(h.arm_dof_adr)]
     w_base = _object_velocity(model, data, h.base_body, local=True)[:3]
     sample, rot_bg, pos_bg = mo.momentum_sample(robot, w_base, np.zeros(3), q, qd, np.zeros(6))
-    p_g = sample[mo.LINKS_P] + sample[mo.CARGO_P].reshape(6, 10) @ cargo
+    p_g = sample[mo.LINKS_P] + mo.cargo_regressor_parts(sample)[0] @ cargo
     rot_wb, pos_wb = data.xmat[h.base_body].reshape(3, 3), data.xpos[h.base_body]
     rot_wg, pos_wg = rot_wb @ rot_bg, pos_wb + rot_wb @ pos_bg
     world_vel = _object_velocity(model, data, h.base_body, local=False)
@@ -241,6 +241,20 @@ def test_rate_noise_bias_is_removed_in_expectation():
     raw = np.mean([mo.momentum_sample(robot, w, a_imu, q, x, thrust)[0] for x in points], axis=0)
     np.testing.assert_allclose(corrected, clean, rtol=0, atol=1e-12)
     assert np.abs(raw - clean).max() > 1e-4
+
+
+def test_cargo_channels_map_to_the_body_regressor():
+    """The filters run on the cargo's 6 + 9 arguments: P_Y = Y(nu, 0, w) and Q_Y = Y(c, w, 0)
+    are exactly the fixed maps of them (a dropped cross term of w would show at O(1))."""
+    rng = np.random.default_rng(4)
+    for _ in range(3):
+        nu, w, c = rng.normal(size=(3, 3))
+        x = np.zeros(mo.SIZE)
+        x[mo.CARGO_P] = np.concatenate((nu, w))
+        x[mo.CARGO_Q] = np.concatenate((c, [w[i] * w[j] for i, j in mo._PRODUCTS]))
+        p_y, q_y = mo.cargo_regressor_parts(x)
+        np.testing.assert_allclose(p_y, rne.body_regressor(nu, np.zeros(3), w), atol=1e-14)
+        np.testing.assert_allclose(q_y, rne.body_regressor(c, w, np.zeros(3)), atol=1e-14)
 
 
 def test_momentum_sample_rejects_bad_shapes():
