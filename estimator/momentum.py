@@ -133,10 +133,29 @@ def _link_rates(arrays, rot, w_base, qd):
 
 
 @njit(cache=True)
-def _momentum_terms(arrays, imu_pos, rot, pos, w, grasp_rot, grasp_pos, acc_imu, out):
+def _mass_geometry(arrays, rot, pos, grasp_pos):
+    """The links' mass distribution in B at the link frames ``rot``, ``pos``: centres of mass
+    relative to the link origins (n_links, 3) m, inertias about them (n_links, 3, 3) kg m^2,
+    the total mass kg and the first moment about G's origin sum m_k rho_k (3,) kg m."""
+    n_links = arrays.parent.shape[0]
+    com_b = np.empty((n_links, 3))
+    inertia_b = np.empty((n_links, 3, 3))
+    first_moment = np.zeros(3)
+    total_mass = 0.0
+    for k in range(n_links):
+        com_b[k] = rot[k] @ arrays.com[k]
+        inertia_b[k] = rot[k] @ arrays.inertia_com[k] @ np.ascontiguousarray(rot[k].T)
+        first_moment += arrays.mass[k] * (pos[k] + com_b[k] - grasp_pos)
+        total_mass += arrays.mass[k]
+    return com_b, inertia_b, total_mass, first_moment
+
+
+@njit(cache=True)
+def _momentum_terms(arrays, imu_pos, pos, com_b, inertia_b, total_mass, first_moment, w,
+                    grasp_rot, grasp_pos, acc_imu, out):  # fmt: skip
     """Fill out[6:SIZE] (P_links, Q_links, the cargo's P and Q arguments; module docstring) from
-    the link frames, their angular velocities ``w`` (n_links, 3) and the IMU point's
-    acceleration, all in B."""
+    the links' positions and mass distribution (``_mass_geometry``), their angular velocities
+    ``w`` (n_links, 3) and the IMU point's acceleration, all in B."""
     n_links = arrays.parent.shape[0]
     # Velocities of the link origins relative to the frame translating with the IMU point.
     vel = np.empty((n_links, 3))
@@ -146,18 +165,13 @@ def _momentum_terms(arrays, imu_pos, rot, pos, w, grasp_rot, grasp_pos, acc_imu,
         vel[k] = vel[p] + np.cross(w[p], pos[k] - pos[p])
     g = arrays.grasp_link
     nu_g = vel[g] + np.cross(w[g], grasp_pos - pos[g])
-    momentum, ang_momentum, first_moment = np.zeros(3), np.zeros(3), np.zeros(3)
-    total_mass = 0.0
+    momentum, ang_momentum = np.zeros(3), np.zeros(3)
     for k in range(n_links):
-        c = rot[k] @ arrays.com[k]
-        nu = vel[k] + np.cross(w[k], c)
-        rho = pos[k] + c - grasp_pos
+        nu = vel[k] + np.cross(w[k], com_b[k])
+        rho = pos[k] + com_b[k] - grasp_pos
         m = arrays.mass[k]
-        inertia_b = rot[k] @ arrays.inertia_com[k] @ rot[k].T
         momentum += m * nu
-        ang_momentum += inertia_b @ w[k] + m * np.cross(rho, nu)
-        first_moment += m * rho
-        total_mass += m
+        ang_momentum += inertia_b[k] @ w[k] + m * np.cross(rho, nu)
     rot_t = np.ascontiguousarray(grasp_rot.T)
     w_g = rot_t @ w[g]
     p_g, l_g = rot_t @ momentum, rot_t @ ang_momentum
@@ -185,9 +199,10 @@ def momentum_pass(arrays, imu_pos, w_base, acc_imu, q, qd, thrust_base, qd_var):
     rot, pos, w, _, _, grasp_rot, grasp_pos, _ = _forward_pass(
         arrays, w_base, zero3, zero3, q, qd, np.zeros(nj)
     )
+    geometry = _mass_geometry(arrays, rot, pos, grasp_pos)
     out = np.empty(SIZE)
     out[0:6] = _grasp_from_base(grasp_rot, grasp_pos) @ thrust_base
-    _momentum_terms(arrays, imu_pos, rot, pos, w, grasp_rot, grasp_pos, acc_imu, out)
+    _momentum_terms(arrays, imu_pos, pos, *geometry, w, grasp_rot, grasp_pos, acc_imu, out)
     # E[Q(n)] of zero-mean rate noise n: Q is quadratic in the rates (P linear), so it is
     # sum_j var_j Q(e_j), e_j = 1 rad/s on joint j alone, base at rest, no acceleration.
     unit_out = np.zeros(SIZE)
@@ -196,7 +211,7 @@ def momentum_pass(arrays, imu_pos, w_base, acc_imu, q, qd, thrust_base, qd_var):
             unit = np.zeros(nj)
             unit[j] = 1.0
             w_unit = _link_rates(arrays, rot, zero3, unit)
-            _momentum_terms(arrays, imu_pos, rot, pos, w_unit, grasp_rot, grasp_pos, zero3,
+            _momentum_terms(arrays, imu_pos, pos, *geometry, w_unit, grasp_rot, grasp_pos, zero3,
                             unit_out)  # fmt: skip
             out[LINKS_Q] -= qd_var[j] * unit_out[LINKS_Q]
             out[CARGO_Q] -= qd_var[j] * unit_out[CARGO_Q]
