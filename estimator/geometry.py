@@ -34,6 +34,7 @@ __all__ = [
     "exp_so3",
     "matmul3",
     "matvec3",
+    "cross3",
     "log_so3",
     "mat_to_quat",
     "quat_conj",
@@ -70,6 +71,15 @@ def matvec3(a: np.ndarray, v: np.ndarray) -> np.ndarray:
     for i in range(3):
         out[i] = a[i, 0] * v[0] + a[i, 1] * v[1] + a[i, 2] * v[2]
     return out
+
+
+@njit(cache=True)
+def cross3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The cross product a x b (3,) of two 3-vectors, any strides; ``matmul3``'s reason (numba's
+    ``np.cross`` is a general broadcasting kernel) holds here too. Equal to ``np.cross``."""
+    return np.array(
+        (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
+    )
 
 
 @njit(cache=True)

@@ -77,12 +77,12 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from .geometry import cross3, exp_so3, matmul3, matvec3
 from .rne import (
     Balance,
     RobotArrays,
     RobotDescription,
     _body_regressor,
-    _forward_pass,
     _grasp_from_base,
     _single,
 )
@@ -122,13 +122,31 @@ CARGO_P_MAP, CARGO_Q_MAP = _regressor_maps()
 
 
 @njit(cache=True)
+def _link_frames(arrays, q):
+    """The link frames in B at joint angles ``q`` (``rne``'s first pass without the rates, in
+    3x3 loops): rotations (n_links, 3, 3), origins (n_links, 3) m, and G's rotation and
+    origin."""
+    n_links = arrays.parent.shape[0]
+    rot = np.empty((n_links, 3, 3))
+    pos = np.empty((n_links, 3))
+    rot[0], pos[0] = np.eye(3), 0.0
+    for k in range(1, n_links):
+        p = arrays.parent[k]
+        joint = exp_so3(arrays.joint_axis[k] * q[k - 1])
+        rot[k] = matmul3(matmul3(rot[p], arrays.rot_in_parent[k]), joint)
+        pos[k] = pos[p] + matvec3(rot[p], arrays.pos_in_parent[k])
+    g = arrays.grasp_link
+    return rot, pos, matmul3(rot[g], arrays.grasp_rot), pos[g] + matvec3(rot[g], arrays.grasp_pos)
+
+
+@njit(cache=True)
 def _link_rates(arrays, rot, w_base, qd):
     """Angular velocities (n_links, 3) of the links in B at the link frames ``rot``."""
     n_links = arrays.parent.shape[0]
     w = np.empty((n_links, 3))
     w[0] = w_base
     for k in range(1, n_links):
-        w[k] = w[arrays.parent[k]] + qd[k - 1] * (rot[k] @ arrays.joint_axis[k])
+        w[k] = w[arrays.parent[k]] + qd[k - 1] * matvec3(rot[k], arrays.joint_axis[k])
     return w
 
 
@@ -143,8 +161,8 @@ def _mass_geometry(arrays, rot, pos, grasp_pos):
     first_moment = np.zeros(3)
     total_mass = 0.0
     for k in range(n_links):
-        com_b[k] = rot[k] @ arrays.com[k]
-        inertia_b[k] = rot[k] @ arrays.inertia_com[k] @ np.ascontiguousarray(rot[k].T)
+        com_b[k] = matvec3(rot[k], arrays.com[k])
+        inertia_b[k] = matmul3(matmul3(rot[k], arrays.inertia_com[k]), rot[k].T)
         first_moment += arrays.mass[k] * (pos[k] + com_b[k] - grasp_pos)
         total_mass += arrays.mass[k]
     return com_b, inertia_b, total_mass, first_moment
@@ -159,30 +177,29 @@ def _momentum_terms(arrays, imu_pos, pos, com_b, inertia_b, total_mass, first_mo
     n_links = arrays.parent.shape[0]
     # Velocities of the link origins relative to the frame translating with the IMU point.
     vel = np.empty((n_links, 3))
-    vel[0] = np.cross(w[0], -imu_pos)
+    vel[0] = cross3(w[0], -imu_pos)
     for k in range(1, n_links):
         p = arrays.parent[k]
-        vel[k] = vel[p] + np.cross(w[p], pos[k] - pos[p])
+        vel[k] = vel[p] + cross3(w[p], pos[k] - pos[p])
     g = arrays.grasp_link
-    nu_g = vel[g] + np.cross(w[g], grasp_pos - pos[g])
+    nu_g = vel[g] + cross3(w[g], grasp_pos - pos[g])
     momentum, ang_momentum = np.zeros(3), np.zeros(3)
     for k in range(n_links):
-        nu = vel[k] + np.cross(w[k], com_b[k])
+        nu = vel[k] + cross3(w[k], com_b[k])
         rho = pos[k] + com_b[k] - grasp_pos
         m = arrays.mass[k]
         momentum += m * nu
-        ang_momentum += inertia_b[k] @ w[k] + m * np.cross(rho, nu)
-    rot_t = np.ascontiguousarray(grasp_rot.T)
-    w_g = rot_t @ w[g]
-    p_g, l_g = rot_t @ momentum, rot_t @ ang_momentum
+        ang_momentum += matvec3(inertia_b[k], w[k]) + m * cross3(rho, nu)
+    rot_t = grasp_rot.T
+    w_g = matvec3(rot_t, w[g])
+    p_g, l_g = matvec3(rot_t, momentum), matvec3(rot_t, ang_momentum)
     out[6:9], out[9:12] = p_g, l_g
-    out[12:15] = rot_t @ (total_mass * acc_imu) + np.cross(w_g, p_g)
-    out[15:18] = rot_t @ (np.cross(first_moment, acc_imu) + np.cross(nu_g, momentum)) + np.cross(
-        w_g, l_g
-    )
-    nu_gg = rot_t @ nu_g
+    out[12:15] = matvec3(rot_t, total_mass * acc_imu) + cross3(w_g, p_g)
+    moment = cross3(first_moment, acc_imu) + cross3(nu_g, momentum)
+    out[15:18] = matvec3(rot_t, moment) + cross3(w_g, l_g)
+    nu_gg = matvec3(rot_t, nu_g)
     out[18:21], out[21:24] = nu_gg, w_g
-    out[24:27] = rot_t @ acc_imu + np.cross(w_g, nu_gg)
+    out[24:27] = matvec3(rot_t, acc_imu) + cross3(w_g, nu_gg)
     for col in range(6):
         i, j = _PRODUCTS[col]
         out[27 + col] = w_g[i] * w_g[j]
@@ -196,9 +213,8 @@ def momentum_pass(arrays, imu_pos, w_base, acc_imu, q, qd, thrust_base, qd_var):
     G's pose in B (rotation, origin)."""
     zero3 = np.zeros(3)
     nj = q.shape[0]
-    rot, pos, w, _, _, grasp_rot, grasp_pos, _ = _forward_pass(
-        arrays, w_base, zero3, zero3, q, qd, np.zeros(nj)
-    )
+    rot, pos, grasp_rot, grasp_pos = _link_frames(arrays, q)
+    w = _link_rates(arrays, rot, w_base, qd)
     geometry = _mass_geometry(arrays, rot, pos, grasp_pos)
     out = np.empty(SIZE)
     out[0:6] = _grasp_from_base(grasp_rot, grasp_pos) @ thrust_base
