@@ -233,7 +233,9 @@ class CargoEstimator(EstimatorInputs):
             MOMENTUM_SIZE, dt_s * regressor_every, cutoff_hz
         )
         # Memory of the filters: one delay (rollback after a gate) and four (taint).
-        memory_s = self.pre.momentum_delay_s + self.balance_filter.delay_s
+        # (The momentum form's products pass the product filter, the pre-filter's twin; its rate
+        # filter adds 3 / w = 0.03 s at 8 Hz, inside the taint's margin of four memories.)
+        memory_s = self.pre.product_filter.delay_s + self.balance_filter.delay_s
         self.rollback_steps = int(np.ceil(memory_s / dt_s))
         self.taint_steps = int(np.ceil(4 * memory_s / dt_s))
         prior = default_prior(robot) if prior_params is None else np.asarray(prior_params, float)
