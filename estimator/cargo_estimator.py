@@ -74,7 +74,8 @@ from scipy.stats import chi2
 
 from .messages import WrenchMessage, _Instant, _RelativeGrasp  # noqa: F401 (re-exported)
 from .momentum import SIZE as MOMENTUM_SIZE
-from .noise_model import MOTION_FUSION, NoiseModel
+from .momentum import cargo_regressor_parts
+from .noise_model import MOTION_FUSION, NoiseModel, rate_square_var
 from .per_step import EstimatorInputs
 from .preprocess import Preprocessor, StateVariableFilter
 from .prior import (  # noqa: F401 (re-exported)
@@ -274,6 +275,13 @@ class CargoEstimator(EstimatorInputs):
         self._thrust_to_base = self.robot.thrust_to_base
         self._peer_noise_cov, self._peer_noise = n.peer_noise_cov, n.has_peer_noise
         self._motion_var, self._motion_band = n.motion.var, n.motion.band
+        # The encoders' noise squared in the momentum form's products of joint rates: its
+        # fluctuation about the subtracted mean, per update (``rate_square_var``), and each
+        # pending instant's vectors of it (``momentum.rate_square_terms``).
+        self._rate_square_var = rate_square_var(
+            self.dt_s, self.pre.rate_cutoff_hz, float(sensor_noise[2]), self.update_every
+        )
+        self._rate_terms: dict[int, tuple[np.ndarray, np.ndarray]] = {}
 
     def _init_bookkeeping(self, relative_grasps, record: bool) -> None:
         """Counters, histories and the peers' relative grasps, at the start of a run."""
@@ -383,6 +391,7 @@ class CargoEstimator(EstimatorInputs):
                     if rel.known is None:
                         peer_noise += self._relative_pose_cov(wrench, rel.count)
                 meas_cov = self.meas_cov + cov / self.update_every + motion_cov + peer_noise
+                meas_cov = meas_cov + self._rate_square_cov(stamp)
                 offset = inst.links - peers - motion_mean
                 snapshot = (stamp, self.ukf.x.copy(), self.ukf.P.copy(), len(self.log))
                 self.ukf.predict()
@@ -410,8 +419,22 @@ class CargoEstimator(EstimatorInputs):
             self._grasp_lever,
         )  # fmt: skip
 
+    def _rate_square_cov(self, stamp: int) -> np.ndarray:
+        """Covariance (6, 6) of the encoders' squared rate noise in this instant's own balance
+        (links and regressor at the current estimate): var sum_k w_k b_k b_k^T,
+        b_k = Q_links + Q_Y pi of ``momentum.rate_square_terms``."""
+        entry = self._rate_terms.pop(stamp, None)
+        if entry is None:
+            return np.zeros((6, 6))
+        terms, weights = entry
+        params = self.ukf.params_mean()
+        b = np.array([t[12:18] + cargo_regressor_parts(t)[1] @ params for t in terms])
+        return self._rate_square_var * (b.T * weights) @ b
+
     def _forget_before(self, horizon: int) -> None:
         """Drop the peers' messages and own fixes of stamps before ``horizon``."""
+        for key in [k for k in self._rate_terms if k < horizon]:
+            del self._rate_terms[key]
         if self._oldest_peer_msg < horizon:
             for key in [k for k in self._peer_msgs if k[1] < horizon]:
                 del self._peer_msgs[key]

@@ -300,6 +300,32 @@ def momentum_sample(
     return _momentum_sample(*robot.arrays, imu_pos, *args)
 
 
+def rate_square_terms(robot: RobotDescription, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The quadratic form of Q in the joint rates at joint angles ``q``, base at rest: for
+    independent zero-mean rate noises n_j (variance v each), Q(n) - E Q(n) =
+    sum_j (n_j^2 - v) A_jj + sum_i<j n_i n_j (A_ij + A_ji). Returns those vectors (``SIZE``,),
+    Q(e_j) and Q(e_i + e_j) - Q(e_i) - Q(e_j) (P's slices zero), stacked (k, ``SIZE``), and each
+    one's weight w (k,) in Var = w v^2 of white Gaussian noise (2 for a square, 1 for a product:
+    the noise model's factor)."""
+    nj = robot.n_joints
+    zero3 = np.zeros(3)
+    keep = np.zeros(SIZE)
+    keep[LINKS_Q] = keep[CARGO_Q] = 1.0
+
+    def quad(rates):
+        return keep * momentum_sample(robot, zero3, zero3, q, rates, np.zeros(6))[0]
+
+    unit = np.eye(nj)
+    squares = [quad(unit[j]) for j in range(nj)]
+    pairs = [
+        quad(unit[i] + unit[j]) - squares[i] - squares[j]
+        for i in range(nj)
+        for j in range(i + 1, nj)
+    ]
+    weights = np.array([2.0] * nj + [1.0] * len(pairs))
+    return np.array(squares + pairs).reshape(-1, SIZE), weights
+
+
 def cargo_regressor_parts(y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(P_Y, Q_Y) (6, 10) each of a momentum-form vector ``y`` (``SIZE``,) (or of its filtered
     value or derivative: the maps are linear)."""

@@ -64,6 +64,24 @@ def decorrelation_updates(slow_delay_s: float, update_s: float) -> float:
     return max(1.0, (16.0 / (3.0 * w)) / update_s)
 
 
+def rate_square_var(
+    dt_s: float, rate_cutoff_hz: float, encoder_std_rad: float, update_every: int
+) -> float:
+    """Per-update white-equivalent variance (rad/s)^4 of n^2 - E n^2, n the encoders' white
+    noise (std s per sample) through the momentum form's rate filter's derivative (``momentum``:
+    Q's products of joint rates square it). With h the filter's derivative impulse response and
+    r(d) = sum_m h_m h_m+d, n^2 has the autocovariance 2 s^4 r(d)^2 (Gaussian), flat in the
+    band below the slow filter's cutoff, where the chain's gain is 1: per update
+    S(0) / (2 dt_update) = s^4 sum_d r(d)^2 / update_every (times 2 for a square, 1 for a
+    product of two joints' noises: ``momentum.rate_square_terms``)."""
+    rate = StateVariableFilter(1, dt_s, rate_cutoff_hz)
+    rate.step(np.zeros(1))
+    n = int(np.ceil(40 * rate.delay_s / dt_s)) + 8
+    h = np.array([rate.step(np.array([float(k == 0)]))[1][0] for k in range(n)])
+    r = np.correlate(h, h, mode="full")
+    return float(encoder_std_rad**4 * np.sum(r**2) / update_every)
+
+
 def _nonnegative(value, size: int, name: str) -> np.ndarray:
     arr = np.asarray(value, dtype=float)
     if arr.shape != (size,) or not np.all(np.isfinite(arr)) or np.any(arr < 0):

@@ -32,7 +32,7 @@ from numba import boolean, float64, int64, njit, types
 
 from .geometry import exp_so3, quat_to_mat
 from .messages import WrenchMessage, _Instant
-from .momentum import balance_from_filtered, sample_from_rate_filter
+from .momentum import balance_from_filtered, rate_square_terms, sample_from_rate_filter
 from .motion import grasp_acc_map
 from .preprocess import _first_order_hold_step
 from .rne import RobotArrays, _grasp_from_base, balance_motion_jacobians
@@ -338,6 +338,18 @@ class EstimatorInputs:
         act_cov = self._act_cov_sum / max(self._act_cov_n, 1)
         self._act_cov_sum = np.zeros((6, 6))
         self._act_cov_n = 0
+        # The encoders' squared rate noise (``noise_model.rate_square_var``): this robot's
+        # regressor part waits with the instant; the links' part goes with the message, as the
+        # actuation's does (per step: the receiver divides by update_every).
+        sent_cov = act_cov
+        if self._rate_square_var > 0:
+            q_rate = self.pre.rate_filter.state[0, 6 : 6 + self.robot.n_joints]
+            terms, weights = rate_square_terms(self.robot, q_rate)
+            self._rate_terms[stamp] = (terms, weights)
+            links = terms[:, 12:18]
+            sent_cov = act_cov + self.update_every * self._rate_square_var * (
+                (links.T * weights) @ links
+            )
         tainted = stamp <= self._tainted_until
         motion = {}
         jac = None
@@ -385,7 +397,7 @@ class EstimatorInputs:
             grasp_pos_world=pos_wg,
             grasp_rot_world=rot_wg,
             fix=fix,
-            wrench_cov_grasp=act_cov,
+            wrench_cov_grasp=sent_cov,
             tainted=tainted,
             **motion,
         )

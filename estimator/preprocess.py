@@ -208,6 +208,7 @@ class Preprocessor:
         rate_hz = (
             min(DEFAULT_RATE_CUTOFF_HZ, 0.25 / dt_s) if rate_cutoff_hz is None else rate_cutoff_hz
         )
+        self.rate_cutoff_hz = float(rate_hz)
         self.rate_filter = StateVariableFilter(12 + nj, dt_s, rate_hz, held=held)
         # Its y' of white encoder noise: variance (s g_yd)^2 per joint (``noise_gains``).
         self.rate_noise_gains = self.rate_filter.noise_gains()
