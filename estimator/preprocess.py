@@ -267,8 +267,3 @@ class Preprocessor:
     @property
     def delay_s(self) -> float:
         return self.filter.delay_s
-
-    @property
-    def momentum_delay_s(self) -> float:
-        """Delay of the momentum form's chain before the slow filter (rate and product filters)."""
-        return self.rate_filter.delay_s + self.product_filter.delay_s
