@@ -386,7 +386,8 @@ def _balance_jacobians(
     n_links, nj = parent.shape[0], q.shape[0]
     n = 6 + nj
     zero3, zero_j = np.zeros(3), np.zeros(nj)
-    rot, pos, _, _, _, rot_g, pos_g, _ = _forward_pass(arrays, zero3, zero3, zero3, q, zero_j, zero_j)
+    frames = _forward_pass(arrays, zero3, zero3, zero3, q, zero_j, zero_j)
+    rot, pos, rot_g, pos_g = frames[0], frames[1], frames[5], frames[6]
     jac_wd, jac_a = np.zeros((n_links, 3, n)), np.zeros((n_links, 3, n))
     jac_a[0, :, 0:3] = np.eye(3)
     jac_wd[0, :, 3:6] = np.eye(3)
