@@ -297,6 +297,16 @@ class NoiseModel:
         else:
             transforms, peer_links = np.zeros((0, 6, 6)), np.zeros((6, 0))
             peer_grasp, peer_acc = np.zeros((3, 0)), np.zeros((0, 3))
+        n_own, n_peers = np.shape(d_y)[0], len(peers)
+        shapes = (np.shape(params), np.shape(d_links), np.shape(d_y), np.shape(regressor),
+                  transforms.shape, peer_links.shape, peer_grasp.shape, peer_acc.shape)  # fmt: skip
+        expected = ((10,), (6, n_own), (n_own, 6, 10), (6, 10), (n_peers, 6, 6),
+                    (6, sum(sizes)), (3, sum(sizes)), (n_peers, 3))  # fmt: skip
+        if shapes != expected:
+            raise ValueError(
+                f"params, motion_jac, regressor and the peers' (transform, motion_links_jac, "
+                f"motion_grasp_jac, grasp_acc) have shapes {shapes}, expected {expected}"
+            )
         n_map, d_map, mismatch = _team_maps(
             np.ascontiguousarray(params, dtype=float),
             np.ascontiguousarray(d_links, dtype=float),

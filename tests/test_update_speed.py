@@ -124,3 +124,8 @@ def test_motion_noise_equals_the_list_assembly(n_peers, fusion):
         bad = SimpleNamespace(**{**vars(peers[0][1]), "motion_var": np.ones(3)})
         with pytest.raises(ValueError, match="variances"):
             model.motion_noise(fusion, params, jac, regressor, [(peers[0][0], bad)], 0.3)
+        with pytest.raises(ValueError, match="shapes"):
+            model.motion_noise(fusion, params, jac, regressor[:3], peers, 0.3)
+        bad = SimpleNamespace(**{**vars(peers[0][1]), "grasp_acc": np.ones(2)})
+        with pytest.raises(ValueError, match="shapes"):
+            model.motion_noise(fusion, params, jac, regressor, [(peers[0][0], bad)], 0.3)
