@@ -38,8 +38,9 @@ assembly's centre of mass the common linear-acceleration error drops out altoget
 
 All quantities here are filtered ones (the same slow filter runs over every balance term, so
 dxi is the filter's output noise); Sigma is the diagonal covariance of that filtered noise per
-motion coordinate. Everything is linear; the Jacobians are exact unit differences of the affine
-balance (``motion_jacobians``).
+motion coordinate. Everything is linear; the Jacobians are exact: the balance's acceleration
+part (``rne.balance_motion_jacobians``), or unit differences of any affine balance
+(``motion_jacobians``).
 """
 
 from __future__ import annotations
