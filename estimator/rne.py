@@ -330,37 +330,6 @@ def _links_and_regressor(arrays, w_base, wd_base, acc_base, q, qd, qdd):
 
 
 @njit(cache=True)
-def _motion_jacobians(
-    parent, joint_axis, rot_in_parent, pos_in_parent, mass, com, inertia_com, grasp_link,
-    grasp_rot, grasp_pos, w_base, wd_base, acc_base, q, qd, qdd,
-):  # fmt: skip
-    """Jacobians of (links_G, Y) in xi = (acc_base, wd_base, qdd) with w_base, q, qd held:
-    (d links (6, n), d Y (n, 6, 10)), n = 6 + n_joints. The balance is affine in xi, so the
-    differences of unit steps are exact."""
-    arrays = RobotArrays(
-        parent, joint_axis, rot_in_parent, pos_in_parent, mass, com, inertia_com, grasp_link,
-        grasp_rot, grasp_pos,
-    )  # fmt: skip
-    nj = q.shape[0]
-    xi = np.concatenate((acc_base, wd_base, qdd))
-    n = xi.shape[0]
-    links0, y0, _, _, _ = _links_and_regressor(
-        arrays, w_base, xi[3:6].copy(), xi[0:3].copy(), q, qd, xi[6 : 6 + nj].copy()
-    )
-    d_links = np.empty((6, n))
-    d_y = np.empty((n, 6, 10))
-    for k in range(n):
-        step = xi.copy()
-        step[k] += 1.0
-        links1, y1, _, _, _ = _links_and_regressor(
-            arrays, w_base, step[3:6].copy(), step[0:3].copy(), q, qd, step[6 : 6 + nj].copy()
-        )
-        d_links[:, k] = links1 - links0
-        d_y[k] = y1 - y0
-    return d_links, d_y
-
-
-@njit(cache=True)
 def _balance_jacobians(
     parent, joint_axis, rot_in_parent, pos_in_parent, mass, com, inertia_com, grasp_link,
     grasp_rot, grasp_pos, q,
