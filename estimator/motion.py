@@ -38,8 +38,9 @@ assembly's centre of mass the common linear-acceleration error drops out altoget
 
 All quantities here are filtered ones (the same slow filter runs over every balance term, so
 dxi is the filter's output noise); Sigma is the diagonal covariance of that filtered noise per
-motion coordinate. Everything is linear; the Jacobians are exact unit differences of the affine
-balance (``motion_jacobians``).
+motion coordinate. Everything is linear; the Jacobians are exact: the balance's acceleration
+part (``rne.balance_motion_jacobians``), or unit differences of any affine balance
+(``motion_jacobians``).
 """
 
 from __future__ import annotations
@@ -48,6 +49,7 @@ import functools
 from collections.abc import Callable
 
 import numpy as np
+from numba import njit
 
 from .preprocess import StateVariableFilter
 
@@ -75,19 +77,87 @@ def motion_jacobians(
     return d_links, d_y
 
 
+@njit(cache=True)
+def _balance_noise_map(d_links: np.ndarray, d_y: np.ndarray, params: np.ndarray) -> np.ndarray:
+    """E (6, n): column k is d links / dxi_k + (d Y / dxi_k) pi."""
+    out = d_links.copy()
+    for k in range(d_y.shape[0]):
+        out[:, k] += d_y[k] @ params
+    return out
+
+
+@njit(cache=True)
+def _grasp_acc_map(d_y: np.ndarray, point_g: np.ndarray) -> np.ndarray:
+    """G (3, n): column k is the force rows' a column plus their h columns times the point."""
+    out = np.empty((3, d_y.shape[0]))
+    for k in range(d_y.shape[0]):
+        out[:, k] = d_y[k, :3, 0] + np.ascontiguousarray(d_y[k, :3, 1:4]) @ point_g
+    return out
+
+
+@njit(cache=True)
+def pinv_symmetric(a: np.ndarray, rcond: float = 1e-15) -> np.ndarray:
+    """Pseudo-inverse of a symmetric matrix from its eigen-decomposition a = U diag(s) U^T:
+    U diag(1 / s) U^T over the eigenvalues with |s| > rcond max |s| (the others give 0), which
+    is ``np.linalg.pinv(a, hermitian=True)``."""
+    if a.shape[0] == 0:
+        return a.copy()
+    s, u = np.linalg.eigh(a)
+    cutoff = rcond * np.max(np.abs(s))
+    inv = np.zeros_like(s)
+    for k in range(s.shape[0]):
+        if abs(s[k]) > cutoff:
+            inv[k] = 1.0 / s[k]
+    return (u * inv) @ np.ascontiguousarray(u.T)
+
+
+@njit(cache=True)
+def noise_cov(n_map: np.ndarray, level: np.ndarray) -> np.ndarray:
+    """N diag(level) N^T (6, 6), symmetrised: the unconditioned balance noise."""
+    s_nn = (n_map * level) @ np.ascontiguousarray(n_map.T)
+    return 0.5 * (s_nn + s_nn.T)
+
+
+@njit(cache=True)
+def condition_maps(
+    n_map: np.ndarray,
+    d_map: np.ndarray,
+    level: np.ndarray,
+    mismatch: np.ndarray,
+    mismatch_model_var: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """E[n | d] and Cov[n | d] for n = N dxi, d = D dxi + e with Cov dxi = diag(level) and
+    Cov e = mismatch_model_var I (``condition_on_mismatch`` on stacked maps):
+
+        K = S_nd S_dd^+,  S_nd = N diag(level) D^T,  S_dd = D diag(level) D^T + var I,
+        E[n | d] = K d,   Cov[n | d] = (N - K D) diag(level) (N - K D)^T + var K K^T."""
+    d_map_t = np.ascontiguousarray(d_map.T)
+    s_nd = (n_map * level) @ d_map_t
+    s_dd = (d_map * level) @ d_map_t + mismatch_model_var * np.eye(d_map.shape[0])
+    # Pseudo-inverse: noiseless motion coordinates (perfect sensors) make S_dd singular.
+    gain = s_nd @ pinv_symmetric(s_dd)
+    remaining = n_map - gain @ d_map
+    cov = (remaining * level) @ np.ascontiguousarray(remaining.T)
+    cov += (mismatch_model_var * gain) @ np.ascontiguousarray(gain.T)
+    return gain @ mismatch, 0.5 * (cov + cov.T)
+
+
 def balance_noise_map(d_links: np.ndarray, d_y: np.ndarray, params: np.ndarray) -> np.ndarray:
     """E = d(links + Y pi)/dxi (6, n) at parameters pi (10,)."""
-    return d_links + np.einsum("kij,j->ik", d_y, np.asarray(params, dtype=float))
+    return _balance_noise_map(_float(d_links), _float(d_y), _float(params))
 
 
 def grasp_acc_map(d_y: np.ndarray, point_g: np.ndarray | None = None) -> np.ndarray:
     """G = d a_P / dxi (3, n): the acceleration of the cargo point P (``point_g``, G axes and
     origin; None: the grasp point) from the regressor's force rows, whose column m is a_G and
     columns h are skew(wd) + skew(w)^2 (so a_P = a_G + (skew(wd) + skew(w)^2) p)."""
-    jac = d_y[:, :3, 0].T.copy()
-    if point_g is not None:
-        jac += np.einsum("kij,j->ik", d_y[:, :3, 1:4], np.asarray(point_g, dtype=float))
-    return jac
+    point = np.zeros(3) if point_g is None else _float(point_g)
+    return _grasp_acc_map(_float(d_y), point)
+
+
+def _float(x) -> np.ndarray:
+    """``x`` as a contiguous float64 array (what the compiled kernels take)."""
+    return np.ascontiguousarray(x, dtype=float)
 
 
 def condition_on_mismatch(
@@ -125,21 +195,15 @@ def condition_on_mismatch(
     weight = np.ones(var.size) if band_factors is None else np.concatenate(band_factors)
     if weight.shape != var.shape:
         raise ValueError(f"band_factors give {weight.size} coordinates, variances {var.size}")
+    level = _float(var * weight)
     if mismatch is None or not mismatch_maps:
-        s_nn = (n_map * (var * weight)) @ n_map.T
-        return np.zeros(6), 0.5 * (s_nn + s_nn.T)
+        return np.zeros(6), noise_cov(_float(n_map), level)
     d_map = np.hstack(mismatch_maps)
     if d_map.shape != (np.size(mismatch), var.size):
         raise ValueError(f"mismatch maps give shape {d_map.shape}, mismatch {np.shape(mismatch)}")
-    level = var * weight
-    s_nd = (n_map * level) @ d_map.T
-    s_dd = (d_map * level) @ d_map.T + mismatch_model_var * np.eye(d_map.shape[0])
-    # Pseudo-inverse: noiseless motion coordinates (perfect sensors) make S_dd singular.
-    gain = s_nd @ np.linalg.pinv(s_dd, hermitian=True)
-    mean = gain @ np.asarray(mismatch, dtype=float)
-    remaining = n_map - gain @ d_map
-    cov = (remaining * level) @ remaining.T + mismatch_model_var * gain @ gain.T
-    return mean, 0.5 * (cov + cov.T)
+    return condition_maps(
+        _float(n_map), _float(d_map), level, _float(mismatch), float(mismatch_model_var)
+    )
 
 
 @functools.lru_cache(maxsize=16)

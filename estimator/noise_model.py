@@ -27,17 +27,20 @@ filter's cutoff): conservative, never below the noise the band holds.
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
+from numba import njit
 
 from .motion import (
-    balance_noise_map,
+    _balance_noise_map,
+    _grasp_acc_map,
     band_factors,
-    condition_on_mismatch,
+    condition_maps,
     filtered_motion_gains,
-    grasp_acc_map,
+    noise_cov,
 )
 from .preprocess import StateVariableFilter
 from .rne import RobotDescription
@@ -54,6 +57,38 @@ class PeerMotion(Protocol):
     motion_grasp_jac: np.ndarray | None  # (3, n) d grasp_acc / d xi
     motion_var: np.ndarray | None  # (n,) per-sample variance of its filtered xi's noise
     motion_band: np.ndarray | None  # (n,) each coordinate's weight per update
+
+
+@njit(cache=True)
+def _team_maps(params, d_links, d_y, regressor, transforms, peer_links, peer_grasp, peer_acc,
+               peer_start):  # fmt: skip
+    """The team's stacked maps of ``NoiseModel.motion_noise``: noise map N (6, n) over the
+    motion of this robot (its n_own coordinates first) and its peers (peer k's from column
+    n_own + peer_start[k]), mismatch map D (3 P, n) and mismatch d (3 P,).
+
+    Peer k (T = ``transforms[k]`` G_k -> G, R its rotation, p the peer's grasp point in G, read
+    from the moment rows' [p]x R): N's block T L_k; D's rows 3k..3k+2 are -G_i(p) over this
+    robot's columns and R G_k over the peer's; d_k = R a_Gk - (a_G + (skew(wd) + skew(w)^2) p),
+    a_G and the h block from the filtered ``regressor``."""
+    n_own, n_peers = d_y.shape[0], transforms.shape[0]
+    n_map = np.zeros((6, n_own + peer_links.shape[1]))
+    d_map = np.zeros((3 * n_peers, n_map.shape[1]))
+    mismatch = np.empty(3 * n_peers)
+    n_map[:, :n_own] = _balance_noise_map(d_links, d_y, params)
+    acc_g = regressor[:3, 0].copy()
+    ang_g = np.ascontiguousarray(regressor[:3, 1:4])  # skew(wd) + skew(w)^2
+    for k in range(n_peers):
+        rot = np.ascontiguousarray(transforms[k, :3, :3])
+        lever = np.ascontiguousarray(transforms[k, 3:, :3]) @ np.ascontiguousarray(rot.T)
+        pos = np.array([lever[2, 1], lever[0, 2], lever[1, 0]])
+        cols = slice(n_own + peer_start[k], n_own + peer_start[k + 1])
+        peer = slice(peer_start[k], peer_start[k + 1])
+        rows = slice(3 * k, 3 * k + 3)
+        n_map[:, cols] = transforms[k] @ np.ascontiguousarray(peer_links[:, peer])
+        d_map[rows, :n_own] = -_grasp_acc_map(d_y, pos)
+        d_map[rows, cols] = rot @ np.ascontiguousarray(peer_grasp[:, peer])
+        mismatch[rows] = rot @ peer_acc[k] - (acc_g + ang_g @ pos)
+    return n_map, d_map, mismatch
 
 
 def decorrelation_updates(slow_delay_s: float, update_s: float) -> float:
@@ -264,34 +299,44 @@ class NoiseModel:
         ):
             return np.zeros(6), self.sensor_cov_at(params, lever_m)
         d_links, d_y = motion_jac
-        noise_maps = [balance_noise_map(d_links, d_y, params)]
-        variances = [self.motion.var]
-        bands = [self.motion.band]
-        # Mismatch k (3 rows) = R_ik G_k dxi_k - G_i(point k) dxi_i: a block row per peer.
-        own_rows, peer_blocks, mismatch = [], [], []
-        for t, m in peers:
-            rot = t[:3, :3]
-            lever = t[3:, :3] @ rot.T  # skew of the peer's grasp point in G
-            pos = np.array([lever[2, 1], lever[0, 2], lever[1, 0]])
-            noise_maps.append(t @ m.motion_links_jac)
-            variances.append(m.motion_var)
-            bands.append(m.motion_band)
-            own_rows.append(-grasp_acc_map(d_y, pos))
-            peer_blocks.append(rot @ m.motion_grasp_jac)
-            predicted = regressor[:3, 0] + regressor[:3, 1:4] @ pos
-            mismatch.append(rot @ m.grasp_acc - predicted)
-        if fusion == "own" or not peers:
-            return condition_on_mismatch(noise_maps, [], variances, None, bands)
-        mismatch_maps = [np.vstack(own_rows)]
-        for k, block in enumerate(peer_blocks):
-            column = [np.zeros_like(block)] * len(peer_blocks)
-            column[k] = block
-            mismatch_maps.append(np.vstack(column))
-        return condition_on_mismatch(
-            noise_maps,
-            mismatch_maps,
-            variances,
-            np.concatenate(mismatch),
-            bands,
-            self.mismatch_model_var,
+        var = np.concatenate([self.motion.var] + [m.motion_var for _, m in peers])
+        band = np.concatenate([self.motion.band] + [m.motion_band for _, m in peers])
+        sizes = [np.shape(m.motion_links_jac)[1] for _, m in peers]
+        if var.shape != (np.shape(d_y)[0] + sum(sizes),) or band.shape != var.shape:
+            raise ValueError(
+                f"motion variances ({var.size}) and bands ({band.size}) must match the "
+                f"Jacobians' {np.shape(d_y)[0]} + {sizes} coordinates"
+            )
+        if peers:
+            transforms = np.stack([t for t, _ in peers], dtype=float)
+            peer_links = np.hstack([m.motion_links_jac for _, m in peers], dtype=float)
+            peer_grasp = np.hstack([m.motion_grasp_jac for _, m in peers], dtype=float)
+            peer_acc = np.stack([m.grasp_acc for _, m in peers], dtype=float)
+        else:
+            transforms, peer_links = np.zeros((0, 6, 6)), np.zeros((6, 0))
+            peer_grasp, peer_acc = np.zeros((3, 0)), np.zeros((0, 3))
+        n_own, n_peers = np.shape(d_y)[0], len(peers)
+        shapes = (np.shape(params), np.shape(d_links), np.shape(d_y), np.shape(regressor),
+                  transforms.shape, peer_links.shape, peer_grasp.shape, peer_acc.shape)  # fmt: skip
+        expected = ((10,), (6, n_own), (n_own, 6, 10), (6, 10), (n_peers, 6, 6),
+                    (6, sum(sizes)), (3, sum(sizes)), (n_peers, 3))  # fmt: skip
+        if shapes != expected:
+            raise ValueError(
+                f"params, motion_jac, regressor and the peers' (transform, motion_links_jac, "
+                f"motion_grasp_jac, grasp_acc) have shapes {shapes}, expected {expected}"
+            )
+        n_map, d_map, mismatch = _team_maps(
+            np.ascontiguousarray(params, dtype=float),
+            np.ascontiguousarray(d_links, dtype=float),
+            np.ascontiguousarray(d_y, dtype=float),
+            np.ascontiguousarray(regressor, dtype=float),
+            transforms,
+            peer_links,
+            peer_grasp,
+            peer_acc,
+            np.array([0, *itertools.accumulate(sizes)], dtype=np.int64),
         )
+        level = var * band
+        if fusion == "own" or not peers:
+            return np.zeros(6), noise_cov(n_map, level)
+        return condition_maps(n_map, d_map, level, mismatch, self.mismatch_model_var)

@@ -330,34 +330,58 @@ def _links_and_regressor(arrays, w_base, wd_base, acc_base, q, qd, qdd):
 
 
 @njit(cache=True)
-def _motion_jacobians(
+def _balance_jacobians(
     parent, joint_axis, rot_in_parent, pos_in_parent, mass, com, inertia_com, grasp_link,
-    grasp_rot, grasp_pos, w_base, wd_base, acc_base, q, qd, qdd,
+    grasp_rot, grasp_pos, q,
 ):  # fmt: skip
-    """Jacobians of (links_G, Y) in xi = (acc_base, wd_base, qdd) with w_base, q, qd held:
-    (d links (6, n), d Y (n, 6, 10)), n = 6 + n_joints. The balance is affine in xi, so the
-    differences of unit steps are exact."""
+    """Jacobians of (links_G, Y) in xi = (acc_base, wd_base, qdd) at joint angles q:
+    (d links (6, n), d Y (n, 6, 10)), n = 6 + n_joints.
+
+    The frames depend on q alone and every rate term of the two passes (w x (w x r),
+    w_p x qd z, w x I w) is constant in xi, so the Jacobians are the passes' acceleration parts,
+    written for the columns of xi at once (J_a, J_wd (3, n) per link, e_m the m-th unit row):
+
+        J_wd,0 = [0 I 0],                 J_a,0 = [I 0 0]
+        J_wd,k = J_wd,p + z_k e_(6+j),    J_a,k = J_a,p - [r]x J_wd,p
+        J_f,k  = m_k (J_a,k - [c_k]x J_wd,k)
+        J_n,k  = R_k I_k R_k^T J_wd,k + [p_k + c_k]x J_f,k
+
+    with d links_G = T_GB sum_k [J_f,k; J_n,k]. Y is linear in (a, wd) at w = 0, so column m of
+    d Y is Y(R_G^T J_a,G e_m, 0, R_G^T J_wd,g e_m), J_a,G = J_a,g - [r_g]x J_wd,g."""
     arrays = RobotArrays(
         parent, joint_axis, rot_in_parent, pos_in_parent, mass, com, inertia_com, grasp_link,
         grasp_rot, grasp_pos,
     )  # fmt: skip
-    nj = q.shape[0]
-    xi = np.concatenate((acc_base, wd_base, qdd))
-    n = xi.shape[0]
-    links0, y0, _, _, _ = _links_and_regressor(
-        arrays, w_base, xi[3:6].copy(), xi[0:3].copy(), q, qd, xi[6 : 6 + nj].copy()
-    )
-    d_links = np.empty((6, n))
+    n_links, nj = parent.shape[0], q.shape[0]
+    n = 6 + nj
+    zero3, zero_j = np.zeros(3), np.zeros(nj)
+    frames = _forward_pass(arrays, zero3, zero3, zero3, q, zero_j, zero_j)
+    rot, pos, rot_g, pos_g = frames[0], frames[1], frames[5], frames[6]
+    jac_wd, jac_a = np.zeros((n_links, 3, n)), np.zeros((n_links, 3, n))
+    jac_a[0, :, 0:3] = np.eye(3)
+    jac_wd[0, :, 3:6] = np.eye(3)
+    for k in range(1, n_links):
+        p = parent[k]
+        r = rot[p] @ pos_in_parent[k]
+        jac_wd[k] = jac_wd[p]
+        jac_wd[k, :, 6 + k - 1] += rot[k] @ joint_axis[k]
+        jac_a[k] = jac_a[p] - skew(r) @ jac_wd[p]
+    d_links = np.zeros((6, n))
+    for k in range(n_links):
+        c = rot[k] @ com[k]
+        jac_f = mass[k] * (jac_a[k] - skew(c) @ jac_wd[k])
+        inertia_b = rot[k] @ inertia_com[k] @ np.ascontiguousarray(rot[k].T)
+        d_links[:3] += jac_f
+        d_links[3:] += inertia_b @ jac_wd[k] + skew(pos[k] + c) @ jac_f
+    g = grasp_link
+    jac_a_g = jac_a[g] - skew(rot[g] @ grasp_pos) @ jac_wd[g]
+    # Rows m of J^T R_G are the columns of R_G^T J: unit-motion vectors in G.
+    acc_g = np.ascontiguousarray(jac_a_g.T) @ rot_g
+    wd_g = np.ascontiguousarray(jac_wd[g].T) @ rot_g
     d_y = np.empty((n, 6, 10))
-    for k in range(n):
-        step = xi.copy()
-        step[k] += 1.0
-        links1, y1, _, _, _ = _links_and_regressor(
-            arrays, w_base, step[3:6].copy(), step[0:3].copy(), q, qd, step[6 : 6 + nj].copy()
-        )
-        d_links[:, k] = links1 - links0
-        d_y[k] = y1 - y0
-    return d_links, d_y
+    for m in range(n):
+        d_y[m] = _body_regressor(acc_g[m], zero3, wd_g[m])
+    return _grasp_from_base(rot_g, pos_g) @ d_links, d_y
 
 
 @njit(cache=True)
@@ -595,6 +619,8 @@ def balance_motion_jacobians(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Exact Jacobians of ``links_and_regressor`` in the motion xi = (acc_base (3), wd_base (3),
     qdd (n_joints)) with w_base, q, qd held: (d links_G / d xi (6, n), d Y / d xi (n, 6, 10)),
-    n = 6 + n_joints. Units: links N (or N m) per m/s^2, rad/s^2 of the coordinate."""
+    n = 6 + n_joints. Units: links N (or N m) per m/s^2, rad/s^2 of the coordinate. The
+    balance is affine in xi with coefficients that depend on q alone (``_balance_jacobians``):
+    w_base and qd, checked for shape, do not enter."""
     inputs = _single_motion(robot, w_base, wd_base, acc_base, q, qd, qdd)
-    return _motion_jacobians(*robot.arrays, *inputs)
+    return _balance_jacobians(*robot.arrays, inputs[3])
