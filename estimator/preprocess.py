@@ -36,6 +36,7 @@ that residual biased the mass by 8-20 % with ideal sensors.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -57,6 +58,22 @@ def _first_order_hold_step(ad, b_value, b_slope, state, u_prev, u):
     A held channel passes u_prev = u_k+1: x_k+1 = Ad x_k + b_value u_k+1 (zero-order hold of the
     new sample)."""
     return ad @ state + b_value[:, None] * u_prev + b_slope[:, None] * (u - u_prev)
+
+
+@functools.lru_cache(maxsize=64)
+def _discretised(dt_s: float, cutoff_hz: float) -> np.ndarray:
+    """exp(M dt) (5, 5) of the filter augmented with its input and the input's constant slope,
+    M = [[A, B, 0], [0, 0, 1], [0, 0, 0]] (exact first-order-hold discretisation); the -3 dB point
+    of (w / (s + w))^3 is at w sqrt(2^(1/3) - 1). Cached: every estimator of a run builds its
+    filters at the same few (dt, cutoff) pairs. Read-only."""
+    w = 2 * np.pi * cutoff_hz / np.sqrt(2 ** (1 / 3) - 1)
+    aug = np.zeros((5, 5))
+    aug[:3, :3] = [[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [-(w**3), -3 * w**2, -3 * w]]
+    aug[:3, 3] = [0.0, 0.0, w**3]
+    aug[3, 4] = 1.0
+    e = expm(aug * dt_s)
+    e.setflags(write=False)
+    return e
 
 
 class StateVariableFilter:
@@ -92,14 +109,7 @@ class StateVariableFilter:
             raise ValueError(f"cutoff_hz must be in (0, {0.5 / dt_s}) (Nyquist), got {cutoff_hz}")
         # The -3 dB point of (w / (s + w))^3 is at w sqrt(2^(1/3) - 1).
         w = 2 * np.pi * cutoff_hz / np.sqrt(2 ** (1 / 3) - 1)
-        a = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [-(w**3), -3 * w**2, -3 * w]])
-        b = np.array([0.0, 0.0, w**3])
-        # Exact first-order-hold discretisation: augment with the input and its constant slope.
-        aug = np.zeros((5, 5))
-        aug[:3, :3] = a
-        aug[:3, 3] = b
-        aug[3, 4] = 1.0
-        e = expm(aug * dt_s)
+        e = _discretised(float(dt_s), float(cutoff_hz))
         self.ad = np.ascontiguousarray(e[:3, :3])
         self.b_value = np.ascontiguousarray(e[:3, 3])  # weight of u_k
         self.b_slope = e[:3, 4] / dt_s  # weight of (u_k+1 - u_k)
