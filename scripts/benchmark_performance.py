@@ -12,8 +12,8 @@ Sections:
 - controller: `ObservationController.predict` beside the `env.step` it drives, in one loop
   (2 and 3 robots); predict_over_step = mean predict / mean step.
 - sb3_loop: environment steps per second per copy through the SB3 adapter of envs/wrappers.py
-  (`SharedPolicyVecEnv`, set up as scripts/train.py does, one copy): a plain loop of PPO's
-  `predict` and `VecEnv.step`, and the same loop with zero actions (the adapter and env alone).
+  (`SharedPolicyVecEnv`, set up as scripts/train.py does on its task figure8_10s, one copy): a
+  plain loop of PPO's `predict` and `VecEnv.step`, and the same loop with zero actions (the adapter and env alone).
 - training: environment steps per second inside SB3's loop (PPO rollouts and updates, set up
   as scripts/train.py does) for 1 and 2 environment copies (2 copies: in-process, and one
   subprocess per copy as subprocess_steps_per_s).
@@ -365,12 +365,18 @@ SB3_LOOP_WARMUP_STEPS = 200
 SB3_LOOP_STEPS = 2000
 
 
+# The SB3 sections time train.py's first task (figure8_10s: the env itself at 12.5 Hz, one env step
+# per decision), the one their earlier figures were measured on; the default task ("cargo") runs
+# the env at 62.5 Hz and repeats each decision for 5 env steps.
+BENCH_TASK = "figure8_10s"
+
+
 def bench_sb3_loop() -> dict[str, float]:
     """Environment steps per second per copy through the SB3 adapter, one copy set up as
     scripts/train.py does: PPO's predict + VecEnv.step, and zero actions + VecEnv.step."""
     train = _load_train_script()
     args = train.build_parser().parse_args(
-        ["--copies", "1", "--no-progress-bar", "--seed", str(SEED)]
+        ["--copies", "1", "--no-progress-bar", "--seed", str(SEED), "--task", BENCH_TASK]
     )
     model, _ = train.build_model(args, SEED)
     venv = model.get_env()
@@ -390,7 +396,7 @@ def bench_sb3_loop() -> dict[str, float]:
     venv.close()
     print(
         f"sb3_loop: one copy of scripts/train.py's set-up ({args.robots} robots, "
-        f"{'with' if args.estimates else 'without'} estimates, VecNormalize), "
+        f"{'with' if args.estimates else 'without'} estimates, VecNormalize, task {BENCH_TASK}), "
         f"{SB3_LOOP_STEPS} steps after {SB3_LOOP_WARMUP_STEPS}; env steps/s per copy"
     )
     print(f"  PPO predict + step   {policy:9.0f}")
@@ -469,13 +475,15 @@ def bench_training() -> dict[str, dict[str, float]]:
     results: dict[str, dict[str, float]] = {}
     print(
         f"training: PPO as scripts/train.py sets it up (2 robots, estimates observed, "
-        f"LEARNING_TASK), {TRAIN_ROLLOUTS} rollouts timed after {TRAIN_WARMUP_ROLLOUTS} warm-up, "
+        f"task {BENCH_TASK}), {TRAIN_ROLLOUTS} rollouts timed after "
+        f"{TRAIN_WARMUP_ROLLOUTS} warm-up, "
         f"seed {SEED}; an environment step is one control step of one copy (2 samples)"
     )
     print(f"  {'copies':>6} {'env steps/s':>12} {'samples/s':>10} {'rollout':>9} {'where':>11}")
     for copies in TRAIN_COPIES:
         for subprocess in (False, True) if copies > 1 else (False,):
             argv = ["--copies", str(copies), "--no-progress-bar", "--seed", str(SEED)]
+            argv += ["--task", BENCH_TASK]
             args = train.build_parser().parse_args(argv + (["--subprocess"] if subprocess else []))
             model, _ = train.build_model(args, SEED)
             per_rollout = model.n_steps * model.get_env().num_envs
