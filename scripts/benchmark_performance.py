@@ -13,7 +13,8 @@ Sections:
   (2 and 3 robots); predict_over_step = mean predict / mean step.
 - sb3_loop: environment steps per second per copy through the SB3 adapter of envs/wrappers.py
   (`SharedPolicyVecEnv`, set up as scripts/train.py does on its task figure8_10s, one copy): a
-  plain loop of PPO's `predict` and `VecEnv.step`, and the same loop with zero actions (the adapter and env alone).
+  plain loop of PPO's `predict` and `VecEnv.step`, and the same loop with zero actions (the
+  adapter and env alone).
 - training: environment steps per second inside SB3's loop (PPO rollouts and updates, set up
   as scripts/train.py does) for 1 and 2 environment copies (2 copies: in-process, and one
   subprocess per copy as subprocess_steps_per_s).
