@@ -89,17 +89,16 @@ from .ukf import InertialParamUKF
 
 
 def _check_arguments(
-    index, peers, update_every, regressor_every, force_std_n, torque_std_nm, warmup_s, history_s,
-    gate_prob, min_excitation_snr, process_std_rel, min_relative_fixes,
+    index, peers, update_every, regressor_every, warmup_s, history_s, gate_prob,
+    min_excitation_snr, process_std_rel, min_relative_fixes,
 ) -> None:  # fmt: skip
-    """Raise ValueError for a constructor argument of ``CargoEstimator`` out of its range."""
+    """Raise ValueError for a constructor argument of ``CargoEstimator`` out of its range (the
+    noise model's arguments: ``NoiseModel``)."""
     if regressor_every < 1 or update_every < 1 or update_every % regressor_every:
         raise ValueError(
             f"update_every ({update_every}) must be a positive multiple of regressor_every "
             f"({regressor_every})"
         )
-    if not (force_std_n > 0 and torque_std_nm > 0):
-        raise ValueError("force_std_n and torque_std_nm must be positive")
     if index in peers:
         raise ValueError(f"robot {index} cannot be its own peer")
     if not (np.isfinite(warmup_s) and warmup_s >= 0):
@@ -204,8 +203,8 @@ class CargoEstimator(EstimatorInputs):
         self.motion_fusion = motion_fusion
         self._mismatch_model_std = float(mismatch_model_std)
         _check_arguments(
-            index, peers, update_every, regressor_every, force_std_n, torque_std_nm, warmup_s,
-            history_s, gate_prob, min_excitation_snr, process_std_rel, min_relative_fixes,
+            index, peers, update_every, regressor_every, warmup_s, history_s, gate_prob,
+            min_excitation_snr, process_std_rel, min_relative_fixes,
         )  # fmt: skip
         self.robot = robot
         self.index = int(index)
