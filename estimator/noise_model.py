@@ -304,6 +304,24 @@ class NoiseModel:
         ):
             return np.zeros(6), self.sensor_cov_at(params, lever_m)
         d_links, d_y = motion_jac
+        var, band, stacked, offsets = self._stacked_motion(params, d_links, d_y, regressor, peers)
+        n_map, d_map, mismatch = _team_maps(
+            np.ascontiguousarray(params, dtype=float),
+            np.ascontiguousarray(d_links, dtype=float),
+            np.ascontiguousarray(d_y, dtype=float),
+            np.ascontiguousarray(regressor, dtype=float),
+            *stacked,
+            offsets,
+        )
+        level = var * band
+        if fusion == "own" or not peers:
+            return np.zeros(6), noise_cov(n_map, level)
+        return condition_maps(n_map, d_map, level, mismatch, self.mismatch_model_var)
+
+    def _stacked_motion(self, params, d_links, d_y, regressor, peers):
+        """This robot's and the peers' motion noise stacked for ``_team_maps``: per-coordinate
+        variances and band weights (n_own + sum n_j,), the peers' (T_ij, d links_j, d a_Gj,
+        a_Gj) as arrays, and each peer's first coordinate; ValueError on inconsistent shapes."""
         var = np.concatenate([self.motion.var] + [m.motion_var for _, m in peers])
         band = np.concatenate([self.motion.band] + [m.motion_band for _, m in peers])
         sizes = [np.shape(m.motion_links_jac)[1] for _, m in peers]
@@ -330,18 +348,5 @@ class NoiseModel:
                 f"params, motion_jac, regressor and the peers' (transform, motion_links_jac, "
                 f"motion_grasp_jac, grasp_acc) have shapes {shapes}, expected {expected}"
             )
-        n_map, d_map, mismatch = _team_maps(
-            np.ascontiguousarray(params, dtype=float),
-            np.ascontiguousarray(d_links, dtype=float),
-            np.ascontiguousarray(d_y, dtype=float),
-            np.ascontiguousarray(regressor, dtype=float),
-            transforms,
-            peer_links,
-            peer_grasp,
-            peer_acc,
-            np.array([0, *itertools.accumulate(sizes)], dtype=np.int64),
-        )
-        level = var * band
-        if fusion == "own" or not peers:
-            return np.zeros(6), noise_cov(n_map, level)
-        return condition_maps(n_map, d_map, level, mismatch, self.mismatch_model_var)
+        offsets = np.array([0, *itertools.accumulate(sizes)], dtype=np.int64)
+        return var, band, (transforms, peer_links, peer_grasp, peer_acc), offsets
