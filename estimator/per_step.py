@@ -111,15 +111,59 @@ def actuation_cov_step(grasp_rot, grasp_pos, thrust_to_base, act_abs, act_rel, a
 _V, _M, _T3 = float64[::1], float64[:, ::1], float64[:, :, ::1]
 _BOOLS = boolean[::1]
 _STEP_SIGNATURE = types.Tuple((int64, float64))(
-    int64[::1], _M, _T3, _M, _V, _M, _T3, int64, _M, _V,  # RobotArrays
-    _M, _M, _V, _V, _BOOLS,  # pre-filter constants
-    _M, _V, _V, _BOOLS, _M, _V, _V, _BOOLS,  # rate and product filter constants
-    _V, _V,  # IMU position, joint-rate noise variance
-    _M, _V, _V, _BOOLS,  # balance filter constants
-    _M, _M, _V, _V, float64,  # IMU rotation, thrust site, actuation noise, dt
-    _M, _V, _M, _V, _M, _V, _M, _V,  # filter states and previous inputs
-    _M, _M, _V,  # actuation covariance sum, attitude
-    _V, _V, _V, _V, _V, _V, boolean, boolean,  # readings, flags
+    int64[::1],
+    _M,
+    _T3,
+    _M,
+    _V,
+    _M,
+    _T3,
+    int64,
+    _M,
+    _V,  # RobotArrays
+    _M,
+    _M,
+    _V,
+    _V,
+    _BOOLS,  # pre-filter constants
+    _M,
+    _V,
+    _V,
+    _BOOLS,
+    _M,
+    _V,
+    _V,
+    _BOOLS,  # rate and product filter constants
+    _V,
+    _V,  # IMU position, joint-rate noise variance
+    _M,
+    _V,
+    _V,
+    _BOOLS,  # balance filter constants
+    _M,
+    _M,
+    _V,
+    _V,
+    float64,  # IMU rotation, thrust site, actuation noise, dt
+    _M,
+    _V,
+    _M,
+    _V,
+    _M,
+    _V,
+    _M,
+    _V,  # filter states and previous inputs
+    _M,
+    _M,
+    _V,  # actuation covariance sum, attitude
+    _V,
+    _V,
+    _V,
+    _V,
+    _V,
+    _V,
+    boolean,
+    boolean,  # readings, flags
 )
 
 
@@ -330,6 +374,37 @@ class EstimatorInputs:
             self._rot_world_base = self._rot_world_base @ exp_so3(self.dt_s * w_base)
         return False
 
+    def _rate_square_links_cov(self, stamp: int) -> np.ndarray:
+        """The encoders' squared rate noise (``noise_model.rate_square_var``) at this instant:
+        this robot's regressor part waits with the instant (``_rate_terms``); the links' part,
+        returned (6, 6), goes with the message as the actuation's does (per step: the receiver
+        divides by update_every)."""
+        if self._rate_square_var <= 0:
+            return np.zeros((6, 6))
+        q_rate = self.pre.rate_filter.state[0, 6 : 6 + self.robot.n_joints]
+        terms, weights = rate_square_terms(self.robot, q_rate)
+        self._rate_terms[stamp] = (terms, weights)
+        links = terms[:, 12:18]
+        return self.update_every * self._rate_square_var * ((links.T * weights) @ links)
+
+    def _motion_fields(self, b) -> tuple[tuple | None, dict]:
+        """The instant's motion Jacobians (``rne.balance_motion_jacobians``, None without
+        motion fusion) and the message's motion fields."""
+        if self.motion_fusion == "none":
+            return None, {}
+        m = self.pre.motion()
+        jac = balance_motion_jacobians(
+            self.robot, m.w_base, m.wd_base, m.acc_base, m.q, m.qd, m.qdd
+        )
+        motion = {
+            "grasp_acc": b.regressor[:3, 0].copy(),
+            "motion_links_jac": jac[0],
+            "motion_grasp_jac": grasp_acc_map(jac[1]),
+            "motion_var": self._motion_var,
+            "motion_band": self._motion_band,
+        }
+        return jac, motion
+
     def _record_instant(self, stamp: int, q_raw: np.ndarray, fix: bool) -> WrenchMessage | None:
         # H[Z] = H'[P] + H[Q] from the slow filter's value and derivative (``momentum``).
         b = balance_from_filtered(self.balance_filter.state[0], self.balance_filter.state[1])
@@ -338,33 +413,9 @@ class EstimatorInputs:
         act_cov = self._act_cov_sum / max(self._act_cov_n, 1)
         self._act_cov_sum = np.zeros((6, 6))
         self._act_cov_n = 0
-        # The encoders' squared rate noise (``noise_model.rate_square_var``): this robot's
-        # regressor part waits with the instant; the links' part goes with the message, as the
-        # actuation's does (per step: the receiver divides by update_every).
-        sent_cov = act_cov
-        if self._rate_square_var > 0:
-            q_rate = self.pre.rate_filter.state[0, 6 : 6 + self.robot.n_joints]
-            terms, weights = rate_square_terms(self.robot, q_rate)
-            self._rate_terms[stamp] = (terms, weights)
-            links = terms[:, 12:18]
-            sent_cov = act_cov + self.update_every * self._rate_square_var * (
-                (links.T * weights) @ links
-            )
+        sent_cov = act_cov + self._rate_square_links_cov(stamp)
         tainted = stamp <= self._tainted_until
-        motion = {}
-        jac = None
-        if self.motion_fusion != "none":
-            m = self.pre.motion()
-            jac = balance_motion_jacobians(
-                self.robot, m.w_base, m.wd_base, m.acc_base, m.q, m.qd, m.qdd
-            )
-            motion = {
-                "grasp_acc": b.regressor[:3, 0].copy(),
-                "motion_links_jac": jac[0],
-                "motion_grasp_jac": grasp_acc_map(jac[1]),
-                "motion_var": self._motion_var,
-                "motion_band": self._motion_band,
-            }
+        jac, motion = self._motion_fields(b)
         self._pending[stamp] = _Instant(
             thrust=b.thrust.copy(),
             links=b.links.copy(),
@@ -401,4 +452,3 @@ class EstimatorInputs:
             tainted=tainted,
             **motion,
         )
-
