@@ -220,6 +220,23 @@ class CargoEstimator(EstimatorInputs):
             ("joint_pos_rad", (robot.n_joints,)),
             ("thrust_command", (6,)),
         )
+        self._init_signal_filters(sensor_noise, kinematics_cutoff_hz, cutoff_hz, rate_cutoff_hz)
+        self._init_ukf(prior_params, prior_std, process_std_rel, gate_prob)
+        self._init_noise_model(
+            force_std_n, torque_std_nm, actuation_noise, sensor_noise, peer_noise_std,
+            localization_noise, cutoff_hz, kinematics_cutoff_hz,
+        )  # fmt: skip
+        self.min_excitation_snr = float(min_excitation_snr)
+        self.min_relative_fixes = int(min_relative_fixes)
+        self._init_bookkeeping(relative_grasps, record)
+        self._step_constants = self._compiled_step_constants()
+
+    def _init_signal_filters(
+        self, sensor_noise, kinematics_cutoff_hz, cutoff_hz, rate_cutoff_hz
+    ) -> None:
+        """The pre-, rate and product filters (``Preprocessor``), the slow filter of the
+        momentum form's samples and the filters' memory (rollback and taint)."""
+        robot, dt_s, regressor_every = self.robot, self.dt_s, self.regressor_every
         if np.shape(sensor_noise) != (3,):
             raise ValueError(f"sensor_noise must be 3 numbers, got {sensor_noise!r}")
         self.pre = Preprocessor(
@@ -229,28 +246,22 @@ class CargoEstimator(EstimatorInputs):
         self._imu_rot = np.asarray(robot.imu_rot, dtype=float)
         # Slow filter over the momentum form's samples (``momentum``), grasp frame.
         self.cutoff_hz = float(cutoff_hz)
-        self.balance_filter = StateVariableFilter(
-            MOMENTUM_SIZE, dt_s * regressor_every, cutoff_hz
-        )
+        self.balance_filter = StateVariableFilter(MOMENTUM_SIZE, dt_s * regressor_every, cutoff_hz)
         # Memory of the filters: one delay (rollback after a gate) and four (taint).
         # (The momentum form's products pass the product filter, the pre-filter's twin; its rate
         # filter adds 3 / w = 0.03 s at 8 Hz, inside the taint's margin of four memories.)
         memory_s = self.pre.product_filter.delay_s + self.balance_filter.delay_s
         self.rollback_steps = int(np.ceil(memory_s / dt_s))
         self.taint_steps = int(np.ceil(4 * memory_s / dt_s))
+
+    def _init_ukf(self, prior_params, prior_std, process_std_rel, gate_prob) -> None:
+        """The UKF on the ten parameters: prior, its covariance, the random walk, the gate."""
+        robot = self.robot
         prior = default_prior(robot) if prior_params is None else np.asarray(prior_params, float)
         gate = None if gate_prob is None else float(chi2.ppf(gate_prob, 6))
         prior_cov = prior_covariance(prior, prior_std)
         process_cov = np.diag(process_std_rel**2 * np.diag(prior_cov))
         self.ukf = InertialParamUKF(prior, prior_cov, process_cov, gate_nis=gate)
-        self._init_noise_model(
-            force_std_n, torque_std_nm, actuation_noise, sensor_noise, peer_noise_std,
-            localization_noise, cutoff_hz, kinematics_cutoff_hz,
-        )  # fmt: skip
-        self.min_excitation_snr = float(min_excitation_snr)
-        self.min_relative_fixes = int(min_relative_fixes)
-        self._init_bookkeeping(relative_grasps, record)
-        self._step_constants = self._compiled_step_constants()
 
     def _init_noise_model(
         self, force_std_n, torque_std_nm, actuation_noise, sensor_noise, peer_noise_std,
