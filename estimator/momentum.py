@@ -77,7 +77,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from .geometry import cross3, exp_so3, matmul3, matvec3
+from .geometry import cross3, exp_so3, matmul3, matvec3, skew
 from .rne import (
     Balance,
     RobotArrays,
@@ -338,3 +338,106 @@ def balance_from_filtered(y: np.ndarray, yd: np.ndarray) -> Balance:
     links = yd[LINKS_P] + y[LINKS_Q]
     regressor = (CARGO_P_MAP @ yd[CARGO_P] + CARGO_Q_MAP @ y[CARGO_Q]).reshape(6, 10)
     return Balance(np.array(y[THRUST]), links, regressor)
+
+
+# ------------------------------------------------------------------ the servos' ripple
+@njit(cache=True)
+def _body_jacobian(arrays, rot, pos, link, point):
+    """The map (6, 6 + n_joints) from the generalised velocity u = [v_B (velocity of B's origin);
+    w_B; qd] (B coordinates) to [velocity of ``point``; angular velocity] of a body rigid with
+    link ``link`` (``point`` in B, m)."""
+    n_links = arrays.parent.shape[0]
+    jac = np.zeros((6, 5 + n_links))
+    jac[0:3, 0:3] = np.eye(3)
+    jac[0:3, 3:6] = -skew(point)  # w x point = -point x w
+    jac[3:6, 3:6] = np.eye(3)
+    k = link
+    while k > 0:  # the joints between the base and the body
+        axis = matvec3(rot[k], arrays.joint_axis[k])
+        jac[0:3, 5 + k] = cross3(axis, point - pos[k])
+        jac[3:6, 5 + k] = axis
+        k = arrays.parent[k]
+    return jac
+
+
+@njit(cache=True)
+def _spatial_inertia(mass, first_moment, inertia):
+    """[[m 1, -[h]x], [[h]x, I_o]] (6, 6) of a body about a point o (first moment h about o,
+    inertia I_o about o): its kinetic energy is 1/2 [v_o; w]^T M [v_o; w]."""
+    out = np.zeros((6, 6))
+    out[0:3, 0:3] = mass * np.eye(3)
+    out[0:3, 3:6] = -skew(first_moment)
+    out[3:6, 0:3] = skew(first_moment)
+    out[3:6, 3:6] = inertia
+    return out
+
+
+@njit(cache=True)
+def generalised_inertia(arrays, q, cargo):
+    """The free-floating mass matrix (6 + n_joints, 6 + n_joints) of the robot holding the cargo
+    (standard parameters ``cargo`` (10,) in G about G's origin), for u = [v_B; w_B; qd] in B:
+    H = sum_k J_k^T M_k J_k over the links (about their centres of mass) and the cargo (about
+    G's origin, rigid with the grasp link)."""
+    rot, pos, grasp_rot, grasp_pos = _link_frames(arrays, q)
+    com_b, inertia_b, _, _ = _mass_geometry(arrays, rot, pos, grasp_pos)
+    n_links = arrays.parent.shape[0]
+    h = np.zeros((5 + n_links, 5 + n_links))
+    zero3 = np.zeros(3)
+    for k in range(n_links):
+        point = pos[k] + com_b[k]
+        jac = _body_jacobian(arrays, rot, pos, k, point)
+        h += jac.T @ _spatial_inertia(arrays.mass[k], zero3, inertia_b[k]) @ jac
+    c = cargo
+    inertia_g = np.array([[c[4], c[7], c[8]], [c[7], c[5], c[9]], [c[8], c[9], c[6]]])
+    inertia = matmul3(matmul3(grasp_rot, inertia_g), np.ascontiguousarray(grasp_rot.T))
+    jac = _body_jacobian(arrays, rot, pos, arrays.grasp_link, grasp_pos)
+    h += jac.T @ _spatial_inertia(c[0], matvec3(grasp_rot, c[1:4]), inertia) @ jac
+    return h
+
+
+@njit(cache=True)
+def servo_ripple_velocity(arrays, imu_pos, q, cargo, torque_step, dt_s):
+    """The IMU point's velocity ripple at a sample instant, B coordinates (3,) m/s (module
+    docstring, Servo ripple): v_r = J_I u_r with u_r = -(dt / 12) H^-1 [0; torque_step], the
+    servos' torque step at the period's start ``torque_step`` (n_joints,) N m = K_p (T_k - T_k-1)
+    and H = ``generalised_inertia``; J_I u = v_B + w_B x imu_pos."""
+    nj = q.shape[0]
+    tau = np.zeros(6 + nj)
+    tau[6:] = torque_step
+    ripple = -(dt_s / 12.0) * np.linalg.solve(generalised_inertia(arrays, q, cargo), tau)
+    return ripple[0:3] + cross3(ripple[3:6], imu_pos)
+
+
+@njit(cache=True)
+def _servo_ripple_velocity(
+    parent, joint_axis, rot_in_parent, pos_in_parent, mass, com, inertia_com, grasp_link,
+    grasp_rot, grasp_pos, imu_pos, q, cargo, torque_step, dt_s,
+):  # fmt: skip
+    arrays = RobotArrays(
+        parent, joint_axis, rot_in_parent, pos_in_parent, mass, com, inertia_com, grasp_link,
+        grasp_rot, grasp_pos,
+    )  # fmt: skip
+    return servo_ripple_velocity(arrays, imu_pos, q, cargo, torque_step, dt_s)
+
+
+def servo_ripple(
+    robot: RobotDescription,
+    q: np.ndarray,
+    cargo: np.ndarray,
+    target_rate: np.ndarray,
+    dt_s: float,
+) -> np.ndarray:
+    """``servo_ripple_velocity`` (3,) m/s, B coordinates, of a robot whose servo targets moved at
+    ``target_rate`` (n_joints,) rad/s over the period that ends now (their step at its start:
+    T_k - T_k-1 = target_rate dt), at joint angles ``q`` rad, holding ``cargo`` (10,) (G, about
+    G's origin). Zero when the robot's ``servo_gain`` is unknown."""
+    if robot.servo_gain is None:
+        return np.zeros(3)
+    nj = (robot.n_joints,)
+    q, cargo, target_rate = (
+        _single(x, shape, name)
+        for x, shape, name in ((q, nj, "q"), (cargo, (10,), "cargo"), (target_rate, nj, "rate"))
+    )
+    torque_step = np.asarray(robot.servo_gain, dtype=float) * target_rate * dt_s
+    imu_pos = np.ascontiguousarray(robot.imu_pos, dtype=float)
+    return _servo_ripple_velocity(*robot.arrays, imu_pos, q, cargo, torque_step, float(dt_s))

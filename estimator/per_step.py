@@ -32,7 +32,12 @@ from numba import boolean, float64, int64, njit, types
 
 from .geometry import exp_so3, quat_to_mat
 from .messages import WrenchMessage, _Instant
-from .momentum import balance_from_filtered, rate_square_terms, sample_from_rate_filter
+from .momentum import (
+    balance_from_filtered,
+    rate_square_terms,
+    sample_from_rate_filter,
+    servo_ripple,
+)
 from .motion import grasp_acc_map
 from .preprocess import _first_order_hold_step
 from .rne import RobotArrays, _grasp_from_base, balance_motion_jacobians
@@ -239,13 +244,20 @@ class EstimatorInputs:
         thrust_command: np.ndarray,
         base_pos_world: np.ndarray | None = None,
         base_quat_world: np.ndarray | None = None,
+        *,
+        servo_target_rate: np.ndarray | None = None,
     ) -> WrenchMessage | None:
         """Ingest the readings of control step ``stamp``; return the message to publish, if any.
 
         ``accel_imu`` and ``gyro_imu`` None: the IMU frame is missing (see the module docstring).
+        ``servo_target_rate`` (n_joints,) rad/s: the rate at which this robot's servo targets
+        moved over the period that ends now; given, the accelerometer's period mean is read less
+        the servos' ripple it holds (``_without_servo_ripple``).
         """
         if (accel_imu is None) != (gyro_imu is None):
             raise ValueError("accel_imu and gyro_imu are one IMU frame: both None or neither")
+        if servo_target_rate is not None:
+            accel_imu = self._without_servo_ripple(accel_imu, joint_pos_rad, servo_target_rate)
         if self._compiled_path_ready(stamp, accel_imu):
             fix_given = base_pos_world is not None and base_quat_world is not None
             outcome = self._compiled_step(
@@ -260,6 +272,33 @@ class EstimatorInputs:
             stamp, accel_imu, gyro_imu, joint_pos_rad, thrust_command, base_pos_world,
             base_quat_world,
         )  # fmt: skip
+
+    # The IMU point's servo ripple at the last sample instant (``_without_servo_ripple``).
+    _servo_ripple_prev: np.ndarray | None = None
+
+    def _without_servo_ripple(self, accel_imu, joint_pos_rad, target_rate):
+        """The accelerometer's period mean less the servos' ripple (``momentum`` module
+        docstring, Servo ripple): a_k - R_BI^T (v_r(t_k) - v_r(t_k-1)) / dt, with v_r the IMU
+        point's velocity ripple at the current cargo estimate. Unusable joint angles or rates
+        (the Python path handles the readings) leave the reading and the last ripple as they
+        are."""
+        q = np.asarray(joint_pos_rad, dtype=float)
+        rate = np.asarray(target_rate, dtype=float)
+        nj = (self.robot.n_joints,)
+        if q.shape != nj or rate.shape != nj or not (np.isfinite(q).all() and np.isfinite(rate).all()):
+            return accel_imu
+        previous = self._servo_ripple_prev
+        if previous is None:
+            previous = np.zeros(3)
+        if rate.any() or previous.any():
+            ripple = servo_ripple(self.robot, q, self.ukf.params_mean(), rate, self.dt_s)
+        else:
+            ripple = previous
+        self._servo_ripple_prev = ripple
+        if accel_imu is None or ripple is previous:
+            return accel_imu
+        correction = self._imu_rot.T @ ((ripple - previous) / self.dt_s)
+        return np.asarray(accel_imu, dtype=float) - correction
 
     def _compiled_path_ready(self, stamp: int, accel_imu: np.ndarray | None) -> bool:
         """Can this step take ``estimator_step``: an IMU frame, an increasing stamp,
