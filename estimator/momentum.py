@@ -69,6 +69,30 @@ M H[x], so the filters run on those 6 + 9 numbers (``SIZE`` = 33 channels with t
 the links' 6 + 6 + 6) and the regressor is mapped out of the filtered ones exactly
 (``balance_from_filtered``).
 
+Servo ripple. The filters' chains are consistent for what they are given (a point sample with a
+first-order hold and a period mean with a zero-order hold of the new sample both pass a slow
+signal with gain sinc^2(w dt / 2)), but the motion between samples is not smooth: a servo target
+T_k is held over the period, so the servo torque K_p (T_k - q(t)) - K_v qd steps by
+K_p (T_k - T_k-1) at each sample instant and falls back linearly as q follows, a sawtooth of zero
+mean on top of the smooth torque. Its response is inertia-dominated (62.5 Hz against a few rad/s
+of servo bandwidth): a generalised acceleration ripple H^-1 [0; tau_saw] (H the free-floating mass
+matrix of the robot and cargo, u = [v_B; w_B; qd]), whose velocity ripple has zero mean over the
+period and, at the sample instants,
+
+    u_r = -(dt / 12) H^-1 [0; K_p (T_k - T_k-1)]
+
+(the integral of a (1/2 - s/dt) less its mean, at s = 0), while the joint angles' ripple is zero
+there (to O(dt^3)). So the encoders' samples, and every rate derived from them, describe the
+smooth motion, but the accelerometer's period mean, the change of the IMU point's velocity between
+two sample instants, holds (v_r(t_k) - v_r(t_k-1)) / dt with v_r = J_I u_r: zero at a steady
+target rate, a step of the momentum where the rate changes (the servos' turnarounds). No filter of
+the readings removes it (it is O(dt^2): 0.18 % of the mass at 62.5 Hz under the fastest arm
+motion, 0.05 % at 125 Hz); ``servo_ripple`` models it from the servo targets' rate, the servos'
+gains (``RobotDescription.servo_gain``) and the cargo's current estimate, and the estimator takes
+it off the reading (``per_step.EstimatorInputs``). The peers that hold the same cargo are left
+out of H (their inertia would lower the ripple that a robot's own servos give its IMU), and so
+is K_v's share of the sawtooth.
+
 Units: P in N s and N m s, Q and the balance in N and N m, velocities m/s and rad/s.
 """
 

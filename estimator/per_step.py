@@ -285,7 +285,8 @@ class EstimatorInputs:
         q = np.asarray(joint_pos_rad, dtype=float)
         rate = np.asarray(target_rate, dtype=float)
         nj = (self.robot.n_joints,)
-        if q.shape != nj or rate.shape != nj or not (np.isfinite(q).all() and np.isfinite(rate).all()):
+        usable = q.shape == nj and rate.shape == nj
+        if not (usable and np.isfinite(q).all() and np.isfinite(rate).all()):
             return accel_imu
         previous = self._servo_ripple_prev
         if previous is None:
