@@ -22,7 +22,9 @@ equations are those of ``preprocess``, ``momentum`` and ``geometry``, whose comp
 it calls; the Python path calls the same compiled sample (``momentum``).
 
 ``EstimatorInputs`` is the input side of ``CargoEstimator`` (its ``step``): it takes this call
-when it can and the Python path otherwise, and records the instants of the updates.
+when it can and the Python path otherwise, and records the instants of the updates. Before
+either, given the rate of the robot's servo targets, it takes the change of the servos' ripple
+off the accelerometer's period mean (``momentum`` module docstring, Servo ripple).
 """
 
 from __future__ import annotations
