@@ -420,28 +420,47 @@ def generalised_inertia(arrays, q, cargo):
 
 
 @njit(cache=True)
-def servo_ripple_velocity(arrays, imu_pos, q, cargo, torque_step, dt_s):
-    """The IMU point's velocity ripple at a sample instant, B coordinates (3,) m/s (module
-    docstring, Servo ripple): v_r = J_I u_r with u_r = -(dt / 12) H^-1 [0; torque_step], the
-    servos' torque step at the period's start ``torque_step`` (n_joints,) N m = K_p (T_k - T_k-1)
-    and H = ``generalised_inertia``; J_I u = v_B + w_B x imu_pos."""
+def servo_ripple_map(arrays, imu_pos, q, cargo, dt_s):
+    """The map (3, n_joints) (m/s per N m) from the servos' torque step at a period's start,
+    K_p (T_k - T_k-1), to the IMU point's velocity ripple at the sample instants, B coordinates
+    (module docstring, Servo ripple): v_r = J_I u_r, u_r = -(dt / 12) H^-1 [0; torque step],
+    H = ``generalised_inertia``, J_I u = v_B + w_B x imu_pos."""
     nj = q.shape[0]
-    tau = np.zeros(6 + nj)
-    tau[6:] = torque_step
-    ripple = -(dt_s / 12.0) * np.linalg.solve(generalised_inertia(arrays, q, cargo), tau)
-    return ripple[0:3] + cross3(ripple[3:6], imu_pos)
+    select = np.zeros((6 + nj, nj))  # S^T: the joint torques' place in the generalised force
+    select[6:, :] = np.eye(nj)
+    ripple = -(dt_s / 12.0) * np.linalg.solve(generalised_inertia(arrays, q, cargo), select)
+    out = np.empty((3, nj))
+    for j in range(nj):
+        out[:, j] = ripple[0:3, j] + cross3(np.ascontiguousarray(ripple[3:6, j]), imu_pos)
+    return out
 
 
 @njit(cache=True)
-def _servo_ripple_velocity(
+def _servo_ripple_map(
     parent, joint_axis, rot_in_parent, pos_in_parent, mass, com, inertia_com, grasp_link,
-    grasp_rot, grasp_pos, imu_pos, q, cargo, torque_step, dt_s,
+    grasp_rot, grasp_pos, imu_pos, q, cargo, dt_s,
 ):  # fmt: skip
     arrays = RobotArrays(
         parent, joint_axis, rot_in_parent, pos_in_parent, mass, com, inertia_com, grasp_link,
         grasp_rot, grasp_pos,
     )  # fmt: skip
-    return servo_ripple_velocity(arrays, imu_pos, q, cargo, torque_step, dt_s)
+    return servo_ripple_map(arrays, imu_pos, q, cargo, dt_s)
+
+
+def servo_ripple_velocities(
+    robot: RobotDescription, q: np.ndarray, cargo: np.ndarray, dt_s: float
+) -> np.ndarray | None:
+    """``servo_ripple_map`` (3, n_joints) m/s per N m of a robot at joint angles ``q`` rad
+    holding ``cargo`` (10,) (G, about G's origin), scaled by its servos' gains: the IMU point's
+    velocity ripple per rad/s of each servo target's rate over the period (its step at the
+    period's start: T_k - T_k-1 = rate dt). None when the robot's ``servo_gain`` is unknown."""
+    if robot.servo_gain is None:
+        return None
+    nj = (robot.n_joints,)
+    q, cargo = _single(q, nj, "q"), _single(cargo, (10,), "cargo")
+    imu_pos = np.ascontiguousarray(robot.imu_pos, dtype=float)
+    per_torque = _servo_ripple_map(*robot.arrays, imu_pos, q, cargo, float(dt_s))
+    return per_torque * (np.asarray(robot.servo_gain, dtype=float) * dt_s)
 
 
 def servo_ripple(
@@ -451,17 +470,10 @@ def servo_ripple(
     target_rate: np.ndarray,
     dt_s: float,
 ) -> np.ndarray:
-    """``servo_ripple_velocity`` (3,) m/s, B coordinates, of a robot whose servo targets moved at
-    ``target_rate`` (n_joints,) rad/s over the period that ends now (their step at its start:
-    T_k - T_k-1 = target_rate dt), at joint angles ``q`` rad, holding ``cargo`` (10,) (G, about
-    G's origin). Zero when the robot's ``servo_gain`` is unknown."""
-    if robot.servo_gain is None:
+    """The IMU point's servo ripple (3,) m/s, B coordinates, at the end of a period over which the
+    robot's servo targets moved at ``target_rate`` (n_joints,) rad/s (``servo_ripple_velocities``
+    times the rate). Zero when the robot's ``servo_gain`` is unknown."""
+    per_rate = servo_ripple_velocities(robot, q, cargo, dt_s)
+    if per_rate is None:
         return np.zeros(3)
-    nj = (robot.n_joints,)
-    q, cargo, target_rate = (
-        _single(x, shape, name)
-        for x, shape, name in ((q, nj, "q"), (cargo, (10,), "cargo"), (target_rate, nj, "rate"))
-    )
-    torque_step = np.asarray(robot.servo_gain, dtype=float) * target_rate * dt_s
-    imu_pos = np.ascontiguousarray(robot.imu_pos, dtype=float)
-    return _servo_ripple_velocity(*robot.arrays, imu_pos, q, cargo, torque_step, float(dt_s))
+    return per_rate @ _single(target_rate, (robot.n_joints,), "target_rate")

@@ -38,7 +38,7 @@ from .momentum import (
     balance_from_filtered,
     rate_square_terms,
     sample_from_rate_filter,
-    servo_ripple,
+    servo_ripple_velocities,
 )
 from .motion import grasp_acc_map
 from .preprocess import _first_order_hold_step
@@ -259,7 +259,9 @@ class EstimatorInputs:
         if (accel_imu is None) != (gyro_imu is None):
             raise ValueError("accel_imu and gyro_imu are one IMU frame: both None or neither")
         if servo_target_rate is not None:
-            accel_imu = self._without_servo_ripple(accel_imu, joint_pos_rad, servo_target_rate)
+            accel_imu = self._without_servo_ripple(
+                stamp, accel_imu, joint_pos_rad, servo_target_rate
+            )
         if self._compiled_path_ready(stamp, accel_imu):
             fix_given = base_pos_world is not None and base_quat_world is not None
             outcome = self._compiled_step(
@@ -275,15 +277,18 @@ class EstimatorInputs:
             base_quat_world,
         )  # fmt: skip
 
-    # The IMU point's servo ripple at the last sample instant (``_without_servo_ripple``).
+    # The IMU point's servo ripple at the last sample instant, and its map from the servo
+    # targets' rate (``_without_servo_ripple``).
     _servo_ripple_prev: np.ndarray | None = None
+    _servo_ripple_map: np.ndarray | None = None
 
-    def _without_servo_ripple(self, accel_imu, joint_pos_rad, target_rate):
+    def _without_servo_ripple(self, stamp, accel_imu, joint_pos_rad, target_rate):
         """The accelerometer's period mean less the servos' ripple (``momentum`` module
-        docstring, Servo ripple): a_k - R_BI^T (v_r(t_k) - v_r(t_k-1)) / dt, with v_r the IMU
-        point's velocity ripple at the current cargo estimate. Unusable joint angles or rates
-        (the Python path handles the readings) leave the reading and the last ripple as they
-        are."""
+        docstring, Servo ripple): a_k - R_BI^T (v_r(t_k) - v_r(t_k-1)) / dt, v_r = V rate with
+        V (``momentum.servo_ripple_velocities``, at the current cargo estimate) refreshed at each
+        update instant (every ``update_every`` steps: it follows the slow configuration).
+        Unusable joint angles or rates (the Python path handles the readings) leave the reading
+        and the last ripple as they are."""
         q = np.asarray(joint_pos_rad, dtype=float)
         rate = np.asarray(target_rate, dtype=float)
         nj = (self.robot.n_joints,)
@@ -293,13 +298,18 @@ class EstimatorInputs:
         previous = self._servo_ripple_prev
         if previous is None:
             previous = np.zeros(3)
-        if rate.any() or previous.any():
-            ripple = servo_ripple(self.robot, q, self.ukf.params_mean(), rate, self.dt_s)
-        else:
-            ripple = previous
+        if not (rate.any() or previous.any()):
+            return accel_imu  # at rest
+        if self._servo_ripple_map is None or stamp % self.update_every == 0:
+            self._servo_ripple_map = servo_ripple_velocities(
+                self.robot, q, self.ukf.params_mean(), self.dt_s
+            )
+        if self._servo_ripple_map is None:
+            return accel_imu  # the servos' gains are unknown
+        ripple = self._servo_ripple_map @ rate
         self._servo_ripple_prev = ripple
-        if accel_imu is None or ripple is previous:
-            return accel_imu
+        if accel_imu is None:
+            return None
         correction = self._imu_rot.T @ ((ripple - previous) / self.dt_s)
         return np.asarray(accel_imu, dtype=float) - correction
 

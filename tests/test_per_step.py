@@ -123,7 +123,7 @@ def test_servo_ripple_is_taken_off_the_accelerometer_where_the_target_rate_chang
     q, accel = np.array([1.5, 0.2]), np.array([1e-3, -2e-3, 3e-3])
     rates = [np.zeros(2), np.array([0.12, -0.12]), np.array([0.12, -0.12]), np.zeros(2)]
     est = CargoEstimator(robot, 0, [], DT)
-    got = [est._without_servo_ripple(accel, q, rate) for rate in rates]
+    got = [est._without_servo_ripple(k, accel, q, rate) for k, rate in enumerate(rates, 1)]
     ripple = momentum.servo_ripple(robot, q, est.params_mean(), rates[1], DT)
     change = robot.imu_rot.T @ ripple / DT
     assert np.linalg.norm(change) > 1e-5  # m/s^2: the check can fail
@@ -133,4 +133,4 @@ def test_servo_ripple_is_taken_off_the_accelerometer_where_the_target_rate_chang
     np.testing.assert_allclose(got[3], accel + change, rtol=1e-12, atol=0)
     blind = CargoEstimator(replace(robot, servo_gain=None), 0, [], DT)
     for rate in rates:
-        np.testing.assert_array_equal(blind._without_servo_ripple(accel, q, rate), accel)
+        np.testing.assert_array_equal(blind._without_servo_ripple(1, accel, q, rate), accel)
