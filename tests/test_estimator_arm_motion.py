@@ -27,10 +27,11 @@ robot's and cargo's mass matrix) and averages to zero over each period. The enco
 samples of q do not see it (the joint angles' ripple vanishes at the sample instants), the
 accelerometer's period mean does: it is the change of the IMU point's velocity between two sample
 instants, so where the target rate changes (the turnarounds) it holds the change of the ripple,
-d/dt of a step that no smooth model of the encoders' motion contains. 0.15 % of the arm's
-momentum swing at 62.5 Hz, as the mass error. The estimator now reads the accelerometer's mean
-less that change (``momentum.servo_ripple``, at the current estimate of the cargo; the servo
-targets' rate is its own command, as the thrust is): mass 0.01 %, CoM 0.013 mm, principal moments
+d/dt of a step that no smooth model of the encoders' motion contains: about 0.15 % of the arm's
+momentum swing at 62.5 Hz, the size of the mass error. The estimator now reads the
+accelerometer's mean less that change (``momentum.servo_ripple_velocities``, at the current
+estimate of the cargo; the servo
+targets' rate is its own command, as the thrust is): mass 0.01 %, CoM 0.012 mm, principal moments
 0.04 / 0.20 / 0.01 %, inside the issue's bound with margin. The ripple model is checked here
 against the simulation: the mass matrix against MuJoCo's, the IMU point's velocity ripple against
 its departure from the derivative of its sampled positions.
