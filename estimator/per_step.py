@@ -289,17 +289,17 @@ class EstimatorInputs:
         update instant (every ``update_every`` steps: it follows the slow configuration).
         Unusable joint angles or rates (the Python path handles the readings) leave the reading
         and the last ripple as they are."""
-        q = np.asarray(joint_pos_rad, dtype=float)
         rate = np.asarray(target_rate, dtype=float)
         nj = (self.robot.n_joints,)
+        previous = self._servo_ripple_prev
+        if previous is None:
+            previous = self._servo_ripple_prev = np.zeros(3)
+        if rate.shape == nj and not (rate.any() or previous.any()):
+            return accel_imu  # at rest (a NaN rate is not: any() counts it)
+        q = np.asarray(joint_pos_rad, dtype=float)
         usable = q.shape == nj and rate.shape == nj
         if not (usable and np.isfinite(q).all() and np.isfinite(rate).all()):
             return accel_imu
-        previous = self._servo_ripple_prev
-        if previous is None:
-            previous = np.zeros(3)
-        if not (rate.any() or previous.any()):
-            return accel_imu  # at rest
         if self._servo_ripple_map is None or stamp % self.update_every == 0:
             self._servo_ripple_map = servo_ripple_velocities(
                 self.robot, q, self.ukf.params_mean(), self.dt_s
