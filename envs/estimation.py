@@ -82,7 +82,7 @@ class TeamEstimation:
             packet = readings.packet(i)
             msg = self.estimators[i].step(
                 k, packet.accel_imu, packet.gyro_imu, packet.joint_pos_rad, commands[i],
-                packet.base_pos_world, packet.base_quat_world,
+                packet.base_pos_world, packet.base_quat_world, servo_target_rate=arm_rates[i],
             )  # fmt: skip
             if msg is not None:
                 sent = self.sent_arm[i]

@@ -640,4 +640,5 @@ def _read_robot_model(m: mujoco.MjModel) -> RobotDescription:
         grasp_pos=grasp_pos,
         joint_range=np.array([m.jnt_range[j] for j in arm_joints]),
         thrust_limit=np.array([m.actuator_ctrlrange[a][1] for a in thrust_actuators]),
+        servo_gain=np.array([m.actuator(name).gainprm[0] for name in ARM_JOINTS]),
     )

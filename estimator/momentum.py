@@ -69,6 +69,30 @@ M H[x], so the filters run on those 6 + 9 numbers (``SIZE`` = 33 channels with t
 the links' 6 + 6 + 6) and the regressor is mapped out of the filtered ones exactly
 (``balance_from_filtered``).
 
+Servo ripple. The filters' chains are consistent for what they are given (a point sample with a
+first-order hold and a period mean with a zero-order hold of the new sample both pass a slow
+signal with gain sinc^2(w dt / 2)), but the motion between samples is not smooth: a servo target
+T_k is held over the period, so the servo torque K_p (T_k - q(t)) - K_v qd steps by
+K_p (T_k - T_k-1) at each sample instant and falls back linearly as q follows, a sawtooth of zero
+mean on top of the smooth torque. Its response is inertia-dominated (62.5 Hz against a few rad/s
+of servo bandwidth): a generalised acceleration ripple H^-1 [0; tau_saw] (H the free-floating mass
+matrix of the robot and cargo, u = [v_B; w_B; qd]), whose velocity ripple has zero mean over the
+period and, at the sample instants,
+
+    u_r = -(dt / 12) H^-1 [0; K_p (T_k - T_k-1)]
+
+(the integral of a (1/2 - s/dt) less its mean, at s = 0), while the joint angles' ripple is zero
+there (to O(dt^3)). So the encoders' samples, and every rate derived from them, describe the
+smooth motion, but the accelerometer's period mean, the change of the IMU point's velocity between
+two sample instants, holds (v_r(t_k) - v_r(t_k-1)) / dt with v_r = J_I u_r: zero at a steady
+target rate, a step of the momentum where the rate changes (the servos' turnarounds). No filter of
+the readings removes it (it is O(dt^2): 0.18 % of the mass at 62.5 Hz under the fastest arm
+motion, 0.05 % at 125 Hz); ``servo_ripple`` models it from the servo targets' rate, the servos'
+gains (``RobotDescription.servo_gain``) and the cargo's current estimate, and the estimator takes
+it off the reading (``per_step.EstimatorInputs``). The peers that hold the same cargo are left
+out of H (their inertia would lower the ripple that a robot's own servos give its IMU), and so
+is K_v's share of the sawtooth.
+
 Units: P in N s and N m s, Q and the balance in N and N m, velocities m/s and rad/s.
 """
 
@@ -77,7 +101,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from .geometry import cross3, exp_so3, matmul3, matvec3
+from .geometry import cross3, exp_so3, matmul3, matvec3, skew
 from .rne import (
     Balance,
     RobotArrays,
@@ -338,3 +362,118 @@ def balance_from_filtered(y: np.ndarray, yd: np.ndarray) -> Balance:
     links = yd[LINKS_P] + y[LINKS_Q]
     regressor = (CARGO_P_MAP @ yd[CARGO_P] + CARGO_Q_MAP @ y[CARGO_Q]).reshape(6, 10)
     return Balance(np.array(y[THRUST]), links, regressor)
+
+
+# ------------------------------------------------------------------ the servos' ripple
+@njit(cache=True)
+def _body_jacobian(arrays, rot, pos, link, point):
+    """The map (6, 6 + n_joints) from the generalised velocity u = [v_B (velocity of B's origin);
+    w_B; qd] (B coordinates) to [velocity of ``point``; angular velocity] of a body rigid with
+    link ``link`` (``point`` in B, m)."""
+    n_links = arrays.parent.shape[0]
+    jac = np.zeros((6, 5 + n_links))
+    jac[0:3, 0:3] = np.eye(3)
+    jac[0:3, 3:6] = -skew(point)  # w x point = -point x w
+    jac[3:6, 3:6] = np.eye(3)
+    k = link
+    while k > 0:  # the joints between the base and the body
+        axis = matvec3(rot[k], arrays.joint_axis[k])
+        jac[0:3, 5 + k] = cross3(axis, point - pos[k])
+        jac[3:6, 5 + k] = axis
+        k = arrays.parent[k]
+    return jac
+
+
+@njit(cache=True)
+def _spatial_inertia(mass, first_moment, inertia):
+    """[[m 1, -[h]x], [[h]x, I_o]] (6, 6) of a body about a point o (first moment h about o,
+    inertia I_o about o): its kinetic energy is 1/2 [v_o; w]^T M [v_o; w]."""
+    out = np.zeros((6, 6))
+    out[0:3, 0:3] = mass * np.eye(3)
+    out[0:3, 3:6] = -skew(first_moment)
+    out[3:6, 0:3] = skew(first_moment)
+    out[3:6, 3:6] = inertia
+    return out
+
+
+@njit(cache=True)
+def generalised_inertia(arrays, q, cargo):
+    """The free-floating mass matrix (6 + n_joints, 6 + n_joints) of the robot holding the cargo
+    (standard parameters ``cargo`` (10,) in G about G's origin), for u = [v_B; w_B; qd] in B:
+    H = sum_k J_k^T M_k J_k over the links (about their centres of mass) and the cargo (about
+    G's origin, rigid with the grasp link)."""
+    rot, pos, grasp_rot, grasp_pos = _link_frames(arrays, q)
+    com_b, inertia_b, _, _ = _mass_geometry(arrays, rot, pos, grasp_pos)
+    n_links = arrays.parent.shape[0]
+    h = np.zeros((5 + n_links, 5 + n_links))
+    zero3 = np.zeros(3)
+    for k in range(n_links):
+        point = pos[k] + com_b[k]
+        jac = _body_jacobian(arrays, rot, pos, k, point)
+        h += jac.T @ _spatial_inertia(arrays.mass[k], zero3, inertia_b[k]) @ jac
+    c = cargo
+    inertia_g = np.array([[c[4], c[7], c[8]], [c[7], c[5], c[9]], [c[8], c[9], c[6]]])
+    inertia = matmul3(matmul3(grasp_rot, inertia_g), np.ascontiguousarray(grasp_rot.T))
+    jac = _body_jacobian(arrays, rot, pos, arrays.grasp_link, grasp_pos)
+    h += jac.T @ _spatial_inertia(c[0], matvec3(grasp_rot, c[1:4]), inertia) @ jac
+    return h
+
+
+@njit(cache=True)
+def servo_ripple_map(arrays, imu_pos, q, cargo, dt_s):
+    """The map (3, n_joints) (m/s per N m) from the servos' torque step at a period's start,
+    K_p (T_k - T_k-1), to the IMU point's velocity ripple at the sample instants, B coordinates
+    (module docstring, Servo ripple): v_r = J_I u_r, u_r = -(dt / 12) H^-1 [0; torque step],
+    H = ``generalised_inertia``, J_I u = v_B + w_B x imu_pos."""
+    nj = q.shape[0]
+    select = np.zeros((6 + nj, nj))  # S^T: the joint torques' place in the generalised force
+    select[6:, :] = np.eye(nj)
+    ripple = -(dt_s / 12.0) * np.linalg.solve(generalised_inertia(arrays, q, cargo), select)
+    out = np.empty((3, nj))
+    for j in range(nj):
+        out[:, j] = ripple[0:3, j] + cross3(np.ascontiguousarray(ripple[3:6, j]), imu_pos)
+    return out
+
+
+@njit(cache=True)
+def _servo_ripple_map(
+    parent, joint_axis, rot_in_parent, pos_in_parent, mass, com, inertia_com, grasp_link,
+    grasp_rot, grasp_pos, imu_pos, q, cargo, dt_s,
+):  # fmt: skip
+    arrays = RobotArrays(
+        parent, joint_axis, rot_in_parent, pos_in_parent, mass, com, inertia_com, grasp_link,
+        grasp_rot, grasp_pos,
+    )  # fmt: skip
+    return servo_ripple_map(arrays, imu_pos, q, cargo, dt_s)
+
+
+def servo_ripple_velocities(
+    robot: RobotDescription, q: np.ndarray, cargo: np.ndarray, dt_s: float
+) -> np.ndarray | None:
+    """``servo_ripple_map`` (3, n_joints) m/s per N m of a robot at joint angles ``q`` rad
+    holding ``cargo`` (10,) (G, about G's origin), scaled by its servos' gains: the IMU point's
+    velocity ripple per rad/s of each servo target's rate over the period (its step at the
+    period's start: T_k - T_k-1 = rate dt). None when the robot's ``servo_gain`` is unknown."""
+    if robot.servo_gain is None:
+        return None
+    nj = (robot.n_joints,)
+    q, cargo = _single(q, nj, "q"), _single(cargo, (10,), "cargo")
+    imu_pos = np.ascontiguousarray(robot.imu_pos, dtype=float)
+    per_torque = _servo_ripple_map(*robot.arrays, imu_pos, q, cargo, float(dt_s))
+    return per_torque * (np.asarray(robot.servo_gain, dtype=float) * dt_s)
+
+
+def servo_ripple(
+    robot: RobotDescription,
+    q: np.ndarray,
+    cargo: np.ndarray,
+    target_rate: np.ndarray,
+    dt_s: float,
+) -> np.ndarray:
+    """The IMU point's servo ripple (3,) m/s, B coordinates, at the end of a period over which the
+    robot's servo targets moved at ``target_rate`` (n_joints,) rad/s (``servo_ripple_velocities``
+    times the rate). Zero when the robot's ``servo_gain`` is unknown."""
+    per_rate = servo_ripple_velocities(robot, q, cargo, dt_s)
+    if per_rate is None:
+        return np.zeros(3)
+    return per_rate @ _single(target_rate, (robot.n_joints,), "target_rate")

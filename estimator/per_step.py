@@ -22,7 +22,9 @@ equations are those of ``preprocess``, ``momentum`` and ``geometry``, whose comp
 it calls; the Python path calls the same compiled sample (``momentum``).
 
 ``EstimatorInputs`` is the input side of ``CargoEstimator`` (its ``step``): it takes this call
-when it can and the Python path otherwise, and records the instants of the updates.
+when it can and the Python path otherwise, and records the instants of the updates. Before
+either, given the rate of the robot's servo targets, it takes the change of the servos' ripple
+off the accelerometer's period mean (``momentum`` module docstring, Servo ripple).
 """
 
 from __future__ import annotations
@@ -32,7 +34,12 @@ from numba import boolean, float64, int64, njit, types
 
 from .geometry import exp_so3, quat_to_mat
 from .messages import WrenchMessage, _Instant
-from .momentum import balance_from_filtered, rate_square_terms, sample_from_rate_filter
+from .momentum import (
+    balance_from_filtered,
+    rate_square_terms,
+    sample_from_rate_filter,
+    servo_ripple_velocities,
+)
 from .motion import grasp_acc_map
 from .preprocess import _first_order_hold_step
 from .rne import RobotArrays, _grasp_from_base, balance_motion_jacobians
@@ -239,13 +246,22 @@ class EstimatorInputs:
         thrust_command: np.ndarray,
         base_pos_world: np.ndarray | None = None,
         base_quat_world: np.ndarray | None = None,
+        *,
+        servo_target_rate: np.ndarray | None = None,
     ) -> WrenchMessage | None:
         """Ingest the readings of control step ``stamp``; return the message to publish, if any.
 
         ``accel_imu`` and ``gyro_imu`` None: the IMU frame is missing (see the module docstring).
+        ``servo_target_rate`` (n_joints,) rad/s: the rate at which this robot's servo targets
+        moved over the period that ends now; given, the accelerometer's period mean is read less
+        the servos' ripple it holds (``_without_servo_ripple``).
         """
         if (accel_imu is None) != (gyro_imu is None):
             raise ValueError("accel_imu and gyro_imu are one IMU frame: both None or neither")
+        if servo_target_rate is not None:
+            accel_imu = self._without_servo_ripple(
+                stamp, accel_imu, joint_pos_rad, servo_target_rate
+            )
         if self._compiled_path_ready(stamp, accel_imu):
             fix_given = base_pos_world is not None and base_quat_world is not None
             outcome = self._compiled_step(
@@ -260,6 +276,42 @@ class EstimatorInputs:
             stamp, accel_imu, gyro_imu, joint_pos_rad, thrust_command, base_pos_world,
             base_quat_world,
         )  # fmt: skip
+
+    # The IMU point's servo ripple at the last sample instant, and its map from the servo
+    # targets' rate (``_without_servo_ripple``).
+    _servo_ripple_prev: np.ndarray | None = None
+    _servo_ripple_map: np.ndarray | None = None
+
+    def _without_servo_ripple(self, stamp, accel_imu, joint_pos_rad, target_rate):
+        """The accelerometer's period mean less the servos' ripple (``momentum`` module
+        docstring, Servo ripple): a_k - R_BI^T (v_r(t_k) - v_r(t_k-1)) / dt, v_r = V rate with
+        V (``momentum.servo_ripple_velocities``, at the current cargo estimate) refreshed at each
+        update instant (every ``update_every`` steps: it follows the slow configuration).
+        Unusable joint angles or rates (the Python path handles the readings) leave the reading
+        and the last ripple as they are."""
+        rate = np.asarray(target_rate, dtype=float)
+        nj = (self.robot.n_joints,)
+        previous = self._servo_ripple_prev
+        if previous is None:
+            previous = self._servo_ripple_prev = np.zeros(3)
+        if rate.shape == nj and not (rate.any() or previous.any()):
+            return accel_imu  # at rest (a NaN rate is not: any() counts it)
+        q = np.asarray(joint_pos_rad, dtype=float)
+        usable = q.shape == nj and rate.shape == nj
+        if not (usable and np.isfinite(q).all() and np.isfinite(rate).all()):
+            return accel_imu
+        if self._servo_ripple_map is None or stamp % self.update_every == 0:
+            self._servo_ripple_map = servo_ripple_velocities(
+                self.robot, q, self.ukf.params_mean(), self.dt_s
+            )
+        if self._servo_ripple_map is None:
+            return accel_imu  # the servos' gains are unknown
+        ripple = self._servo_ripple_map @ rate
+        self._servo_ripple_prev = ripple
+        if accel_imu is None:
+            return None
+        correction = self._imu_rot.T @ ((ripple - previous) / self.dt_s)
+        return np.asarray(accel_imu, dtype=float) - correction
 
     def _compiled_path_ready(self, stamp: int, accel_imu: np.ndarray | None) -> bool:
         """Can this step take ``estimator_step``: an IMU frame, an increasing stamp,

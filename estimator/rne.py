@@ -100,7 +100,8 @@ class RobotDescription:
 
     Frames of the IMU and the thrust site are given in the base frame, the grasp frame in the
     frame of link ``grasp_link``. ``joint_range`` (n_joints, 2) rad and ``thrust_limit`` (6,)
-    N / N m are carried along for controllers.
+    N / N m are carried along for controllers. ``servo_gain`` (n_joints,) N m/rad: the position
+    servos' proportional gain (None: unknown; ``momentum.servo_ripple_velocities`` needs it).
     """
 
     links: tuple[LinkDescription, ...]
@@ -113,6 +114,7 @@ class RobotDescription:
     grasp_pos: np.ndarray
     joint_range: np.ndarray
     thrust_limit: np.ndarray
+    servo_gain: np.ndarray | None = None
 
     @property
     def n_joints(self) -> int:

@@ -1,12 +1,14 @@
 """The estimator's compiled per-step path against its Python path, and the env's team estimation
 (``envs.estimation``) against the messages it was given."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
 from astrocargo.envs import astrobee_cargo_v0
 from astrocargo.envs.world import World
-from astrocargo.estimator import per_step
+from astrocargo.estimator import momentum, per_step
 from astrocargo.estimator.cargo_estimator import CargoEstimator
 
 DT = 1.0 / 62.5
@@ -117,3 +119,25 @@ def test_peer_slots_hold_the_latest_delivered_message():
     sim.estimation.forget(0, 1)
     wrench, _, valid, _ = sim.estimation.peer_slot_values(np.array([True, True, False]), steps)
     assert valid[0].tolist() == [0.0, 1.0] and not valid[2].any() and not wrench[2].any()
+
+
+def test_servo_ripple_is_taken_off_the_accelerometer_where_the_target_rate_changes():
+    """The accelerometer's period mean holds the change of the IMU point's servo ripple between
+    the period's ends (``momentum.servo_ripple``): nothing at rest or at a steady target rate,
+    -R_BI^T v_r / dt where the rate starts and the opposite where it stops; nothing at all for a
+    robot whose servo gain is unknown."""
+    robot = World(1).robot_model(0)
+    q, accel = np.array([1.5, 0.2]), np.array([1e-3, -2e-3, 3e-3])
+    rates = [np.zeros(2), np.array([0.12, -0.12]), np.array([0.12, -0.12]), np.zeros(2)]
+    est = CargoEstimator(robot, 0, [], DT)
+    got = [est._without_servo_ripple(k, accel, q, rate) for k, rate in enumerate(rates, 1)]
+    ripple = momentum.servo_ripple(robot, q, est.params_mean(), rates[1], DT)
+    change = robot.imu_rot.T @ ripple / DT
+    assert np.linalg.norm(change) > 1e-5  # m/s^2: the check can fail
+    np.testing.assert_array_equal(got[0], accel)
+    np.testing.assert_allclose(got[1], accel - change, rtol=1e-12, atol=0)
+    np.testing.assert_array_equal(got[2], accel)
+    np.testing.assert_allclose(got[3], accel + change, rtol=1e-12, atol=0)
+    blind = CargoEstimator(replace(robot, servo_gain=None), 0, [], DT)
+    for rate in rates:
+        np.testing.assert_array_equal(blind._without_servo_ripple(1, accel, q, rate), accel)
