@@ -88,6 +88,8 @@ BACKENDS = ("local", "ray")
 # A Ray task whose worker process or node dies is run again up to this many times; an exception
 # raised by the case itself is not retried (it would fail the same way).
 RAY_MAX_RETRIES = 3
+OUT_DIR = "out/benchmark_estimation"
+CUSTOM_CASE_OUT = f"{OUT_DIR}/custom_case.json"  # under out/, which git ignores
 
 
 @dataclass(frozen=True)
@@ -935,7 +937,7 @@ def plot(results: list[dict], path: Path) -> None:
 # ------------------------------------------------------------------------------- CLI
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=Formatter)
-    p.add_argument("--out-dir", default="out/benchmark_estimation")
+    p.add_argument("--out-dir", default=OUT_DIR)
     p.add_argument(
         "--seeds", type=positive_int, default=5, help="seeds per scenario (standard suite)"
     )
@@ -991,7 +993,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--comm-latency", type=nonnegative_float, default=0.0, help="seconds")
     p.add_argument("--comm-drop", type=nonnegative_float, default=0.0, help="probability, < 1")
-    p.add_argument("--out", help="JSON file of the custom case (none: custom_case.json)")
+    p.add_argument(
+        "--out",
+        default=CUSTOM_CASE_OUT,
+        help="JSON file of the custom case (--robots)",
+    )
     return p
 
 
@@ -1013,7 +1019,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         check_trajectory(p, args.trajectory, args.robots)
         if not args.comm_drop < 1:
             p.error(f"--comm-drop must be a probability below 1, got {args.comm_drop:g}")
-        output_file(p, Path(args.out or "custom_case.json"), "--out")
+        output_file(p, Path(args.out), "--out")
     else:
         output_dir(p, Path(args.out_dir), "--out-dir")
     if args.backend == "ray":
@@ -1066,7 +1072,7 @@ def main(argv: list[str] | None = None) -> int:
             result = run_case(case)
         except ValueError as err:  # invalid physical values or env arguments
             p.error(str(err))
-        out = Path(args.out or "custom_case.json")
+        out = Path(args.out)
         atomic_write_json(out, result)
         for agent, a in result["agents"].items():
             print(
