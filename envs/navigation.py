@@ -98,7 +98,9 @@ class BaseNavigator:
     (module docstring): between localization fixes each dead-reckons with its gyro and
     accelerometer; at a fix it blends the fix in with Kalman gains from the noise profile the
     robot knows. Arrays (N, ...) in robot index order: ``rot``, ``base_pos``, ``base_vel``,
-    ``w_base``."""
+    ``w_base``; the filter's own: the IMU point's ``point_pos`` and ``point_vel``, the
+    covariances ``cov`` (C00, C01, C10, C11) and ``att_cov``, the last IMU means ``held_gyro``
+    and ``held_accel`` (kept when a frame is missing), the process noise ``q`` (Q00, Q01, Q11)."""
 
     def __init__(self, robots: list[RobotDescription], dt_s: float, profile: NoiseProfile) -> None:
         self.imu_rot = np.array([r.imu_rot for r in robots], dtype=float)
@@ -109,14 +111,13 @@ class BaseNavigator:
         self.att_var = max(profile.attitude_std_rad, NAV_STD_FLOOR) ** 2
         self.gyro_step_var = (max(profile.gyro_std, NAV_STD_FLOOR) * dt_s) ** 2
         dt = self.dt_s
-        self._q = acc_var * np.array([dt**4 / 4, dt**3 / 2, dt**2])  # Q00, Q01, Q11
+        self.q = acc_var * np.array([dt**4 / 4, dt**3 / 2, dt**2])  # Q00, Q01, Q11
         n = len(robots)
         self.rot = np.tile(np.eye(3), (n, 1, 1))
         self.w_base, self.base_pos, self.base_vel = np.zeros((3, n, 3))
-        self._p, self._v = np.zeros((2, n, 3))
-        self._cov, self.att_cov = np.zeros((n, 4)), np.zeros(n)
-        # The last IMU means (held when a frame is missing).
-        self._gyro, self._accel = np.zeros((2, n, 3))
+        self.point_pos, self.point_vel = np.zeros((2, n, 3))
+        self.cov, self.att_cov = np.zeros((n, 4)), np.zeros(n)
+        self.held_gyro, self.held_accel = np.zeros((2, n, 3))
 
     def reset(self, readings: SensorReadings) -> None:
         """Start every robot at rest at its localization fix (each row must have one)."""
@@ -125,14 +126,16 @@ class BaseNavigator:
         for i in range(len(self.rot)):
             self.rot[i] = quat_to_mat(np.ascontiguousarray(readings.base_quat_world[i]))
         # At rest: the IMU means, where the frame arrived.
-        self._gyro[:] = np.where(readings.has_imu[:, None], readings.gyro_imu, 0.0)
-        self._accel[:] = np.where(readings.has_imu[:, None], readings.accel_imu, 0.0)
-        self._p[:] = readings.base_pos_world + np.einsum("nij,nj->ni", self.rot, self.imu_pos)
-        self.w_base[:] = np.einsum("nij,nj->ni", self.imu_rot, self._gyro)
-        self._v[:] = 0.0
-        self._cov[:] = (self.pos_var, 0.0, 0.0, NAV_STD_FLOOR**2)
+        self.held_gyro[:] = np.where(readings.has_imu[:, None], readings.gyro_imu, 0.0)
+        self.held_accel[:] = np.where(readings.has_imu[:, None], readings.accel_imu, 0.0)
+        self.point_pos[:] = readings.base_pos_world + np.einsum(
+            "nij,nj->ni", self.rot, self.imu_pos
+        )
+        self.w_base[:] = np.einsum("nij,nj->ni", self.imu_rot, self.held_gyro)
+        self.point_vel[:] = 0.0
+        self.cov[:] = (self.pos_var, 0.0, 0.0, NAV_STD_FLOOR**2)
         self.att_cov[:] = self.att_var
-        self.base_pos[:] = self._p - np.einsum("nij,nj->ni", self.rot, self.imu_pos)
+        self.base_pos[:] = self.point_pos - np.einsum("nij,nj->ni", self.rot, self.imu_pos)
         self.base_vel[:] = -np.einsum("nij,nj->ni", self.rot, np.cross(self.w_base, self.imu_pos))
 
     def update(self, readings: SensorReadings, acting: np.ndarray) -> None:
@@ -140,9 +143,9 @@ class BaseNavigator:
         means (the previous ones where a frame is missing); blend in their fixes. ``readings``
         has one row per robot index."""
         navigate(
-            self.rot, self._p, self._v, self.w_base, self._cov, self.att_cov, self._gyro,
-            self._accel, readings.gyro_imu, readings.accel_imu, readings.has_imu,
-            readings.base_pos_world, readings.base_quat_world, readings.has_fix, acting,
-            self.imu_rot, self.imu_pos, self.dt_s, self._q, self.pos_var, self.att_var,
+            self.rot, self.point_pos, self.point_vel, self.w_base, self.cov, self.att_cov,
+            self.held_gyro, self.held_accel, readings.gyro_imu, readings.accel_imu,
+            readings.has_imu, readings.base_pos_world, readings.base_quat_world, readings.has_fix,
+            acting, self.imu_rot, self.imu_pos, self.dt_s, self.q, self.pos_var, self.att_var,
             self.gyro_step_var, self.base_pos, self.base_vel,
         )  # fmt: skip

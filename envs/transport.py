@@ -37,7 +37,7 @@ from astrocargo.envs.estimation import (  # noqa: F401 (re-exported)
 from astrocargo.envs.faults import FaultSchedule, parse_release_at
 from astrocargo.envs.navigation import BaseNavigator
 from astrocargo.envs.observations import ObservationBuilder, observation_layout
-from astrocargo.envs.physics import PeriodStepper
+from astrocargo.envs.physics import UNSTABLE_WARNINGS, PeriodStepper
 from astrocargo.envs.rewards import (  # noqa: F401 (re-exported)
     ROTATION_WEIGHT_M_PER_RAD,
     all_finite,
@@ -51,6 +51,7 @@ from astrocargo.envs.sensors import (
     imu_state_into,
 )
 from astrocargo.envs.sensors import noise_profile as get_noise_profile
+from astrocargo.envs.step_kernels import sense_and_navigate
 from astrocargo.envs.world import ARM_DEPLOYED_RAD, MAX_TIMESTEP_S, World
 from astrocargo.estimator.cargo_estimator import CargoEstimator
 from astrocargo.estimator.geometry import mat_to_quat, quat_to_mat
@@ -194,6 +195,7 @@ class CargoTransport:
         self._acting_mask[list(self.holding)] = True
         self._row_index = np.array(self.holding, dtype=np.int64)  # their rows, robot index
         self._unit_scale = np.ones(len(self.holding))
+        self._imu_ok, self._fix_ok = np.ones((2, self.n_robots), dtype=np.bool_)
         # The IMUs' velocities (H, 3) and rotations (H, 3, 3) at the start of the period.
         n_world = len(self.holding)
         self._imu_v0, self._imu_r0 = np.zeros((n_world, 3)), np.zeros((n_world, 3, 3))
@@ -315,11 +317,13 @@ class CargoTransport:
         acting_mask = self._acting_mask
         self.step_count += 1
         k = self.step_count
-        commands = self._apply_commands(actions)
-        finite = self._physics.advance(self._kinematics_current)
-        readings = self._read_sensors(k)
+        fix = k % self.profile.localization_every == 0
+        actuation_normals, sensor_noise = self.sensors.draw_step(fix)
+        self._fault_masks(k, fix)
+        commands = self._apply_commands(actions, actuation_normals)
+        self._physics.integrate(self._kinematics_current)
+        finite, readings = self._sense_and_navigate(fix, sensor_noise)
         self._update_estimators(readings, commands, k)
-        self.navigator.update(readings, acting_mask)
         self.readings = readings
 
         robot_contacts, cargo_contacts, n_contacts = self._wall_contacts()
@@ -372,11 +376,11 @@ class CargoTransport:
                 self.estimators[i].set_peers([j for j in self.holding if j != i])
 
     # ------------------------------------------------------------------ one step, in order
-    def _apply_commands(self, actions: np.ndarray) -> np.ndarray:
+    def _apply_commands(self, actions: np.ndarray, noise: np.ndarray) -> np.ndarray:
         """Scale the ``actions`` (``command_period``) and write d.ctrl of the robots holding the
-        cargo: the thrust commands with actuation noise (drawn here, ``SensorSuite.actuate``'s
-        draws) and the servo targets; start the period. Returns the thrust commands (N, 6)."""
-        noise = self.sensors.rng.standard_normal((len(self.holding), 6))
+        cargo: the thrust commands with actuation noise (``noise``: the standard normals (H, 6)
+        of ``SensorSuite.draw_step``) and the servo targets; start the period. Returns the
+        thrust commands (N, 6)."""
         commands = command_period(
             actions, self._acting_mask, self.thrust_limits, self._joint_low, self._joint_high,
             ARM_SPEED_RADPS * self.dt_s, self.dt_s, self.arm_targets, self.arm_rates, noise,
@@ -409,18 +413,37 @@ class CargoTransport:
         self._physics.forward_done()
         self._imu_period_start()
 
-    def _read_sensors(self, k: int) -> SensorReadings:
-        """Every robot's readings, one row per robot index (nothing valid in the rows of robots
-        that have let go), with the faults of step ``k`` applied (after the sensor noise draws,
-        so a run with faults draws the same noise as one without). Fresh arrays while
-        estimators run (they may keep a reading), else the same ones every step."""
-        readings = SensorReadings.empty(self.n_robots) if self.estimators else self._readings
-        fix = k % self.profile.localization_every == 0
-        start = (self._imu_v0, self._imu_r0, self._period_start_s)
-        time_s = float(self.data.time)
-        self.sensors.read_into(self._sensor_views, time_s, fix, start, self._row_index, readings)
-        self.fault_schedule.apply_to_readings(readings.has_imu, readings.has_fix, k)
-        return readings
+    def _fault_masks(self, k: int, fix: bool) -> None:
+        """The IMU frames and fixes the faults of step ``k`` leave (``_imu_ok``, ``_fix_ok``,
+        bool (N,)), drawn before the physics: the faults' generator draws in the same order."""
+        if not self.fault_schedule.windows:  # the masks stay all True
+            return
+        self._imu_ok[:] = self._acting_mask
+        np.logical_and(self._acting_mask, fix, out=self._fix_ok)
+        self.fault_schedule.apply_to_readings(self._imu_ok, self._fix_ok, k)
+
+    def _sense_and_navigate(self, fix: bool, noise: np.ndarray) -> tuple[bool, SensorReadings]:
+        """After the physics: whether the state is finite; every robot's readings, one row per
+        robot index (nothing valid in the rows of robots that have let go) with the faults'
+        masks and the sensor ``noise`` (``SensorSuite.draw_step``); the navigation filters
+        (``step_kernels.sense_and_navigate``). Fresh reading arrays while estimators run (they
+        may keep a reading), else the same ones every step."""
+        r = SensorReadings.empty(self.n_robots) if self.estimators else self._readings
+        r.time_s = time_s = float(self.data.time)
+        cvel, site_xpos, site_xmat, subtree_com, sensordata = self._sensor_views
+        p, s, nav = self._physics, self.sensors, self.navigator
+        finite = sense_and_navigate(
+            p.qpos, p.qvel, p.warnings, UNSTABLE_WARNINGS, p.saved_qpos, p.saved_qvel,
+            self._imu_v0, self._imu_r0, time_s - self._period_start_s, cvel, site_xpos,
+            site_xmat, subtree_com, s.imu_index, sensordata, s.joint_adr, s.pos_adr, s.quat_adr,
+            noise, fix, self._row_index, r.accel_imu, r.gyro_imu, r.joint_pos_rad,
+            r.base_pos_world, r.base_quat_world, r.has_imu, r.has_fix, self._imu_ok,
+            self._fix_ok, nav.rot, nav.point_pos, nav.point_vel, nav.w_base, nav.cov,
+            nav.att_cov, nav.held_gyro, nav.held_accel, self._acting_mask, nav.imu_rot,
+            nav.imu_pos, nav.dt_s, nav.q, nav.pos_var, nav.att_var, nav.gyro_step_var,
+            nav.base_pos, nav.base_vel,
+        )  # fmt: skip
+        return finite, r
 
     def _update_estimators(self, readings: SensorReadings, commands: np.ndarray, k: int) -> None:
         """The team's estimation of step ``k`` (``TeamEstimation.step``); the estimates are
