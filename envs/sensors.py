@@ -287,7 +287,7 @@ class SensorSuite:
         self.imu_index = np.array([self._imu_bodies, self._imu_roots, self._imu_sites])
         p = profile
         draws = _NOISE_DRAWS + _FIX_DRAWS
-        self._noise_std = np.repeat(
+        self.noise_std = np.repeat(
             [p.accel_std, p.gyro_std, p.encoder_std_rad, p.position_std_m, p.attitude_std_rad],
             [size for _, size in draws],
         )
@@ -322,17 +322,15 @@ class SensorSuite:
         localization fix, ``_FIX_DRAWS``: standard deviation times a standard normal."""
         n_draws = self._n_draws_fix if fix else self._n_draws
         n = len(self._imu_sites)
-        return self._noise_std[:n_draws] * self.rng.standard_normal((n, n_draws))
+        return self.noise_std[:n_draws] * self.rng.standard_normal((n, n_draws))
 
-    def draw_step(self, fix: bool) -> tuple[np.ndarray, np.ndarray]:
-        """One control step's draws in one call: the propulsion's standard normals (n, 6)
-        (``command_period``'s, as ``actuate`` draws them), then ``draw_noise(fix)``; the same
-        stream as the two draws in that order."""
+    def draw_step(self, fix: bool) -> np.ndarray:
+        """One control step's standard normals in one draw (n (6 + draws),): the propulsion's
+        (n, 6) (``command_period``'s, drawn as ``actuate`` draws them), then the readings'
+        (n, draws) that ``draw_noise(fix)`` scales by ``noise_std``; the same stream as the two
+        draws in that order."""
         n_draws = self._n_draws_fix if fix else self._n_draws
-        n = len(self._imu_sites)
-        normals = self.rng.standard_normal(n * (6 + n_draws))
-        noise = self._noise_std[:n_draws] * normals[6 * n :].reshape(n, n_draws)
-        return normals[: 6 * n].reshape(n, 6), noise
+        return self.rng.standard_normal(len(self._imu_sites) * (6 + n_draws))
 
     def read_into(self, views: tuple, time_s: float, fix: bool, start: tuple,
                   rows: np.ndarray, out: SensorReadings) -> None:  # fmt: skip

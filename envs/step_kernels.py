@@ -19,16 +19,18 @@ from astrocargo.envs.sensors import read_into
 def sense_and_navigate(
     qpos, qvel, warnings, unstable, saved_qpos, saved_qvel,
     v0, r0, period_s, cvel, site_xpos, site_xmat, subtree_com, imu_index, sensordata, joint_adr,
-    pos_adr, quat_adr, noise, fix, rows, accel, gyro, joints, pos, quat, has_imu, has_fix,
-    imu_ok, fix_ok,
-    rot, nav_pos, nav_vel, w, cov, att_cov, held_gyro, held_accel, acting, imu_rot, imu_pos,
-    dt_s, q, pos_var, att_var, gyro_step_var, base_pos, base_vel,
+    pos_adr, quat_adr, normals, noise_std, fix, rows, accel, gyro, joints, pos, quat, has_imu,
+    has_fix, imu_ok, fix_ok, filters, acting, dt_s,
 ):  # fmt: skip
-    """After the physics of a period: whether its state is finite (``state_finite``, which
-    also saves qpos and qvel); the readings (``read_into``: the H robots of the world in
-    ``rows``), whose IMU frames and fixes are then kept only where ``imu_ok`` / ``fix_ok``
-    (bool (N,): what the faults leave); the navigation filters of the ``acting`` robots
+    """After the physics of a period: whether its state is finite (``state_finite``, which also
+    saves qpos and qvel); the readings (``read_into``: the H robots of the world in ``rows``; their
+    noise: the standard normals ``normals`` after the propulsion's first 6 H, as (H, draws), times
+    ``noise_std``), whose IMU frames and fixes are then kept only where ``imu_ok`` / ``fix_ok``
+    (bool (N,): what the faults leave); the navigation ``filters`` of the ``acting`` robots
     (``navigate``). Returns whether the state is finite."""
+    h = rows.shape[0]
+    draws = (normals.shape[0] - 6 * h) // h
+    noise = noise_std[:draws] * normals[6 * h :].reshape(h, draws)
     finite = state_finite(qpos, qvel, warnings, unstable, saved_qpos, saved_qvel)
     read_into(
         v0, r0, period_s, cvel, site_xpos, site_xmat, subtree_com, imu_index, sensordata,
@@ -38,9 +40,5 @@ def sense_and_navigate(
     for i in range(has_imu.shape[0]):
         has_imu[i] = has_imu[i] and imu_ok[i]
         has_fix[i] = has_fix[i] and fix_ok[i]
-    navigate(
-        rot, nav_pos, nav_vel, w, cov, att_cov, held_gyro, held_accel, gyro, accel, has_imu,
-        pos, quat, has_fix, acting, imu_rot, imu_pos, dt_s, q, pos_var, att_var, gyro_step_var,
-        base_pos, base_vel,
-    )  # fmt: skip
+    navigate(filters, dt_s, gyro, accel, has_imu, pos, quat, has_fix, acting)
     return finite
