@@ -76,6 +76,8 @@ FILTER_DTYPE = np.dtype(
     align=True,
 )
 
+_VIEW_FIELDS = FILTER_DTYPE.names[: FILTER_DTYPE.names.index("q")]  # the state and IMU pose
+
 
 @njit(cache=True)
 def navigate(filters, dt_s, gyro_now, accel_now, has_imu, fix_pos, fix_quat, has_fix, acting):
@@ -133,8 +135,7 @@ class BaseNavigator:
         q = acc_var * np.array([dt**4 / 4, dt**3 / 2, dt**2])  # Q00, Q01, Q11
         n = len(robots)
         self.filters = np.zeros(n, dtype=FILTER_DTYPE)
-        for name in FILTER_DTYPE.names[: FILTER_DTYPE.names.index("q")]:
-            setattr(self, name, self.filters[name])  # each field as an (N, ...) view
+        self._bind_views()
         self.rot[:] = np.eye(3)
         self.imu_rot[:] = [r.imu_rot for r in robots]
         self.imu_pos[:] = [r.imu_pos for r in robots]
@@ -143,6 +144,19 @@ class BaseNavigator:
                             ("gyro_step_var", gyro_step_var)):  # fmt: skip
             self.filters[name] = value
             setattr(self, name, value)
+
+    def _bind_views(self) -> None:
+        """Each state field of ``filters`` (up to ``imu_pos``) as an (N, ...) view attribute."""
+        for name in _VIEW_FIELDS:
+            setattr(self, name, self.filters[name])
+
+    # A copy (copy.deepcopy, pickle) gets views of its own filters, not detached arrays.
+    def __getstate__(self) -> dict:
+        return {k: v for k, v in self.__dict__.items() if k not in _VIEW_FIELDS}
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        self._bind_views()
 
     def reset(self, readings: SensorReadings) -> None:
         """Start every robot at rest at its localization fix (each row must have one)."""
