@@ -66,15 +66,15 @@ def thrust_saturation(actions: np.ndarray, clipped: np.ndarray) -> np.ndarray:
 
 @njit(cache=True)
 def command_period(actions, acting, thrust_limits, joint_low, joint_high, max_move_rad, dt_s,
-                   arm_targets, arm_rates, noise, actuation_std, thrust_scale, rows, thrust_ctrl,
+                   arm_targets, arm_rates, normals, actuation_std, thrust_scale, rows, thrust_ctrl,
                    arm_ctrl, ctrl, n_clipped, effort, saturation):  # fmt: skip
     """One period's commands, in place: ``scale_actions`` for every robot (servo targets
-    ``arm_targets`` (N, 2) and their rate ``arm_rates`` = (q' - q) / dt, effort sum(a^2) and
-    clipped entries (N,), ``thrust_saturation`` (N,), zero for robots not ``acting``); returns the
-    thrust commands (N, 6). MuJoCo's controls ``ctrl`` of the robots in the world (``rows``, (H,)
-    robot indices; ``thrust_ctrl`` (H, 6), ``arm_ctrl`` (H, 2) actuator ids) get the delivered
-    wrench u_d = s (u + (std_abs + std_rel |u|) n) with the standard normals ``noise`` (H, 6),
-    ``actuation_std`` rows (std_abs, std_rel) and the thrust scale s (H,) of faults, and the
+    ``arm_targets`` (N, 2) and their rate ``arm_rates`` = (q' - q) / dt, effort sum(a^2) and clipped
+    entries (N,), ``thrust_saturation`` (N,), zero for robots not ``acting``); returns the thrust
+    commands (N, 6). MuJoCo's controls ``ctrl`` of the robots in the world (``rows``, (H,) robot
+    indices; ``thrust_ctrl`` (H, 6), ``arm_ctrl`` (H, 2) actuator ids) get the delivered wrench u_d
+    = s (u + (std_abs + std_rel |u|) n) with the standard normals n: ``normals``' first 6 H as (H,
+    6); ``actuation_std`` rows (std_abs, std_rel) and the thrust scale s (H,) of faults, and the
     servo targets."""
     clipped, clipped_count, effort_now, commands, targets = scale_actions(
         actions, acting, thrust_limits, arm_targets, joint_low, joint_high, max_move_rad,
@@ -86,6 +86,7 @@ def command_period(actions, acting, thrust_limits, joint_low, joint_high, max_mo
         saturation[i] = saturated[i] if acting[i] else 0.0
         arm_rates[i] = (targets[i] - arm_targets[i]) / dt_s
         arm_targets[i] = targets[i]
+    noise = normals[: 6 * rows.shape[0]].reshape(rows.shape[0], 6)
     for k in range(rows.shape[0]):
         u = commands[rows[k]]
         std = actuation_std[0] + actuation_std[1] * np.abs(u)

@@ -51,72 +51,112 @@ def _blend_fix(rot, pos, vel, fix_quat, fix_pos, imu_pos, gain_att, gain_pos, ga
     return rot, pos + gain_pos * innovation, vel + gain_vel * innovation
 
 
+# One robot's filter as a record: its state, then what it knows (IMU pose in the base frame, its
+# noise model: Q00, Q01, Q11 and the variances). A record array (N,) of these crosses into the
+# compiled step as one argument.
+FILTER_DTYPE = np.dtype(
+    [
+        ("rot", "f8", (3, 3)),  # base frame -> world
+        ("point_pos", "f8", 3),  # the IMU point, world, m
+        ("point_vel", "f8", 3),  # m/s
+        ("w_base", "f8", 3),  # base frame, rad/s
+        ("cov", "f8", 4),  # position-velocity covariance C00, C01, C10, C11
+        ("att_cov", "f8"),  # attitude variance, rad^2
+        ("held_gyro", "f8", 3),  # the last IMU means (kept when a frame is missing)
+        ("held_accel", "f8", 3),
+        ("base_pos", "f8", 3),  # the base origin, world, m
+        ("base_vel", "f8", 3),  # m/s
+        ("imu_rot", "f8", (3, 3)),
+        ("imu_pos", "f8", 3),
+        ("q", "f8", 3),
+        ("pos_var", "f8"),
+        ("att_var", "f8"),
+        ("gyro_step_var", "f8"),
+    ],
+    align=True,
+)
+
+_VIEW_FIELDS = FILTER_DTYPE.names[: FILTER_DTYPE.names.index("q")]  # the state and IMU pose
+
+
 @njit(cache=True)
-def navigate(
-    rot, pos, vel, w, cov, att_cov, gyro, accel, gyro_now, accel_now, has_imu, fix_pos,
-    fix_quat, has_fix, acting, imu_rot, imu_pos, dt_s, q, pos_var, att_var, gyro_step_var,
-    base_pos, base_vel,
-):  # fmt: skip
-    """One period of every ``acting`` robot's filter (module docstring), in place: the IMU
-    point's state (rot, pos, vel, w), the covariances (cov (N, 4): C00, C01, C10, C11; att_cov
-    (N,)) and the base origin's position and velocity (base_pos, base_vel). ``gyro``, ``accel``
-    hold the last IMU means: this period's (``gyro_now``, ``accel_now``) where ``has_imu``."""
-    for i in range(rot.shape[0]):
+def navigate(filters, dt_s, gyro_now, accel_now, has_imu, fix_pos, fix_quat, has_fix, acting):
+    """One period of every ``acting`` robot's filter (module docstring), in place:
+    ``filters`` (N,) of ``FILTER_DTYPE``. ``held_gyro``, ``held_accel`` become this period's
+    IMU means (``gyro_now``, ``accel_now``) where ``has_imu``; a fix where ``has_fix``."""
+    for i in range(filters.shape[0]):
         if not acting[i]:
             continue
+        f = filters[i]
         if has_imu[i]:
-            gyro[i], accel[i] = gyro_now[i], accel_now[i]
-        rot[i], pos[i], vel[i], w[i] = _propagate(
-            rot[i], pos[i], vel[i], gyro[i], accel[i], imu_rot[i], dt_s
+            f.held_gyro[:], f.held_accel[:] = gyro_now[i], accel_now[i]
+        rot, pos, vel, w = _propagate(
+            f.rot, f.point_pos, f.point_vel, f.held_gyro, f.held_accel, f.imu_rot, dt_s
         )
-        c00, c01, c10, c11 = cov[i, 0], cov[i, 1], cov[i, 2], cov[i, 3]
+        c00, c01, c10, c11 = f.cov[0], f.cov[1], f.cov[2], f.cov[3]
         a00, a01 = c00 + dt_s * c10, c01 + dt_s * c11  # first row of F C
-        c00, c01 = a00 + a01 * dt_s + q[0], a01 + q[1]
-        c10, c11 = c10 + c11 * dt_s + q[1], c11 + q[2]
-        att_cov[i] += gyro_step_var
+        c00, c01 = a00 + a01 * dt_s + f.q[0], a01 + f.q[1]
+        c10, c11 = c10 + c11 * dt_s + f.q[1], c11 + f.q[2]
+        f.att_cov += f.gyro_step_var
         if has_fix[i]:
-            gain_att = att_cov[i] / (att_cov[i] + att_var)
-            gain_p, gain_v = c00 / (c00 + pos_var), c10 / (c00 + pos_var)
-            rot[i], pos[i], vel[i] = _blend_fix(
-                rot[i], pos[i], vel[i], fix_quat[i], fix_pos[i], imu_pos[i], gain_att, gain_p,
-                gain_v,
-            )  # fmt: skip
-            att_cov[i] *= 1.0 - gain_att
+            gain_att = f.att_cov / (f.att_cov + f.att_var)
+            gain_p, gain_v = c00 / (c00 + f.pos_var), c10 / (c00 + f.pos_var)
+            rot, pos, vel = _blend_fix(
+                rot, pos, vel, fix_quat[i], fix_pos[i], f.imu_pos, gain_att, gain_p, gain_v
+            )
+            f.att_cov *= 1.0 - gain_att
             c00, c01, c10, c11 = (
                 c00 - gain_p * c00,
                 c01 - gain_p * c01,
                 c10 - gain_v * c00,
                 (c11 - gain_v * c01),
             )
-        cov[i, 0], cov[i, 1], cov[i, 2], cov[i, 3] = c00, c01, c10, c11
-        base_pos[i] = pos[i] - matvec3(rot[i], imu_pos[i])
-        base_vel[i] = vel[i] - matvec3(rot[i], np.cross(w[i], imu_pos[i]))
+        f.rot[:], f.point_pos[:], f.point_vel[:], f.w_base[:] = rot, pos, vel, w
+        f.cov[0], f.cov[1], f.cov[2], f.cov[3] = c00, c01, c10, c11
+        f.base_pos[:] = pos - matvec3(rot, f.imu_pos)
+        f.base_vel[:] = vel - matvec3(rot, np.cross(w, f.imu_pos))
 
 
 class BaseNavigator:
     """Every robot's estimate of its own base pose and velocity, from its own sensors only
     (module docstring): between localization fixes each dead-reckons with its gyro and
     accelerometer; at a fix it blends the fix in with Kalman gains from the noise profile the
-    robot knows. Arrays (N, ...) in robot index order: ``rot``, ``base_pos``, ``base_vel``,
-    ``w_base``."""
+    robot knows. ``filters`` (N,) of ``FILTER_DTYPE`` in robot index order; each of its fields
+    up to ``imu_pos`` is also an attribute, an (N, ...) view (``rot``, ``base_pos``,
+    ``base_vel``, ``w_base`` ...); ``q``, ``pos_var``, ``att_var``, ``gyro_step_var``: the noise
+    model every robot's filter holds."""
 
     def __init__(self, robots: list[RobotDescription], dt_s: float, profile: NoiseProfile) -> None:
-        self.imu_rot = np.array([r.imu_rot for r in robots], dtype=float)
-        self.imu_pos = np.array([r.imu_pos for r in robots], dtype=float)
-        self.dt_s = float(dt_s)
+        self.dt_s = dt = float(dt_s)
         acc_var = max(profile.accel_std, NAV_STD_FLOOR) ** 2
-        self.pos_var = max(profile.position_std_m, NAV_STD_FLOOR) ** 2
-        self.att_var = max(profile.attitude_std_rad, NAV_STD_FLOOR) ** 2
-        self.gyro_step_var = (max(profile.gyro_std, NAV_STD_FLOOR) * dt_s) ** 2
-        dt = self.dt_s
-        self._q = acc_var * np.array([dt**4 / 4, dt**3 / 2, dt**2])  # Q00, Q01, Q11
+        pos_var = max(profile.position_std_m, NAV_STD_FLOOR) ** 2
+        att_var = max(profile.attitude_std_rad, NAV_STD_FLOOR) ** 2
+        gyro_step_var = (max(profile.gyro_std, NAV_STD_FLOOR) * dt_s) ** 2
+        q = acc_var * np.array([dt**4 / 4, dt**3 / 2, dt**2])  # Q00, Q01, Q11
         n = len(robots)
-        self.rot = np.tile(np.eye(3), (n, 1, 1))
-        self.w_base, self.base_pos, self.base_vel = np.zeros((3, n, 3))
-        self._p, self._v = np.zeros((2, n, 3))
-        self._cov, self.att_cov = np.zeros((n, 4)), np.zeros(n)
-        # The last IMU means (held when a frame is missing).
-        self._gyro, self._accel = np.zeros((2, n, 3))
+        self.filters = np.zeros(n, dtype=FILTER_DTYPE)
+        self._bind_views()
+        self.rot[:] = np.eye(3)
+        self.imu_rot[:] = [r.imu_rot for r in robots]
+        self.imu_pos[:] = [r.imu_pos for r in robots]
+        # The noise model, the same for every robot: each record's copy, and the team's.
+        for name, value in (("q", q), ("pos_var", pos_var), ("att_var", att_var),
+                            ("gyro_step_var", gyro_step_var)):  # fmt: skip
+            self.filters[name] = value
+            setattr(self, name, value)
+
+    def _bind_views(self) -> None:
+        """Each state field of ``filters`` (up to ``imu_pos``) as an (N, ...) view attribute."""
+        for name in _VIEW_FIELDS:
+            setattr(self, name, self.filters[name])
+
+    # A copy (copy.deepcopy, pickle) gets views of its own filters, not detached arrays.
+    def __getstate__(self) -> dict:
+        return {k: v for k, v in self.__dict__.items() if k not in _VIEW_FIELDS}
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        self._bind_views()
 
     def reset(self, readings: SensorReadings) -> None:
         """Start every robot at rest at its localization fix (each row must have one)."""
@@ -125,14 +165,17 @@ class BaseNavigator:
         for i in range(len(self.rot)):
             self.rot[i] = quat_to_mat(np.ascontiguousarray(readings.base_quat_world[i]))
         # At rest: the IMU means, where the frame arrived.
-        self._gyro[:] = np.where(readings.has_imu[:, None], readings.gyro_imu, 0.0)
-        self._accel[:] = np.where(readings.has_imu[:, None], readings.accel_imu, 0.0)
-        self._p[:] = readings.base_pos_world + np.einsum("nij,nj->ni", self.rot, self.imu_pos)
-        self.w_base[:] = np.einsum("nij,nj->ni", self.imu_rot, self._gyro)
-        self._v[:] = 0.0
-        self._cov[:] = (self.pos_var, 0.0, 0.0, NAV_STD_FLOOR**2)
+        self.held_gyro[:] = np.where(readings.has_imu[:, None], readings.gyro_imu, 0.0)
+        self.held_accel[:] = np.where(readings.has_imu[:, None], readings.accel_imu, 0.0)
+        self.point_pos[:] = readings.base_pos_world + np.einsum(
+            "nij,nj->ni", self.rot, self.imu_pos
+        )
+        self.w_base[:] = np.einsum("nij,nj->ni", self.imu_rot, self.held_gyro)
+        self.point_vel[:] = 0.0
+        self.cov[:] = 0.0
+        self.cov[:, 0], self.cov[:, 3] = self.pos_var, NAV_STD_FLOOR**2
         self.att_cov[:] = self.att_var
-        self.base_pos[:] = self._p - np.einsum("nij,nj->ni", self.rot, self.imu_pos)
+        self.base_pos[:] = self.point_pos - np.einsum("nij,nj->ni", self.rot, self.imu_pos)
         self.base_vel[:] = -np.einsum("nij,nj->ni", self.rot, np.cross(self.w_base, self.imu_pos))
 
     def update(self, readings: SensorReadings, acting: np.ndarray) -> None:
@@ -140,9 +183,13 @@ class BaseNavigator:
         means (the previous ones where a frame is missing); blend in their fixes. ``readings``
         has one row per robot index."""
         navigate(
-            self.rot, self._p, self._v, self.w_base, self._cov, self.att_cov, self._gyro,
-            self._accel, readings.gyro_imu, readings.accel_imu, readings.has_imu,
-            readings.base_pos_world, readings.base_quat_world, readings.has_fix, acting,
-            self.imu_rot, self.imu_pos, self.dt_s, self._q, self.pos_var, self.att_var,
-            self.gyro_step_var, self.base_pos, self.base_vel,
-        )  # fmt: skip
+            self.filters,
+            self.dt_s,
+            readings.gyro_imu,
+            readings.accel_imu,
+            readings.has_imu,
+            readings.base_pos_world,
+            readings.base_quat_world,
+            readings.has_fix,
+            acting,
+        )

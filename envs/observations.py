@@ -121,35 +121,56 @@ def _own_blocks(out, starts, rot, base_pos, base_vel, w, q, target, rot_ref, pos
     _put(out, starts[12], qd)
 
 
+def arm_dtype(n_links: int) -> np.dtype:
+    """One robot's known arm chain and handrail as a record (``ObservationBuilder.arms``):
+    each link's rotation, position (in its parent) and joint axis (a zero axis for the base,
+    link 0), the grasp frame in its link, the handrail (its grasp site) in the cargo frame."""
+    return np.dtype(
+        [
+            ("link_rot", "f8", (n_links, 3, 3)),
+            ("link_pos", "f8", (n_links, 3)),
+            ("link_axis", "f8", (n_links, 3)),
+            ("grasp_link", "i8"),
+            ("grasp_rot", "f8", (3, 3)),
+            ("grasp_pos", "f8", 3),
+            ("handrail_rot", "f8", (3, 3)),
+            ("handrail_pos", "f8", 3),
+        ],
+        align=True,
+    )
+
+
 @njit(cache=True)
-def assemble(out, acting, own_starts, peer_starts, estimate_start, rot, base_pos, base_vel, w,
-             q, target, link_parent, link_rot, link_pos, link_axis, grasp_link, grasp_rot,
-             grasp_pos, handrail_rot, handrail_pos, ref_rot, ref_vecs, ref_pan, peer_wrench,
-             peer_age, peer_valid, estimates, qd, peer_arm):  # fmt: skip
+def assemble(out, acting, own_starts, peer_starts, estimate_start, link_parent, arms, nav, q,
+             target, ref_rot, ref_vecs, ref_pan, peer_wrench, peer_age, peer_valid, estimates, qd,
+             peer_arm):  # fmt: skip
     """Every acting robot's observation row into ``out`` (N, obs_dim); the others' rows are left
-    as they are. Robots are rows of the (N, ...) inputs; peer_* (N, P, ...) hold the latest
-    message of each peer slot (wrench in world axes; peer_arm (N, P, 4): the sender's arm angles
-    and rates); estimates (N, 20) or (N, 0); qd (N, 2) the own arm rates."""
+    as they are. Robots are rows of the (N, ...) inputs: ``arms`` (``arm_dtype``), ``nav`` (the
+    navigation filters, ``navigation.FILTER_DTYPE``: rot, base_pos, base_vel, w_base); peer_*
+    (N, P, ...) hold the latest message of each peer slot (wrench in world axes; peer_arm
+    (N, P, 4): the sender's arm angles and rates); estimates (N, 20) or (N, 0); qd (N, 2) the
+    own arm rates."""
     zero = np.zeros(3)
     for i in range(out.shape[0]):
         if not acting[i]:
             continue
+        a, f = arms[i], nav[i]
         g_rot, g_pos = grasp_pose(
-            link_parent, link_rot[i], link_pos[i], link_axis[i], grasp_link[i], grasp_rot[i],
-            grasp_pos[i], q[i],
+            link_parent, a.link_rot, a.link_pos, a.link_axis, a.grasp_link, a.grasp_rot,
+            a.grasp_pos, q[i],
         )  # fmt: skip
-        rot_ref = matmul3(matmul3(ref_rot, handrail_rot[i]), g_rot.T)
-        pos_ref = ref_vecs[0] + matvec3(ref_rot, handrail_pos[i]) - matvec3(rot_ref, g_pos)
+        rot_ref = matmul3(matmul3(ref_rot, a.handrail_rot), g_rot.T)
+        pos_ref = ref_vecs[0] + matvec3(ref_rot, a.handrail_pos) - matvec3(rot_ref, g_pos)
         vel_ref = ref_vecs[1] + np.cross(ref_vecs[3], pos_ref - ref_vecs[0])
         row = out[i]
         _own_blocks(
-            row, own_starts, rot[i], base_pos[i], base_vel[i], w[i], q[i], target[i], rot_ref,
+            row, own_starts, f.rot, f.base_pos, f.base_vel, f.w_base, q[i], target[i], rot_ref,
             pos_ref, vel_ref, ref_vecs, ref_pan, qd[i],
         )  # fmt: skip
         for p in range(peer_starts.shape[0]):
             s_wrench, s_age, s_valid = peer_starts[p, 0], peer_starts[p, 1], peer_starts[p, 2]
-            _put_in_base(row, s_wrench, rot[i], peer_wrench[i, p, :3], zero)
-            _put_in_base(row, s_wrench + 3, rot[i], peer_wrench[i, p, 3:], zero)
+            _put_in_base(row, s_wrench, f.rot, peer_wrench[i, p, :3], zero)
+            _put_in_base(row, s_wrench + 3, f.rot, peer_wrench[i, p, 3:], zero)
             row[s_age] = peer_age[i, p]
             row[s_valid] = peer_valid[i, p]
             _put(row, peer_starts[p, 3], peer_arm[i, p, :2])
@@ -178,41 +199,29 @@ class ObservationBuilder:
         self.estimate_start = layout["estimate_mean"].start if "estimate_mean" in layout else 0
         links = robots[0].links
         self.link_parent = np.array([link.parent for link in links], dtype=np.int64)
-        self.link_rot = np.array([[k.rot_in_parent for k in r.links] for r in robots], dtype=float)
-        self.link_pos = np.array([[k.pos_in_parent for k in r.links] for r in robots], dtype=float)
-        self.link_axis = np.array(  # the base (link 0) has no joint: a zero axis
-            [
-                [np.zeros(3) if k.joint_axis is None else k.joint_axis for k in r.links]
-                for r in robots
-            ],
-            dtype=float,
-        )
-        self.grasp_link = np.array([r.grasp_link for r in robots], dtype=np.int64)
-        self.grasp_rot = np.array([r.grasp_rot for r in robots], dtype=float)
-        self.grasp_pos = np.array([r.grasp_pos for r in robots], dtype=float)
-        self.handrail_rot = np.array([rot for rot, _ in handrail_pose], dtype=float)
-        self.handrail_pos = np.array([pos for _, pos in handrail_pose], dtype=float)
-        # What ``assemble`` takes besides the step's values, in one tuple (its argument order).
-        self.constants = (
-            self.own_starts, self.peer_starts, self.estimate_start, self.link_parent,
-            self.link_rot, self.link_pos, self.link_axis, self.grasp_link, self.grasp_rot,
-            self.grasp_pos, self.handrail_rot, self.handrail_pos,
-        )  # fmt: skip
+        self.arms = np.zeros(n, dtype=arm_dtype(len(links)))
+        for arm, robot, (rail_rot, rail_pos) in zip(self.arms, robots, handrail_pose, strict=True):
+            arm["link_rot"] = [k.rot_in_parent for k in robot.links]
+            arm["link_pos"] = [k.pos_in_parent for k in robot.links]
+            arm["link_axis"] = [  # the base (link 0) has no joint: a zero axis
+                np.zeros(3) if k.joint_axis is None else k.joint_axis for k in robot.links
+            ]
+            arm["grasp_link"], arm["grasp_rot"] = robot.grasp_link, robot.grasp_rot
+            arm["grasp_pos"], arm["handrail_rot"], arm["handrail_pos"] = (
+                robot.grasp_pos, rail_rot, rail_pos,
+            )  # fmt: skip
 
-    def build(self, acting, rot, base_pos, base_vel, w, q, target, ref_rot, ref_vecs, ref_pan,
-              peer_wrench, peer_age, peer_valid, estimates, qd=None,
-              peer_arm=None) -> np.ndarray:  # fmt: skip
+    def build(self, acting, nav, q, target, ref_rot, ref_vecs, ref_pan, peer_wrench, peer_age,
+              peer_valid, estimates, qd=None, peer_arm=None) -> np.ndarray:  # fmt: skip
         """(N, obs_dim) observations: the rows of the ``acting`` robots (bool (N,)), zeros
-        elsewhere."""
+        elsewhere; ``nav``: the navigation filters (``navigation.FILTER_DTYPE``)."""
         out = np.zeros((len(acting), self.obs_dim))
         n = len(acting)
         qd = np.zeros((n, 2)) if qd is None else qd
         peer_arm = np.zeros((n, max(n - 1, 0), 4)) if peer_arm is None else peer_arm
         assemble(
-            out, acting, self.own_starts, self.peer_starts, self.estimate_start, rot, base_pos,
-            base_vel, w, q, target, self.link_parent, self.link_rot, self.link_pos,
-            self.link_axis, self.grasp_link, self.grasp_rot, self.grasp_pos, self.handrail_rot,
-            self.handrail_pos, ref_rot, ref_vecs, ref_pan, peer_wrench, peer_age, peer_valid,
-            estimates, qd, peer_arm,
+            out, acting, self.own_starts, self.peer_starts, self.estimate_start,
+            self.link_parent, self.arms, nav, q, target, ref_rot, ref_vecs, ref_pan, peer_wrench,
+            peer_age, peer_valid, estimates, qd, peer_arm,
         )  # fmt: skip
         return out

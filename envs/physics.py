@@ -89,6 +89,15 @@ class PeriodStepper:
     def advance(self, unchanged: bool) -> bool:
         """One period (``unchanged``: ``self.unchanged()`` at its start); returns whether the
         state is finite and stable."""
+        self.integrate(unchanged)
+        return state_finite(
+            self.qpos, self.qvel, self.warnings, UNSTABLE_WARNINGS, self.saved_qpos,
+            self.saved_qvel,
+        )  # fmt: skip
+
+    def integrate(self, unchanged: bool) -> None:
+        """``advance`` without its check of the state: the caller runs ``state_finite`` (with
+        ``saved_qpos`` and ``saved_qvel``) before the next period."""
         m, d = self.model, self.data
         n_step = self.frame_skip
         if self.skip_allowed and unchanged:
@@ -104,7 +113,3 @@ class PeriodStepper:
         mujoco.mj_fwdPosition(m, d)
         mujoco.mj_sensorPos(m, d)
         mujoco.mj_fwdVelocity(m, d)
-        return state_finite(
-            self.qpos, self.qvel, self.warnings, UNSTABLE_WARNINGS, self.saved_qpos,
-            self.saved_qvel,
-        )  # fmt: skip

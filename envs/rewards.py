@@ -69,22 +69,20 @@ def all_finite(values):
 
 
 @njit(cache=True)
-def observe_and_reward(obs, acting, builder, nav, q, target, ref, peers, estimates, qd,
-                       cargo_pose, finite, effort, info, contacts, weights, shared, mixed,
-                       rewards):  # fmt: skip
+def observe_and_reward(obs, acting, own_starts, peer_starts, estimate_start, link_parent, arms,
+                       nav, q, target, ref, peers, estimates, qd, cargo_pose, finite, effort,
+                       info, contacts, weights, shared, mixed, rewards):  # fmt: skip
     """The observations of the ``acting`` robots into ``obs`` (N, obs_dim), zeros elsewhere
-    (``assemble``: ``builder`` is ``ObservationBuilder.constants``, ``nav`` the navigator's
-    (rot, base_pos, base_vel, w_base), ``ref`` the reference's arrays, ``peers`` the peer slots'
-    (wrench, age, valid, arm)); a non-finite entry is zeroed and makes the step not ``finite``.
+    (``assemble``, whose arguments these are: the layout's starts, the arms, the navigation
+    filters ``nav`` ...; ``ref`` the reference's arrays, ``peers`` the peer slots' (wrench, age,
+    valid, arm)); a non-finite entry is zeroed and makes the step not ``finite``.
     Then the weighted, mixed terms ``mixed`` (4, N) and ``rewards`` (N,) of ``mix_rewards``:
     tracking of the cargo pose ``cargo_pose`` (xpos, xmat, cargo body) when finite, else 0;
     effort -``effort``; ``info``; ``contacts`` (per robot (N,), the cargo's). Returns finite."""
     obs[:] = 0.0
     assemble(
-        obs, acting, builder[0], builder[1], builder[2], nav[0], nav[1], nav[2], nav[3], q,
-        target, builder[3], builder[4], builder[5], builder[6], builder[7], builder[8],
-        builder[9], builder[10], builder[11], ref[0], ref[1], ref[2], peers[0], peers[1],
-        peers[2], estimates, qd, peers[3],
+        obs, acting, own_starts, peer_starts, estimate_start, link_parent, arms, nav, q, target,
+        ref[0], ref[1], ref[2], peers[0], peers[1], peers[2], estimates, qd, peers[3],
     )  # fmt: skip
     if not all_finite(obs):
         finite = False

@@ -280,14 +280,14 @@ class SensorSuite:
         self._imu_bodies = model.site_bodyid[self._imu_sites].astype(np.int64)
         self._imu_roots = model.body_rootid[self._imu_bodies].astype(np.int64)
         adr = [h.sensor_adr for h in robots]
-        self._joint_adr = np.array([[a["tilt_pos"], a["pan_pos"]] for a in adr], dtype=np.int64)
-        self._pos_adr = np.array([a["base_pos"] + np.arange(3) for a in adr], dtype=np.int64)
-        self._quat_adr = np.array([a["base_quat"] + np.arange(4) for a in adr], dtype=np.int64)
+        self.joint_adr = np.array([[a["tilt_pos"], a["pan_pos"]] for a in adr], dtype=np.int64)
+        self.pos_adr = np.array([a["base_pos"] + np.arange(3) for a in adr], dtype=np.int64)
+        self.quat_adr = np.array([a["base_quat"] + np.arange(4) for a in adr], dtype=np.int64)
         # The IMUs' bodies, their roots and sites (3, n), as read_into and imu_state_into take.
         self.imu_index = np.array([self._imu_bodies, self._imu_roots, self._imu_sites])
         p = profile
         draws = _NOISE_DRAWS + _FIX_DRAWS
-        self._noise_std = np.repeat(
+        self.noise_std = np.repeat(
             [p.accel_std, p.gyro_std, p.encoder_std_rad, p.position_std_m, p.attitude_std_rad],
             [size for _, size in draws],
         )
@@ -322,7 +322,15 @@ class SensorSuite:
         localization fix, ``_FIX_DRAWS``: standard deviation times a standard normal."""
         n_draws = self._n_draws_fix if fix else self._n_draws
         n = len(self._imu_sites)
-        return self._noise_std[:n_draws] * self.rng.standard_normal((n, n_draws))
+        return self.noise_std[:n_draws] * self.rng.standard_normal((n, n_draws))
+
+    def draw_step(self, fix: bool) -> np.ndarray:
+        """One control step's standard normals in one draw (n (6 + draws),): the propulsion's
+        (n, 6) (``command_period``'s, drawn as ``actuate`` draws them), then the readings'
+        (n, draws) that ``draw_noise(fix)`` scales by ``noise_std``; the same stream as the two
+        draws in that order."""
+        n_draws = self._n_draws_fix if fix else self._n_draws
+        return self.rng.standard_normal(len(self._imu_sites) * (6 + n_draws))
 
     def read_into(self, views: tuple, time_s: float, fix: bool, start: tuple,
                   rows: np.ndarray, out: SensorReadings) -> None:  # fmt: skip
@@ -337,7 +345,7 @@ class SensorSuite:
         out.time_s = time_s
         read_into(
             v0, r0, time_s - t0, cvel, site_xpos, site_xmat, subtree_com, self.imu_index,
-            sensordata, self._joint_adr, self._pos_adr, self._quat_adr, self.draw_noise(fix),
+            sensordata, self.joint_adr, self.pos_adr, self.quat_adr, self.draw_noise(fix),
             fix, rows, out.accel_imu, out.gyro_imu, out.joint_pos_rad, out.base_pos_world,
             out.base_quat_world, out.has_imu, out.has_fix,
         )  # fmt: skip
@@ -357,7 +365,7 @@ class SensorSuite:
         readings = noisy_readings(
             v0, r0, time_s - t0, data.cvel, data.site_xpos, data.site_xmat, data.subtree_com,
             self._imu_bodies, self._imu_roots, self._imu_sites, data.sensordata,
-            self._joint_adr, self._pos_adr, self._quat_adr, noise, fix,
+            self.joint_adr, self.pos_adr, self.quat_adr, noise, fix,
         )  # fmt: skip
         has_imu = np.ones(n, dtype=np.bool_)
         has_fix = has_imu.copy() if fix else np.zeros(n, dtype=np.bool_)

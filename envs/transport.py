@@ -37,7 +37,7 @@ from astrocargo.envs.estimation import (  # noqa: F401 (re-exported)
 from astrocargo.envs.faults import FaultSchedule, parse_release_at
 from astrocargo.envs.navigation import BaseNavigator
 from astrocargo.envs.observations import ObservationBuilder, observation_layout
-from astrocargo.envs.physics import PeriodStepper
+from astrocargo.envs.physics import UNSTABLE_WARNINGS, PeriodStepper
 from astrocargo.envs.rewards import (  # noqa: F401 (re-exported)
     ROTATION_WEIGHT_M_PER_RAD,
     all_finite,
@@ -51,6 +51,7 @@ from astrocargo.envs.sensors import (
     imu_state_into,
 )
 from astrocargo.envs.sensors import noise_profile as get_noise_profile
+from astrocargo.envs.step_kernels import sense_and_navigate
 from astrocargo.envs.world import ARM_DEPLOYED_RAD, MAX_TIMESTEP_S, World
 from astrocargo.estimator.cargo_estimator import CargoEstimator
 from astrocargo.estimator.geometry import mat_to_quat, quat_to_mat
@@ -59,7 +60,7 @@ REWARD_KEYS = tuple(f"reward_{t}" for t in REWARD_TERMS)  # their names in infos
 TERMINATION_REASONS = ("wall_contact", "non_finite", "released")  # "released": one agent
 
 
-@dataclass(frozen=True)
+@dataclass(slots=True)
 class StepResult:
     """What one control step returns, per robot (index order); the rows of robots that let go
     of the cargo at an earlier step are zeros."""
@@ -194,6 +195,7 @@ class CargoTransport:
         self._acting_mask[list(self.holding)] = True
         self._row_index = np.array(self.holding, dtype=np.int64)  # their rows, robot index
         self._unit_scale = np.ones(len(self.holding))
+        self._imu_ok, self._fix_ok = np.ones((2, self.n_robots), dtype=np.bool_)
         # The IMUs' velocities (H, 3) and rotations (H, 3, 3) at the start of the period.
         n_world = len(self.holding)
         self._imu_v0, self._imu_r0 = np.zeros((n_world, 3)), np.zeros((n_world, 3, 3))
@@ -259,8 +261,6 @@ class CargoTransport:
             self.n_robots, self.estimators, self.true_params_grasp, self.dt_s
         )
         self.navigator = BaseNavigator(self.robots, self.dt_s, self.profile)
-        nav = self.navigator
-        self._nav_state = (nav.rot, nav.base_pos, nav.base_vel, nav.w_base)
         self.arm_targets = np.tile(np.asarray(ARM_DEPLOYED_RAD), (self.n_robots, 1))
         self.arm_rates = np.zeros((self.n_robots, 2))  # the servo targets' rate, rad/s
         self.peer_msgs = self.estimation.peer_msgs  # per receiver: sender -> latest message
@@ -274,7 +274,7 @@ class CargoTransport:
         self._refresh_estimates()
         self._log_std_sum = self._estimate_log_std_sums()
         obs = self._get_obs(self._acting_mask)
-        zero_terms = [[0.0] * self.n_robots for _ in REWARD_TERMS]
+        zero_terms = np.zeros((len(REWARD_TERMS), self.n_robots))
         none = np.zeros(self.n_robots, dtype=int)
         infos = self._get_infos(zero_terms, none, none, None, self.holding, ())
         return obs, infos
@@ -315,11 +315,13 @@ class CargoTransport:
         acting_mask = self._acting_mask
         self.step_count += 1
         k = self.step_count
-        commands = self._apply_commands(actions)
-        finite = self._physics.advance(self._kinematics_current)
-        readings = self._read_sensors(k)
+        fix = k % self.profile.localization_every == 0
+        normals = self.sensors.draw_step(fix)
+        self._fault_masks(k, fix)
+        commands = self._apply_commands(actions, normals)
+        self._physics.integrate(self._kinematics_current)
+        finite, readings = self._sense_and_navigate(fix, normals)
         self._update_estimators(readings, commands, k)
-        self.navigator.update(readings, acting_mask)
         self.readings = readings
 
         robot_contacts, cargo_contacts, n_contacts = self._wall_contacts()
@@ -330,11 +332,14 @@ class CargoTransport:
         if released:
             self._release(released)
         obs, rewards = np.empty((self.n_robots, self.obs_dim)), np.empty(self.n_robots)
+        ob = self._observations
         finite = observe_and_reward(
-            obs, acting_mask, *self._observe_inputs(acting_mask), self._cargo_pose, finite,
-            self._effort,
-            self._info_gain(), (robot_contacts, cargo_contacts), self._weights,
-            self.shared_reward, self._mixed, rewards,
+            obs, acting_mask, ob.own_starts, ob.peer_starts, ob.estimate_start, ob.link_parent,
+            ob.arms, self.navigator.filters, self.readings.joint_pos_rad, self.arm_targets,
+            self._reference_arrays(), self._peer_observations(acting_mask), self._estimates,
+            self.arm_rates, self._cargo_pose, finite, self._effort, self._info_gain(),
+            (robot_contacts, cargo_contacts), self._weights, self.shared_reward, self._mixed,
+            rewards,
         )  # fmt: skip
         reason = None
         if not finite:
@@ -342,7 +347,7 @@ class CargoTransport:
         elif n_contacts > 0:
             reason = "wall_contact"
         infos = self._get_infos(
-            self._mixed.tolist(), self._n_clipped, robot_contacts + cargo_contacts, reason,
+            self._mixed, self._n_clipped, robot_contacts + cargo_contacts, reason,
             acting, released, self._saturation,
         )  # fmt: skip
         if reason is not None or not self.holding:
@@ -372,14 +377,14 @@ class CargoTransport:
                 self.estimators[i].set_peers([j for j in self.holding if j != i])
 
     # ------------------------------------------------------------------ one step, in order
-    def _apply_commands(self, actions: np.ndarray) -> np.ndarray:
+    def _apply_commands(self, actions: np.ndarray, normals: np.ndarray) -> np.ndarray:
         """Scale the ``actions`` (``command_period``) and write d.ctrl of the robots holding the
-        cargo: the thrust commands with actuation noise (drawn here, ``SensorSuite.actuate``'s
-        draws) and the servo targets; start the period. Returns the thrust commands (N, 6)."""
-        noise = self.sensors.rng.standard_normal((len(self.holding), 6))
+        cargo: the thrust commands with actuation noise (the first 6 H of the step's standard
+        ``normals``, ``SensorSuite.draw_step``) and the servo targets; start the period. Returns the
+        thrust commands (N, 6)."""
         commands = command_period(
             actions, self._acting_mask, self.thrust_limits, self._joint_low, self._joint_high,
-            ARM_SPEED_RADPS * self.dt_s, self.dt_s, self.arm_targets, self.arm_rates, noise,
+            ARM_SPEED_RADPS * self.dt_s, self.dt_s, self.arm_targets, self.arm_rates, normals,
             self.sensors.actuation_std,
             self.fault_schedule.thrust_scale(self.step_count, self.holding, self._unit_scale),
             self._row_index,
@@ -409,18 +414,34 @@ class CargoTransport:
         self._physics.forward_done()
         self._imu_period_start()
 
-    def _read_sensors(self, k: int) -> SensorReadings:
-        """Every robot's readings, one row per robot index (nothing valid in the rows of robots
-        that have let go), with the faults of step ``k`` applied (after the sensor noise draws,
-        so a run with faults draws the same noise as one without). Fresh arrays while
-        estimators run (they may keep a reading), else the same ones every step."""
-        readings = SensorReadings.empty(self.n_robots) if self.estimators else self._readings
-        fix = k % self.profile.localization_every == 0
-        start = (self._imu_v0, self._imu_r0, self._period_start_s)
-        time_s = float(self.data.time)
-        self.sensors.read_into(self._sensor_views, time_s, fix, start, self._row_index, readings)
-        self.fault_schedule.apply_to_readings(readings.has_imu, readings.has_fix, k)
-        return readings
+    def _fault_masks(self, k: int, fix: bool) -> None:
+        """The IMU frames and fixes the faults of step ``k`` leave (``_imu_ok``, ``_fix_ok``,
+        bool (N,)), drawn before the physics: the faults' generator draws in the same order."""
+        if not self.fault_schedule.windows:  # the masks stay all True
+            return
+        self._imu_ok[:] = self._acting_mask
+        np.logical_and(self._acting_mask, fix, out=self._fix_ok)
+        self.fault_schedule.apply_to_readings(self._imu_ok, self._fix_ok, k)
+
+    def _sense_and_navigate(self, fix: bool, normals: np.ndarray) -> tuple[bool, SensorReadings]:
+        """After the physics: whether the state is finite; every robot's readings, one row per robot
+        index (nothing valid in the rows of robots that have let go) with the faults' masks and the
+        step's standard ``normals`` (``SensorSuite.draw_step``); the navigation filters
+        (``step_kernels.sense_and_navigate``). Fresh reading arrays while estimators run (they may
+        keep a reading), else the same ones every step."""
+        r = SensorReadings.empty(self.n_robots) if self.estimators else self._readings
+        r.time_s = time_s = float(self.data.time)
+        cvel, site_xpos, site_xmat, subtree_com, sensordata = self._sensor_views
+        p, s, nav = self._physics, self.sensors, self.navigator
+        finite = sense_and_navigate(
+            p.qpos, p.qvel, p.warnings, UNSTABLE_WARNINGS, p.saved_qpos, p.saved_qvel,
+            self._imu_v0, self._imu_r0, time_s - self._period_start_s, cvel, site_xpos,
+            site_xmat, subtree_com, s.imu_index, sensordata, s.joint_adr, s.pos_adr, s.quat_adr,
+            normals, s.noise_std, fix, self._row_index, r.accel_imu, r.gyro_imu, r.joint_pos_rad,
+            r.base_pos_world, r.base_quat_world, r.has_imu, r.has_fix, self._imu_ok,
+            self._fix_ok, nav.filters, self._acting_mask, nav.dt_s,
+        )  # fmt: skip
+        return finite, r
 
     def _update_estimators(self, readings: SensorReadings, commands: np.ndarray, k: int) -> None:
         """The team's estimation of step ``k`` (``TeamEstimation.step``); the estimates are
@@ -486,24 +507,17 @@ class CargoTransport:
     def _get_obs(self, acting: np.ndarray) -> np.ndarray:
         """Observations of the ``acting`` robots (bool (N,); the others' rows zeros), from the
         layout (``envs.observations``)."""
-        _, nav, q, target, ref, peers, estimates, qd = self._observe_inputs(acting)
+        peers = self._peer_observations(acting)
         return self._observations.build(
-            acting, *nav, q, target, *ref, *peers[:3], estimates, qd, peers[3]
-        )
-
-    def _observe_inputs(self, acting: np.ndarray) -> tuple:
-        """What ``rewards.observe_and_reward`` takes for the observations, after ``obs`` and
-        ``acting``. A peer that has let go of the cargo has its slot zeroed: its messages are
-        forgotten (``_release``)."""
-        if self.estimators:
-            peer_wrench, peer_age, peer_valid, peer_arm = self._peer_slot_values(acting)
-            peers = (peer_wrench, peer_age, peer_valid, peer_arm)
-        else:
-            peers = self._no_peers
-        return (
-            self._observations.constants, self._nav_state, self.readings.joint_pos_rad,
-            self.arm_targets, self._reference_arrays(), peers, self._estimates, self.arm_rates,
+            acting, self.navigator.filters, self.readings.joint_pos_rad, self.arm_targets,
+            *self._reference_arrays(), *peers[:3], self._estimates, self.arm_rates, peers[3],
         )  # fmt: skip
+
+    def _peer_observations(self, acting: np.ndarray) -> tuple[np.ndarray, ...]:
+        """The peer slots' (wrench, age, valid, arm) for the observations (zeros without
+        estimators). A peer that has let go of the cargo has its slot zeroed: its messages are
+        forgotten (``_release``)."""
+        return self._peer_slot_values(acting) if self.estimators else self._no_peers
 
     def _peer_slot_values(self, acting: np.ndarray) -> tuple[np.ndarray, ...]:
         """Each robot's peer slots (``TeamEstimation.peer_slot_values``)."""
@@ -528,7 +542,7 @@ class CargoTransport:
 
     def _get_infos(
         self,
-        terms: list[list[float]],
+        terms: np.ndarray,
         n_clipped: np.ndarray,
         wall_contacts: np.ndarray,
         reason: str | None,
@@ -536,18 +550,20 @@ class CargoTransport:
         released: tuple[int, ...],
         saturated: np.ndarray | None = None,
     ) -> list[dict[str, Any] | None]:
-        """Infos of ``robots`` (None for the others); ``terms``: the weighted, mixed reward
-        terms in ``REWARD_TERMS`` order, each per robot; ``released``: those letting go now;
+        """Infos of ``robots`` (None for the others); ``terms`` (4, N): the weighted, mixed
+        reward terms in ``REWARD_TERMS`` order, each per robot; ``released``: those letting go now;
         ``saturated`` (n_robots,): ``thrust_saturation`` of this step (zeros at reset)."""
         infos: list[dict[str, Any] | None] = [None] * self.n_robots
         comm = dict(self.channel.stats)
-        per_robot = list(zip(*terms, strict=True))
+        per_robot = terms.T.tolist()
+        k_track, k_effort, k_info, k_contact = REWARD_KEYS
         n_clipped, wall_contacts = n_clipped.tolist(), wall_contacts.tolist()
         saturated = [0.0] * self.n_robots if saturated is None else saturated.tolist()
         faults = self.fault_schedule.infos(self.step_count, self.channel.fault_stats)
         time_s, releases = float(self.data.time), len(self.released_at_s)
         for i in robots:
-            info: dict[str, Any] = dict(zip(REWARD_KEYS, per_robot[i], strict=True))
+            r = per_robot[i]
+            info: dict[str, Any] = {k_track: r[0], k_effort: r[1], k_info: r[2], k_contact: r[3]}
             if i in released:
                 info["released_momentum"] = self.released_momentum[i].copy()
             info.update(

@@ -513,7 +513,12 @@ class World:
         self.model.body_inertia[b] = moments
         self.model.body_iquat[b] = _model_quat(axes)
         # Keep mj_setConst-derived quantities consistent (body_subtreemass is used by sensors).
-        mujoco.mj_setConst(self.model, mujoco.MjData(self.model))
+        # Its scratch data is kept and reset (a fresh MjData is a reset one; the constants are
+        # the same, bit for bit; allocating one was most of this call's time).
+        if getattr(self, "_const_data", None) is None:
+            self._const_data = mujoco.MjData(self.model)
+        mujoco.mj_resetData(self.model, self._const_data)
+        mujoco.mj_setConst(self.model, self._const_data)
 
     # ------------------------------------------------------------------ known robot model
     def robot_model(self, i: int) -> RobotDescription:

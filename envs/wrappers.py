@@ -232,29 +232,30 @@ class _Copy:
 
     def step(self, actions: np.ndarray) -> tuple:
         """Returns obs (n, d), rewards (n,), dones (n,), infos and the reset infos."""
-        actions_by_agent = dict(zip(self.agents, actions, strict=True))
-        obs, rewards, terms, truncs, infos = self.env.step(actions_by_agent)
-        terminated = np.array([bool(terms[a]) for a in self.agents])
-        truncated = np.array([bool(truncs[a]) for a in self.agents])
-        dones = terminated | truncated
-        if dones.any() and not dones.all():
+        agents = self.agents
+        obs, rewards, terms, truncs, infos = self.env.step(dict(zip(agents, actions, strict=True)))
+        terminated = [bool(terms[a]) for a in agents]
+        truncated = [bool(truncs[a]) for a in agents]
+        dones = np.logical_or(terminated, truncated)
+        if any(dones) and not all(dones):
             raise RuntimeError(
                 "SharedPolicyVecEnv needs episodes that end for all agents at once; agents "
                 f"{[a for a, d in zip(self.agents, dones, strict=True) if not d]} are still running"
             )
         obs_array = self._stack(obs)
-        infos = [dict(infos[a]) for a in self.agents]
-        reset_infos = [{} for _ in self.agents]
+        infos = [dict(infos[a]) for a in agents]
+        reset_infos = [{} for _ in agents]
         if dones[0]:
             for i, info in enumerate(infos):
                 info["terminal_observation"] = obs_array[i]
                 info["TimeLimit.truncated"] = bool(truncated[i] and not terminated[i])
             obs_array, reset_infos = self.reset(None, None)
-        reward_array = np.array([rewards[a] for a in self.agents], dtype=np.float32)
+        reward_array = np.array([rewards[a] for a in agents], dtype=np.float32)
         return obs_array, reward_array, dones, infos, reset_infos
 
     def _stack(self, obs: dict[str, np.ndarray]) -> np.ndarray:
-        return np.stack([obs[a] for a in self.agents])
+        """The agents' observations as rows (n, d), in agent order."""
+        return np.array([obs[a] for a in self.agents])
 
 
 def _worker(remote: Any, parent_remote: Any, env_fn: CloudpickleWrapper) -> None:

@@ -3,7 +3,9 @@ observations and the navigation filter, against their textbook forms written pla
 
 from __future__ import annotations
 
+import copy
 import dataclasses
+import pickle
 import re
 
 import numpy as np
@@ -156,6 +158,25 @@ def test_navigator_dead_reckons_and_blends_as_written():
     err = Rotation.from_matrix(before.T @ fix_rot).as_rotvec()
     want = before @ Rotation.from_rotvec(gain_att * err).as_matrix()
     np.testing.assert_allclose(nav.rot[0], want, atol=1e-12)
+
+
+def test_a_copied_navigator_views_its_own_filters():
+    """``rot``, ``base_pos`` ... are views of the record array ``filters`` that the kernel
+    updates: a deep or pickled copy gets views of its own copy, and the original is untouched."""
+    world = World(2)
+    robots = [world.robot_model(i) for i in range(2)]
+    nav = BaseNavigator(robots, 0.016, noise_profile("nominal"))
+    quat0 = np.array([np.cos(0.2), 0.0, 0.0, np.sin(0.2)])
+    for twin in (copy.deepcopy(nav), pickle.loads(pickle.dumps(nav))):
+        twin.reset(_readings(np.zeros(3), np.zeros(3), [0.1, 0.0, 0.0], quat0))
+        twin.update(_readings([0.01, 0.0, 0.0], [0.002, 0.0, 0.0]), np.ones(2, dtype=bool))
+        for name in ("rot", "base_pos", "base_vel", "w_base", "cov", "att_cov"):
+            view = getattr(twin, name)
+            assert np.shares_memory(view, twin.filters), name
+            np.testing.assert_array_equal(view, twin.filters[name])
+        assert not np.allclose(twin.base_pos, 0.0)
+        np.testing.assert_array_equal(nav.rot, np.tile(np.eye(3), (2, 1, 1)))
+        np.testing.assert_array_equal(nav.base_pos, 0.0)
 
 
 def test_action_map_is_the_clip_and_rate_limit_as_written():
