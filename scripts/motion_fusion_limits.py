@@ -65,6 +65,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import benchmark_estimation as bench  # noqa: E402
 import cli  # noqa: E402
 
+from astrocargo.estimator.smoother import crossover_hz, fused_psd_ratio  # noqa: E402
+
 CONTROL_HZ = bench.CONTROL_HZ
 
 
@@ -181,12 +183,6 @@ def chain_power(freq_hz: np.ndarray, cutoffs_hz: tuple[float, ...]) -> np.ndarra
     return out
 
 
-def fused_psd_ratio(freq_hz: np.ndarray, crossover_hz: float) -> np.ndarray:
-    """S_fused / S_a = 1 / (1 + (f_x / f)^4): the smoother's error PSD over the accelerometer's."""
-    x = (np.asarray(freq_hz, dtype=float) / crossover_hz) ** 4
-    return x / (1.0 + x)
-
-
 def autocovariance(lags_s: np.ndarray, psd, cutoffs_hz, f_max_hz: float, df_hz: float):
     """C(tau) = int_-fmax^fmax psd(f) |H(f)|^2 cos(2 pi f tau) df (two-sided PSD) at ``lags_s``."""
     freq = np.arange(0.5, int(f_max_hz / df_hz)) * df_hz  # midpoints, f > 0
@@ -199,10 +195,9 @@ def crossovers(profile, dt_s: float) -> dict:
     ((2 pi f)^4 sigma_p^2 T = sigma_a^2 dt) and attitude fixes against the gyro's angle
     ((2 pi f)^-2 sigma_g^2 dt = sigma_theta^2 T)."""
     t_fix = profile.localization_every * dt_s
-    s_a, s_g = profile.accel_std**2 * dt_s, profile.gyro_std**2 * dt_s
-    s_p, s_th = profile.position_std_m**2 * t_fix, profile.attitude_std_rad**2 * t_fix
+    s_g, s_th = profile.gyro_std**2 * dt_s, profile.attitude_std_rad**2 * t_fix
     return {
-        "accel_hz": (s_a / s_p) ** 0.25 / (2 * np.pi),
+        "accel_hz": crossover_hz(profile.accel_std, dt_s, profile.position_std_m, t_fix),
         "attitude_hz": np.sqrt(s_g / s_th) / (2 * np.pi),
     }
 
