@@ -42,7 +42,9 @@ f = sqrt(S_g / S_theta) / (2 pi), and the fixes cannot reach the angular acceler
 The table's rows, each robot 0's 1-sigma bound on the principal moments over the perfect-sensor
 one: "as recorded" (the benchmark's bound), "over time, the IMUs alone" (the same noise, its
 covariance over the run), "accelerometers fused with localization" (their noise replaced by the
-smoother's) and "accelerometers noiseless" (what no fusion of the accelerometers can beat).
+smoother's), the same with noiseless gyros (what any better attitude or angular-acceleration
+estimate could add) and "accelerometers noiseless" (what no fusion of the accelerometers can
+beat).
 
     .venv/bin/python scripts/motion_fusion_limits.py                 # seed 0
     .venv/bin/python scripts/motion_fusion_limits.py --seeds 0 1 2
@@ -235,9 +237,15 @@ def time_bound(rec: dict, rest: np.ndarray, motion_cov: np.ndarray) -> np.ndarra
     return principal_bound(rows, rec["truth"])
 
 
-def motion_covariance(rec: dict, profile, fused: bool, accel: bool = True) -> np.ndarray:
-    """J C J^T (6K, 6K) of the module docstring: every robot's accelerometer (fused with its
-    localization if ``fused``; left out unless ``accel``), gyro and encoders over the run."""
+ACCEL_MODELS = ("raw", "fused", "off")
+
+
+def motion_covariance(rec: dict, profile, accel: str = "raw", gyro: bool = True) -> np.ndarray:
+    """J C J^T (6K, 6K) of the module docstring: every robot's accelerometer (``accel``: "raw",
+    "fused" with its localization, or "off"), gyro (left out unless ``gyro``) and encoders over
+    the run."""
+    if accel not in ACCEL_MODELS:
+        raise ValueError(f"accel must be one of {ACCEL_MODELS}, got {accel!r}")
     dt = float(rec["dt"])
     stamps, jac, r_wb = rec["stamps"], rec["J"], rec["R_wb"]
     k, n_robots = len(stamps), r_wb.shape[1]
@@ -254,10 +262,11 @@ def motion_covariance(rec: dict, profile, fused: bool, accel: bool = True) -> np
 
         return autocovariance(unique, psd, cutoffs, 8.0, 2e-4)[inverse].reshape(k, k)
 
-    fuse = (lambda f: fused_psd_ratio(f, f_x)) if fused else None
-    sources = [(slice(3, 6), cov_of(profile.gyro_std, 1), False),
-               (slice(6, per_robot), cov_of(profile.encoder_std_rad, 2), False)]  # fmt: skip
-    if accel:
+    fuse = (lambda f: fused_psd_ratio(f, f_x)) if accel == "fused" else None
+    sources = [(slice(6, per_robot), cov_of(profile.encoder_std_rad, 2), False)]
+    if gyro:
+        sources.append((slice(3, 6), cov_of(profile.gyro_std, 1), False))
+    if accel != "off":
         sources.append((slice(0, 3), cov_of(profile.accel_std, 0, fuse), True))
     out = np.zeros((k, 6, k, 6))
     for r in range(n_robots):
@@ -304,12 +313,13 @@ def bounds(nominal: dict, perfect: dict, profile) -> dict[str, np.ndarray]:
     base = recorded_bound(perfect)
     rest = rest_covariance(nominal)
     out = {"as recorded (the benchmark)": recorded_bound(nominal) / base}
-    for label, fused, accel in (
-        ("over time, the IMUs alone", False, True),
-        ("over time, accelerometers fused with localization", True, True),
-        ("over time, accelerometers noiseless", False, False),
+    for label, accel, gyro in (
+        ("over time, the IMUs alone", "raw", True),
+        ("over time, accelerometers fused with localization", "fused", True),
+        ("over time, accelerometers fused, gyros noiseless", "fused", False),
+        ("over time, accelerometers noiseless", "off", True),
     ):
-        motion = motion_covariance(nominal, profile, fused, accel)
+        motion = motion_covariance(nominal, profile, accel, gyro)
         out[label] = time_bound(nominal, rest, motion) / base
     return out
 

@@ -118,3 +118,57 @@ def test_rejects_bad_input():
         smooth_record(u, fixes, has_fix, DT, ACCEL_STD, POS_STD)
     with pytest.raises(ValueError, match="must be > 0"):
         crossover_hz(ACCEL_STD, DT, 0.0, 0.32)
+
+
+@pytest.fixture(scope="module")
+def limits():
+    """scripts/motion_fusion_limits.py as a module (``test_scripts.load``)."""
+    from test_scripts import load
+
+    return load("motion_fusion_limits")
+
+
+def _synthetic_recording(k: int, seed: int) -> dict:
+    """A recording like ``motion_fusion_limits.fly``'s without a flight: random regressors,
+    covariances, motion maps J (6, 16) and levels L of two robots, attitudes I."""
+    rng = np.random.default_rng(seed)
+    root = rng.standard_normal((k, 6, 6))
+    jac, level = rng.standard_normal((k, 6, 16)), rng.uniform(0.1, 1.0, (k, 16))
+    motion = np.einsum("kia,ka,kja->kij", jac, level, jac)
+    return {
+        "A": rng.standard_normal((k, 6, 10)),
+        "R": root @ root.transpose(0, 2, 1) + np.eye(6) + motion,
+        "J": jac,
+        "L": level,
+        "truth": np.array([5.0, 0.1, -0.15, 0.2, 0.3, 0.4, 0.45, 0.01, 0.0, -0.01]),
+    }
+
+
+def test_time_bound_with_independent_updates_is_the_recorded_bound(limits):
+    """The time-domain bound with the motion noise back on the diagonal blocks, per update at its
+    level, is the benchmark's bound; spread over time it differs (it can fail)."""
+    rec = _synthetic_recording(40, 4)
+    rest = limits.rest_covariance(rec)
+    k = len(rest)
+    blocks = np.einsum("kia,ka,kja->kij", rec["J"], rec["L"], rec["J"])
+    diagonal = np.zeros((6 * k, 6 * k))
+    for i in range(k):
+        diagonal[6 * i : 6 * i + 6, 6 * i : 6 * i + 6] = blocks[i]
+    expected = limits.recorded_bound(rec)
+    np.testing.assert_allclose(limits.time_bound(rec, rest, diagonal), expected, rtol=1e-8)
+    shared = np.kron(np.ones((k, k)), blocks.mean(axis=0))  # one error held over the run
+    assert not np.allclose(limits.time_bound(rec, rest, shared), expected, rtol=1e-2)
+
+
+def test_chain_autocovariance_is_the_noise_models_variance(limits):
+    """At lag 0 the script's chain gives the estimator's own per-sample variance of the filtered
+    motion (``motion.filtered_motion_gains``, the exact discrete chain): accelerometer and gyro
+    within 1 %, the encoders (point samples, first-order hold) within 10 %."""
+    from astrocargo.estimator.motion import filtered_motion_gains
+
+    gains = filtered_motion_gains(DT, 1.0, 0.25, 2)
+    for order, gain, tol in ((0, gains[0], 0.01), (1, gains[1], 0.01), (2, gains[2], 0.1)):
+        lag0 = limits.autocovariance(
+            np.zeros(1), lambda f, n=order: DT * (2 * np.pi * f) ** (2 * n), (1.0, 0.25), 8.0, 2e-4
+        )
+        assert lag0[0] == pytest.approx(gain**2, rel=tol)
