@@ -35,8 +35,6 @@ motion the balance is built from, not the balance.
 
 from __future__ import annotations
 
-from collections import deque
-
 import numpy as np
 from numba import njit
 
@@ -139,11 +137,13 @@ def smooth_record(
 class FixedLagSmoother:
     """Online fixed-lag smoother of one base's world-axes acceleration (module docstring).
 
-    ``step(u_world, fix_world)`` takes one control period's accelerometer reading in world axes
-    (3,) (m/s^2, the base origin's) and the position fix of its end (3,) m, or None; once
-    ``lag_steps`` periods have passed it returns the smoothed acceleration of the period
-    ``lag_steps`` back (3,), else None. The first fix starts the filter (position at the fix,
-    velocity N(0, ``velocity_std_mps``^2)); readings before it are dropped.
+    ``step(u_world, fix_world)`` runs the forward filter over one control period: its
+    accelerometer reading in world axes (3,) (m/s^2, the base origin's) and the position fix of
+    its end (3,) m, or None. ``lagged_acceleration()`` runs the backward pass over the window and
+    returns the smoothed acceleration of the period ``lag_steps`` back (3,), or None until that
+    many periods have passed: call it only where it is needed (an update instant), it costs
+    O(lag). The first fix starts the filter (position at the fix, velocity
+    N(0, ``velocity_std_mps``^2)); readings before it are dropped.
     """
 
     def __init__(
@@ -166,31 +166,42 @@ class FixedLagSmoother:
         self.q = accel_std**2 * np.outer(self.b, self.b)
         self.pos_var = float(position_std_m**2)
         self.velocity_var = float(velocity_std_mps**2)
-        self.x: np.ndarray | None = None
-        self.p = np.zeros((2, 2))
-        # The window: (x_k|k-1, P_k|k-1, x_k|k, P_k|k) of the last lag + 2 periods (the oldest
-        # one's smoothed velocity is the start of the returned period's).
-        self.window: deque = deque(maxlen=self.lag_steps + 2)
+        # Ring buffers of x_k|k-1, P_k|k-1, x_k|k, P_k|k over the last lag + 2 periods (the
+        # oldest one's smoothed velocity is the start of the returned period's).
+        n = self.lag_steps + 2
+        self._x_pred, self._x_filt = np.zeros((n, 2, 3)), np.zeros((n, 2, 3))
+        self._p_pred, self._p_filt = np.zeros((n, 2, 2)), np.zeros((n, 2, 2))
+        self.periods = 0  # periods in the window since the first fix
+        self._last = -1  # the newest entry's slot
 
-    def step(self, u_world: np.ndarray, fix_world: np.ndarray | None) -> np.ndarray | None:
+    def step(self, u_world: np.ndarray, fix_world: np.ndarray | None) -> None:
         u = np.asarray(u_world, dtype=float)
         if u.shape != (3,) or not np.all(np.isfinite(u)):
             raise ValueError(f"u_world must be 3 finite numbers, got {u_world!r}")
-        if self.x is None:
+        if self.periods == 0:
             if fix_world is None:
-                return None
-            self.x = np.vstack((np.asarray(fix_world, dtype=float), np.zeros(3)))
-            self.p = np.diag([self.pos_var, self.velocity_var])
-            self.window.append((self.x, self.p, self.x, self.p))
-            return None
+                return
+            x = np.vstack((np.asarray(fix_world, dtype=float), np.zeros(3)))
+            p = np.diag([self.pos_var, self.velocity_var])
+            self._store((x, p, x, p))
+            return
         fix = np.zeros(3) if fix_world is None else np.asarray(fix_world, dtype=float)
-        out = kalman_step(
-            self.x, self.p, u, fix, fix_world is not None, self.f, self.b, self.q, self.pos_var
-        )
-        self.x, self.p = out[2], out[3]
-        self.window.append(out)
-        if len(self.window) < self.window.maxlen:
+        k = self._last
+        self._store(kalman_step(self._x_filt[k], self._p_filt[k], u, fix, fix_world is not None,
+                                self.f, self.b, self.q, self.pos_var))  # fmt: skip
+
+    def _store(self, entry) -> None:
+        self._last = (self._last + 1) % self._x_pred.shape[0]
+        k = self._last
+        self._x_pred[k], self._p_pred[k], self._x_filt[k], self._p_filt[k] = entry
+        self.periods += 1
+
+    def lagged_acceleration(self) -> np.ndarray | None:
+        """The smoothed acceleration (3,) of the period ``lag_steps`` back, or None."""
+        n = self._x_pred.shape[0]
+        if self.periods < n:
             return None
-        x_pred, p_pred, x_filt, p_filt = (np.stack(c) for c in zip(*self.window, strict=True))
-        x_s = rts_states(x_pred, p_pred, x_filt, p_filt, self.f)
+        order = (self._last + 1 + np.arange(n)) % n  # oldest first
+        x_s = rts_states(self._x_pred[order], self._p_pred[order], self._x_filt[order],
+                         self._p_filt[order], self.f)  # fmt: skip
         return (x_s[1, 1] - x_s[0, 1]) / self.dt_s

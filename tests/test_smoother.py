@@ -67,7 +67,10 @@ def test_fixed_lag_is_the_window_smoother_and_converges():
     n, lag = 2400, 1000
     u, fixes, has_fix, _ = _record(n, 1)
     smoother = FixedLagSmoother(DT, ACCEL_STD, POS_STD, lag)
-    out = [smoother.step(u[k], fixes[k] if has_fix[k] else None) for k in range(n)]
+    out = []
+    for k in range(n):
+        smoother.step(u[k], fixes[k] if has_fix[k] else None)
+        out.append(smoother.lagged_acceleration())
     assert all(x is None for x in out[: lag + 1]) and out[lag + 1] is not None
     k = 2200
     _, acc_seen = smooth_record(
@@ -112,6 +115,10 @@ def test_rejects_bad_input():
         FixedLagSmoother(DT, -1.0, POS_STD, 10)
     with pytest.raises(ValueError, match="finite"):
         FixedLagSmoother(DT, ACCEL_STD, POS_STD, 10).step(np.array([np.nan, 0, 0]), None)
+    resting = FixedLagSmoother(DT, ACCEL_STD, POS_STD, 10)
+    for _ in range(30):  # no fix yet: nothing starts
+        resting.step(np.zeros(3), None)
+    assert resting.periods == 0 and resting.lagged_acceleration() is None
     u, fixes, has_fix, _ = _record(50, 3)
     has_fix[0] = False
     with pytest.raises(ValueError, match="first period"):
