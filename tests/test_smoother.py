@@ -144,6 +144,8 @@ def _synthetic_recording(k: int, seed: int) -> dict:
     motion = np.einsum("kia,ka,kja->kij", jac, level, jac)
     return {
         "A": rng.standard_normal((k, 6, 10)),
+        "z": rng.standard_normal((k, 6)),
+        "b": np.zeros((k, 6)),
         "R": root @ root.transpose(0, 2, 1) + np.eye(6) + motion,
         "J": jac,
         "L": level,
@@ -179,3 +181,20 @@ def test_chain_autocovariance_is_the_noise_models_variance(limits):
             np.zeros(1), lambda f, n=order: DT * (2 * np.pi * f) ** (2 * n), (1.0, 0.25), 8.0, 2e-4
         )
         assert lag0[0] == pytest.approx(gain**2, rel=tol)
+
+
+def test_gls_nees_is_chi_square_when_the_covariance_is_the_noises(limits):
+    """Mean NEES over draws ~10 (10 parameters) with the true covariance, ~40 when the noise is
+    twice what the covariance says."""
+    rec = _synthetic_recording(30, 5)
+    rng = np.random.default_rng(6)
+    chol = np.linalg.cholesky(rec["R"])
+    rows, _ = limits.whitened(rec, rec["R"])
+    for scale, expected in ((1.0, 10.0), (2.0, 40.0)):
+        nees = []
+        for _ in range(300):
+            noise = scale * (chol @ rng.standard_normal((30, 6, 1)))[..., 0]
+            z = np.einsum("kij,j->ki", rec["A"], rec["truth"]) + noise
+            _, resid = limits.whitened({**rec, "z": z}, rec["R"])
+            nees.append(limits.gls_nees(rows, resid, rec["truth"]))
+        assert np.mean(nees) == pytest.approx(expected, rel=0.15)
