@@ -102,16 +102,21 @@ def kalman_record(u, fixes, has_fix, x0, p0, f, b, q, pos_var):
 
 
 @njit(cache=True)
-def rts_states(x_pred, p_pred, x_filt, p_filt, f):
-    """Backward RTS pass over a window of n periods (x_* (n, 2, 3), P_* (n, 2, 2)): the smoothed
-    states x_k|N (n, 2, 3). The smoothed accelerations are their velocities' differences,
-    a_k|N = (v_k|N - v_k-1|N) / dt (module docstring)."""
+def rts_gain(p_filt_prev, p_pred, f):
+    """C_k = P_k-1|k-1 F^T P_k|k-1^-1 (2, 2): the RTS gain of period k (module docstring)."""
+    return p_filt_prev @ f.T @ np.linalg.inv(p_pred)
+
+
+@njit(cache=True)
+def rts_states(x_pred, x_filt, gains):
+    """Backward RTS pass over a window of n periods (x_* (n, 2, 3), ``gains`` C_k (n, 2, 2),
+    C_0 unused): the smoothed states x_k|N (n, 2, 3). The smoothed accelerations are their
+    velocities' differences, a_k|N = (v_k|N - v_k-1|N) / dt (module docstring)."""
     n = x_pred.shape[0]
     x_s = np.empty_like(x_filt)
     x_s[n - 1] = x_filt[n - 1]
     for k in range(n - 1, 0, -1):
-        gain = p_filt[k - 1] @ f.T @ np.linalg.inv(p_pred[k])
-        x_s[k - 1] = x_filt[k - 1] + gain @ (x_s[k] - x_pred[k])
+        x_s[k - 1] = x_filt[k - 1] + gains[k] @ (x_s[k] - x_pred[k])
     return x_s
 
 
@@ -138,7 +143,10 @@ def smooth_record(
     q, pos_var = accel_std**2 * np.outer(b, b), position_std_m**2
     x0, p0 = np.vstack((fixes[0], np.zeros(3))), np.diag([pos_var, velocity_std_mps**2])
     x_pred, p_pred, x_filt, p_filt = kalman_record(u, fixes, has_fix, x0, p0, f, b, q, pos_var)
-    x_s = rts_states(x_pred, p_pred, x_filt, p_filt, f)
+    gains = np.zeros_like(p_pred)
+    for k in range(1, len(gains)):
+        gains[k] = rts_gain(p_filt[k - 1], p_pred[k], f)
+    x_s = rts_states(x_pred, x_filt, gains)
     return x_s, np.diff(x_s[:, 1], axis=0) / dt_s
 
 
@@ -174,11 +182,13 @@ class FixedLagSmoother:
         self.q = accel_std**2 * np.outer(self.b, self.b)
         self.pos_var = float(position_std_m**2)
         self.velocity_var = float(velocity_std_mps**2)
-        # Ring buffers of x_k|k-1, P_k|k-1, x_k|k, P_k|k over the last lag + 2 periods (the
-        # oldest one's smoothed velocity is the start of the returned period's).
+        # Ring buffers of x_k|k-1, x_k|k and the RTS gain C_k over the last lag + 2 periods (the
+        # oldest one's smoothed velocity is the start of the returned period's); the newest
+        # P_k|k starts the next period.
         n = self.lag_steps + 2
         self._x_pred, self._x_filt = np.zeros((n, 2, 3)), np.zeros((n, 2, 3))
-        self._p_pred, self._p_filt = np.zeros((n, 2, 2)), np.zeros((n, 2, 2))
+        self._gain = np.zeros((n, 2, 2))
+        self._p = np.zeros((2, 2))
         self.periods = 0  # periods in the window since the first fix
         self._last = -1  # the newest entry's slot
 
@@ -190,18 +200,21 @@ class FixedLagSmoother:
             if fix_world is None:
                 return
             x = np.vstack((np.asarray(fix_world, dtype=float), np.zeros(3)))
-            p = np.diag([self.pos_var, self.velocity_var])
-            self._store((x, p, x, p))
+            self._store(x, x, np.zeros((2, 2)))
+            self._p = np.diag([self.pos_var, self.velocity_var])
             return
         fix = np.zeros(3) if fix_world is None else np.asarray(fix_world, dtype=float)
-        k = self._last
-        self._store(kalman_step(self._x_filt[k], self._p_filt[k], u, fix, fix_world is not None,
-                                self.f, self.b, self.q, self.pos_var))  # fmt: skip
+        x_pred, p_pred, x_filt, p_filt = kalman_step(
+            self._x_filt[self._last], self._p, u, fix, fix_world is not None, self.f, self.b,
+            self.q, self.pos_var,
+        )  # fmt: skip
+        self._store(x_pred, x_filt, rts_gain(self._p, p_pred, self.f))
+        self._p = p_filt
 
-    def _store(self, entry) -> None:
+    def _store(self, x_pred, x_filt, gain) -> None:
         self._last = (self._last + 1) % self._x_pred.shape[0]
         k = self._last
-        self._x_pred[k], self._p_pred[k], self._x_filt[k], self._p_filt[k] = entry
+        self._x_pred[k], self._x_filt[k], self._gain[k] = x_pred, x_filt, gain
         self.periods += 1
 
     def lagged_acceleration(self) -> np.ndarray | None:
@@ -210,6 +223,5 @@ class FixedLagSmoother:
         if self.periods < n:
             return None
         order = (self._last + 1 + np.arange(n)) % n  # oldest first
-        x_s = rts_states(self._x_pred[order], self._p_pred[order], self._x_filt[order],
-                         self._p_filt[order], self.f)  # fmt: skip
+        x_s = rts_states(self._x_pred[order], self._x_filt[order], self._gain[order])
         return (x_s[1, 1] - x_s[0, 1]) / self.dt_s
