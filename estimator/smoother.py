@@ -225,3 +225,59 @@ class FixedLagSmoother:
         order = (self._last + 1 + np.arange(n)) % n  # oldest first
         x_s = rts_states(self._x_pred[order], self._x_filt[order], self._gain[order])
         return (x_s[1, 1] - x_s[0, 1]) / self.dt_s
+
+
+def lagged_error_psd_ratio(
+    freq_hz: np.ndarray,
+    lag_steps: int,
+    dt_s: float,
+    accel_std: float,
+    position_std_m: float,
+    fix_every: int,
+    settle_steps: int = 2500,
+) -> np.ndarray:
+    """S_e(f) / S_a of ``FixedLagSmoother`` at ``lag_steps`` in its steady state (the fixes'
+    schedule repeats every ``fix_every`` periods, so the error is cyclostationary; this is its
+    time-averaged PSD): with g_p the error's response to a unit accelerometer error at phase p of
+    the schedule and h its response to a unit fix error, both found by running the smoother on
+    them (linear; its gains do not depend on the data),
+
+        S_e(f) = dt (sigma_a^2 mean_p |G_p(f)|^2 + sigma_p^2 |H(f)|^2 / fix_every),
+        G_p(f) = sum_j g_p[j] exp(-2 pi i f j dt).
+
+    Tends to ``fused_psd_ratio`` as the lag grows (the non-causal Wiener filter), to 1 with no
+    lag. ``settle_steps``: periods run on zero data first (the covariances settle) and after the
+    impulse (its response dies out)."""
+    freq = np.asarray(freq_hz, dtype=float)
+    power = np.zeros_like(freq)
+    impulses = [(phase, False) for phase in range(fix_every)] + [(0, True)]
+    for phase, in_fix in impulses:
+        response = _impulse_response(
+            lag_steps, dt_s, accel_std, position_std_m, fix_every, settle_steps, phase, in_fix
+        )
+        j = np.arange(response.size) - settle_steps  # periods after the impulse's
+        spectrum = np.abs(np.exp(-2j * np.pi * np.outer(freq, j * dt_s)) @ response) ** 2
+        weight = position_std_m**2 / fix_every if in_fix else accel_std**2 / fix_every
+        power += weight * spectrum
+    return power / accel_std**2
+
+
+def _impulse_response(lag_steps, dt_s, accel_std, position_std_m, fix_every, settle_steps,
+                      phase, in_fix) -> np.ndarray:  # fmt: skip
+    """The lagged accelerations' response (x axis) to a unit error in the reading of period
+    m = 2 settle_steps + phase (``in_fix`` False) or in the fix of period m (True, a fix
+    period), for periods m - settle_steps .. m + settle_steps."""
+    smoother = FixedLagSmoother(dt_s, accel_std, position_std_m, lag_steps)
+    impulse = 2 * settle_steps + phase
+    out = []
+    for k in range(impulse + settle_steps + lag_steps + 1):
+        u, fix = np.zeros(3), np.zeros(3) if k % fix_every == 0 else None
+        if k == impulse:
+            if in_fix:
+                fix[0] = 1.0
+            else:
+                u[0] = 1.0
+        smoother.step(u, fix)
+        if k - lag_steps >= impulse - settle_steps:
+            out.append(smoother.lagged_acceleration()[0])
+    return np.array(out)

@@ -82,7 +82,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import benchmark_estimation as bench  # noqa: E402
 import cli  # noqa: E402
 
-from astrocargo.estimator.smoother import crossover_hz, fused_psd_ratio  # noqa: E402
+from astrocargo.estimator.smoother import (  # noqa: E402
+    crossover_hz,
+    fused_psd_ratio,
+    lagged_error_psd_ratio,
+)
 
 CONTROL_HZ = bench.CONTROL_HZ
 
@@ -100,6 +104,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--seeds", type=cli.nonnegative_int, nargs="+", default=[0], help=">= 0")
     parser.add_argument("--workers", type=cli.positive_int, default=2, help="processes")
     parser.add_argument("--cache", type=Path, default=None, help="folder of recorded flights")
+    parser.add_argument(
+        "--lags", type=cli.positive_float, nargs="*", default=[4.0, 8.0, 16.0],
+        help="s, fixed lags of the smoother to evaluate",
+    )  # fmt: skip
     return parser
 
 
@@ -280,12 +288,13 @@ def gls_nees(rows: np.ndarray, resid: np.ndarray, truth: np.ndarray) -> float:
 ACCEL_MODELS = ("raw", "fused", "off")
 
 
-def motion_covariance(rec: dict, profile, accel: str = "raw", gyro: bool = True) -> np.ndarray:
+def motion_covariance(rec: dict, profile, accel="raw", gyro: bool = True) -> np.ndarray:
     """J C J^T (6K, 6K) of the module docstring: every robot's accelerometer (``accel``: "raw",
-    "fused" with its localization, or "off"), gyro (left out unless ``gyro``) and encoders over
-    the run."""
-    if accel not in ACCEL_MODELS:
-        raise ValueError(f"accel must be one of {ACCEL_MODELS}, got {accel!r}")
+    "fused" with its localization (the Wiener smoother), "off", or a function f -> its error
+    PSD over the raw one, such as a fixed-lag smoother's), gyro (left out unless ``gyro``) and
+    encoders over the run."""
+    if not callable(accel) and accel not in ACCEL_MODELS:
+        raise ValueError(f"accel must be one of {ACCEL_MODELS} or a function, got {accel!r}")
     dt = float(rec["dt"])
     stamps, jac, r_wb = rec["stamps"], rec["J"], rec["R_wb"]
     k, n_robots = len(stamps), r_wb.shape[1]
@@ -303,6 +312,7 @@ def motion_covariance(rec: dict, profile, accel: str = "raw", gyro: bool = True)
         return autocovariance(unique, psd, cutoffs, 8.0, 2e-4)[inverse].reshape(k, k)
 
     fuse = (lambda f: fused_psd_ratio(f, f_x)) if accel == "fused" else None
+    fuse = accel if callable(accel) else fuse
     sources = [(slice(6, per_robot), cov_of(profile.encoder_std_rad, 2), False)]
     if gyro:
         sources.append((slice(3, 6), cov_of(profile.gyro_std, 1), False))
@@ -347,10 +357,23 @@ def _fly_cached(job: tuple[str, int, argparse.Namespace]) -> tuple[str, int, dic
     return noise, seed, rec
 
 
-def bounds(nominal: dict, perfect: dict, profile) -> dict[str, np.ndarray]:
+def lagged_ratio(lag_s: float, dt_s: float, profile):
+    """f -> the fixed-lag smoother's error PSD over the accelerometer's at a lag of ``lag_s``
+    (``smoother.lagged_error_psd_ratio`` on a log grid to 2 Hz, interpolated in log f; 1 above,
+    where it is 1 within 1e-3 at any lag)."""
+    grid = np.geomspace(1e-4, 2.0, 120)
+    ratio = lagged_error_psd_ratio(
+        grid, int(round(lag_s / dt_s)), dt_s, profile.accel_std, profile.position_std_m,
+        profile.localization_every,
+    )  # fmt: skip
+    return lambda f: np.interp(np.log(f), np.log(grid), ratio, left=ratio[0], right=1.0)
+
+
+def bounds(nominal: dict, perfect: dict, profile, lags: dict) -> dict[str, tuple]:
     """Per model (the rows of ``main``'s table): robot 0's principal-moment bound over the
     perfect-sensor one, and generalised least squares' NEES on the nominal flight's data under
-    that model (None where the model is not the data's: fused or noiseless sensors)."""
+    that model (None where the model is not the data's: fused or noiseless sensors). ``lags``:
+    {lag s: ``lagged_ratio``}, a row each."""
     base = recorded_bound(perfect)
     rest = rest_covariance(nominal)
     rows, resid = whitened(nominal, nominal["R"])
@@ -360,16 +383,18 @@ def bounds(nominal: dict, perfect: dict, profile) -> dict[str, np.ndarray]:
             gls_nees(rows, resid, nominal["truth"]),
         )
     }
-    for label, accel, gyro in (
+    models = [
         ("over time, the IMUs alone", "raw", True),
         ("over time, accelerometers fused with localization", "fused", True),
+        *((f"over time, fused by a {lag:g} s fixed lag", lags[lag], True) for lag in lags),
         ("over time, accelerometers fused, gyros noiseless", "fused", False),
         ("over time, accelerometers noiseless", "off", True),
-    ):
+    ]
+    for label, accel, gyro in models:
         rows, resid = whitened(nominal, full_covariance(rest, motion_covariance(
             nominal, profile, accel, gyro)))  # fmt: skip
         # The data hold the raw IMUs' noise: only their model can be checked on them.
-        nees = gls_nees(rows, resid, nominal["truth"]) if (accel, gyro) == ("raw", True) else None
+        nees = gls_nees(rows, resid, nominal["truth"]) if label == models[0][0] else None
         out[label] = (principal_bound(rows, nominal["truth"]) / base, nees)
     return out
 
@@ -383,6 +408,7 @@ def main(argv: list[str] | None = None) -> None:
     with ProcessPoolExecutor(args.workers) as pool:
         flights = {(noise, seed): rec for noise, seed, rec in pool.map(_fly_cached, jobs)}
     dt = float(flights[jobs[0][:2]]["dt"])
+    lags = {lag: lagged_ratio(lag, dt, profile) for lag in args.lags}
     cross = crossovers(profile, dt)
     cutoff = float(flights[jobs[0][:2]]["cutoff_hz"])
     print(
@@ -398,7 +424,7 @@ def main(argv: list[str] | None = None) -> None:
     print("| seed | model of the motion noise | / perfect sensors | within 1.3x | GLS NEES |")
     print("|---|---|---|---|---|")
     for seed in args.seeds:
-        rows = bounds(flights[("nominal", seed)], flights[("actuation_only", seed)], profile)
+        rows = bounds(flights[("nominal", seed)], flights[("actuation_only", seed)], profile, lags)
         for label, (ratio, nees) in rows.items():
             cells = " / ".join(f"{x:.2f}" for x in ratio)
             within = "yes" if ratio.max() <= 1.3 else "no"
