@@ -42,24 +42,25 @@ f = sqrt(S_g / S_theta) / (2 pi), and the fixes cannot reach the angular acceler
 The table's rows, each robot 0's 1-sigma bound on the principal moments over the perfect-sensor
 one: "as recorded" (the benchmark's bound), "over time, the IMUs alone" (the same noise, its
 covariance over the run), "accelerometers fused with localization" (their noise replaced by the
-smoother's), the same with noiseless gyros (what any better attitude or angular-acceleration
-estimate could add) and "accelerometers noiseless" (what no fusion of the accelerometers can
-beat). "GLS NEES" checks a model the nominal data hold (the first two rows): generalised least
-squares on robot 0's data under it, ~10 when the model is true to them, far above when it is
-optimistic.
+smoother's: the Wiener limit, then the fixed lags of ``--lags``), the same with noiseless gyros
+(what any better attitude or angular-acceleration estimate could add) and "accelerometers
+noiseless" (what no fusion of the accelerometers can beat). "GLS NEES" checks a model the
+nominal data hold (the first two rows): generalised least squares on robot 0's data under it,
+~10 when the model is true to them, far above when it is optimistic.
 
 What the rows assume: the floors, the actuation and the peers' noise stay per update as the
 benchmark models them (R_rest), also in the perfect-sensor bound; the conditioning's gain K_k is
 the recorded one. The rows "over time" are bounds of an estimator that weighs the whole run's
 balances with their correlated noise (generalised least squares, or a filter whose state carries
-the noise's colour): the UKF, which treats updates as independent at the white-equivalent level,
-gets the "as recorded" row whatever motion it is fed, and the fused accelerometer's
+the noise's colour). The UKF, which treats updates as independent at the white-equivalent level,
+keeps the "as recorded" bound whatever motion it is fed: the fused accelerometer's
 white-equivalent level (its highest in the band, at the slow filter's cutoff) is the raw one.
 
 Measured (5 seeds, 0..4; every seed within 0.01 of these): as recorded 1.26 / 1.37 / 1.21; over
 time, the IMUs alone 1.16 / 1.31 / 1.12 (GLS NEES mean 13.5, as recorded 12.5; 95 % band of a
-5-seed mean 6.5-14.3); accelerometers fused 1.13 / 1.22 / 1.11 (1.21 on I2 for seed 3); gyros
-noiseless as well: no change; accelerometers noiseless 1.02 / 1.01 / 1.02.
+5-seed mean 6.5-14.3); accelerometers fused (Wiener) 1.13 / 1.22 / 1.11, by a fixed lag of 16 s
+the same, of 8 s 1.14 / 1.25 / 1.11, of 4 s 1.16 / 1.29 / 1.12; gyros noiseless as well: no
+change; accelerometers noiseless 1.02 / 1.01 / 1.02.
 
     .venv/bin/python scripts/motion_fusion_limits.py                 # seed 0
     .venv/bin/python scripts/motion_fusion_limits.py --seeds 0 1 2 3 4 --cache /tmp/flights
