@@ -53,16 +53,11 @@ def prior_covariance(
     mass, com, inertia = mass_com_inertia_from_params(np.asarray(prior_params, dtype=float))
     phys = np.concatenate(([mass], com, inertia_to_vec(inertia)))
     sd = np.repeat(std, (1, 3, 3, 3))
-    jac = np.empty((10, 10))
-    for k in range(10):
-        d = np.zeros(10)
-        d[k] = step
-        plus, minus = phys + d, phys - d
-        jac[:, k] = (
-            params_from_mass_com_inertia(plus[0], plus[1:4], vec_to_inertia(plus[4:]))
-            - params_from_mass_com_inertia(minus[0], minus[1:4], vec_to_inertia(minus[4:]))
-        ) / (2 * step)
+    # Row k of ``probes``: the quantities moved by +step (k < 10) or -step (k >= 10) along k.
+    probes = phys + np.concatenate((step * np.eye(10), -step * np.eye(10)))
+    params = params_from_mass_com_inertia(
+        probes[:, 0], probes[:, 1:4], vec_to_inertia(probes[:, 4:])
+    )
+    jac = (params[:10] - params[10:]).T / (2 * step)
     cov = (jac * sd**2) @ jac.T
     return 0.5 * (cov + cov.T)
-
-
