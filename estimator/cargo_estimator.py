@@ -96,6 +96,11 @@ def _nis_gate(gate_prob: float) -> float:
     return float(chi2.ppf(gate_prob, 6))
 
 
+# A pure function of four numbers that steps a filter's impulse response: one evaluation per
+# set-up, not one per estimator and reset.
+_cached_rate_square_var = functools.lru_cache(maxsize=16)(rate_square_var)
+
+
 def _check_arguments(
     index, peers, update_every, regressor_every, warmup_s, history_s, gate_prob,
     min_excitation_snr, process_std_rel, min_relative_fixes,
@@ -296,7 +301,7 @@ class CargoEstimator(EstimatorInputs):
         # The encoders' noise squared in the momentum form's products of joint rates: its
         # fluctuation about the subtracted mean, per update (``rate_square_var``), and each
         # pending instant's vectors of it (``momentum.rate_square_terms``).
-        self._rate_square_var = rate_square_var(
+        self._rate_square_var = _cached_rate_square_var(
             self.dt_s, self.pre.rate_cutoff_hz, float(sensor_noise[2]), self.update_every
         )
         self._rate_terms: dict[int, tuple[np.ndarray, np.ndarray]] = {}

@@ -50,6 +50,22 @@ def prior_covariance(
     std = np.asarray(std, dtype=float)
     if std.shape != (4,) or not np.all(np.isfinite(std)) or np.any(std <= 0):
         raise ValueError(f"prior std must be 4 positive numbers (kg, m, kg m^2, kg m^2), got {std}")
+    prior_params = np.ascontiguousarray(prior_params, dtype=float)
+    # Every estimator of a team, at every reset, asks for the same one: computed once per value.
+    key = (prior_params.tobytes(), prior_params.shape, std.tobytes(), float(step))
+    if key not in _COVARIANCES:
+        if len(_COVARIANCES) >= _COVARIANCES_KEPT:
+            _COVARIANCES.clear()
+        _COVARIANCES[key] = _covariance(prior_params, std, step)
+    return _COVARIANCES[key].copy()
+
+
+_COVARIANCES: dict[tuple, np.ndarray] = {}  # `prior_covariance`'s results by arguments' bytes
+_COVARIANCES_KEPT = 64
+
+
+def _covariance(prior_params: np.ndarray, std: np.ndarray, step: float) -> np.ndarray:
+    """`prior_covariance` of checked arguments."""
     mass, com, inertia = mass_com_inertia_from_params(np.asarray(prior_params, dtype=float))
     phys = np.concatenate(([mass], com, inertia_to_vec(inertia)))
     sd = np.repeat(std, (1, 3, 3, 3))
