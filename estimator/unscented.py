@@ -20,6 +20,7 @@ from .constrained import cholesky_lower, solve_lower
 
 __all__ = [
     "cross_covariance",
+    "draw_merwe_sigma_points",
     "filter_arrays",
     "merwe_sigma_points",
     "state_size",
