@@ -71,6 +71,8 @@ class TeamEstimation:
         # Per robot: the peer in each of its peer slots (increasing index, skipping itself).
         slots = [[j for j in range(n) if j != i] for i in range(n)]
         self.peer_slots = np.array(slots, dtype=np.int64).reshape(n, n - 1)
+        # `peer_slot_values` apart from the ages, while no message and no ``acting`` changes them.
+        self._slot_cache: tuple[bytes, tuple[np.ndarray, ...]] | None = None
 
     def step(self, readings: SensorReadings, commands: np.ndarray, k: int, holding,
              arm_rates: np.ndarray, channel) -> bool:  # fmt: skip
@@ -103,6 +105,7 @@ class TeamEstimation:
         """Keep ``msg`` as the latest one ``receiver`` has from its sender, if it is newer."""
         j = msg.sender
         if msg.stamp > self.latest_stamp[receiver, j]:
+            self._slot_cache = None
             self.peer_msgs[receiver][j] = msg
             self.latest_stamp[receiver, j] = msg.stamp
             self.latest_wrench[receiver, j] = msg.wrench_world
@@ -111,6 +114,7 @@ class TeamEstimation:
 
     def forget(self, receiver: int, sender: int) -> None:
         """``receiver`` no longer counts messages from ``sender`` (it let go of the cargo)."""
+        self._slot_cache = None
         self.peer_msgs[receiver].pop(sender, None)
         self.latest_stamp[receiver, sender] = -1
         self.latest_wrench[receiver, sender] = 0.0
@@ -140,11 +144,23 @@ class TeamEstimation:
         """Each robot's peer slots: the latest message's wrench (world axes) (N, P, 6), its age
         in s and whether one has arrived (N, P), the sender's arm angles and rates when it sent
         it (N, P, 4); zeros before the first message and in the rows of robots not ``acting``
-        (bool (N,))."""
+        (bool (N,)). The wrench, arrival and arm arrays are read-only: they are kept until a
+        message or ``acting`` changes them."""
+        acting_key = np.asarray(acting, dtype=bool).tobytes()
+        if self._slot_cache is None or self._slot_cache[0] != acting_key:
+            self._slot_cache = (acting_key, self._slot_arrays(acting))
+        stamp, valid, wrench, arrived, arm = self._slot_cache[1]
+        age = np.where(valid, (step_count - stamp) * self.dt_s, 0.0)
+        return wrench, age, arrived, arm
+
+    def _slot_arrays(self, acting: np.ndarray) -> tuple[np.ndarray, ...]:
+        """`peer_slot_values`' stamps, validity, wrenches, arrivals and arm states (read-only)."""
         rows = np.arange(self.peer_slots.shape[0])[:, None]
         stamp = self.latest_stamp[rows, self.peer_slots]
         valid = (stamp >= 0) & acting[:, None]
-        age = np.where(valid, (step_count - stamp) * self.dt_s, 0.0)
         wrench = np.where(valid[..., None], self.latest_wrench[rows, self.peer_slots], 0.0)
         arm = np.where(valid[..., None], self.latest_arm[rows, self.peer_slots], 0.0)
-        return wrench, age, valid.astype(float), arm
+        arrays = (stamp, valid, wrench, valid.astype(float), arm)
+        for array in arrays:
+            array.flags.writeable = False
+        return arrays

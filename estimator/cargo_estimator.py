@@ -66,6 +66,7 @@ Bad or missing input, and what is counted (``counters``):
 
 from __future__ import annotations
 
+import functools
 import math
 from collections import deque
 
@@ -86,6 +87,18 @@ from .prior import (  # noqa: F401 (re-exported)
 )
 from .rne import Balance, RobotDescription, grasp_pose, wrench_transform
 from .ukf import InertialParamUKF
+
+
+@functools.lru_cache(maxsize=16)
+def _nis_gate(gate_prob: float) -> float:
+    """The NIS gate of a 6-component wrench: the chi-square(6) quantile of ``gate_prob`` (computed
+    once per probability: scipy's quantile takes longer than building the rest of the UKF)."""
+    return float(chi2.ppf(gate_prob, 6))
+
+
+# A pure function of four numbers that steps a filter's impulse response: one evaluation per
+# set-up, not one per estimator and reset.
+_cached_rate_square_var = functools.lru_cache(maxsize=16)(rate_square_var)
 
 
 def _check_arguments(
@@ -258,7 +271,7 @@ class CargoEstimator(EstimatorInputs):
         """The UKF on the ten parameters: prior, its covariance, the random walk, the gate."""
         robot = self.robot
         prior = default_prior(robot) if prior_params is None else np.asarray(prior_params, float)
-        gate = None if gate_prob is None else float(chi2.ppf(gate_prob, 6))
+        gate = None if gate_prob is None else _nis_gate(gate_prob)
         prior_cov = prior_covariance(prior, prior_std)
         process_cov = np.diag(process_std_rel**2 * np.diag(prior_cov))
         self.ukf = InertialParamUKF(prior, prior_cov, process_cov, gate_nis=gate)
@@ -288,7 +301,7 @@ class CargoEstimator(EstimatorInputs):
         # The encoders' noise squared in the momentum form's products of joint rates: its
         # fluctuation about the subtracted mean, per update (``rate_square_var``), and each
         # pending instant's vectors of it (``momentum.rate_square_terms``).
-        self._rate_square_var = rate_square_var(
+        self._rate_square_var = _cached_rate_square_var(
             self.dt_s, self.pre.rate_cutoff_hz, float(sensor_noise[2]), self.update_every
         )
         self._rate_terms: dict[int, tuple[np.ndarray, np.ndarray]] = {}

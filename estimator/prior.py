@@ -50,19 +50,30 @@ def prior_covariance(
     std = np.asarray(std, dtype=float)
     if std.shape != (4,) or not np.all(np.isfinite(std)) or np.any(std <= 0):
         raise ValueError(f"prior std must be 4 positive numbers (kg, m, kg m^2, kg m^2), got {std}")
+    prior_params = np.ascontiguousarray(prior_params, dtype=float)
+    # Every estimator of a team, at every reset, asks for the same one: computed once per value.
+    key = (prior_params.tobytes(), prior_params.shape, std.tobytes(), float(step))
+    if key not in _COVARIANCES:
+        if len(_COVARIANCES) >= _COVARIANCES_KEPT:
+            _COVARIANCES.clear()
+        _COVARIANCES[key] = _covariance(prior_params, std, step)
+    return _COVARIANCES[key].copy()
+
+
+_COVARIANCES: dict[tuple, np.ndarray] = {}  # `prior_covariance`'s results by arguments' bytes
+_COVARIANCES_KEPT = 64
+
+
+def _covariance(prior_params: np.ndarray, std: np.ndarray, step: float) -> np.ndarray:
+    """`prior_covariance` of checked arguments."""
     mass, com, inertia = mass_com_inertia_from_params(np.asarray(prior_params, dtype=float))
     phys = np.concatenate(([mass], com, inertia_to_vec(inertia)))
     sd = np.repeat(std, (1, 3, 3, 3))
-    jac = np.empty((10, 10))
-    for k in range(10):
-        d = np.zeros(10)
-        d[k] = step
-        plus, minus = phys + d, phys - d
-        jac[:, k] = (
-            params_from_mass_com_inertia(plus[0], plus[1:4], vec_to_inertia(plus[4:]))
-            - params_from_mass_com_inertia(minus[0], minus[1:4], vec_to_inertia(minus[4:]))
-        ) / (2 * step)
+    # Row k of ``probes``: the quantities moved by +step (k < 10) or -step (k >= 10) along k.
+    probes = phys + np.concatenate((step * np.eye(10), -step * np.eye(10)))
+    params = params_from_mass_com_inertia(
+        probes[:, 0], probes[:, 1:4], vec_to_inertia(probes[:, 4:])
+    )
+    jac = (params[:10] - params[10:]).T / (2 * step)
     cov = (jac * sd**2) @ jac.T
     return 0.5 * (cov + cov.T)
-
-

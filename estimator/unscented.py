@@ -20,6 +20,7 @@ from .constrained import cholesky_lower, solve_lower
 
 __all__ = [
     "cross_covariance",
+    "draw_merwe_sigma_points",
     "filter_arrays",
     "merwe_sigma_points",
     "state_size",
@@ -40,14 +41,23 @@ def merwe_sigma_points(x: np.ndarray, P: np.ndarray, scale: float) -> tuple[np.n
     """Merwe sigma points (2n + 1, n) of (x, P) in filterpy's order, scale = sqrt(n + lambda):
     X_0 = x, X_(1+k) = x + scale L[:, k], X_(1+n+k) = x - scale L[:, k] with P = L L^T; and
     whether P is positive definite (the points are not usable when it is not)."""
+    sigmas = np.empty((2 * x.size + 1, x.size))
+    return sigmas, draw_merwe_sigma_points(sigmas, x, P, scale)
+
+
+@njit(cache=True)
+def draw_merwe_sigma_points(sigmas: np.ndarray, x: np.ndarray, P: np.ndarray, scale: float) -> bool:
+    """`merwe_sigma_points` written into ``sigmas`` (2n + 1, n); returns whether P is positive
+    definite (``sigmas`` is left as it was when it is not)."""
     n = x.size
     lower, definite = cholesky_lower(P)
+    if not definite:
+        return False
     offsets = scale * lower.T  # row k: scale times column k of L
-    sigmas = np.empty((2 * n + 1, n))
     sigmas[0] = x
     sigmas[1 : n + 1] = x + offsets
     sigmas[n + 1 :] = x - offsets
-    return sigmas, definite
+    return True
 
 
 @njit(cache=True)
@@ -56,18 +66,25 @@ def unscented_transform(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Weighted mean z = sum_i Wm_i Z_i and covariance sum_i Wc_i (Z_i - z)(Z_i - z)^T plus
     noise_cov of transformed sigma points Z (2n + 1, m), as filterpy's `unscented_transform`."""
-    mean = Wm @ sigmas_h
-    residuals = sigmas_h - mean
-    cov = (Wc.reshape(-1, 1) * residuals).T @ residuals + noise_cov
-    return mean, cov
+    mean, residuals, weighted = _weighted_residuals(sigmas_h, Wm, Wc)
+    return mean, weighted.T @ residuals + noise_cov
 
 
 @njit(cache=True)
-def cross_covariance(
-    x: np.ndarray, z_pred: np.ndarray, sigmas: np.ndarray, sigmas_h: np.ndarray, Wc: np.ndarray
-) -> np.ndarray:
-    """P_xz = sum_i Wc_i (X_i - x)(Z_i - z_pred)^T (n, m)."""
-    return (sigmas - x).T @ (Wc.reshape(-1, 1) * (sigmas_h - z_pred))
+def _weighted_residuals(
+    sigmas_h: np.ndarray, Wm: np.ndarray, Wc: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The mean z = sum_i Wm_i Z_i, the residuals Z_i - z (rows) and Wc_i (Z_i - z)."""
+    mean = Wm @ sigmas_h
+    residuals = sigmas_h - mean
+    return mean, residuals, Wc.reshape(-1, 1) * residuals
+
+
+@njit(cache=True)
+def cross_covariance(x: np.ndarray, sigmas: np.ndarray, weighted_h: np.ndarray) -> np.ndarray:
+    """P_xz = sum_i Wc_i (X_i - x)(Z_i - z_pred)^T (n, m), from the weighted residuals
+    Wc_i (Z_i - z_pred) (rows of ``weighted_h``)."""
+    return (sigmas - x).T @ weighted_h
 
 
 def state_size(n: int, m: int) -> int:
@@ -115,8 +132,10 @@ def unscented_update(arrays: tuple, z: np.ndarray, R: np.ndarray):
     x, P, _, sigmas, sigmas_h, y_out, S_out, P_xz_out, Wm, Wc, scalars = arrays
     if not _all_finite(sigmas_h):
         return BAD_H, math.nan
-    z_pred, S = unscented_transform(sigmas_h, Wm, Wc, R)
-    P_xz = cross_covariance(x, z_pred, sigmas, sigmas_h, Wc)
+    # The unscented transform and the cross-covariance share the weighted residuals.
+    z_pred, residuals_h, weighted_h = _weighted_residuals(sigmas_h, Wm, Wc)
+    S = weighted_h.T @ residuals_h + R
+    P_xz = cross_covariance(x, sigmas, weighted_h)
     S_lower, definite = cholesky_lower(S)
     if not definite:
         return BAD_S, math.nan
@@ -153,10 +172,8 @@ def _predict_and_draw(arrays: tuple, R: np.ndarray, predict_first: bool):
         P += Q
     if not _all_finite(R):
         return BAD_R
-    new_sigmas, definite = merwe_sigma_points(x, P, scalars[0])
-    if not definite:
+    if not draw_merwe_sigma_points(sigmas, x, P, scalars[0]):
         return BAD_P
-    sigmas[:] = new_sigmas
     return OK
 
 

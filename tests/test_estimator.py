@@ -414,3 +414,31 @@ def test_balance_vector_round_trip_and_robot_arrays():
     assert robot.arrays is robot.arrays  # packed once
     np.testing.assert_array_equal(robot.arrays.mass, [link.mass for link in robot.links])
     np.testing.assert_array_equal(robot.arrays.joint_axis[1], robot.links[1].joint_axis)
+
+
+def test_peer_slots_follow_every_new_message_and_are_read_only():
+    """The env's peer slots are kept between messages: each newly delivered message must show in
+    them at once (wrench, arrival), the ages must grow with the step, and what is returned must
+    not be writable (it is shared with later calls)."""
+    from astrocargo.envs import astrobee_cargo_v0
+
+    env = astrobee_cargo_v0.parallel_env(n_robots=2, noise="nominal")
+    env.reset(seed=4)
+    team = env.sim.estimation
+    acting = np.ones(2, dtype=bool)
+    seen_stamps = set()
+    for k in range(1, 400):
+        env.step({a: 0.1 * np.ones(8) for a in env.agents})
+        wrench, age, valid, _ = team.peer_slot_values(acting, k)
+        for i, j in ((0, 1), (1, 0)):
+            msg = team.peer_msgs[i].get(j)
+            if msg is None:
+                assert valid[i, 0] == 0.0 and not wrench[i, 0].any()
+                continue
+            seen_stamps.add(msg.stamp)
+            np.testing.assert_array_equal(wrench[i, 0], msg.wrench_world)
+            assert valid[i, 0] == 1.0
+            assert age[i, 0] == pytest.approx((k - msg.stamp) * env.sim.dt_s)
+    assert len(seen_stamps) > 5  # several messages replaced one another in the slots
+    with pytest.raises(ValueError):
+        wrench[0, 0, 0] = 1.0
