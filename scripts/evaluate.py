@@ -7,9 +7,10 @@ A policy is a run folder of scripts/train.py (``model.zip``, ``vecnormalize.pkl`
 and the same noise draws. With ``--mass-bins`` each bin [low, high) of cargo masses gets its own
 ``--episodes`` episodes (the mass drawn uniformly within the bin, seeds ``--seed + k`` again).
 Every episode runs at the env's control rate: a trained policy decides every ``action_repeat``
-steps (its ``DecisionEnv``) and, if residual, its action is added to the scripted no-model
-action of every step, exactly as in training. The estimators always run (they do not change
-the physics), so their errors are reported whatever the policy observes.
+steps (its ``DecisionEnv``) and, if residual, its action is added to the action of its scripted
+base controller (no cargo model or the live estimate) at every step, exactly as in training. The
+estimators always run (they do not change the physics), so their errors are reported whatever the
+policy observes.
 
 Per policy (and bin) it prints mean and spread (standard deviation over episodes) of the
 return (mean over robots), the cargo tracking error (true pose, mean over the episode and at
@@ -133,8 +134,9 @@ class ScriptedPolicy:
 class TrainedPolicy:
     """A scripts/train.py run: its model, observation normalisation and view, deterministic,
     acting at the env's control rate as its ``DecisionEnv`` did in training: a new decision every
-    ``action_repeat`` steps, held in between, added (times ``residual_scale``) to the scripted
-    no-model action of every step if residual."""
+    ``action_repeat`` steps from the observation less the estimates if it hid them, held in
+    between, added (times ``residual_scale``) to the action of its scripted base controller
+    (``base_model``) at every step if residual."""
 
     trajectory = None
 
@@ -156,7 +158,9 @@ class TrainedPolicy:
         self.normalizer.training = False
         self.view = self.config["view"]
         kwargs = self.config["env_kwargs"]
-        self.observe_estimates = kwargs["observe_estimates"]
+        self.observe_estimates = kwargs["observe_estimates"]  # the env's observation
+        self.hide_estimates = bool(kwargs.get("hide_estimates", False))
+        self.base_model = kwargs.get("base_model", "none")
         self.residual_scale = float(kwargs.get("residual_scale", 0.0))
         self.action_repeat = int(kwargs.get("action_repeat", 1))
         self.decision = {"residual_scale": self.residual_scale, "action_repeat": self.action_repeat}
@@ -164,15 +168,23 @@ class TrainedPolicy:
         self.base = None
         self.held: np.ndarray | None = None
         self.steps = 0
+        self.policy_obs = slice(None)
 
     def reset(self, env) -> None:
+        from astrocargo.envs.wrappers import policy_observation_index
+
         self.steps, self.held = 0, None
+        # The observation as it is unless hidden: a copy would change torch's float rounding.
+        if self.hide_estimates:
+            self.policy_obs = policy_observation_index(env.sim.obs_layout, True)
         if self.residual_scale:
-            self.base = ObservationController.for_env(env, "none")
+            self.base = ObservationController.for_env(env, self.base_model)
 
     def decide(self, obs: np.ndarray) -> np.ndarray:
-        """The model's deterministic action (n, 8) from the observations (n, obs_dim)."""
+        """The model's deterministic action (n, 8) from the policy's part of the env's
+        observations (n, obs_dim): after ``reset``, the part it saw in training."""
         n = obs.shape[0]
+        obs = np.stack([row[self.policy_obs] for row in obs])  # rows as DecisionEnv gives them
         if self.view == "central":
             obs = obs.reshape(1, -1)
         action, _ = self.model.predict(self.normalizer.normalize_obs(obs), deterministic=True)
@@ -426,9 +438,16 @@ def arm_key(config: dict) -> str:
     hyperparameters, training length)."""
     kwargs = config["env_kwargs"]
     residual = kwargs.get("residual_scale", 0.0)
-    kind = f"{config['algo'].upper()}{f' residual x{residual:g}' if residual else ''}"
-    obs = "with" if kwargs["observe_estimates"] else "without"
+    base = kwargs.get("base_model", "none")
+    on = f" on {base}" if base != "none" else ""
+    kind = f"{config['algo'].upper()}{f' residual x{residual:g}{on}' if residual else ''}"
+    obs = "with" if policy_observes_estimates(kwargs) else "without"
     return f"{kind}, {config['view']}, task {config.get('task', '?')}, {obs} estimates"
+
+
+def policy_observes_estimates(env_kwargs: dict) -> bool:
+    """Whether a run's policy saw the estimates (the env observed them and did not hide them)."""
+    return bool(env_kwargs["observe_estimates"]) and not env_kwargs.get("hide_estimates", False)
 
 
 def ablation(results: list[dict]) -> dict:
@@ -456,7 +475,7 @@ def ablation(results: list[dict]) -> dict:
                 per[m] = {"per_seed": values.tolist(), "mean": float(values.mean()), "std": spread}
     pairs = []
     for key, arm in arms.items():
-        if not arm["config"]["env_kwargs"]["observe_estimates"]:
+        if not policy_observes_estimates(arm["config"]["env_kwargs"]):
             continue
         other = key.replace("with estimates", "without estimates")
         if other not in arms:
@@ -666,7 +685,8 @@ def task_of(args: argparse.Namespace, trained: list[dict]) -> dict[str, Any]:
         task = dict(trained[0]["env_kwargs"])
     else:
         task = {**LEARNING_TASKS[args.task or DEFAULT_TASK], "n_robots": 2}
-    for key in ("residual_scale", "action_repeat", "observe_estimates", "estimators"):
+    decision = ("residual_scale", "action_repeat", "base_model", "hide_estimates")
+    for key in (*decision, "observe_estimates", "estimators"):
         task.pop(key, None)
     for flag in TASK_FLAGS:
         value = getattr(args, flag)
