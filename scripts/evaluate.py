@@ -17,7 +17,9 @@ return (mean over robots), the cargo tracking error (true pose, mean over the ep
 its end), the estimators' errors at the end (mean over robots), the time after which the mass
 error stays within 5 %, the saturation share (``infos["saturated"]``, mean over steps and
 robots) and the episodes ended by wall contact; ``--bound`` adds robot 0's principal-moment
-bound at the end (Cramer-Rao bound of its updates, relative, and the filter's own spread).
+bound at the end (Cramer-Rao bound of its updates, relative, and the filter's own spread);
+``--correction`` adds how much the live estimate changes the scripted thrust (``ModelCorrection``:
+the residual a policy on the no-model controller would have to learn).
 ``--ablation`` groups run folders into arms (same configuration but the seed) and prints, per
 mass bin, each arm's mean and spread over seeds and whether the difference between arms that
 differ only in observing the estimates exceeds that spread. ``--json`` writes everything.
@@ -87,6 +89,8 @@ BOUND_METRICS = (
     ("filter_principal_rel", "filter I1/I2/I3"),
 )
 MASS_CONV_TOL = 0.05  # mass_conv_s: the mass error stays within this (relative) from then on
+CORRECTION_METRICS = (("correction_mean", "correction"), ("correction_p95", "correction p95"))
+CORRECTION_AFTER_S = 6.0  # the mass estimate is within 5 % by then (docs/learning.md)
 POLICY_HELP = (
     "'zero', 'scripted' or a run folder of scripts/train.py (with model.zip and config.json); "
     "'scripted:MODEL@TRAJECTORY' picks the cargo model (estimate, none, truth) and trajectory"
@@ -240,8 +244,42 @@ def make_policy(spec: str, cargo_model: str):
 # --------------------------------------------------------------------------- episodes
 
 
+class ModelCorrection:
+    """What the live estimate changes in the scripted controller's thrust, along an episode: at
+    every step from ``after_s`` on, per robot, the largest |a_estimate - a_none| over the six
+    thrust entries of the actions of ``ObservationController`` with the "estimate" and the
+    "none" cargo model from the same observation (fractions of each axis' thrust limit). It is
+    the residual a policy on the no-model controller has to add to match the live-estimate
+    controller; in the policy's action units it is this over ``residual_scale``."""
+
+    def __init__(self, env, after_s: float = CORRECTION_AFTER_S) -> None:
+        self.estimate = ObservationController.for_env(env, "estimate")
+        self.none = ObservationController.for_env(env, "none")
+        self.after_s = after_s
+        self.values: list[np.ndarray] = []
+
+    def record(self, obs: np.ndarray, time_s: float) -> None:
+        if time_s >= self.after_s:
+            diff = self.estimate.predict(obs)[0][:, :6] - self.none.predict(obs)[0][:, :6]
+            self.values.append(np.abs(diff).max(axis=1))
+
+    def metrics(self) -> dict[str, float]:
+        """``correction_mean`` and ``correction_p95`` (95th percentile) over steps and robots."""
+        values = np.concatenate(self.values) if self.values else np.full(1, np.nan)
+        return {
+            "correction_mean": float(np.mean(values)),
+            "correction_p95": float(np.percentile(values, 95)),
+        }
+
+
 def run_episode(
-    policy, env, seed: int, frames: list | None = None, every: int = 8, bound: bool = False
+    policy,
+    env,
+    seed: int,
+    frames: list | None = None,
+    every: int = 8,
+    bound: bool = False,
+    correction: bool = False,
 ) -> dict:
     """One seeded episode at the env's control rate; returns its metrics."""
     from astrocargo.estimator.baselines import convergence_time
@@ -251,8 +289,11 @@ def run_episode(
     agents = env.possible_agents
     total, pos_errs, att_errs, times, mass_errs, saturated, step = 0.0, [], [], [], [], [], 0
     terms = dict.fromkeys(REWARD_TERMS, 0.0)
+    model = ModelCorrection(env) if correction else None
     while env.agents:
         obs = np.stack([obs_dict[a] for a in agents])
+        if model is not None:
+            model.record(obs, times[-1] if times else 0.0)
         actions = policy.act(obs)
         obs_dict, rewards, _, _, infos = env.step(dict(zip(agents, actions, strict=True)))
         total += float(np.mean([rewards[a] for a in agents]))
@@ -289,6 +330,8 @@ def run_episode(
     }
     if bound:
         row.update(principal_bounds(env.sim))
+    if model is not None:
+        row.update(model.metrics())
     return row
 
 
@@ -326,7 +369,8 @@ def summarise(rows: list[dict]) -> dict:
     """Mean and standard deviation over episodes of every metric (nan-aware: mass_conv_s is nan
     in an episode where the mass error never stays within the tolerance)."""
     summary = {}
-    keys = [k for k, _, _ in METRICS] + [k for k, _ in BOUND_METRICS if k in rows[0]]
+    extra = BOUND_METRICS + CORRECTION_METRICS
+    keys = [k for k, _, _ in METRICS] + [k for k, _ in extra if k in rows[0]]
     keys += [f"return_{term}" for term in REWARD_TERMS]
     for key in keys:
         values = np.array([r[key] for r in rows], dtype=float)
@@ -347,9 +391,12 @@ def evaluate(
     video: Path | None,
     bins: list[tuple[float, float]] | None = None,
     bound: bool = False,
+    correction: bool = False,
 ) -> dict:
     """Every episode of one policy (per mass bin), and the mean and standard deviation of each
-    metric per bin and over all episodes."""
+    metric per bin and over all episodes (``bound``, ``correction``: see ``run_episode``; the
+    correction only where the policy's env observes the estimates)."""
+    correction = correction and policy.observe_estimates
     start = time.perf_counter()
     rows, per_bin = [], {}
     for bounds in bins or mass_bins(None, task):
@@ -366,7 +413,9 @@ def evaluate(
         bin_rows = []
         for k in range(episodes):
             frames = [] if video and k == 0 and not rows else None
-            bin_rows.append(run_episode(policy, env, seed + k, frames, bound=bound))
+            bin_rows.append(
+                run_episode(policy, env, seed + k, frames, bound=bound, correction=correction)
+            )
             if frames:
                 video.mkdir(parents=True, exist_ok=True)
                 safe = "".join(c if c.isalnum() else "_" for c in policy.name).strip("_")
@@ -406,6 +455,7 @@ def _cell(stat: dict, fmt: str) -> str:
 def print_table(results: list[dict]) -> None:
     width = max(len(r["policy"]) for r in results) + 14
     bound = [(k, label) for k, label in BOUND_METRICS if k in results[0]["summary"]]
+    bound += [(k, label) for k, label in CORRECTION_METRICS if k in results[0]["summary"]]
     print(
         f"{'policy':<{width}}"
         + "".join(f"{label:>20}" for _, label, _ in METRICS)
@@ -416,7 +466,7 @@ def print_table(results: list[dict]) -> None:
             list(r["bins"].items()) if len(r["bins"]) > 1 else []
         ):
             cells = [_cell(summary[key], fmt) for key, _, fmt in METRICS]
-            cells += [_cell(summary[key], "{:.3f}") for key, _ in bound]
+            cells += [_cell(summary[key], "{:.3f}") if key in summary else "-" for key, _ in bound]
             print(
                 f"{r['policy'] + ' [' + name + ']':<{width}}"
                 + "".join(f"{c:>20}" for c in cells[: len(METRICS)])
@@ -640,6 +690,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="robot 0's principal-moment bound at the end (records the estimators' updates)",
     )
     parser.add_argument(
+        "--correction",
+        action="store_true",
+        help="the live estimate's change of the scripted thrust from 6 s on, |a_estimate - "
+        "a_none| (needs the estimates in the env's observation)",
+    )
+    parser.add_argument(
         "--ablation", action="store_true", help="group run folders into arms over seeds"
     )
     parser.add_argument("--json", type=Path, metavar="FILE", help="write the results here")
@@ -708,7 +764,16 @@ def main(argv: list[str] | None = None) -> int:
     results = []
     for policy in policies:
         results.append(
-            evaluate(policy, task, args.episodes, args.seed, args.video, bins, args.bound)
+            evaluate(
+                policy,
+                task,
+                args.episodes,
+                args.seed,
+                args.video,
+                bins,
+                args.bound,
+                args.correction,
+            )
         )
         print(f"  {policy.name}: {results[-1]['wall_s']:.0f} s")
     if results:

@@ -540,6 +540,20 @@ def test_evaluate_bins_masses_and_bounds_the_principal_moments(tmp_path):
     assert np.all(np.array(worst_tumble) < np.array(worst))
 
 
+def test_correction_is_what_the_estimate_adds_and_grows_with_the_mass(tmp_path):
+    evaluate = _load_script("evaluate")
+    out = tmp_path / "eval.json"
+    argv = ["--policy", "scripted", "scripted:none", "--episodes", "1", "--task", "cargo"]
+    argv += ["--max-cycles", "450", "--mass-bins", "1,2,19,20", "--correction"]
+    assert evaluate.main(argv + ["--json", str(out)]) == 0
+    estimate, none = json.loads(out.read_text())["results"]
+    light, _, heavy = (e["correction_mean"] for e in estimate["episodes"])
+    # The estimate's share of the thrust scales with the cargo's mass (about 20x from 1 to 20 kg).
+    assert 0 < light and heavy > 5 * light
+    for e in estimate["episodes"] + none["episodes"]:
+        assert e["correction_p95"] >= e["correction_mean"]
+
+
 def test_train_parses_tasks_and_the_residual(capsys, tmp_path):
     train = _load_script("train")
     out = str(tmp_path)
