@@ -61,6 +61,7 @@ from cli import (  # noqa: E402
 
 from astrocargo.agents.controllers import CARGO_MODELS, ObservationController  # noqa: E402
 from astrocargo.agents.excitation import is_trajectory_name, trajectory_choices  # noqa: E402
+from astrocargo.agents.model_correction import ModelCorrection  # noqa: E402
 from astrocargo.agents.trajectories import Trajectory  # noqa: E402
 from astrocargo.envs import astrobee_cargo_v0  # noqa: E402
 from astrocargo.envs.config import LEARNING_TASKS, REWARD_TERMS  # noqa: E402
@@ -90,7 +91,6 @@ BOUND_METRICS = (
 )
 MASS_CONV_TOL = 0.05  # mass_conv_s: the mass error stays within this (relative) from then on
 CORRECTION_METRICS = (("correction_mean", "correction"), ("correction_p95", "correction p95"))
-CORRECTION_AFTER_S = 6.0  # the mass estimate is within 5 % by then (docs/learning.md)
 POLICY_HELP = (
     "'zero', 'scripted' or a run folder of scripts/train.py (with model.zip and config.json); "
     "'scripted:MODEL@TRAJECTORY' picks the cargo model (estimate, none, truth) and trajectory"
@@ -242,34 +242,6 @@ def make_policy(spec: str, cargo_model: str):
 
 
 # --------------------------------------------------------------------------- episodes
-
-
-class ModelCorrection:
-    """What the live estimate changes in the scripted controller's thrust, along an episode: at
-    every step from ``after_s`` on, per robot, the largest |a_estimate - a_none| over the six
-    thrust entries of the actions of ``ObservationController`` with the "estimate" and the
-    "none" cargo model from the same observation (fractions of each axis' thrust limit). It is
-    the residual a policy on the no-model controller has to add to match the live-estimate
-    controller; in the policy's action units it is this over ``residual_scale``."""
-
-    def __init__(self, env, after_s: float = CORRECTION_AFTER_S) -> None:
-        self.estimate = ObservationController.for_env(env, "estimate")
-        self.none = ObservationController.for_env(env, "none")
-        self.after_s = after_s
-        self.values: list[np.ndarray] = []
-
-    def record(self, obs: np.ndarray, time_s: float) -> None:
-        if time_s >= self.after_s:
-            diff = self.estimate.predict(obs)[0][:, :6] - self.none.predict(obs)[0][:, :6]
-            self.values.append(np.abs(diff).max(axis=1))
-
-    def metrics(self) -> dict[str, float]:
-        """``correction_mean`` and ``correction_p95`` (95th percentile) over steps and robots."""
-        values = np.concatenate(self.values) if self.values else np.full(1, np.nan)
-        return {
-            "correction_mean": float(np.mean(values)),
-            "correction_p95": float(np.percentile(values, 95)),
-        }
 
 
 def run_episode(
