@@ -12,7 +12,9 @@
   (e.g. ``ObservationController``) on all the slots of a ``SharedPolicyVecEnv``.
 - ``DecisionEnv``: the parallel env as a learned policy sees it: one decision every
   ``action_repeat`` control steps, optionally a residual added to the thrust of the scripted
-  no-model controller (``cargo_env_fn(residual_scale=..., action_repeat=...)`` builds it).
+  controller with no cargo model or with the live estimate, optionally with the estimates
+  hidden from the policy (``cargo_env_fn(residual_scale=..., action_repeat=..., base_model=...,
+  hide_estimates=...)`` builds it).
 - ``fast_inference``: SB3's ``predict`` without its per-call overhead, the same actions.
 - ``CentralizedCargoEnv``: a single-agent ``gymnasium.Env`` in which one policy drives all robots:
   the observation is the robots' observations concatenated in agent order, the action the robots'
@@ -52,29 +54,44 @@ from stable_baselines3.common.vec_env.base_vec_env import (
 
 from astrocargo.envs import ENV_ID  # noqa: F401  (registered by astrocargo/envs/__init__.py)
 from astrocargo.envs.config import LEARNING_TASKS
+from astrocargo.envs.observations import ESTIMATE_BLOCKS
 
 # The task of the training benchmark (scripts/benchmark_performance.py).
 LEARNING_TASK: dict[str, Any] = LEARNING_TASKS["figure8_10s"]
 
 
 def cargo_env_fn(
-    residual_scale: float = 0.0, action_repeat: int = 1, **env_kwargs: Any
+    residual_scale: float = 0.0,
+    action_repeat: int = 1,
+    base_model: str = "none",
+    hide_estimates: bool = False,
+    **env_kwargs: Any,
 ) -> Callable[[], ParallelEnv]:
     """A picklable factory of ``astrobee_cargo_v0.parallel_env(**env_kwargs)``, wrapped in
-    ``DecisionEnv(env, residual_scale, action_repeat)`` unless those are 0 and 1."""
+    ``DecisionEnv(env, residual_scale, action_repeat, base_model, hide_estimates)`` unless those
+    are the defaults (0, 1, "none", False)."""
     return functools.partial(
-        _make_cargo_env, residual_scale=residual_scale, action_repeat=action_repeat, **env_kwargs
+        _make_cargo_env,
+        residual_scale=residual_scale,
+        action_repeat=action_repeat,
+        base_model=base_model,
+        hide_estimates=hide_estimates,
+        **env_kwargs,
     )
 
 
 def _make_cargo_env(
-    residual_scale: float = 0.0, action_repeat: int = 1, **env_kwargs: Any
+    residual_scale: float = 0.0,
+    action_repeat: int = 1,
+    base_model: str = "none",
+    hide_estimates: bool = False,
+    **env_kwargs: Any,
 ) -> ParallelEnv:
     from astrocargo.envs import astrobee_cargo_v0
 
     env = astrobee_cargo_v0.parallel_env(**env_kwargs)
-    if residual_scale or action_repeat != 1:
-        return DecisionEnv(env, residual_scale, action_repeat)
+    if residual_scale or action_repeat != 1 or base_model != "none" or hide_estimates:
+        return DecisionEnv(env, residual_scale, action_repeat, base_model, hide_estimates)
     return env
 
 
@@ -90,8 +107,17 @@ def residual_actions(base: np.ndarray, residual: np.ndarray, residual_scale: flo
     return out
 
 
-def check_decision_args(residual_scale: Any, action_repeat: Any) -> tuple[float, int]:
-    """``residual_scale`` a number >= 0, ``action_repeat`` a positive integer (ValueError)."""
+# The cargo models a residual's base controller may use (``ObservationController``'s).
+BASE_MODELS = ("none", "estimate")
+
+
+def check_decision_args(
+    residual_scale: Any, action_repeat: Any, base_model: str = "none"
+) -> tuple[float, int]:
+    """``residual_scale`` a number >= 0, ``action_repeat`` a positive integer, ``base_model``
+    one of ``BASE_MODELS`` (ValueError)."""
+    if base_model not in BASE_MODELS:
+        raise ValueError(f"base_model must be one of {BASE_MODELS}, got {base_model!r}")
     scale = float(residual_scale)
     if not np.isfinite(scale) or scale < 0.0:
         raise ValueError(f"residual_scale must be a number >= 0, got {residual_scale!r}")
@@ -102,9 +128,21 @@ def check_decision_args(residual_scale: Any, action_repeat: Any) -> tuple[float,
     return scale, int(action_repeat)
 
 
+def policy_observation_index(layout: dict[str, slice], hide_estimates: bool) -> np.ndarray:
+    """Indices of the env's observation (``layout``: ``sim.obs_layout``) that a policy sees:
+    all, or with ``hide_estimates`` all but the estimate blocks (ValueError if there are none)."""
+    index = np.arange(layout["all"].stop)
+    if not hide_estimates:
+        return index
+    if "estimate_mean" not in layout:
+        raise ValueError("hide_estimates needs an env that observes the estimates")
+    hidden = np.concatenate([index[layout[name]] for name, _ in ESTIMATE_BLOCKS])
+    return np.setdiff1d(index, hidden)
+
+
 class DecisionEnv(ParallelEnv):
     """The env as a learned policy sees it: one decision every ``action_repeat`` control steps,
-    and optionally a residual on top of the scripted controller.
+    optionally a residual on top of the scripted controller, optionally without the estimates.
 
     Each control step k of a decision's ``action_repeat`` steps sends robot i
 
@@ -117,11 +155,16 @@ class DecisionEnv(ParallelEnv):
     are the scripted controller's (noise on the arm targets swings the arms and, with them, the
     grasp: a residual of std 0.02 on all eight entries multiplied the cargo's position error by
     five, docs/learning.md); without, a_i in [-1, 1]^8 is the whole action. a_base,i(k) is the
-    action of ``ObservationController`` with ``cargo_model="none"`` (the cooperative controller
-    that models the robots only, no cargo) from the observation of step k: the scripted feedback
-    runs at the control rate, the residual at the decision rate. The env clips each entry to
-    [-1, 1]. Zero residual actions are the no-model scripted controller. The controller reads
-    only the observation, never the truth.
+    action of ``ObservationController`` with ``cargo_model=base_model`` from the observation of
+    step k: "none" (the cooperative controller that models the robots only, no cargo) or
+    "estimate" (the cargo from each robot's live estimate; the env must observe the estimates).
+    The scripted feedback runs at the control rate, the residual at the decision rate. The env
+    clips each entry to [-1, 1]. Zero residual actions are the base controller. The controller
+    reads only the observation, never the truth.
+
+    ``hide_estimates``: the policy's observation is the env's without the estimate blocks
+    (``estimate_mean``, ``estimate_std``), while the base controller still reads them: the
+    ablation of what observing the estimates adds to a residual on the "estimate" base.
 
     A decision returns the last step's observations, terminations, truncations and infos and
     the sum of its steps' rewards; it ends early when the episode ends. Each agent's info gets
@@ -130,8 +173,18 @@ class DecisionEnv(ParallelEnv):
     the wrapped env counts control steps: an episode has max_cycles / action_repeat decisions.
     """
 
-    def __init__(self, env: ParallelEnv, residual_scale: float = 0.0, action_repeat: int = 1):
-        self.residual_scale, self.action_repeat = check_decision_args(residual_scale, action_repeat)
+    def __init__(
+        self,
+        env: ParallelEnv,
+        residual_scale: float = 0.0,
+        action_repeat: int = 1,
+        base_model: str = "none",
+        hide_estimates: bool = False,
+    ):
+        self.residual_scale, self.action_repeat = check_decision_args(
+            residual_scale, action_repeat, base_model
+        )
+        self.base_model = base_model
         self.env = env
         self.possible_agents = list(env.possible_agents)
         self.metadata = env.metadata
@@ -139,6 +192,11 @@ class DecisionEnv(ParallelEnv):
         self.controller: Any = None
         self._obs: dict[str, np.ndarray] = {}
         self._residual_space = spaces.Box(-1.0, 1.0, (RESIDUAL_DIM,), np.float32)
+        self.policy_obs = policy_observation_index(env.sim.obs_layout, hide_estimates)
+        space = env.observation_space(self.possible_agents[0])
+        self._obs_space = spaces.Box(
+            space.low[self.policy_obs], space.high[self.policy_obs], dtype=space.dtype
+        )
 
     @property
     def agents(self) -> list[str]:
@@ -155,7 +213,7 @@ class DecisionEnv(ParallelEnv):
         return getattr(self.env, name)  # max_cycles, ... of the wrapped env
 
     def observation_space(self, agent: str) -> spaces.Space:
-        return self.env.observation_space(agent)
+        return self._obs_space
 
     def action_space(self, agent: str) -> spaces.Space:
         space = self.env.action_space(agent)
@@ -166,9 +224,12 @@ class DecisionEnv(ParallelEnv):
 
         obs, infos = self.env.reset(seed=seed, options=options)
         if self.residual_scale:
-            self.controller = ObservationController.for_env(self.env, "none")
+            self.controller = ObservationController.for_env(self.env, self.base_model)
         self._obs = obs
-        return obs, infos
+        return self._policy_view(obs), infos
+
+    def _policy_view(self, obs: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        return {a: o[self.policy_obs] for a, o in obs.items()}
 
     def base_actions(self) -> dict[str, np.ndarray]:
         """a_base of every live agent from the last observation (zeros without a residual)."""
@@ -204,7 +265,7 @@ class DecisionEnv(ParallelEnv):
             info["saturated_mean"] = saturated[a] / steps
             if self.residual_scale and a in base:
                 info["base_action"] = base[a]
-        return obs, {a: total[a] for a in rewards}, terms, truncs, infos
+        return self._policy_view(obs), {a: total[a] for a in rewards}, terms, truncs, infos
 
     def render(self) -> Any:
         return self.env.render()

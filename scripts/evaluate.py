@@ -7,16 +7,19 @@ A policy is a run folder of scripts/train.py (``model.zip``, ``vecnormalize.pkl`
 and the same noise draws. With ``--mass-bins`` each bin [low, high) of cargo masses gets its own
 ``--episodes`` episodes (the mass drawn uniformly within the bin, seeds ``--seed + k`` again).
 Every episode runs at the env's control rate: a trained policy decides every ``action_repeat``
-steps (its ``DecisionEnv``) and, if residual, its action is added to the scripted no-model
-action of every step, exactly as in training. The estimators always run (they do not change
-the physics), so their errors are reported whatever the policy observes.
+steps (its ``DecisionEnv``) and, if residual, its action is added to the action of its scripted
+base controller (no cargo model or the live estimate) at every step, exactly as in training. The
+estimators always run (they do not change the physics), so their errors are reported whatever the
+policy observes.
 
 Per policy (and bin) it prints mean and spread (standard deviation over episodes) of the
 return (mean over robots), the cargo tracking error (true pose, mean over the episode and at
 its end), the estimators' errors at the end (mean over robots), the time after which the mass
 error stays within 5 %, the saturation share (``infos["saturated"]``, mean over steps and
 robots) and the episodes ended by wall contact; ``--bound`` adds robot 0's principal-moment
-bound at the end (Cramer-Rao bound of its updates, relative, and the filter's own spread).
+bound at the end (Cramer-Rao bound of its updates, relative, and the filter's own spread);
+``--correction`` adds how much the live estimate changes the scripted thrust (``ModelCorrection``:
+the residual a policy on the no-model controller would have to learn).
 ``--ablation`` groups run folders into arms (same configuration but the seed) and prints, per
 mass bin, each arm's mean and spread over seeds and whether the difference between arms that
 differ only in observing the estimates exceeds that spread. ``--json`` writes everything.
@@ -58,6 +61,7 @@ from cli import (  # noqa: E402
 
 from astrocargo.agents.controllers import CARGO_MODELS, ObservationController  # noqa: E402
 from astrocargo.agents.excitation import is_trajectory_name, trajectory_choices  # noqa: E402
+from astrocargo.agents.model_correction import ModelCorrection  # noqa: E402
 from astrocargo.agents.trajectories import Trajectory  # noqa: E402
 from astrocargo.envs import astrobee_cargo_v0  # noqa: E402
 from astrocargo.envs.config import LEARNING_TASKS, REWARD_TERMS  # noqa: E402
@@ -86,6 +90,7 @@ BOUND_METRICS = (
     ("filter_principal_rel", "filter I1/I2/I3"),
 )
 MASS_CONV_TOL = 0.05  # mass_conv_s: the mass error stays within this (relative) from then on
+CORRECTION_METRICS = (("correction_mean", "correction"), ("correction_p95", "correction p95"))
 POLICY_HELP = (
     "'zero', 'scripted' or a run folder of scripts/train.py (with model.zip and config.json); "
     "'scripted:MODEL@TRAJECTORY' picks the cargo model (estimate, none, truth) and trajectory"
@@ -133,8 +138,9 @@ class ScriptedPolicy:
 class TrainedPolicy:
     """A scripts/train.py run: its model, observation normalisation and view, deterministic,
     acting at the env's control rate as its ``DecisionEnv`` did in training: a new decision every
-    ``action_repeat`` steps, held in between, added (times ``residual_scale``) to the scripted
-    no-model action of every step if residual."""
+    ``action_repeat`` steps from the observation less the estimates if it hid them, held in
+    between, added (times ``residual_scale``) to the action of its scripted base controller
+    (``base_model``) at every step if residual."""
 
     trajectory = None
 
@@ -156,7 +162,9 @@ class TrainedPolicy:
         self.normalizer.training = False
         self.view = self.config["view"]
         kwargs = self.config["env_kwargs"]
-        self.observe_estimates = kwargs["observe_estimates"]
+        self.observe_estimates = kwargs["observe_estimates"]  # the env's observation
+        self.hide_estimates = bool(kwargs.get("hide_estimates", False))
+        self.base_model = kwargs.get("base_model", "none")
         self.residual_scale = float(kwargs.get("residual_scale", 0.0))
         self.action_repeat = int(kwargs.get("action_repeat", 1))
         self.decision = {"residual_scale": self.residual_scale, "action_repeat": self.action_repeat}
@@ -164,15 +172,23 @@ class TrainedPolicy:
         self.base = None
         self.held: np.ndarray | None = None
         self.steps = 0
+        self.policy_obs = slice(None)
 
     def reset(self, env) -> None:
+        from astrocargo.envs.wrappers import policy_observation_index
+
         self.steps, self.held = 0, None
+        # The observation as it is unless hidden: a copy would change torch's float rounding.
+        if self.hide_estimates:
+            self.policy_obs = policy_observation_index(env.sim.obs_layout, True)
         if self.residual_scale:
-            self.base = ObservationController.for_env(env, "none")
+            self.base = ObservationController.for_env(env, self.base_model)
 
     def decide(self, obs: np.ndarray) -> np.ndarray:
-        """The model's deterministic action (n, 8) from the observations (n, obs_dim)."""
+        """The model's deterministic action (n, 8) from the policy's part of the env's
+        observations (n, obs_dim): after ``reset``, the part it saw in training."""
         n = obs.shape[0]
+        obs = np.stack([row[self.policy_obs] for row in obs])  # rows as DecisionEnv gives them
         if self.view == "central":
             obs = obs.reshape(1, -1)
         action, _ = self.model.predict(self.normalizer.normalize_obs(obs), deterministic=True)
@@ -229,7 +245,13 @@ def make_policy(spec: str, cargo_model: str):
 
 
 def run_episode(
-    policy, env, seed: int, frames: list | None = None, every: int = 8, bound: bool = False
+    policy,
+    env,
+    seed: int,
+    frames: list | None = None,
+    every: int = 8,
+    bound: bool = False,
+    correction: bool = False,
 ) -> dict:
     """One seeded episode at the env's control rate; returns its metrics."""
     from astrocargo.estimator.baselines import convergence_time
@@ -239,8 +261,11 @@ def run_episode(
     agents = env.possible_agents
     total, pos_errs, att_errs, times, mass_errs, saturated, step = 0.0, [], [], [], [], [], 0
     terms = dict.fromkeys(REWARD_TERMS, 0.0)
+    model = ModelCorrection(env) if correction else None
     while env.agents:
         obs = np.stack([obs_dict[a] for a in agents])
+        if model is not None:
+            model.record(obs, times[-1] if times else 0.0)
         actions = policy.act(obs)
         obs_dict, rewards, _, _, infos = env.step(dict(zip(agents, actions, strict=True)))
         total += float(np.mean([rewards[a] for a in agents]))
@@ -277,6 +302,8 @@ def run_episode(
     }
     if bound:
         row.update(principal_bounds(env.sim))
+    if model is not None:
+        row.update(model.metrics())
     return row
 
 
@@ -314,7 +341,8 @@ def summarise(rows: list[dict]) -> dict:
     """Mean and standard deviation over episodes of every metric (nan-aware: mass_conv_s is nan
     in an episode where the mass error never stays within the tolerance)."""
     summary = {}
-    keys = [k for k, _, _ in METRICS] + [k for k, _ in BOUND_METRICS if k in rows[0]]
+    extra = BOUND_METRICS + CORRECTION_METRICS
+    keys = [k for k, _, _ in METRICS] + [k for k, _ in extra if k in rows[0]]
     keys += [f"return_{term}" for term in REWARD_TERMS]
     for key in keys:
         values = np.array([r[key] for r in rows], dtype=float)
@@ -335,9 +363,12 @@ def evaluate(
     video: Path | None,
     bins: list[tuple[float, float]] | None = None,
     bound: bool = False,
+    correction: bool = False,
 ) -> dict:
     """Every episode of one policy (per mass bin), and the mean and standard deviation of each
-    metric per bin and over all episodes."""
+    metric per bin and over all episodes (``bound``, ``correction``: see ``run_episode``; the
+    correction only where the policy's env observes the estimates)."""
+    correction = correction and policy.observe_estimates
     start = time.perf_counter()
     rows, per_bin = [], {}
     for bounds in bins or mass_bins(None, task):
@@ -354,7 +385,9 @@ def evaluate(
         bin_rows = []
         for k in range(episodes):
             frames = [] if video and k == 0 and not rows else None
-            bin_rows.append(run_episode(policy, env, seed + k, frames, bound=bound))
+            bin_rows.append(
+                run_episode(policy, env, seed + k, frames, bound=bound, correction=correction)
+            )
             if frames:
                 video.mkdir(parents=True, exist_ok=True)
                 safe = "".join(c if c.isalnum() else "_" for c in policy.name).strip("_")
@@ -394,6 +427,7 @@ def _cell(stat: dict, fmt: str) -> str:
 def print_table(results: list[dict]) -> None:
     width = max(len(r["policy"]) for r in results) + 14
     bound = [(k, label) for k, label in BOUND_METRICS if k in results[0]["summary"]]
+    bound += [(k, label) for k, label in CORRECTION_METRICS if k in results[0]["summary"]]
     print(
         f"{'policy':<{width}}"
         + "".join(f"{label:>20}" for _, label, _ in METRICS)
@@ -404,7 +438,7 @@ def print_table(results: list[dict]) -> None:
             list(r["bins"].items()) if len(r["bins"]) > 1 else []
         ):
             cells = [_cell(summary[key], fmt) for key, _, fmt in METRICS]
-            cells += [_cell(summary[key], "{:.3f}") for key, _ in bound]
+            cells += [_cell(summary[key], "{:.3f}") if key in summary else "-" for key, _ in bound]
             print(
                 f"{r['policy'] + ' [' + name + ']':<{width}}"
                 + "".join(f"{c:>20}" for c in cells[: len(METRICS)])
@@ -426,9 +460,16 @@ def arm_key(config: dict) -> str:
     hyperparameters, training length)."""
     kwargs = config["env_kwargs"]
     residual = kwargs.get("residual_scale", 0.0)
-    kind = f"{config['algo'].upper()}{f' residual x{residual:g}' if residual else ''}"
-    obs = "with" if kwargs["observe_estimates"] else "without"
+    base = kwargs.get("base_model", "none")
+    on = f" on {base}" if base != "none" else ""
+    kind = f"{config['algo'].upper()}{f' residual x{residual:g}{on}' if residual else ''}"
+    obs = "with" if policy_observes_estimates(kwargs) else "without"
     return f"{kind}, {config['view']}, task {config.get('task', '?')}, {obs} estimates"
+
+
+def policy_observes_estimates(env_kwargs: dict) -> bool:
+    """Whether a run's policy saw the estimates (the env observed them and did not hide them)."""
+    return bool(env_kwargs["observe_estimates"]) and not env_kwargs.get("hide_estimates", False)
 
 
 def ablation(results: list[dict]) -> dict:
@@ -456,7 +497,7 @@ def ablation(results: list[dict]) -> dict:
                 per[m] = {"per_seed": values.tolist(), "mean": float(values.mean()), "std": spread}
     pairs = []
     for key, arm in arms.items():
-        if not arm["config"]["env_kwargs"]["observe_estimates"]:
+        if not policy_observes_estimates(arm["config"]["env_kwargs"]):
             continue
         other = key.replace("with estimates", "without estimates")
         if other not in arms:
@@ -621,6 +662,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="robot 0's principal-moment bound at the end (records the estimators' updates)",
     )
     parser.add_argument(
+        "--correction",
+        action="store_true",
+        help="the live estimate's change of the scripted thrust from 6 s on, |a_estimate - "
+        "a_none| (needs the estimates in the env's observation)",
+    )
+    parser.add_argument(
         "--ablation", action="store_true", help="group run folders into arms over seeds"
     )
     parser.add_argument("--json", type=Path, metavar="FILE", help="write the results here")
@@ -666,7 +713,8 @@ def task_of(args: argparse.Namespace, trained: list[dict]) -> dict[str, Any]:
         task = dict(trained[0]["env_kwargs"])
     else:
         task = {**LEARNING_TASKS[args.task or DEFAULT_TASK], "n_robots": 2}
-    for key in ("residual_scale", "action_repeat", "observe_estimates", "estimators"):
+    decision = ("residual_scale", "action_repeat", "base_model", "hide_estimates")
+    for key in (*decision, "observe_estimates", "estimators"):
         task.pop(key, None)
     for flag in TASK_FLAGS:
         value = getattr(args, flag)
@@ -688,7 +736,16 @@ def main(argv: list[str] | None = None) -> int:
     results = []
     for policy in policies:
         results.append(
-            evaluate(policy, task, args.episodes, args.seed, args.video, bins, args.bound)
+            evaluate(
+                policy,
+                task,
+                args.episodes,
+                args.seed,
+                args.video,
+                bins,
+                args.bound,
+                args.correction,
+            )
         )
         print(f"  {policy.name}: {results[-1]['wall_s']:.0f} s")
     if results:

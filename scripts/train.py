@@ -7,7 +7,8 @@ Two views of the multi-robot env:
 
 The task is one of ``LEARNING_TASKS`` (``--task``, default ``cargo``: 1-20 kg cargo, 30 s, env
 at 62.5 Hz, decisions at 12.5 Hz); ``--residual-scale S`` > 0 trains a residual policy whose
-action, times S, is added to the thrust of the scripted no-model controller (``DecisionEnv``).
+action, times S, is added to the thrust of the scripted controller (``DecisionEnv``), which has no
+cargo model (``--base-model none``) or each robot's live estimate (``--base-model estimate``).
 PPO, SAC or TD3 (``--algo``). Observations and rewards are normalised with ``VecNormalize``.
 The run folder receives ``model.zip``, ``vecnormalize.pkl``, ``config.json`` (every setting, the
 task, the seed, the wall time), ``monitor.csv`` (one row per finished episode of one robot or of
@@ -70,6 +71,7 @@ from astrocargo.agents.trajectories import Trajectory  # noqa: E402
 from astrocargo.envs.sensors import NOISE_PROFILES  # noqa: E402
 from astrocargo.envs.world import MAX_ROBOTS  # noqa: E402
 from astrocargo.envs.wrappers import (  # noqa: E402
+    BASE_MODELS,
     LEARNING_TASKS,
     CentralizedCargoEnv,
     check_decision_args,
@@ -190,11 +192,15 @@ def env_kwargs(args: argparse.Namespace) -> dict[str, Any]:
             kwargs[flag] = getattr(args, flag)
     kwargs.update(dict(args.env or []))
     kwargs["residual_scale"] = args.residual_scale
+    kwargs["base_model"] = args.base_model
     # The estimators do not change the physics: without their outputs in the observation they
     # are only cost, so they are switched off (evaluate.py runs them, to score them); a reward
-    # with an information term needs them.
-    kwargs["observe_estimates"] = args.estimates
-    kwargs["estimators"] = args.estimates or bool(kwargs.get("w_info", 0.0))
+    # with an information term needs them, and so does the "estimate" base controller, which
+    # reads them from the env's observation: --no-estimates then hides them from the policy.
+    observed = args.estimates or args.base_model == "estimate"
+    kwargs["observe_estimates"] = observed
+    kwargs["hide_estimates"] = observed and not args.estimates
+    kwargs["estimators"] = observed or bool(kwargs.get("w_info", 0.0))
     return kwargs
 
 
@@ -208,7 +214,8 @@ def task_name(args: argparse.Namespace) -> str:
 def bare_env_kwargs(args: argparse.Namespace) -> dict[str, Any]:
     """``env_kwargs`` without the decision wrapper's (RLlib's env is the bare parallel env)."""
     kwargs = env_kwargs(args)
-    del kwargs["residual_scale"], kwargs["action_repeat"]
+    for key in ("residual_scale", "action_repeat", "base_model", "hide_estimates"):
+        del kwargs[key]
     return kwargs
 
 
@@ -519,8 +526,15 @@ def build_parser() -> argparse.ArgumentParser:
         "--residual-scale",
         type=nonnegative_float,
         default=0.0,
-        help="> 0: residual policy, the env gets the scripted no-model action plus this times "
-        "the policy's action (DecisionEnv); 0: the policy's action alone",
+        help="> 0: residual policy, the env gets the scripted controller's action plus this "
+        "times the policy's action (DecisionEnv); 0: the policy's action alone",
+    )
+    parser.add_argument(
+        "--base-model",
+        choices=BASE_MODELS,
+        default="none",
+        help="the residual's scripted controller: no cargo model, or each robot's live estimate "
+        "(the estimators then run; --no-estimates hides them from the policy only)",
     )
     parser.add_argument(
         "--env",
@@ -561,9 +575,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     if not 1 <= args.robots <= MAX_ROBOTS:
         parser.error(f"--robots must be in 1..{MAX_ROBOTS}, got {args.robots}")
     try:
-        check_decision_args(args.residual_scale, args.action_repeat or 1)
+        check_decision_args(args.residual_scale, args.action_repeat or 1, args.base_model)
     except ValueError as err:
         parser.error(str(err))
+    if args.base_model != "none" and not args.residual_scale:
+        parser.error("--base-model is the residual's base controller: give --residual-scale > 0")
     if args.backend == "rllib":
         if args.algo != "ppo" or args.view != "shared":
             parser.error("--backend rllib trains PPO in the shared view only")

@@ -222,11 +222,18 @@ def trained_runs(tmp_path_factory):
         + common
         + ["--hyperparams", "n_steps=32", "batch_size=32", "n_epochs=1"]
     )
-    assert ppo == sac == res == 0
+    resb = train.main(
+        ["--algo", "ppo", "--copies", "1", "--timesteps", "64", "--log-dir", str(base / "resb")]
+        + ["--residual-scale", "0.3", "--action-repeat", "2", "--base-model", "estimate"]
+        + ["--no-estimates"]
+        + common
+        + ["--hyperparams", "n_steps=32", "batch_size=32", "n_epochs=1"]
+    )
+    assert ppo == sac == res == resb == 0
     return base
 
 
-@pytest.mark.parametrize("run", ["ppo", "sac", "res"])
+@pytest.mark.parametrize("run", ["ppo", "sac", "res", "resb"])
 def test_training_saves_and_loads_same_actions(trained_runs, run):
     evaluate = _load_script("evaluate")
     run_dir = trained_runs / run
@@ -237,6 +244,8 @@ def test_training_saves_and_loads_same_actions(trained_runs, run):
     env = cargo_env_fn(**config["env_kwargs"])()
     obs, _ = env.reset(seed=0)
     obs = np.stack(list(obs.values()))
+    if config["env_kwargs"].get("hide_estimates"):
+        policy.policy_obs = slice(None)  # the policy's view (env.reset gave it), as-is
     # The same policy object again from disk, and its normalised, deterministic actions.
     again = evaluate.TrainedPolicy(run_dir)
     np.testing.assert_array_equal(policy.decide(obs), again.decide(obs))
@@ -317,6 +326,60 @@ def test_zero_residual_is_the_scripted_no_model_controller():
     assert not wrapped.agents and winfos["astrobee_0"]["decision_steps"] == 1
 
 
+def test_zero_residual_on_the_estimate_base_is_the_live_estimate_controller():
+    kwargs = {**FAST, "max_cycles": 12, "observe_estimates": True, "estimators": True}
+    env = astrobee_cargo_v0.parallel_env(**kwargs)
+    wrapped = cargo_env_fn(residual_scale=0.4, base_model="estimate", **kwargs)()
+    obs, _ = env.reset(seed=7)
+    wrapped.reset(seed=7)
+    controller = ObservationController.for_env(env, "estimate")
+    none = ObservationController.for_env(env, "none")
+    zeros = dict.fromkeys(env.possible_agents, np.zeros(6))
+    differs = False
+    while env.agents:
+        actions = controller.predict(obs)[0]
+        differs |= any(np.any(actions[a] != none.predict(obs)[0][a]) for a in env.agents)
+        obs, rewards, *_ = env.step(actions)
+        wobs, wrewards, *_ = wrapped.step(zeros)
+        for a in env.possible_agents:
+            np.testing.assert_array_equal(obs[a], wobs[a])
+            assert rewards[a] == wrewards[a]
+    assert differs  # the estimate changes the base's action: the test can tell the two apart
+
+
+def test_hidden_estimates_leave_the_policy_without_them_and_the_base_with_them():
+    kwargs = {**FAST, "max_cycles": 12, "observe_estimates": True, "estimators": True}
+    env = astrobee_cargo_v0.parallel_env(**kwargs)
+    seen = cargo_env_fn(residual_scale=0.4, base_model="estimate", **kwargs)()
+    hidden = cargo_env_fn(
+        residual_scale=0.4, base_model="estimate", hide_estimates=True, **kwargs
+    )()
+    layout = env.sim.obs_layout
+    keep = np.ones(layout["all"].stop, dtype=bool)
+    keep[layout["estimate_mean"]] = keep[layout["estimate_std"]] = False
+    obs, _ = env.reset(seed=3)
+    sobs, _ = seen.reset(seed=3)
+    hobs, _ = hidden.reset(seed=3)
+    assert hidden.observation_space("astrobee_0").shape == (int(keep.sum()),)
+    assert seen.observation_space("astrobee_0").shape == (layout["all"].stop,)
+    residual = dict.fromkeys(env.possible_agents, np.full(6, 0.5))
+    while hidden.agents:
+        for a in env.possible_agents:
+            np.testing.assert_array_equal(hobs[a], sobs[a][keep])
+            assert hidden.observation_space(a).contains(hobs[a].astype(np.float32))
+        sobs, *_ = seen.step(residual)
+        hobs, *_ = hidden.step(residual)  # the same physics: the base still reads the estimates
+
+
+@pytest.mark.parametrize(
+    "kwargs",
+    [{"base_model": "truth"}, {"hide_estimates": True}],
+)
+def test_decision_env_rejects_bad_bases_and_hiding_what_is_not_observed(kwargs):
+    with pytest.raises(ValueError):
+        cargo_env_fn(residual_scale=0.3, **kwargs, **FAST)()
+
+
 def test_action_repeat_holds_the_action_and_sums_the_rewards():
     kwargs = {**FAST, "max_cycles": 7}
     env = astrobee_cargo_v0.parallel_env(**kwargs)
@@ -347,24 +410,29 @@ def test_decision_env_rejects_bad_arguments(kwargs):
         DecisionEnv(astrobee_cargo_v0.parallel_env(**FAST), **kwargs)
 
 
-def test_evaluation_replays_a_residual_policy_as_in_training(trained_runs):
-    """evaluate.py's TrainedPolicy at the control rate (repeat and residual done by itself) and
-    the training env's DecisionEnv driven by the same model make the same episode."""
+@pytest.mark.parametrize("run", ["res", "resb"])
+def test_evaluation_replays_a_residual_policy_as_in_training(trained_runs, run):
+    """evaluate.py's TrainedPolicy at the control rate (repeat, residual on its base and the
+    hidden estimates done by itself) and the training env's DecisionEnv driven by the same model
+    make the same episode."""
     evaluate = _load_script("evaluate")
-    policy = evaluate.TrainedPolicy(trained_runs / "res")
+    policy = evaluate.TrainedPolicy(trained_runs / run)
     kwargs = policy.config["env_kwargs"]
     assert kwargs["residual_scale"] == 0.3 and kwargs["action_repeat"] == 2
+    assert kwargs.get("hide_estimates", False) == (run == "resb")
     wrapped = cargo_env_fn(**kwargs)()
-    bare = astrobee_cargo_v0.parallel_env(
-        **{k: v for k, v in kwargs.items() if k not in ("residual_scale", "action_repeat")}
-    )
+    decision = ("residual_scale", "action_repeat", "base_model", "hide_estimates")
+    bare = astrobee_cargo_v0.parallel_env(**{k: v for k, v in kwargs.items() if k not in decision})
     wobs, _ = wrapped.reset(seed=3)
     obs, _ = bare.reset(seed=3)
     policy.reset(bare)
     agents = bare.possible_agents
     moved = False
+    view = policy.policy_obs
     while wrapped.agents:
+        policy.policy_obs = slice(None)  # the wrapped env hands the policy its view already
         decision = policy.decide(np.stack([wobs[a] for a in agents]))
+        policy.policy_obs = view
         moved |= bool(np.any(decision))
         wobs, *_ = wrapped.step(dict(zip(agents, decision, strict=True)))
         for _ in range(2):
@@ -373,7 +441,7 @@ def test_evaluation_replays_a_residual_policy_as_in_training(trained_runs):
                     dict(zip(agents, policy.act(np.stack([obs[a] for a in agents])), strict=True))
                 )
         for a in agents:
-            np.testing.assert_array_equal(obs[a], wobs[a])
+            np.testing.assert_array_equal(obs[a][view], wobs[a])
     assert moved  # the residual is not zero: the comparison tests the residual path
 
 
@@ -428,6 +496,27 @@ def test_ablation_compares_arms_with_the_seed_spread():
     assert diffs["heavy"]["track_pos_m"]["exceeds_spread"] is True
 
 
+def test_ablation_pairs_hidden_estimates_on_the_estimate_base():
+    evaluate = _load_script("evaluate")
+
+    def result(base, hide, seed):
+        kwargs = {"observe_estimates": True, "residual_scale": 0.3, "base_model": base}
+        config = {"algo": "ppo", "view": "shared", "task": "cargo", "seed": seed}
+        bins = {"all": {m: {"mean": 0.01 * seed, "std": 0.0} for m in evaluate.ABLATION_METRICS}}
+        return {
+            "config": {**config, "env_kwargs": {**kwargs, "hide_estimates": hide}},
+            "bins": bins,
+        }
+
+    results = [result("estimate", hide, s) for hide in (False, True) for s in (1, 2)]
+    results += [result("none", False, s) for s in (1, 2)]
+    table = evaluate.ablation(results)
+    assert len(table["arms"]) == 3 and len(table["pairs"]) == 1  # the none arm has no partner
+    pair = table["pairs"][0]
+    assert "on estimate" in pair["with"] and pair["with"].endswith("with estimates")
+    assert "on estimate" in pair["without"] and pair["without"].endswith("without estimates")
+
+
 def test_evaluate_bins_masses_and_bounds_the_principal_moments(tmp_path):
     evaluate = _load_script("evaluate")
     out = tmp_path / "eval.json"
@@ -451,6 +540,20 @@ def test_evaluate_bins_masses_and_bounds_the_principal_moments(tmp_path):
     assert np.all(np.array(worst_tumble) < np.array(worst))
 
 
+def test_correction_is_what_the_estimate_adds_and_grows_with_the_mass(tmp_path):
+    evaluate = _load_script("evaluate")
+    out = tmp_path / "eval.json"
+    argv = ["--policy", "scripted", "scripted:none", "--episodes", "1", "--task", "cargo"]
+    argv += ["--max-cycles", "450", "--mass-bins", "1,2,19,20", "--correction"]
+    assert evaluate.main(argv + ["--json", str(out)]) == 0
+    estimate, none = json.loads(out.read_text())["results"]
+    light, _, heavy = (e["correction_mean"] for e in estimate["episodes"])
+    # The estimate's share of the thrust scales with the cargo's mass (about 20x from 1 to 20 kg).
+    assert 0 < light and heavy > 5 * light
+    for e in estimate["episodes"] + none["episodes"]:
+        assert e["correction_p95"] >= e["correction_mean"]
+
+
 def test_train_parses_tasks_and_the_residual(capsys, tmp_path):
     train = _load_script("train")
     out = str(tmp_path)
@@ -465,6 +568,16 @@ def test_train_parses_tasks_and_the_residual(capsys, tmp_path):
     assert kwargs["estimators"] and not kwargs["observe_estimates"]
     args = train.parse_args(["--task", "cargo", "--no-estimates", "--log-dir", out])
     assert not train.env_kwargs(args)["estimators"]
+    # The estimate base reads the estimates: they run and are observed, hidden from the policy.
+    argv = ["--residual-scale", "0.3", "--base-model", "estimate", "--no-estimates"]
+    kwargs = train.env_kwargs(train.parse_args(argv + ["--log-dir", out]))
+    assert kwargs["base_model"] == "estimate" and kwargs["estimators"]
+    assert kwargs["observe_estimates"] and kwargs["hide_estimates"]
+    kwargs = train.env_kwargs(train.parse_args(argv[:4] + ["--log-dir", out]))
+    assert kwargs["observe_estimates"] and not kwargs["hide_estimates"]
+    with pytest.raises(SystemExit):
+        train.parse_args(["--base-model", "estimate", "--log-dir", out])
+    assert "--residual-scale > 0" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         train.parse_args(["--backend", "rllib", "--residual-scale", "0.3", "--log-dir", out])
     assert "no residual, no action repeat" in capsys.readouterr().err
