@@ -413,9 +413,7 @@ class RegressorAutocorrelation:
     run: per parameter column k, rho_k(L) = sum_i <A_i,k, A_i-L,k> over the pairs L updates
     apart, normalised by those pairs' mean power, then averaged over the columns with power (each
     parameter counts alike, whatever its units). Lags not yet seen take the longest seen lag's
-    value (one update seen: rho = 1, a slow regressor); until every lag has been seen
-    (``complete``) the noise model adds the per-update covariance G(0), so that neither a slow
-    nor a fast regressor is assumed."""
+    value (one update seen: rho = 1, a slow regressor)."""
 
     def __init__(self, n_lags: int) -> None:
         self.n_lags = int(n_lags)
@@ -435,11 +433,6 @@ class RegressorAutocorrelation:
             self._cross[lag] += np.einsum("rk,rk->k", a, b)
             self._power[lag] += 0.5 * (power + np.einsum("rk,rk->k", b, b))
         self._history.append((int(index), a))
-
-    @property
-    def complete(self) -> bool:
-        """Has every lag been seen?"""
-        return bool(np.all(self._power[:, self._power[0] > 0] > 0)) and self._power[0].any()
 
     def rho(self) -> np.ndarray:
         """rho(L) (n_lags + 1,), rho(0) = 1."""

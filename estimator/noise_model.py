@@ -297,8 +297,6 @@ class NoiseModel:
         nj = self._n_joints
         d_links, d_y = momentum_noise_columns(jac, (ahead - behind) / (2 * h), nj)
         w = lag_weighted_covariance(self._lag_cov, self.autocorrelation.rho())
-        if not self.autocorrelation.complete:  # lags unseen: neither slow nor fast assumed
-            w = w + self._lag_cov[0]
         blocks = [psd_factor(w[np.ix_(HELD_EXTENDED, HELD_EXTENDED)])] * 6
         blocks += [psd_factor(w[np.ix_(POINT_EXTENDED, POINT_EXTENDED)])] * nj
         factor = scipy.linalg.block_diag(*blocks)
