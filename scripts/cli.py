@@ -196,3 +196,21 @@ def check_trajectory(
         check(name, n_robots, fast)
     except ValueError as err:
         parser.error(f"--trajectory: {err}")
+
+
+def limits_parser(doc: str, robots_help: str) -> argparse.ArgumentParser:
+    """The parser of the estimation-limits scripts: one flight's scenario (robots, trajectory,
+    duration) flown for each of ``--seeds`` by ``--workers`` processes; ``doc`` the script's
+    docstring (its first paragraph is the description)."""
+    parser = argparse.ArgumentParser(
+        description=doc.split("\n\n")[0],
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    parser.add_argument("--robots", type=positive_int, default=2, help=robots_help)
+    parser.add_argument(
+        "--trajectory", type=trajectory, default="figure8_tumble", help="a name or a design"
+    )
+    parser.add_argument("--duration", type=positive_float, default=90.0, help="s, >= 8")
+    parser.add_argument("--seeds", type=nonnegative_int, nargs="+", default=[0], help=">= 0")
+    parser.add_argument("--workers", type=positive_int, default=2, help="processes")
+    return parser

@@ -88,17 +88,7 @@ sensors.NOISE_PROFILES.update({f"limits_{name}": profile for name, _, profile in
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        description=__doc__.split("\n\n")[0],
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
-    )
-    parser.add_argument("--robots", type=cli.positive_int, default=2, help="1 to 8")
-    parser.add_argument(
-        "--trajectory", type=cli.trajectory, default="figure8_tumble", help="a name or a design"
-    )
-    parser.add_argument("--duration", type=cli.positive_float, default=90.0, help="s, >= 8")
-    parser.add_argument("--seeds", type=cli.nonnegative_int, nargs="+", default=[0], help=">= 0")
-    parser.add_argument("--workers", type=cli.positive_int, default=2, help="processes")
+    parser = cli.limits_parser(__doc__, "1 to 8")
     parser.add_argument("--alone", action="store_true", help="each noise source alone: NEES")
     return parser
 

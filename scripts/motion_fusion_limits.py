@@ -93,17 +93,7 @@ CONTROL_HZ = bench.CONTROL_HZ
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        description=__doc__.split("\n\n")[0],
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
-    )
-    parser.add_argument("--robots", type=cli.positive_int, default=2, help="2 to 8")
-    parser.add_argument(
-        "--trajectory", type=cli.trajectory, default="figure8_tumble", help="a name or a design"
-    )
-    parser.add_argument("--duration", type=cli.positive_float, default=90.0, help="s, >= 8")
-    parser.add_argument("--seeds", type=cli.nonnegative_int, nargs="+", default=[0], help=">= 0")
-    parser.add_argument("--workers", type=cli.positive_int, default=2, help="processes")
+    parser = cli.limits_parser(__doc__, "2 to 8")
     parser.add_argument("--cache", type=Path, default=None, help="folder of recorded flights")
     parser.add_argument(
         "--lags", type=cli.positive_float, nargs="*", default=[4.0, 8.0, 16.0],
