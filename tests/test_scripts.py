@@ -11,6 +11,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"
@@ -288,3 +289,23 @@ def test_evaluate_parses_without_torch():
         "assert 'torch' not in sys.modules and 'stable_baselines3' not in sys.modules\n"
     )
     subprocess.run([sys.executable, "-c", code], check=True, timeout=120, capture_output=True)
+
+
+def test_same_results_compare_flags_a_change_beyond_rounding(tmp_path, capsys):
+    same = load("same_results")
+    rng = np.random.default_rng(0)
+    base = {"s/obs": rng.normal(size=(5, 2, 3)), "s/est": np.zeros((5, 2, 10))}
+    np.savez(tmp_path / "a.npz", **base)
+    rounding = {k: v * (1 + 1e-13) for k, v in base.items()}
+    np.savez(tmp_path / "b.npz", **rounding)
+    changed = dict(base, **{"s/obs": base["s/obs"] + 1e-6})
+    np.savez(tmp_path / "c.npz", **changed)
+    np.savez(tmp_path / "d.npz", **{"s/obs": base["s/obs"][:4], "s/est": base["s/est"]})
+    a, b, c, d = (str(tmp_path / f"{x}.npz") for x in "abcd")
+    assert same.main(["compare", a, b]) == 0
+    assert same.main(["compare", a, c]) == 1
+    assert same.main(["compare", a, d]) == 1  # a shape differs
+    assert "DIFFERENT" in capsys.readouterr().out
+    assert same.relative_difference(np.zeros(3), np.zeros(3)) == 0.0
+    with pytest.raises(SystemExit):
+        same.main(["compare", a, str(tmp_path / "missing.npz")])

@@ -1,0 +1,130 @@
+"""Same results: record seeded scenarios of the env, and compare two recordings.
+
+A change meant to keep results (a speed-up, a refactor) must leave the observations, rewards,
+estimates and ``state()`` of seeded runs unchanged to rounding. Record on the version before
+the change, record again after, compare:
+
+    .venv/bin/python scripts/same_results.py record out/before.npz
+    .venv/bin/python scripts/same_results.py record out/after.npz
+    .venv/bin/python scripts/same_results.py compare out/before.npz out/after.npz
+
+Scenarios: the scripted controller with live estimates (``ObservationController``, cargo model
+"estimate") flying each trajectory under ``nominal`` noise from a fixed seed, 1, 2, 3 and 8
+robots. ``compare`` prints the largest relative difference per array and exits 1 when one
+exceeds ``--rtol`` (default 1e-9) or the shapes differ.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from pathlib import Path
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+os.environ.setdefault("MUJOCO_GL", "egl")
+
+import numpy as np  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import cli  # noqa: E402
+
+# (name, robots, trajectory, seed, control steps); state() every STATE_EVERY steps.
+SCENARIOS = (
+    ("r1_yaw", 1, "figure8_yaw", 11, 700),
+    ("r2_tumble", 2, "figure8_tumble", 12, 1200),
+    ("r2_excite", 2, "excite", 13, 900),
+    ("r3_tumble", 3, "figure8_tumble", 14, 700),
+    ("r8_yaw", 8, "figure8_yaw", 15, 400),
+)
+STATE_EVERY = 50
+
+
+def record_scenario(n_robots: int, trajectory: str, seed: int, steps: int) -> dict:
+    """One scenario's arrays: observations (T, N, obs_dim), rewards (T, N), estimates
+    (T, N, 10) and ``state()`` every STATE_EVERY steps."""
+    from astrocargo.agents.controllers import ObservationController
+    from astrocargo.envs import astrobee_cargo_v0
+
+    env = astrobee_cargo_v0.parallel_env(
+        n_robots=n_robots, noise="nominal", trajectory=trajectory, max_cycles=steps + 10
+    )
+    obs, _ = env.reset(seed=seed)
+    controller = ObservationController.for_env(env, "estimate")
+    out = {"obs": [], "rew": [], "est": [], "state": []}
+    for k in range(steps):
+        actions, _ = controller.predict(obs)
+        obs, rewards, _, _, infos = env.step(actions)
+        if not obs:
+            break
+        agents = sorted(obs)
+        out["obs"].append(np.stack([obs[a] for a in agents]))
+        out["rew"].append(np.array([rewards[a] for a in agents]))
+        out["est"].append(np.stack([infos[a].get("estimate", np.zeros(10)) for a in agents]))
+        if k % STATE_EVERY == 0:
+            out["state"].append(env.state())
+    return {key: np.array(value) for key, value in out.items()}
+
+
+def record(path: Path) -> None:
+    arrays = {}
+    for name, n_robots, trajectory, seed, steps in SCENARIOS:
+        for key, value in record_scenario(n_robots, trajectory, seed, steps).items():
+            arrays[f"{name}/{key}"] = value
+        print(f"{name}: {len(arrays[f'{name}/obs'])} steps", flush=True)
+    np.savez_compressed(path, **arrays)
+    print(f"wrote {path}")
+
+
+def relative_difference(a: np.ndarray, b: np.ndarray) -> float:
+    """max |a - b| / max(|a|, |b|) elementwise, with values below 1e-12 of the array's largest
+    taken at that floor (so exact zeros on one side do not count as 100 %)."""
+    scale = np.maximum(np.abs(a), np.abs(b))
+    scale = np.maximum(scale, 1e-12 * max(1.0, float(np.abs(a).max(initial=0.0))))
+    return float(np.max(np.abs(a - b) / scale, initial=0.0))
+
+
+def compare(path_a: Path, path_b: Path, rtol: float) -> bool:
+    a, b = np.load(path_a), np.load(path_b)
+    same = set(a.files) == set(b.files)
+    if not same:
+        print(f"different arrays: only in A {sorted(set(a.files) - set(b.files))}, "
+              f"only in B {sorted(set(b.files) - set(a.files))}")  # fmt: skip
+    worst = 0.0
+    for key in sorted(set(a.files) & set(b.files)):
+        if a[key].shape != b[key].shape:
+            print(f"{key:20s} shape {a[key].shape} vs {b[key].shape}")
+            same = False
+            continue
+        rel = relative_difference(a[key], b[key])
+        worst = max(worst, rel)
+        print(f"{key:20s} max relative difference {rel:.3e}")
+    same = same and worst <= rtol
+    print(f"worst {worst:.3e}: {'same results' if same else 'DIFFERENT'} (rtol {rtol:g})")
+    return same
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], formatter_class=cli.Formatter
+    )
+    sub = parser.add_subparsers(dest="command", required=True)
+    rec = sub.add_parser("record", help="fly the scenarios and write their arrays (.npz)")
+    rec.add_argument("out", type=Path, help="the .npz file to write")
+    cmp_ = sub.add_parser("compare", help="compare two recordings")
+    cmp_.add_argument("a", type=Path)
+    cmp_.add_argument("b", type=Path)
+    cmp_.add_argument("--rtol", type=cli.nonnegative_float, default=1e-9)
+    args = parser.parse_args(argv)
+    if args.command == "record":
+        cli.output_file(parser, args.out, "out", suffix=".npz")
+        record(args.out)
+        return 0
+    for path in (args.a, args.b):
+        if not path.is_file():
+            parser.error(f"{path} is not a file")
+    return 0 if compare(args.a, args.b, args.rtol) else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
