@@ -198,15 +198,19 @@ def check_trajectory(
         parser.error(f"--trajectory: {err}")
 
 
-def limits_parser(doc: str, robots_help: str) -> argparse.ArgumentParser:
+def limits_parser(doc: str, min_robots: int) -> argparse.ArgumentParser:
     """The parser of the estimation-limits scripts: one flight's scenario (robots, trajectory,
     duration) flown for each of ``--seeds`` by ``--workers`` processes; ``doc`` the script's
     docstring (its first paragraph is the description)."""
+    from astrocargo.envs.world import MAX_ROBOTS
+
     parser = argparse.ArgumentParser(
         description=doc.split("\n\n")[0],
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
-    parser.add_argument("--robots", type=positive_int, default=2, help=robots_help)
+    parser.add_argument(
+        "--robots", type=positive_int, default=2, help=f"{min_robots} to {MAX_ROBOTS}"
+    )
     parser.add_argument(
         "--trajectory", type=trajectory, default="figure8_tumble", help="a name or a design"
     )
@@ -214,3 +218,21 @@ def limits_parser(doc: str, robots_help: str) -> argparse.ArgumentParser:
     parser.add_argument("--seeds", type=nonnegative_int, nargs="+", default=[0], help=">= 0")
     parser.add_argument("--workers", type=positive_int, default=2, help="processes")
     return parser
+
+
+def parse_limits_args(
+    parser: argparse.ArgumentParser, argv: list[str] | None, min_robots: int
+) -> argparse.Namespace:
+    """``parser``'s arguments (a ``limits_parser``) with the scenario checked: robots in
+    ``min_robots``..MAX_ROBOTS, a duration of at least 8 s, a trajectory for that team."""
+    from astrocargo.envs.world import MAX_ROBOTS
+
+    args = parser.parse_args(argv)
+    check(
+        parser,
+        min_robots <= args.robots <= MAX_ROBOTS,
+        f"--robots must be {min_robots} to {MAX_ROBOTS}, got {args.robots}",
+    )
+    check(parser, args.duration >= 8.0, f"--duration must be >= 8 s, got {args.duration}")
+    check_trajectory(parser, args.trajectory, args.robots)
+    return args

@@ -88,18 +88,13 @@ sensors.NOISE_PROFILES.update({f"limits_{name}": profile for name, _, profile in
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = cli.limits_parser(__doc__, "1 to 8")
+    parser = cli.limits_parser(__doc__, 1)
     parser.add_argument("--alone", action="store_true", help="each noise source alone: NEES")
     return parser
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    cli.check(parser, 1 <= args.robots <= 8, f"--robots must be 1 to 8, got {args.robots}")
-    cli.check(parser, args.duration >= 8.0, f"--duration must be >= 8 s, got {args.duration}")
-    cli.check_trajectory(parser, args.trajectory, args.robots)
-    return args
+    return cli.parse_limits_args(build_parser(), argv, 1)
 
 
 def _run(job: tuple[str, int, argparse.Namespace]) -> tuple[str, int, dict]:

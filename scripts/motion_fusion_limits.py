@@ -93,7 +93,7 @@ CONTROL_HZ = bench.CONTROL_HZ
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = cli.limits_parser(__doc__, "2 to 8")
+    parser = cli.limits_parser(__doc__, 2)
     parser.add_argument("--cache", type=Path, default=None, help="folder of recorded flights")
     parser.add_argument(
         "--lags", type=cli.positive_float, nargs="*", default=[4.0, 8.0, 16.0],
@@ -325,12 +325,7 @@ def rest_covariance(rec: dict) -> np.ndarray:
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    cli.check(parser, 2 <= args.robots <= 8, f"--robots must be 2 to 8, got {args.robots}")
-    cli.check(parser, args.duration >= 8.0, f"--duration must be >= 8 s, got {args.duration}")
-    cli.check_trajectory(parser, args.trajectory, args.robots)
-    return args
+    return cli.parse_limits_args(build_parser(), argv, 2)
 
 
 def _fly_cached(job: tuple[str, int, argparse.Namespace]) -> tuple[str, int, dict]:

@@ -189,18 +189,24 @@ def _object_velocity(model, data, body: int, local: bool) -> np.ndarray:
     return vel  # [angular; linear] at the body origin
 
 
-@pytest.mark.parametrize("seed", [0, 1])
-def test_momentum_form_p_is_mujocos_momentum(seed):
-    """P_links + P_Y pi, the momentum of the robot and the cargo relative to the frame that
-    translates with the IMU point (G axes, angular about G's origin), is MuJoCo's momentum of the
-    whole tree: p = M v_com - M v_I and L_G = L_com + M (x_com - x_G) x (v_com - v_I)."""
+def _one_robot_world() -> World:
+    """One robot holding a 4.2 kg cargo with an off-centre CoM and a full inertia tensor."""
     world = World(1)
-    model, data = world.model, world.make_data()
     world.set_cargo(
         4.2,
         (0.03, -0.02, 0.05),
         np.array([[0.08, 0.01, -0.005], [0.01, 0.11, 0.004], [-0.005, 0.004, 0.12]]),
     )
+    return world
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_momentum_form_p_is_mujocos_momentum(seed):
+    """P_links + P_Y pi, the momentum of the robot and the cargo relative to the frame that
+    translates with the IMU point (G axes, angular about G's origin), is MuJoCo's momentum of the
+    whole tree: p = M v_com - M v_I and L_G = L_com + M (x_com - x_G) x (v_com - v_I)."""
+    world = _one_robot_world()
+    model, data = world.model, world.make_data()
     h = world.robots[0]
     robot = world.robot_model(0)
     rng = np.random.default_rng(seed)
@@ -284,13 +290,8 @@ def _cargo_in_grasp_frame(world: World, i: int = 0) -> np.ndarray:
 def test_generalised_inertia_is_mujocos_mass_matrix():
     """``generalised_inertia`` in u = [v_B; w_B; qd] (B axes) is MuJoCo's mass matrix of the
     same tree (rooted at the cargo there) after the change of coordinates qvel -> u."""
-    world = World(1)
+    world = _one_robot_world()
     model, data = world.model, world.make_data()
-    world.set_cargo(
-        4.2,
-        (0.03, -0.02, 0.05),
-        np.array([[0.08, 0.01, -0.005], [0.01, 0.11, 0.004], [-0.005, 0.004, 0.12]]),
-    )
     h, robot = world.robots[0], world.robot_model(0)
     data.qpos[list(h.arm_qpos_adr)] = np.random.default_rng(0).uniform(-0.5, 0.5, size=2)
     mujoco.mj_forward(model, data)
