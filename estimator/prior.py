@@ -8,6 +8,8 @@ the grasp frame's origin (``estimator.inertia``).
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 from .inertia import (
@@ -50,23 +52,20 @@ def prior_covariance(
     std = np.asarray(std, dtype=float)
     if std.shape != (4,) or not np.all(np.isfinite(std)) or np.any(std <= 0):
         raise ValueError(f"prior std must be 4 positive numbers (kg, m, kg m^2, kg m^2), got {std}")
-    prior_params = np.ascontiguousarray(prior_params, dtype=float)
-    # Every estimator of a team, at every reset, asks for the same one: computed once per value.
-    key = (prior_params.tobytes(), prior_params.shape, std.tobytes(), float(step))
-    if key not in _COVARIANCES:
-        if len(_COVARIANCES) >= _COVARIANCES_KEPT:
-            _COVARIANCES.clear()
-        _COVARIANCES[key] = _covariance(prior_params, std, step)
-    return _COVARIANCES[key].copy()
+    prior_params = np.asarray(prior_params, dtype=float)
+    # Every estimator of a team, at every reset, asks for the same one: computed once per value
+    # (the arrays as tuples of floats, exact, for the cache's key).
+    key = (prior_params.shape, tuple(prior_params.ravel().tolist()), tuple(std.tolist()))
+    return _covariance(*key, float(step)).copy()
 
 
-_COVARIANCES: dict[tuple, np.ndarray] = {}  # `prior_covariance`'s results by arguments' bytes
-_COVARIANCES_KEPT = 64
-
-
-def _covariance(prior_params: np.ndarray, std: np.ndarray, step: float) -> np.ndarray:
-    """`prior_covariance` of checked arguments."""
-    mass, com, inertia = mass_com_inertia_from_params(np.asarray(prior_params, dtype=float))
+@functools.lru_cache(maxsize=64)
+def _covariance(shape: tuple, prior_params: tuple, std: tuple, step: float) -> np.ndarray:
+    """`prior_covariance` of checked arguments (``prior_params`` flattened, of ``shape``); the
+    cached result is read-only."""
+    prior_params = np.array(prior_params).reshape(shape)
+    std = np.array(std)
+    mass, com, inertia = mass_com_inertia_from_params(prior_params)
     phys = np.concatenate(([mass], com, inertia_to_vec(inertia)))
     sd = np.repeat(std, (1, 3, 3, 3))
     # Row k of ``probes``: the quantities moved by +step (k < 10) or -step (k >= 10) along k.
@@ -76,4 +75,6 @@ def _covariance(prior_params: np.ndarray, std: np.ndarray, step: float) -> np.nd
     )
     jac = (params[:10] - params[10:]).T / (2 * step)
     cov = (jac * sd**2) @ jac.T
-    return 0.5 * (cov + cov.T)
+    cov = 0.5 * (cov + cov.T)
+    cov.setflags(write=False)
+    return cov
