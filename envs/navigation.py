@@ -25,7 +25,14 @@ import numpy as np
 from numba import njit
 
 from astrocargo.envs.sensors import NoiseProfile, SensorReadings
-from astrocargo.estimator.geometry import exp_so3, log_so3, matmul3, matvec3, quat_to_mat
+from astrocargo.estimator.geometry import (
+    cross3,
+    exp_so3,
+    log_so3,
+    matmul3,
+    matvec3,
+    quat_to_mat,
+)
 from astrocargo.estimator.rne import RobotDescription
 
 # Floors of the navigation filter's noise model, so the ideal profile stays well posed.
@@ -33,13 +40,18 @@ NAV_STD_FLOOR = 1e-9
 
 
 @njit(cache=True)
-def _propagate(rot, pos, vel, gyro, accel, imu_rot, dt_s):
-    """Dead reckoning of one robot's IMU point over one period: R', p', v', w."""
-    w = matvec3(imu_rot, gyro)
-    rot_mid_imu = matmul3(matmul3(rot, exp_so3(0.5 * dt_s * w)), imu_rot)
-    rot_new = matmul3(rot, exp_so3(dt_s * w))
-    vel_new = vel + dt_s * matvec3(rot_mid_imu, accel)
-    return rot_new, pos + 0.5 * dt_s * (vel + vel_new), vel_new, w
+def _propagate(f, gyro, accel, dt_s):
+    """Dead reckoning of one robot's IMU point over one period, in place on its filter record
+    ``f`` (rot, point_pos, point_vel, w_base)."""
+    w = matvec3(f.imu_rot, gyro)
+    rot_mid_imu = matmul3(matmul3(f.rot, exp_so3(0.5 * dt_s * w)), f.imu_rot)
+    accel_world = matvec3(rot_mid_imu, accel)
+    f.rot[:] = matmul3(f.rot, exp_so3(dt_s * w))
+    for k in range(3):  # v' = v + dt a, p' = p + dt (v + v') / 2
+        vel_new = f.point_vel[k] + dt_s * accel_world[k]
+        f.point_pos[k] += 0.5 * dt_s * (f.point_vel[k] + vel_new)
+        f.point_vel[k] = vel_new
+    f.w_base[:] = w
 
 
 @njit(cache=True)
@@ -90,9 +102,7 @@ def navigate(filters, dt_s, gyro_now, accel_now, has_imu, fix_pos, fix_quat, has
         f = filters[i]
         if has_imu[i]:
             f.held_gyro[:], f.held_accel[:] = gyro_now[i], accel_now[i]
-        rot, pos, vel, w = _propagate(
-            f.rot, f.point_pos, f.point_vel, f.held_gyro, f.held_accel, f.imu_rot, dt_s
-        )
+        _propagate(f, f.held_gyro, f.held_accel, dt_s)
         c00, c01, c10, c11 = f.cov[0], f.cov[1], f.cov[2], f.cov[3]
         a00, a01 = c00 + dt_s * c10, c01 + dt_s * c11  # first row of F C
         c00, c01 = a00 + a01 * dt_s + f.q[0], a01 + f.q[1]
@@ -102,8 +112,10 @@ def navigate(filters, dt_s, gyro_now, accel_now, has_imu, fix_pos, fix_quat, has
             gain_att = f.att_cov / (f.att_cov + f.att_var)
             gain_p, gain_v = c00 / (c00 + f.pos_var), c10 / (c00 + f.pos_var)
             rot, pos, vel = _blend_fix(
-                rot, pos, vel, fix_quat[i], fix_pos[i], f.imu_pos, gain_att, gain_p, gain_v
-            )
+                f.rot, f.point_pos, f.point_vel, fix_quat[i], fix_pos[i], f.imu_pos, gain_att,
+                gain_p, gain_v,
+            )  # fmt: skip
+            f.rot[:], f.point_pos[:], f.point_vel[:] = rot, pos, vel
             f.att_cov *= 1.0 - gain_att
             c00, c01, c10, c11 = (
                 c00 - gain_p * c00,
@@ -111,10 +123,12 @@ def navigate(filters, dt_s, gyro_now, accel_now, has_imu, fix_pos, fix_quat, has
                 c10 - gain_v * c00,
                 (c11 - gain_v * c01),
             )
-        f.rot[:], f.point_pos[:], f.point_vel[:], f.w_base[:] = rot, pos, vel, w
         f.cov[0], f.cov[1], f.cov[2], f.cov[3] = c00, c01, c10, c11
-        f.base_pos[:] = pos - matvec3(rot, f.imu_pos)
-        f.base_vel[:] = vel - matvec3(rot, np.cross(w, f.imu_pos))
+        arm = matvec3(f.rot, f.imu_pos)
+        arm_vel = matvec3(f.rot, cross3(f.w_base, f.imu_pos))
+        for k in range(3):  # base origin: p_b = p - R r_i, v_b = v - R (w x r_i)
+            f.base_pos[k] = f.point_pos[k] - arm[k]
+            f.base_vel[k] = f.point_vel[k] - arm_vel[k]
 
 
 class BaseNavigator:

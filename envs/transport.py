@@ -172,6 +172,7 @@ class CargoTransport:
         n = self.n_robots
         self._n_clipped, self._effort = np.zeros(n, dtype=np.int64), np.zeros(n)
         self._saturation, self._no_info = np.zeros(n), np.zeros(n)
+        self._no_contacts = np.zeros(n, dtype=int)  # per robot, while no geom touches the module
         self._mixed = np.zeros((len(REWARD_TERMS), n))  # the weighted, mixed terms
         self._readings = SensorReadings.empty(n)  # without estimators: reused every step
         # Peer slots without estimators: no message is ever sent.
@@ -470,9 +471,9 @@ class CargoTransport:
     def _wall_contacts(self) -> tuple[np.ndarray, int, int]:
         """Contacts with the module per robot, those of the cargo, and all of them."""
         ncon = self.data.ncon
-        per_robot = np.zeros(self.n_robots, dtype=int)
         if ncon == 0:
-            return per_robot, 0, 0
+            return self._no_contacts, 0, 0
+        per_robot = np.zeros(self.n_robots, dtype=int)
         geoms = self.data.contact.geom[:ncon]
         wall = self._wall_geom[geoms]
         owner = self._geom_owner[geoms]
@@ -560,24 +561,22 @@ class CargoTransport:
         n_clipped, wall_contacts = n_clipped.tolist(), wall_contacts.tolist()
         saturated = [0.0] * self.n_robots if saturated is None else saturated.tolist()
         faults = self.fault_schedule.infos(self.step_count, self.channel.fault_stats)
-        time_s, releases = float(self.data.time), len(self.released_at_s)
+        time_s, releases, holding = float(self.data.time), len(self.released_at_s), self.holding
         for i in robots:
             r = per_robot[i]
             info: dict[str, Any] = {k_track: r[0], k_effort: r[1], k_info: r[2], k_contact: r[3]}
             if i in released:
                 info["released_momentum"] = self.released_momentum[i].copy()
-            info.update(
-                termination_reason=reason or ("released" if i in released else None),
-                releases=releases,
-                holding=list(self.holding),
-                time_s=time_s,
-                clipped_actions=n_clipped[i],
-                saturated=saturated[i],
-                wall_contacts=wall_contacts[i],
-                true_params=self.true_params_grasp[i].copy(),
-                comm=comm,
-                faults=faults[i],
-            )
+            info["termination_reason"] = reason or ("released" if i in released else None)
+            info["releases"] = releases
+            info["holding"] = list(holding)
+            info["time_s"] = time_s
+            info["clipped_actions"] = n_clipped[i]
+            info["saturated"] = saturated[i]
+            info["wall_contacts"] = wall_contacts[i]
+            info["true_params"] = self.true_params_grasp[i].copy()
+            info["comm"] = comm
+            info["faults"] = faults[i]
             if self.estimators:
                 info.update(
                     estimate=self.est_mean[i].copy(),
