@@ -533,10 +533,17 @@ def fast_inference(model: Any) -> Any:
     - torch's argument validation of distributions (``Normal``'s loc/scale checks at every
       construction) is switched off process-wide
       (``torch.distributions.Distribution.set_default_validate_args(False)``): it checks
-      arguments only, the samples and log-probabilities are the same.
+      arguments only, the samples and log-probabilities are the same;
+    - for an actor-critic policy with a diagonal Gaussian on a Box (PPO's and A2C's
+      ``MlpPolicy`` without gSDE or squashing), ``policy.predict`` is ``_gaussian_predict``:
+      the same mean, the same draw from torch's generator, without building the distribution
+      object or SB3's observation checks (other policies keep SB3's ``predict``).
 
     Returns ``model``."""
     import torch
+    from stable_baselines3.common.distributions import DiagGaussianDistribution
+    from stable_baselines3.common.policies import ActorCriticPolicy
+    from stable_baselines3.common.preprocessing import is_image_space
 
     torch.distributions.Distribution.set_default_validate_args(False)
     policy = model.policy
@@ -547,7 +554,50 @@ def fast_inference(model: Any) -> Any:
             set_mode(mode)
 
     policy.set_training_mode = set_training_mode
+    if (
+        isinstance(policy, ActorCriticPolicy)
+        and type(policy.action_dist) is DiagGaussianDistribution
+        and not policy.squash_output
+        and isinstance(policy.observation_space, spaces.Box)
+        and isinstance(policy.action_space, spaces.Box)
+        and not is_image_space(policy.observation_space)
+    ):
+        policy.predict = functools.partial(_gaussian_predict, policy, policy.predict)
     return model
+
+
+def _gaussian_predict(policy, sb3_predict, observation, state=None, episode_start=None,
+                      deterministic=False):  # fmt: skip
+    """SB3's ``ActorCriticPolicy.predict`` for a diagonal Gaussian on a Box, step by step as SB3
+    runs it: features of the observation (as float32), the actor's latent and mean action mu;
+    deterministic: mu, else mu + eps sigma with eps ~ N(0, 1) drawn by ``Tensor.normal_`` of
+    torch's generator (``Normal.rsample``) and sigma = exp(log_std); clipped to the action
+    space. An observation that is not one or a batch of the space's shape goes to
+    ``sb3_predict`` (which says what is wrong)."""
+    import torch
+    from stable_baselines3.common.policies import BaseModel
+
+    obs = np.asarray(observation)
+    shape = policy.observation_space.shape
+    vectorized = obs.shape[1:] == shape
+    if obs.shape != shape and not vectorized:
+        return sb3_predict(observation, state, episode_start, deterministic)
+    policy.set_training_mode(False)
+    with torch.no_grad():
+        obs_tensor = torch.as_tensor(obs.reshape((-1, *shape)), device=policy.device)
+        features = BaseModel.extract_features(policy, obs_tensor, policy.pi_features_extractor)
+        mean = policy.action_net(policy.mlp_extractor.forward_actor(features))
+        if deterministic:
+            actions = mean
+        else:
+            std = torch.ones_like(mean) * policy.log_std.exp()
+            actions = (
+                mean + torch.empty(mean.shape, dtype=mean.dtype, device=mean.device).normal_() * std
+            )
+    space = policy.action_space
+    actions = actions.cpu().numpy().reshape((-1, *space.shape))
+    actions = np.clip(actions, space.low, space.high)
+    return (actions if vectorized else actions.squeeze(axis=0)), state
 
 
 class SlotController:

@@ -454,11 +454,20 @@ def test_fast_inference_keeps_the_actions(trained_runs):
     )
     plain, fast = PPO.load(run / "model.zip"), fast_inference(PPO.load(run / "model.zip"))
     for deterministic in (True, False):
-        plain.set_random_seed(5)  # torch's global generator: seed right before each call
-        a, _ = plain.predict(obs, deterministic=deterministic)
-        fast.set_random_seed(5)
-        b, _ = fast.predict(obs, deterministic=deterministic)
-        np.testing.assert_array_equal(a, b)
+        for batch in (obs, obs[0]):  # a batch, and one observation (its actions unbatched)
+            plain.set_random_seed(5)  # torch's global generator: seed right before each call
+            a, _ = plain.predict(batch, deterministic=deterministic)
+            fast.set_random_seed(5)
+            b, _ = fast.predict(batch, deterministic=deterministic)
+            assert a.shape == b.shape and a.dtype == b.dtype
+            np.testing.assert_array_equal(a, b)
+    # A run of draws stays in step with SB3's.
+    plain.set_random_seed(6)
+    runs = [plain.predict(obs)[0] for _ in range(5)]
+    fast.set_random_seed(6)
+    np.testing.assert_array_equal(runs, [fast.predict(obs)[0] for _ in range(5)])
+    with pytest.raises(ValueError, match="observation shape"):  # SB3's check still answers
+        fast.predict(obs[:, :3])
     fast.policy.set_training_mode(True)  # a change of mode still reaches every submodule
     assert all(m.training for m in fast.policy.modules())
     fast.policy.set_training_mode(False)
