@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from astrocargo.estimator.geometry import exp_so3, log_so3, matmul3, matvec3
+from astrocargo.estimator.geometry import cross3, exp_so3, log_so3, matmul3, matvec3
 from astrocargo.estimator.rne import RobotDescription
 
 # The robot's own blocks, in order: (name, size). The kernel below fills them by name through
@@ -74,13 +74,23 @@ def grasp_pose(link_parent, link_rot, link_pos, link_axis, grasp_link, grasp_rot
     (3, 3) and position (3,). Links: parents before children, link 0 the base."""
     n_links = link_parent.shape[0]
     rots, poss = np.zeros((n_links, 3, 3)), np.zeros((n_links, 3))
-    rots[0] = np.eye(3)
+    for d in range(3):  # the base: identity, at the origin
+        rots[0, d, d] = 1.0
     for k in range(1, n_links):
         rot_p = rots[link_parent[k]]
         rots[k] = matmul3(matmul3(rot_p, link_rot[k]), exp_so3(link_axis[k] * q[k - 1]))
-        poss[k] = poss[link_parent[k]] + matvec3(rot_p, link_pos[k])
+        _add_to(poss[k], poss[link_parent[k]], matvec3(rot_p, link_pos[k]))
     rot_g = rots[grasp_link]
-    return matmul3(rot_g, grasp_rot), poss[grasp_link] + matvec3(rot_g, grasp_pos)
+    pos_g = np.empty(3)
+    _add_to(pos_g, poss[grasp_link], matvec3(rot_g, grasp_pos))
+    return matmul3(rot_g, grasp_rot), pos_g
+
+
+@njit(cache=True)
+def _add_to(out, a, b):
+    """out = a + b (3-vectors), written into ``out`` without a temporary."""
+    for i in range(3):
+        out[i] = a[i] + b[i]
 
 
 @njit(cache=True)
@@ -103,11 +113,10 @@ def _put_in_base(row, start, rot, a, b):
 
 @njit(cache=True)
 def _own_blocks(out, starts, rot, base_pos, base_vel, w, q, target, rot_ref, pos_ref, vel_ref,
-                ref_vecs, ref_pan, qd):  # fmt: skip
+                ref_vecs, ref_pan, qd, zero):  # fmt: skip
     """Write the OWN_BLOCKS of one row at ``starts`` (in OWN_BLOCKS order); ref_vecs rows: the
     cargo reference's position, velocity, acceleration, angular velocity and angular
-    acceleration (world)."""
-    zero = np.zeros(3)
+    acceleration (world); ``zero``: a zero 3-vector."""
     _put_in_base(out, starts[0], rot, base_pos, pos_ref)
     _put_in_base(out, starts[1], rot, base_vel, vel_ref)
     _put(out, starts[2], log_so3(matmul3(rot_ref.T, rot)))
@@ -151,6 +160,7 @@ def assemble(out, acting, own_starts, peer_starts, estimate_start, link_parent, 
     (N, P, 4): the sender's arm angles and rates); estimates (N, 20) or (N, 0); qd (N, 2) the
     own arm rates."""
     zero = np.zeros(3)
+    pos_ref, vel_ref, lever = np.empty(3), np.empty(3), np.empty(3)  # per robot, reused
     for i in range(out.shape[0]):
         if not acting[i]:
             continue
@@ -160,12 +170,16 @@ def assemble(out, acting, own_starts, peer_starts, estimate_start, link_parent, 
             a.grasp_pos, q[i],
         )  # fmt: skip
         rot_ref = matmul3(matmul3(ref_rot, a.handrail_rot), g_rot.T)
-        pos_ref = ref_vecs[0] + matvec3(ref_rot, a.handrail_pos) - matvec3(rot_ref, g_pos)
-        vel_ref = ref_vecs[1] + np.cross(ref_vecs[3], pos_ref - ref_vecs[0])
+        rail = matvec3(ref_rot, a.handrail_pos)
+        grasp = matvec3(rot_ref, g_pos)
+        for k in range(3):
+            pos_ref[k] = ref_vecs[0, k] + rail[k] - grasp[k]
+            lever[k] = pos_ref[k] - ref_vecs[0, k]
+        _add_to(vel_ref, ref_vecs[1], cross3(ref_vecs[3], lever))
         row = out[i]
         _own_blocks(
             row, own_starts, f.rot, f.base_pos, f.base_vel, f.w_base, q[i], target[i], rot_ref,
-            pos_ref, vel_ref, ref_vecs, ref_pan, qd[i],
+            pos_ref, vel_ref, ref_vecs, ref_pan, qd[i], zero,
         )  # fmt: skip
         for p in range(peer_starts.shape[0]):
             s_wrench, s_age, s_valid = peer_starts[p, 0], peer_starts[p, 1], peer_starts[p, 2]

@@ -18,18 +18,20 @@ ROTATION_WEIGHT_M_PER_RAD = 0.5  # tracking term: metres of position error per r
 
 
 @njit(cache=True)
-def mix_rewards(track, effort, info, robot_contacts, cargo_contacts, acting, weights, shared):
-    """Weighted, mixed terms (4, N) in ``REWARD_TERMS`` order and their sum per robot (N,).
+def mix_rewards(track, effort, info, robot_contacts, cargo_contacts, acting, weights, shared,
+                mixed, rewards):  # fmt: skip
+    """Weighted, mixed terms into ``mixed`` (4, N) in ``REWARD_TERMS`` order and their sum per
+    robot into ``rewards`` (N,).
 
-    ``track`` (the team's tracking term, the same for every robot) is a scalar; ``effort`` and
-    ``info`` (N,) are individual; the contact term is -(a robot's own contacts + the cargo's),
-    its team value -(every contact). The team value of effort and info is their mean over the
-    ``acting`` robots; the others' entries are 0."""
+    ``track`` (the team's tracking term, the same for every robot) is a scalar; the effort term
+    is -``effort`` and ``info`` (N,) is individual; the contact term is -(a robot's own contacts
+    + the cargo's), its team value -(every contact). The team value of effort and info is their
+    mean over the ``acting`` robots; the others' entries are 0."""
     n = effort.shape[0]
     individual = np.empty((4, n))
-    individual[0, :] = track
-    individual[1], individual[2] = effort, info
-    individual[3] = -(robot_contacts + cargo_contacts).astype(np.float64)
+    for i in range(n):
+        individual[0, i], individual[1, i], individual[2, i] = track, -effort[i], info[i]
+        individual[3, i] = -float(robot_contacts[i] + cargo_contacts)
     count = 0
     for i in range(n):
         count += acting[i]
@@ -41,22 +43,26 @@ def mix_rewards(track, effort, info, robot_contacts, cargo_contacts, acting, wei
                 total += individual[t, i]
         team[t] = total / count
     team[0], team[3] = track, -float(robot_contacts.sum() + cargo_contacts)
-    mixed, rewards = np.zeros((4, n)), np.zeros(n)
+    mixed[:] = 0.0
+    rewards[:] = 0.0
     for i in range(n):
         if not acting[i]:
             continue
         for t in range(4):
             mixed[t, i] = weights[t] * (shared * team[t] + (1.0 - shared) * individual[t, i])
             rewards[i] += mixed[t, i]
-    return mixed, rewards
 
 
 @njit(cache=True)
 def tracking_errors(pos, rot, ref_pos, ref_rot):
     """Position error |p - p_ref| (m) and rotation angle error |log(R_ref^T R)| (rad)."""
-    offset = pos - ref_pos
     angle = log_so3(matmul3(ref_rot.T, rot))
-    return np.sqrt(np.sum(offset * offset)), np.sqrt(np.sum(angle * angle))
+    pos_sq, angle_sq = 0.0, 0.0
+    for i in range(3):
+        offset = pos[i] - ref_pos[i]
+        pos_sq += offset * offset
+        angle_sq += angle[i] * angle[i]
+    return np.sqrt(pos_sq), np.sqrt(angle_sq)
 
 
 @njit(cache=True)
@@ -97,9 +103,7 @@ def observe_and_reward(obs, acting, own_starts, peer_starts, estimate_start, lin
             xpos[body], xmat[body].reshape(3, 3), ref[1][0], ref[0]
         )
         track = -(pos_err + ROTATION_WEIGHT_M_PER_RAD * angle_err)
-    terms, total = mix_rewards(
-        track, -effort, info, contacts[0], contacts[1], acting, weights, shared
+    mix_rewards(
+        track, effort, info, contacts[0], contacts[1], acting, weights, shared, mixed, rewards
     )
-    mixed[:] = terms
-    rewards[:] = total
     return finite

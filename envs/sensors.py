@@ -37,6 +37,7 @@ from numba import njit
 
 from astrocargo.envs.world import World
 from astrocargo.estimator.geometry import (
+    cross3,
     exp_so3,
     log_so3,
     matmul3,
@@ -168,9 +169,14 @@ def imu_site_state(cvel, site_xpos, site_xmat, subtree_com, bodies, roots, sites
     axes); the rotation is MuJoCo's ``site_xmat``."""
     n = sites.shape[0]
     vel, rot = np.empty((n, 3)), np.empty((n, 3, 3))
+    lever = np.empty(3)
     for k in range(n):
         w, v = cvel[bodies[k], :3], cvel[bodies[k], 3:]
-        vel[k] = v - np.cross(site_xpos[sites[k]] - subtree_com[roots[k]], w)
+        for j in range(3):
+            lever[j] = site_xpos[sites[k], j] - subtree_com[roots[k], j]
+        spin = cross3(lever, w)
+        for j in range(3):
+            vel[k, j] = v[j] - spin[j]
         rot[k] = site_xmat[sites[k]].reshape(3, 3)
     return vel, rot
 
@@ -182,12 +188,16 @@ def imu_period_means(v0, r0, v1, r1, dt_s):
     phi = log(R0^T R1), gyro = phi / dt, accel = (R0 exp(phi / 2))^T (v1 - v0) / dt (the
     velocity change in the mid-period frame)."""
     n = v0.shape[0]
-    accel, gyro = np.empty((n, 3)), np.empty((n, 3))
+    accel, gyro, dv = np.empty((n, 3)), np.empty((n, 3)), np.empty(3)
     for k in range(n):
         rotvec = log_so3(matmul3(r0[k].T, r1[k]))
         r_mid = matmul3(r0[k], exp_so3(0.5 * rotvec))
-        accel[k] = matvec3(r_mid.T, v1[k] - v0[k]) / dt_s
-        gyro[k] = rotvec / dt_s
+        for j in range(3):
+            dv[j] = v1[k, j] - v0[k, j]
+        force = matvec3(r_mid.T, dv)
+        for j in range(3):
+            accel[k, j] = force[j] / dt_s
+            gyro[k, j] = rotvec[j] / dt_s
     return accel, gyro
 
 
@@ -201,24 +211,34 @@ def noisy_readings(v0, r0, dt_s, cvel, site_xpos, site_xmat, subtree_com, bodies
     the pose too, the attitude perturbed in the body frame: q exp(noise). Returns accel, gyro,
     joints, pos, quat (zeros without a fix)."""
     v1, r1 = imu_site_state(cvel, site_xpos, site_xmat, subtree_com, bodies, roots, sites)
-    return _readings_from(
-        v0, r0, v1, r1, dt_s, sensordata, joint_adr, pos_adr, quat_adr, noise, fix
-    )
+    n = v0.shape[0]
+    accel, gyro, joints = np.empty((n, 3)), np.empty((n, 3)), np.empty((n, joint_adr.shape[1]))
+    pos, quat = np.zeros((n, 3)), np.zeros((n, 4))
+    _readings_into(
+        v0, r0, v1, r1, dt_s, sensordata, joint_adr, pos_adr, quat_adr, noise, fix,
+        np.arange(n), accel, gyro, joints, pos, quat,
+    )  # fmt: skip
+    return accel, gyro, joints, pos, quat
 
 
 @njit(cache=True)
-def _readings_from(v0, r0, v1, r1, dt_s, sensordata, joint_adr, pos_adr, quat_adr, noise, fix):
-    """``noisy_readings`` from the IMU states at the period's start and end."""
+def _readings_into(v0, r0, v1, r1, dt_s, sensordata, joint_adr, pos_adr, quat_adr, noise, fix,
+                   rows, accel, gyro, joints, pos, quat):  # fmt: skip
+    """``noisy_readings``' values from the IMU states at the period's start and end, robot k's
+    written into row ``rows[k]`` of ``accel``, ``gyro``, ``joints`` and, at a ``fix``, ``pos``
+    and ``quat`` (left as they are without one)."""
     accel_mean, gyro_mean = imu_period_means(v0, r0, v1, r1, dt_s)
-    n = accel_mean.shape[0]
-    accel, gyro = accel_mean + noise[:, 0:3], gyro_mean + noise[:, 3:6]
-    joints, pos, quat = np.empty((n, joint_adr.shape[1])), np.zeros((n, 3)), np.zeros((n, 4))
-    for k in range(n):
-        joints[k] = sensordata[joint_adr[k]] + noise[k, 6:8]
+    for k in range(rows.shape[0]):
+        i = rows[k]
+        for j in range(3):
+            accel[i, j] = accel_mean[k, j] + noise[k, j]
+            gyro[i, j] = gyro_mean[k, j] + noise[k, 3 + j]
+        for j in range(joint_adr.shape[1]):
+            joints[i, j] = sensordata[joint_adr[k, j]] + noise[k, 6 + j]
         if fix:
-            pos[k] = sensordata[pos_adr[k]] + noise[k, 8:11]
-            quat[k] = quat_mul(sensordata[quat_adr[k]], rotvec_to_quat(noise[k, 11:14]))
-    return accel, gyro, joints, pos, quat
+            for j in range(3):
+                pos[i, j] = sensordata[pos_adr[k, j]] + noise[k, 8 + j]
+            quat[i] = quat_mul(sensordata[quat_adr[k]], rotvec_to_quat(noise[k, 11:14]))
 
 
 @njit(cache=True)
@@ -243,16 +263,14 @@ def read_into(v0, r0, dt_s, cvel, site_xpos, site_xmat, subtree_com, imu_index, 
     v1, r1 = imu_site_state(
         cvel, site_xpos, site_xmat, subtree_com, imu_index[0], imu_index[1], imu_index[2]
     )
-    values = _readings_from(
-        v0, r0, v1, r1, dt_s, sensordata, joint_adr, pos_adr, quat_adr, noise, fix
-    )
     accel[:], gyro[:], joints[:], pos[:], quat[:] = 0.0, 0.0, 0.0, 0.0, 0.0
     has_imu[:], has_fix[:] = False, False
+    _readings_into(
+        v0, r0, v1, r1, dt_s, sensordata, joint_adr, pos_adr, quat_adr, noise, fix, rows, accel,
+        gyro, joints, pos, quat,
+    )  # fmt: skip
     for k in range(rows.shape[0]):
-        i = rows[k]
-        accel[i], gyro[i], joints[i] = values[0][k], values[1][k], values[2][k]
-        pos[i], quat[i] = values[3][k], values[4][k]
-        has_imu[i], has_fix[i] = True, fix
+        has_imu[rows[k]], has_fix[rows[k]] = True, fix
     v0[:] = v1
     r0[:] = r1
 
