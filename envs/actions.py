@@ -59,9 +59,15 @@ def thrust_saturation(actions: np.ndarray, clipped: np.ndarray) -> np.ndarray:
     """Per row, the share of the requested thrust a robot could not deliver: 1 - |a_c| / |a|
     over the six thrust entries of the action a as given and a_c as clipped to [-1, 1] (0 for
     a zero request), in [0, 1]."""
-    wanted = np.sqrt((actions[:, :6] ** 2).sum(axis=1))
-    delivered = np.sqrt((clipped[:, :6] ** 2).sum(axis=1))
-    return np.where(wanted > 0, 1.0 - delivered / np.maximum(wanted, 1e-300), 0.0)
+    out = np.zeros(actions.shape[0])
+    for i in range(actions.shape[0]):
+        wanted, delivered = 0.0, 0.0
+        for j in range(6):
+            wanted += actions[i, j] ** 2
+            delivered += clipped[i, j] ** 2
+        if wanted > 0:
+            out[i] = 1.0 - np.sqrt(delivered) / np.sqrt(wanted)
+    return out
 
 
 @njit(cache=True)
@@ -84,15 +90,16 @@ def command_period(actions, acting, thrust_limits, joint_low, joint_high, max_mo
     for i in range(actions.shape[0]):
         n_clipped[i], effort[i] = clipped_count[i], effort_now[i]
         saturation[i] = saturated[i] if acting[i] else 0.0
-        arm_rates[i] = (targets[i] - arm_targets[i]) / dt_s
-        arm_targets[i] = targets[i]
-    noise = normals[: 6 * rows.shape[0]].reshape(rows.shape[0], 6)
+        for j in range(arm_targets.shape[1]):
+            arm_rates[i, j] = (targets[i, j] - arm_targets[i, j]) / dt_s
+            arm_targets[i, j] = targets[i, j]
+    std_abs, std_rel = actuation_std[0], actuation_std[1]
     for k in range(rows.shape[0]):
         u = commands[rows[k]]
-        std = actuation_std[0] + actuation_std[1] * np.abs(u)
-        delivered = (u + std * noise[k]) * thrust_scale[k]
         for j in range(thrust_ctrl.shape[1]):
-            ctrl[thrust_ctrl[k, j]] = delivered[j]
+            noise = normals[6 * k + j]
+            std = std_abs[j] + std_rel[j] * abs(u[j])
+            ctrl[thrust_ctrl[k, j]] = (u[j] + std * noise) * thrust_scale[k]
         for j in range(arm_ctrl.shape[1]):
             ctrl[arm_ctrl[k, j]] = arm_targets[rows[k], j]
     return commands

@@ -294,11 +294,13 @@ class _Copy:
     def step(self, actions: np.ndarray) -> tuple:
         """Returns obs (n, d), rewards (n,), dones (n,), infos and the reset infos."""
         agents = self.agents
-        obs, rewards, terms, truncs, infos = self.env.step(dict(zip(agents, actions, strict=True)))
+        # One action row per agent (SharedPolicyVecEnv splits them so): zip's strict check
+        # would cost more than the dict.
+        obs, rewards, terms, truncs, infos = self.env.step(dict(zip(agents, actions)))  # noqa: B905
         terminated = [bool(terms[a]) for a in agents]
         truncated = [bool(truncs[a]) for a in agents]
         dones = np.logical_or(terminated, truncated)
-        if any(dones) and not all(dones):
+        if dones.any() and not dones.all():
             raise RuntimeError(
                 "SharedPolicyVecEnv needs episodes that end for all agents at once; agents "
                 f"{[a for a, d in zip(self.agents, dones, strict=True) if not d]} are still running"
