@@ -564,19 +564,24 @@ class CargoTransport:
         time_s, releases, holding = float(self.data.time), len(self.released_at_s), self.holding
         for i in robots:
             r = per_robot[i]
-            info: dict[str, Any] = {k_track: r[0], k_effort: r[1], k_info: r[2], k_contact: r[3]}
+            info: dict[str, Any] = {
+                k_track: r[0],
+                k_effort: r[1],
+                k_info: r[2],
+                k_contact: r[3],
+                "termination_reason": reason or ("released" if i in released else None),
+                "releases": releases,
+                "holding": list(holding),
+                "time_s": time_s,
+                "clipped_actions": n_clipped[i],
+                "saturated": saturated[i],
+                "wall_contacts": wall_contacts[i],
+                "true_params": self.true_params_grasp[i].copy(),
+                "comm": comm,
+                "faults": faults[i],
+            }
             if i in released:
                 info["released_momentum"] = self.released_momentum[i].copy()
-            info["termination_reason"] = reason or ("released" if i in released else None)
-            info["releases"] = releases
-            info["holding"] = list(holding)
-            info["time_s"] = time_s
-            info["clipped_actions"] = n_clipped[i]
-            info["saturated"] = saturated[i]
-            info["wall_contacts"] = wall_contacts[i]
-            info["true_params"] = self.true_params_grasp[i].copy()
-            info["comm"] = comm
-            info["faults"] = faults[i]
             if self.estimators:
                 info.update(
                     estimate=self.est_mean[i].copy(),
