@@ -27,7 +27,7 @@ Update (filterpy's `unscented_transform` and `UnscentedKalmanFilter.update`), Z_
     z_pred = sum_i Wm_i Z_i,    S = sum_i Wc_i (Z_i - z_pred)(Z_i - z_pred)^T + R
     P_xz = sum_i Wc_i (X_i - x)(Z_i - z_pred)^T
     K = P_xz S^-1,    y = z - z_pred,    NIS = y^T S^-1 y
-    x <- x + K y,     P <- P - K S K^T   (the standard form, symmetrised)
+    x <- x + K y,     P <- P - K S K^T   (the standard form, exactly symmetric)
 
 S^-1 is applied through the Cholesky factor S = L_S L_S^T: with W = L_S^-1 P_zx and w = L_S^-1 y,
 K y = W^T w, K S K^T = W^T W and NIS = w.w. Log-likelihood = -0.5 (NIS + log det S + m log 2 pi).
