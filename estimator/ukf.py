@@ -27,7 +27,7 @@ Update (filterpy's `unscented_transform` and `UnscentedKalmanFilter.update`), Z_
     z_pred = sum_i Wm_i Z_i,    S = sum_i Wc_i (Z_i - z_pred)(Z_i - z_pred)^T + R
     P_xz = sum_i Wc_i (X_i - x)(Z_i - z_pred)^T
     K = P_xz S^-1,    y = z - z_pred,    NIS = y^T S^-1 y
-    x <- x + K y,     P <- P - K S K^T   (the standard form, exactly symmetric)
+    x <- x + K y,     P <- P - K S K^T   (the standard form, symmetrised)
 
 S^-1 is applied through the Cholesky factor S = L_S L_S^T: with W = L_S^-1 P_zx and w = L_S^-1 y,
 K y = W^T w, K S K^T = W^T W and NIS = w.w. Log-likelihood = -0.5 (NIS + log det S + m log 2 pi).
@@ -457,7 +457,7 @@ class InertialParamUKF(BatchedUKF):
         """The reported estimate: the physically consistent body of highest posterior density
         (x when x is consistent); a copy."""
         x_of, P_of = self._mode_of
-        if not (np.array_equal(self.x, x_of) and np.array_equal(self.P, P_of)):
+        if not (unscented.same_values(self.x, x_of) and unscented.same_values(self.P, P_of)):
             self._mode, solved = constrained_mode(self.x, self.P, start=self._mode)
             self.n_mode_fallbacks += not solved
             self._mode_of = (self.x.copy(), self.P.copy())

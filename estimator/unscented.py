@@ -6,11 +6,9 @@ The equations are those of the ``estimator.ukf`` docstring. Every kernel is comp
 gives the views), so that an update is one call that passes a handful of arrays and updates the
 filter in place; the kernels called from Python are compiled for C-contiguous float64 arrays
 when this module is imported (or loaded from numba's cache) and raise TypeError for anything
-else, which the filters convert. The sums over sigma points (the images Z_i = A X_i + b, the
-weighted mean, S, P_xz) and K S K^T = W^T W are compiled loops over the terms of those sums:
-for arrays this small (21 points of 10 states, 6 measurements) numba's ``@`` spends more in
-its BLAS calls and temporaries than in the arithmetic. S and W^T W are summed once per entry,
-so both are exactly symmetric.
+else, which the filters convert. The products are numba's ``@`` (BLAS); the elementwise steps
+around them are loops that write their result once, as numba's array expressions allocate a
+temporary per operation, which for arrays this small costs more than the arithmetic.
 """
 
 from __future__ import annotations
@@ -60,7 +58,7 @@ def draw_merwe_sigma_points(sigmas: np.ndarray, x: np.ndarray, P: np.ndarray, sc
     sigmas[0] = x
     for k in range(n):
         for a in range(n):
-            offset = scale * lower[a, k]
+            offset = scale * lower[a, k]  # scale times column k of L
             sigmas[1 + k, a] = x[a] + offset
             sigmas[1 + n + k, a] = x[a] - offset
     return True
@@ -73,7 +71,7 @@ def unscented_transform(
     """Weighted mean z = sum_i Wm_i Z_i and covariance sum_i Wc_i (Z_i - z)(Z_i - z)^T plus
     noise_cov of transformed sigma points Z (2n + 1, m), as filterpy's `unscented_transform`."""
     mean, residuals, weighted = _weighted_residuals(sigmas_h, Wm, Wc)
-    return mean, _weighted_outer_sum(weighted, residuals) + noise_cov
+    return mean, weighted.T @ residuals + noise_cov
 
 
 @njit(cache=True)
@@ -81,11 +79,8 @@ def _weighted_residuals(
     sigmas_h: np.ndarray, Wm: np.ndarray, Wc: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The mean z = sum_i Wm_i Z_i, the residuals Z_i - z (rows) and Wc_i (Z_i - z)."""
+    mean = Wm @ sigmas_h
     k, m = sigmas_h.shape
-    mean = np.zeros(m)
-    for i in range(k):
-        for a in range(m):
-            mean[a] += Wm[i] * sigmas_h[i, a]
     residuals = np.empty((k, m))
     weighted = np.empty((k, m))
     for i in range(k):
@@ -96,32 +91,10 @@ def _weighted_residuals(
 
 
 @njit(cache=True)
-def _weighted_outer_sum(weighted: np.ndarray, residuals: np.ndarray) -> np.ndarray:
-    """sum_i Wc_i r_i r_i^T (m, m) from the rows r_i of ``residuals`` and Wc_i r_i of
-    ``weighted``; each entry is summed once, so the result is exactly symmetric."""
-    k, m = residuals.shape
-    out = np.empty((m, m))
-    for a in range(m):
-        for b in range(a + 1):
-            entry = 0.0
-            for i in range(k):
-                entry += weighted[i, a] * residuals[i, b]
-            out[a, b] = out[b, a] = entry
-    return out
-
-
-@njit(cache=True)
 def cross_covariance(x: np.ndarray, sigmas: np.ndarray, weighted_h: np.ndarray) -> np.ndarray:
     """P_xz = sum_i Wc_i (X_i - x)(Z_i - z_pred)^T (n, m), from the weighted residuals
     Wc_i (Z_i - z_pred) (rows of ``weighted_h``)."""
-    k, n = sigmas.shape
-    out = np.zeros((n, weighted_h.shape[1]))
-    for i in range(k):
-        for a in range(n):
-            dx = sigmas[i, a] - x[a]
-            for b in range(weighted_h.shape[1]):
-                out[a, b] += dx * weighted_h[i, b]
-    return out
+    return (sigmas - x).T @ weighted_h
 
 
 def state_size(n: int, m: int) -> int:
@@ -159,6 +132,19 @@ def _all_finite(a: np.ndarray) -> bool:
 
 
 @njit(cache=True)
+def same_values(a: np.ndarray, b: np.ndarray | None) -> bool:
+    """Whether ``b`` holds the values of ``a`` (same shape, entries equal; NaN equals nothing),
+    as ``np.array_equal``; None holds none."""
+    if b is None or a.shape != b.shape:
+        return False
+    flat_a, flat_b = a.ravel(), b.ravel()
+    for i in range(flat_a.size):
+        if flat_a[i] != flat_b[i]:
+            return False
+    return True
+
+
+@njit(cache=True)
 def unscented_update(arrays: tuple, z: np.ndarray, R: np.ndarray):
     """Unscented transform, gain and posterior of one update, in place on a filter's arrays
     (`filter_arrays`), from the sigma points and their images already there.
@@ -171,7 +157,7 @@ def unscented_update(arrays: tuple, z: np.ndarray, R: np.ndarray):
         return BAD_H, math.nan
     # The unscented transform and the cross-covariance share the weighted residuals.
     z_pred, residuals_h, weighted_h = _weighted_residuals(sigmas_h, Wm, Wc)
-    S = _weighted_outer_sum(weighted_h, residuals_h) + R
+    S = weighted_h.T @ residuals_h + R
     P_xz = cross_covariance(x, sigmas, weighted_h)
     S_lower, definite = cholesky_lower(S)
     if not definite:
@@ -182,7 +168,10 @@ def unscented_update(arrays: tuple, z: np.ndarray, R: np.ndarray):
     W = solve_lower(S_lower, P_xz.T)
     w = solve_lower(S_lower, y.reshape(-1, 1)).ravel()
     nis = w @ w
-    log_det_S = 2.0 * np.log(np.diag(S_lower)).sum()
+    log_det_S = 0.0
+    for i in range(z.size):
+        log_det_S += math.log(S_lower[i, i])
+    log_det_S *= 2.0
     log_likelihood = -0.5 * (nis + log_det_S + z.size * math.log(2.0 * math.pi))
     y_out[:], S_out[:], P_xz_out[:] = y, S, P_xz
     scalars[2] = nis
@@ -191,7 +180,7 @@ def unscented_update(arrays: tuple, z: np.ndarray, R: np.ndarray):
         return (BAD_NIS if _all_finite(z) else BAD_Z), nis
     if nis > scalars[1]:
         return GATED, nis
-    P_post = P - _gram(W)
+    P_post = _symmetrised_difference(P, W.T @ W)
     if not cholesky_lower(P_post)[1]:
         return BAD_POSTERIOR, nis
     x += W.T @ w
@@ -200,16 +189,13 @@ def unscented_update(arrays: tuple, z: np.ndarray, R: np.ndarray):
 
 
 @njit(cache=True)
-def _gram(W: np.ndarray) -> np.ndarray:
-    """W^T W (n, n) for W (m, n); each entry is summed once, so it is exactly symmetric."""
-    m, n = W.shape
+def _symmetrised_difference(P: np.ndarray, G: np.ndarray) -> np.ndarray:
+    """D = P - G made exactly symmetric, 0.5 (D + D^T), without temporaries."""
+    n = P.shape[0]
     out = np.empty((n, n))
     for a in range(n):
         for b in range(a + 1):
-            entry = 0.0
-            for k in range(m):
-                entry += W[k, a] * W[k, b]
-            out[a, b] = out[b, a] = entry
+            out[a, b] = out[b, a] = 0.5 * ((P[a, b] - G[a, b]) + (P[b, a] - G[b, a]))
     return out
 
 
@@ -241,12 +227,10 @@ def update_linear(state, n, m, z, A, b, R, predict_first):
     if outcome != OK:
         return outcome, math.nan
     sigmas, sigmas_h = arrays[3], arrays[4]
-    for i in range(sigmas.shape[0]):  # Z_i = A X_i + b
+    np.dot(sigmas, A.T, sigmas_h)  # Z_i = A X_i + b
+    for i in range(sigmas_h.shape[0]):
         for r in range(m):
-            image = b[r]
-            for c in range(n):
-                image += A[r, c] * sigmas[i, c]
-            sigmas_h[i, r] = image
+            sigmas_h[i, r] += b[r]
     return unscented_update(arrays, z, R)
 
 
