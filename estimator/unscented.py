@@ -94,7 +94,11 @@ def _weighted_residuals(
 def cross_covariance(x: np.ndarray, sigmas: np.ndarray, weighted_h: np.ndarray) -> np.ndarray:
     """P_xz = sum_i Wc_i (X_i - x)(Z_i - z_pred)^T (n, m), from the weighted residuals
     Wc_i (Z_i - z_pred) (rows of ``weighted_h``)."""
-    return (sigmas - x).T @ weighted_h
+    deviations = np.empty_like(sigmas)  # X_i - x
+    for i in range(sigmas.shape[0]):
+        for a in range(x.size):
+            deviations[i, a] = sigmas[i, a] - x[a]
+    return deviations.T @ weighted_h
 
 
 def state_size(n: int, m: int) -> int:
@@ -157,7 +161,10 @@ def unscented_update(arrays: tuple, z: np.ndarray, R: np.ndarray):
         return BAD_H, math.nan
     # The unscented transform and the cross-covariance share the weighted residuals.
     z_pred, residuals_h, weighted_h = _weighted_residuals(sigmas_h, Wm, Wc)
-    S = weighted_h.T @ residuals_h + R
+    S = weighted_h.T @ residuals_h
+    for a in range(z.size):
+        for b in range(z.size):
+            S[a, b] += R[a, b]
     P_xz = cross_covariance(x, sigmas, weighted_h)
     S_lower, definite = cholesky_lower(S)
     if not definite:
