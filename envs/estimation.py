@@ -22,7 +22,7 @@ import numpy as np
 
 from astrocargo.envs.sensors import SensorReadings
 from astrocargo.estimator.cargo_estimator import CargoEstimator
-from astrocargo.estimator.inertia import com_error_m, mass_rel_error, principal_rel_errors
+from astrocargo.estimator.inertia import estimate_errors
 from astrocargo.estimator.rne import RobotDescription
 
 SENT_ARM_KEPT = 1000  # messages' arm states kept per sender (160 s at one per 10 steps)
@@ -128,15 +128,10 @@ class TeamEstimation:
         est_std = [est.params_std() for est in self.estimators]
         std = np.array(est_std)
         self.log_std_sums = np.log(np.maximum(std, LOG_STD_FLOOR)).sum(axis=1)
-        means, truths = np.array(est_mean), self.true_params_grasp
+        mass, com, principal = estimate_errors(np.array(est_mean), self.true_params_grasp)
         errors = [
-            {"mass_rel_err": mass, "com_err_m": com, "principal_rel_err": principal}
-            for mass, com, principal in zip(
-                mass_rel_error(means, truths).tolist(),
-                com_error_m(means, truths).tolist(),
-                principal_rel_errors(means, truths).tolist(),
-                strict=True,
-            )
+            {"mass_rel_err": m, "com_err_m": c, "principal_rel_err": p}
+            for m, c, p in zip(mass.tolist(), com.tolist(), principal.tolist(), strict=True)
         ]
         return est_mean, est_std, errors
 

@@ -32,6 +32,7 @@ __all__ = [
     "InertialParams",
     "check_physical",
     "com_error_m",
+    "estimate_errors",
     "inertia_to_vec",
     "log_cholesky_jacobian",
     "log_cholesky_to_params",
@@ -450,20 +451,33 @@ def _positive_mass(pi: np.ndarray, name: str) -> None:
         raise ValueError(f"{name} must have positive mass, got min mass {pi[..., 0].min()} kg")
 
 
+def _checked_pair(pi_est: np.ndarray, pi_true: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Both bodies as finite float arrays (..., 10) with positive masses, or ValueError."""
+    pi_est = _as_array(pi_est, (10,), "pi_est")
+    pi_true = _as_array(pi_true, (10,), "pi_true")
+    _positive_mass(pi_est, "pi_est")
+    _positive_mass(pi_true, "pi_true")
+    return pi_est, pi_true
+
+
 def mass_rel_error(pi_est: np.ndarray, pi_true: np.ndarray) -> np.ndarray:
     """Relative mass error |m_est - m_true| / m_true, shape (...)."""
     pi_est = _as_array(pi_est, (10,), "pi_est")
     pi_true = _as_array(pi_true, (10,), "pi_true")
     _positive_mass(pi_true, "pi_true")
+    return _mass_rel_error(pi_est, pi_true)
+
+
+def _mass_rel_error(pi_est: np.ndarray, pi_true: np.ndarray) -> np.ndarray:
     return np.abs(pi_est[..., 0] - pi_true[..., 0]) / pi_true[..., 0]
 
 
 def com_error_m(pi_est: np.ndarray, pi_true: np.ndarray) -> np.ndarray:
     """Distance in metres between the estimated and true centres of mass, shape (...)."""
-    pi_est = _as_array(pi_est, (10,), "pi_est")
-    pi_true = _as_array(pi_true, (10,), "pi_true")
-    _positive_mass(pi_est, "pi_est")
-    _positive_mass(pi_true, "pi_true")
+    return _com_error_m(*_checked_pair(pi_est, pi_true))
+
+
+def _com_error_m(pi_est: np.ndarray, pi_true: np.ndarray) -> np.ndarray:
     com_est = pi_est[..., 1:4] / pi_est[..., :1]
     com_true = pi_true[..., 1:4] / pi_true[..., :1]
     return np.linalg.norm(com_est - com_true, axis=-1)
@@ -471,10 +485,10 @@ def com_error_m(pi_est: np.ndarray, pi_true: np.ndarray) -> np.ndarray:
 
 def principal_rel_errors(pi_est: np.ndarray, pi_true: np.ndarray) -> np.ndarray:
     """|I_k,est - I_k,true| / I_k,true of the sorted principal moments about the com, (..., 3)."""
-    pi_est = _as_array(pi_est, (10,), "pi_est")
-    pi_true = _as_array(pi_true, (10,), "pi_true")
-    _positive_mass(pi_est, "pi_est")
-    _positive_mass(pi_true, "pi_true")
+    return _principal_rel_errors(*_checked_pair(pi_est, pi_true))
+
+
+def _principal_rel_errors(pi_est: np.ndarray, pi_true: np.ndarray) -> np.ndarray:
     # Both bodies in one call of each (per-body results are the same; the env calls this at
     # every estimator update).
     moments_est, moments_true = np.linalg.eigvalsh(
@@ -483,6 +497,19 @@ def principal_rel_errors(pi_est: np.ndarray, pi_true: np.ndarray) -> np.ndarray:
     if (moments_true <= 0.0).any():
         raise ValueError("pi_true must have positive principal moments about its centre of mass")
     return np.abs(moments_est - moments_true) / moments_true
+
+
+def estimate_errors(
+    pi_est: np.ndarray, pi_true: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`mass_rel_error`, `com_error_m` and `principal_rel_errors` of the same bodies, their
+    inputs checked once: shapes (...), (...) and (..., 3)."""
+    pi_est, pi_true = _checked_pair(pi_est, pi_true)
+    return (
+        _mass_rel_error(pi_est, pi_true),
+        _com_error_m(pi_est, pi_true),
+        _principal_rel_errors(pi_est, pi_true),
+    )
 
 
 def pseudo_inertia_distance(pi_a: np.ndarray, pi_b: np.ndarray) -> np.ndarray:

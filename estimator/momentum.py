@@ -332,22 +332,42 @@ def rate_square_terms(robot: RobotDescription, q: np.ndarray) -> tuple[np.ndarra
     one's weight w (k,) in Var = w v^2 of white Gaussian noise (2 for a square, 1 for a product:
     the noise model's factor)."""
     nj = robot.n_joints
-    zero3 = np.zeros(3)
+    q = _single(q, (nj,), "q")
+    imu_pos = np.ascontiguousarray(robot.imu_pos, dtype=float)
+    terms = _rate_square_terms(*robot.arrays, imu_pos, q)
+    weights = np.array([2.0] * nj + [1.0] * (len(terms) - nj))
+    return terms, weights
+
+
+@njit(cache=True)
+def _rate_square_terms(
+    parent, joint_axis, rot_in_parent, pos_in_parent, mass, com, inertia_com, grasp_link,
+    grasp_rot, grasp_pos, imu_pos, q,
+):  # fmt: skip
+    """`rate_square_terms`' vectors: the squares' rows, then the pairs' (i < j)."""
+    arrays = RobotArrays(
+        parent, joint_axis, rot_in_parent, pos_in_parent, mass, com, inertia_com, grasp_link,
+        grasp_rot, grasp_pos,
+    )  # fmt: skip
+    nj = q.shape[0]
+    zero3, no_thrust, no_var = np.zeros(3), np.zeros(6), np.zeros(nj)
     keep = np.zeros(SIZE)
     keep[LINKS_Q] = keep[CARGO_Q] = 1.0
-
-    def quad(rates):
-        return keep * momentum_sample(robot, zero3, zero3, q, rates, np.zeros(6))[0]
-
     unit = np.eye(nj)
-    squares = [quad(unit[j]) for j in range(nj)]
-    pairs = [
-        quad(unit[i] + unit[j]) - squares[i] - squares[j]
-        for i in range(nj)
-        for j in range(i + 1, nj)
-    ]
-    weights = np.array([2.0] * nj + [1.0] * len(pairs))
-    return np.array(squares + pairs).reshape(-1, SIZE), weights
+    terms = np.empty((nj + nj * (nj - 1) // 2, SIZE))
+    row = nj
+    for i in range(nj):
+        rates = unit[i]
+        terms[i] = keep * momentum_pass(arrays, imu_pos, zero3, zero3, q, rates, no_thrust,
+                                        no_var)[0]  # fmt: skip
+    for i in range(nj):
+        for j in range(i + 1, nj):
+            rates = unit[i] + unit[j]
+            pair = keep * momentum_pass(arrays, imu_pos, zero3, zero3, q, rates, no_thrust,
+                                        no_var)[0]  # fmt: skip
+            terms[row] = pair - terms[i] - terms[j]
+            row += 1
+    return terms
 
 
 def cargo_regressor_parts(y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

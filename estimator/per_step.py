@@ -59,6 +59,15 @@ def _all_finite(a: np.ndarray) -> bool:
 
 
 @njit(cache=True)
+def _any_nonzero(a: np.ndarray) -> bool:
+    """Whether any entry is nonzero (NaN counts), as ``a.any()``."""
+    for value in a.flat:
+        if value != 0.0:
+            return True
+    return False
+
+
+@njit(cache=True)
 def _usable(nj, accel, gyro, q, thrust, fix_pos, fix_quat, has_fix) -> bool:
     """Every reading of the right shape and finite (the fix's shape too, when given)."""
     if accel.shape[0] != 3 or gyro.shape[0] != 3 or q.shape[0] != nj or thrust.shape[0] != 6:
@@ -294,11 +303,11 @@ class EstimatorInputs:
         previous = self._servo_ripple_prev
         if previous is None:
             previous = self._servo_ripple_prev = np.zeros(3)
-        if rate.shape == nj and not (rate.any() or previous.any()):
-            return accel_imu  # at rest (a NaN rate is not: any() counts it)
+        if rate.shape == nj and not (_any_nonzero(rate) or _any_nonzero(previous)):
+            return accel_imu  # at rest (a NaN rate is not: it counts as nonzero)
         q = np.asarray(joint_pos_rad, dtype=float)
         usable = q.shape == nj and rate.shape == nj
-        if not (usable and np.isfinite(q).all() and np.isfinite(rate).all()):
+        if not (usable and _all_finite(q) and _all_finite(rate)):
             return accel_imu
         if self._servo_ripple_map is None or stamp % self.update_every == 0:
             self._servo_ripple_map = servo_ripple_velocities(

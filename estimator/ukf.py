@@ -457,7 +457,7 @@ class InertialParamUKF(BatchedUKF):
         """The reported estimate: the physically consistent body of highest posterior density
         (x when x is consistent); a copy."""
         x_of, P_of = self._mode_of
-        if not (np.array_equal(self.x, x_of) and np.array_equal(self.P, P_of)):
+        if not (unscented.same_values(self.x, x_of) and unscented.same_values(self.P, P_of)):
             self._mode, solved = constrained_mode(self.x, self.P, start=self._mode)
             self.n_mode_fallbacks += not solved
             self._mode_of = (self.x.copy(), self.P.copy())

@@ -6,7 +6,9 @@ The equations are those of the ``estimator.ukf`` docstring. Every kernel is comp
 gives the views), so that an update is one call that passes a handful of arrays and updates the
 filter in place; the kernels called from Python are compiled for C-contiguous float64 arrays
 when this module is imported (or loaded from numba's cache) and raise TypeError for anything
-else, which the filters convert.
+else, which the filters convert. The products are numba's ``@`` (BLAS); the elementwise steps
+around them are loops that write their result once, as numba's array expressions allocate a
+temporary per operation, which for arrays this small costs more than the arithmetic.
 """
 
 from __future__ import annotations
@@ -53,10 +55,12 @@ def draw_merwe_sigma_points(sigmas: np.ndarray, x: np.ndarray, P: np.ndarray, sc
     lower, definite = cholesky_lower(P)
     if not definite:
         return False
-    offsets = scale * lower.T  # row k: scale times column k of L
     sigmas[0] = x
-    sigmas[1 : n + 1] = x + offsets
-    sigmas[n + 1 :] = x - offsets
+    for k in range(n):
+        for a in range(n):
+            offset = scale * lower[a, k]  # scale times column k of L
+            sigmas[1 + k, a] = x[a] + offset
+            sigmas[1 + n + k, a] = x[a] - offset
     return True
 
 
@@ -76,15 +80,25 @@ def _weighted_residuals(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The mean z = sum_i Wm_i Z_i, the residuals Z_i - z (rows) and Wc_i (Z_i - z)."""
     mean = Wm @ sigmas_h
-    residuals = sigmas_h - mean
-    return mean, residuals, Wc.reshape(-1, 1) * residuals
+    k, m = sigmas_h.shape
+    residuals = np.empty((k, m))
+    weighted = np.empty((k, m))
+    for i in range(k):
+        for a in range(m):
+            residuals[i, a] = sigmas_h[i, a] - mean[a]
+            weighted[i, a] = Wc[i] * residuals[i, a]
+    return mean, residuals, weighted
 
 
 @njit(cache=True)
 def cross_covariance(x: np.ndarray, sigmas: np.ndarray, weighted_h: np.ndarray) -> np.ndarray:
     """P_xz = sum_i Wc_i (X_i - x)(Z_i - z_pred)^T (n, m), from the weighted residuals
     Wc_i (Z_i - z_pred) (rows of ``weighted_h``)."""
-    return (sigmas - x).T @ weighted_h
+    deviations = np.empty_like(sigmas)  # X_i - x
+    for i in range(sigmas.shape[0]):
+        for a in range(x.size):
+            deviations[i, a] = sigmas[i, a] - x[a]
+    return deviations.T @ weighted_h
 
 
 def state_size(n: int, m: int) -> int:
@@ -122,6 +136,19 @@ def _all_finite(a: np.ndarray) -> bool:
 
 
 @njit(cache=True)
+def same_values(a: np.ndarray, b: np.ndarray | None) -> bool:
+    """Whether ``b`` holds the values of ``a`` (same shape, entries equal; NaN equals nothing),
+    as ``np.array_equal``; None holds none."""
+    if b is None or a.shape != b.shape:
+        return False
+    flat_a, flat_b = a.ravel(), b.ravel()
+    for i in range(flat_a.size):
+        if flat_a[i] != flat_b[i]:
+            return False
+    return True
+
+
+@njit(cache=True)
 def unscented_update(arrays: tuple, z: np.ndarray, R: np.ndarray):
     """Unscented transform, gain and posterior of one update, in place on a filter's arrays
     (`filter_arrays`), from the sigma points and their images already there.
@@ -134,7 +161,10 @@ def unscented_update(arrays: tuple, z: np.ndarray, R: np.ndarray):
         return BAD_H, math.nan
     # The unscented transform and the cross-covariance share the weighted residuals.
     z_pred, residuals_h, weighted_h = _weighted_residuals(sigmas_h, Wm, Wc)
-    S = weighted_h.T @ residuals_h + R
+    S = weighted_h.T @ residuals_h
+    for a in range(z.size):
+        for b in range(z.size):
+            S[a, b] += R[a, b]
     P_xz = cross_covariance(x, sigmas, weighted_h)
     S_lower, definite = cholesky_lower(S)
     if not definite:
@@ -142,10 +172,13 @@ def unscented_update(arrays: tuple, z: np.ndarray, R: np.ndarray):
     # With S = L_S L_S^T, W = L_S^-1 P_zx and w = L_S^-1 y: K = P_xz S^-1 = W^T L_S^-1,
     # NIS = y^T S^-1 y = w.w, K y = W^T w and K S K^T = W^T W.
     y = z - z_pred
-    W = solve_lower(S_lower, np.ascontiguousarray(P_xz.T))
+    W = solve_lower(S_lower, P_xz.T)
     w = solve_lower(S_lower, y.reshape(-1, 1)).ravel()
     nis = w @ w
-    log_det_S = 2.0 * np.log(np.diag(S_lower)).sum()
+    log_det_S = 0.0
+    for i in range(z.size):
+        log_det_S += math.log(S_lower[i, i])
+    log_det_S *= 2.0
     log_likelihood = -0.5 * (nis + log_det_S + z.size * math.log(2.0 * math.pi))
     y_out[:], S_out[:], P_xz_out[:] = y, S, P_xz
     scalars[2] = nis
@@ -154,13 +187,23 @@ def unscented_update(arrays: tuple, z: np.ndarray, R: np.ndarray):
         return (BAD_NIS if _all_finite(z) else BAD_Z), nis
     if nis > scalars[1]:
         return GATED, nis
-    P_post = P - W.T @ W
-    P_post = 0.5 * (P_post + P_post.T)  # exactly symmetric
+    P_post = _symmetrised_difference(P, W.T @ W)
     if not cholesky_lower(P_post)[1]:
         return BAD_POSTERIOR, nis
     x += W.T @ w
     P[:] = P_post
     return OK, nis
+
+
+@njit(cache=True)
+def _symmetrised_difference(P: np.ndarray, G: np.ndarray) -> np.ndarray:
+    """D = P - G made exactly symmetric, 0.5 (D + D^T), without temporaries."""
+    n = P.shape[0]
+    out = np.empty((n, n))
+    for a in range(n):
+        for b in range(a + 1):
+            out[a, b] = out[b, a] = 0.5 * ((P[a, b] - G[a, b]) + (P[b, a] - G[b, a]))
+    return out
 
 
 @njit(cache=True)
@@ -191,7 +234,10 @@ def update_linear(state, n, m, z, A, b, R, predict_first):
     if outcome != OK:
         return outcome, math.nan
     sigmas, sigmas_h = arrays[3], arrays[4]
-    sigmas_h[:] = sigmas @ A.T + b
+    np.dot(sigmas, A.T, sigmas_h)  # Z_i = A X_i + b
+    for i in range(sigmas_h.shape[0]):
+        for r in range(m):
+            sigmas_h[i, r] += b[r]
     return unscented_update(arrays, z, R)
 
 

@@ -15,6 +15,7 @@ from astrocargo.estimator.inertia import (
     InertialParams,
     check_physical,
     com_error_m,
+    estimate_errors,
     inertia_to_vec,
     log_cholesky_jacobian,
     log_cholesky_to_params,
@@ -392,6 +393,19 @@ def test_error_metrics_on_known_differences():
     assert com_error_m(pi_est, pi_true) == pytest.approx(0.5)
     np.testing.assert_allclose(principal_rel_errors(pi_est, pi_true), [0.1, 0.1, 0.0], atol=1e-12)
     assert mass_rel_error(pi_true, pi_true) == 0.0
+
+
+def test_estimate_errors_equal_the_three_metrics_batched():
+    rng = np.random.default_rng(18)
+    pi_est, pi_true = random_params(rng, (2, 5))
+    mass, com, principal = estimate_errors(pi_est, pi_true)
+    np.testing.assert_array_equal(mass, mass_rel_error(pi_est, pi_true))
+    np.testing.assert_array_equal(com, com_error_m(pi_est, pi_true))
+    np.testing.assert_array_equal(principal, principal_rel_errors(pi_est, pi_true))
+    bad = pi_est.copy()
+    bad[2, 0] = -1.0
+    with pytest.raises(ValueError, match="pi_est must have positive mass"):
+        estimate_errors(bad, pi_true)
 
 
 def test_pseudo_inertia_distance_is_frame_free():

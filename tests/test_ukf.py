@@ -919,3 +919,19 @@ def test_a_copied_filter_updates_its_own_buffer_like_the_original(how):
         np.testing.assert_array_equal(twin.P, ukf.P)
     assert not np.shares_memory(twin.x, ukf.x)
     assert np.shares_memory(twin.x, twin._state) and np.shares_memory(twin.S, twin._state)
+
+
+def test_same_values_agrees_with_array_equal():
+    """The compiled check behind `params_mean`'s cache: np.array_equal's answer, None never."""
+    from astrocargo.estimator.unscented import same_values
+
+    a = np.arange(12.0).reshape(3, 4)
+    changed = a.copy()
+    changed[2, 3] += 1e-12
+    with_nan = a.copy()
+    with_nan[0, 0] = np.nan
+    for other in (a.copy(), changed, with_nan, a[:2].copy(), -0.0 * a):
+        assert same_values(a, other) == np.array_equal(a, other)
+    assert not same_values(with_nan, with_nan.copy())
+    assert not same_values(a, None)
+    assert not same_values(a, changed)
