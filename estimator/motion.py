@@ -51,6 +51,17 @@ from collections.abc import Callable
 import numpy as np
 from numba import njit
 
+from .momentum import (
+    CARGO_P,
+    CARGO_P_MAP,
+    CARGO_Q,
+    CARGO_Q_MAP,
+    LINKS_P,
+    LINKS_Q,
+    SIZE,
+    THRUST,
+    momentum_pass,
+)
 from .preprocess import StateVariableFilter
 
 
@@ -281,3 +292,216 @@ def band_factors(
     chain = power(kinematics_cutoff_hz) * power(cutoff_hz)
     level = np.array([np.max(2 * dt_s * w ** (2 * c) * chain) for c in range(3)])
     return level / (2 * dt_s * update_every * gains**2)
+
+
+# --------------------------------------------------------------- the momentum chain's noise
+# The chain's kernels (``chain_kernels`` rows): (input kind, rate-filter output, slow output).
+# A held channel (the IMU's period means: gyro, accelerometer) enters the balance through the
+# rate filter's value only; a point channel (the encoders) through its value (q) and its
+# derivative (qd). The momentum form reads its P channels out of the slow filter's derivative and
+# its Q channels out of its value (``momentum``).
+CHAIN_KERNELS = (
+    ("held", "value", "value"),
+    ("held", "value", "derivative"),
+    ("point", "value", "value"),
+    ("point", "value", "derivative"),
+    ("point", "derivative", "value"),
+    ("point", "derivative", "derivative"),
+)
+HELD_KERNELS, POINT_KERNELS = slice(0, 2), slice(2, 6)
+# With the time-weighted twins of ``time_weighted_kernels`` (rows 6 to 11): each channel's
+# kernels, then their twins.
+HELD_EXTENDED, POINT_EXTENDED = np.array([0, 1, 6, 7]), np.array([2, 3, 4, 5, 8, 9, 10, 11])
+
+
+@functools.lru_cache(maxsize=16)
+def chain_kernels(
+    dt_s: float,
+    rate_cutoff_hz: float,
+    product_cutoff_hz: float,
+    cutoff_hz: float,
+    regressor_every: int,
+    n_delays: float = 10.0,
+) -> np.ndarray:
+    """Impulse responses K (6, span) of the momentum chain (``CHAIN_KERNELS``): K[r, m] is the
+    slow filter's output r at one of its samples per unit impulse m control steps earlier on one
+    input channel.
+
+    The chain, as the estimator runs it (``preprocess.Preprocessor``, ``per_step``): the rate
+    filter (``rate_cutoff_hz``; held channels with a zero-order hold of the new sample, point
+    channels with a first-order hold), a momentum-form sample of its value and derivative every
+    step, the product filter (``product_cutoff_hz``) every step, and the slow filter
+    (``cutoff_hz``, period ``regressor_every`` steps) on the product filter's value, read out as
+    value and derivative. Linear: the noise of an output at a slow sample is sum_m K[m] e_-m for
+    white input e. Exact up to the truncation after ``n_delays`` of the chain's delays (the
+    responses have decayed by then). Cached, read-only."""
+    if regressor_every < 1:
+        raise ValueError(f"regressor_every must be >= 1, got {regressor_every}")
+    delays = [StateVariableFilter(1, dt_s, f).delay_s for f in (rate_cutoff_hz, product_cutoff_hz)]
+    delays.append(StateVariableFilter(1, dt_s * regressor_every, cutoff_hz).delay_s)
+    span = int(np.ceil(n_delays * sum(delays) / dt_s))
+    span += regressor_every - span % regressor_every  # output at a slow-filter sample
+    # Channel block 0: a held input; block 1: a point input (impulse at step k in column k).
+    rate = StateVariableFilter(2 * span, dt_s, rate_cutoff_hz, held=slice(0, span))
+    product = StateVariableFilter(3 * span, dt_s, product_cutoff_hz)
+    slow = StateVariableFilter(3 * span, dt_s * regressor_every, cutoff_hz)
+    for f in (rate, product, slow):  # a first sample sets the state: start at rest at zero
+        f.step(np.zeros(f.n_channels))
+    out = (np.zeros(3 * span), np.zeros(3 * span))
+    for k in range(span + 1):
+        impulse = np.zeros(2 * span)
+        if k < span:
+            impulse[[k, span + k]] = 1.0
+        y, yd, _ = rate.step(impulse)
+        value, _, _ = product.step(np.concatenate((y[:span], y[span:], yd[span:])))
+        if k % regressor_every == 0:
+            v, d, _ = slow.step(value)
+            out = (v, d)
+    # Output after step span: column k is the impulse span - k steps earlier; order m = 0, 1, ...
+    v, d = (x.reshape(3, span)[:, ::-1] for x in out)
+    kernels = np.stack([v[0], d[0], v[1], d[1], v[2], d[2]])
+    kernels.setflags(write=False)
+    return kernels
+
+
+def time_weighted_kernels(kernels: np.ndarray, dt_s: float, at_s: float) -> np.ndarray:
+    """The kernels and their time-weighted twins (2 r, span): K[r, m] and (at - m dt) K[r, m].
+    A map that drifts over the chain's memory, J(t) = J(t0) + (t - t0) J', carries white noise
+    e to sum_m J(t - m dt) K[m] e_-m = J(t0) (K * e) + J' (K_t * e) with t0 = t - ``at_s``: the
+    twin is the kernel of the map's rate J' (s per unit)."""
+    lag_s = at_s - dt_s * np.arange(kernels.shape[1])
+    out = np.vstack((kernels, lag_s * kernels))
+    out.setflags(write=False)
+    return out
+
+
+def kernel_lag_covariances(kernels: np.ndarray, update_every: int, n_lags: int) -> np.ndarray:
+    """G (n_lags + 1, r, r): G[L, a, b] = sum_m K_a[m] K_b[m + L update_every], the covariance of
+    outputs a at one update and b L updates later per unit white input variance."""
+    span = kernels.shape[1]
+    out = np.zeros((n_lags + 1, kernels.shape[0], kernels.shape[0]))
+    for lag in range(n_lags + 1):
+        shift = lag * update_every
+        if shift < span:
+            out[lag] = kernels[:, : span - shift] @ kernels[:, shift:].T
+    return out
+
+
+def lag_weighted_covariance(lag_cov: np.ndarray, rho: np.ndarray) -> np.ndarray:
+    """W = G(0) + sum_L>=1 rho(L) (G(L) + G(L)^T), symmetric: the per-update covariance at which
+    a sequential filter must weigh updates whose noise is correlated as G(L) when its regressor's
+    autocorrelation is rho(L) (rho(0) = 1). For a scalar regressor a_i and noise covariance
+    C(i - j) the estimate sum a_i z_i / sum a_i^2 has the variance
+    sum_ij a_i a_j C(i - j) / (sum a_i^2)^2 = W / sum a_i^2 exactly: the filter is consistent
+    with the white measurement covariance W. For a regressor slow against the noise (rho = 1)
+    W is the long-run covariance sum_L C(L) (the noise's spectral density at zero frequency);
+    for noise read out of a derivative it is the spectral density averaged over the regressor's
+    spectrum, (2 pi f)^2 S(f) at the regressor's rms frequency f."""
+    w = lag_cov[0] + np.einsum("l,lab->ab", rho[1:], lag_cov[1:] + lag_cov[1:].transpose(0, 2, 1))
+    return 0.5 * (w + w.T)
+
+
+def psd_factor(w: np.ndarray) -> np.ndarray:
+    """F with F F^T = W for a symmetric W, negative eigenvalues (round-off of a weighted sum of
+    lag covariances with an estimated autocorrelation) set to zero."""
+    s, u = np.linalg.eigh(w)
+    return u * np.sqrt(np.clip(s, 0.0, None))
+
+
+class RegressorAutocorrelation:
+    """The regressor's autocorrelation over update lags, rho(L) (n_lags + 1,), accumulated over a
+    run: per parameter column k, rho_k(L) = sum_i <A_i,k, A_i-L,k> over the pairs L updates
+    apart, normalised by those pairs' mean power, then averaged over the columns with power (each
+    parameter counts alike, whatever its units). Lags not yet seen take the longest seen lag's
+    value (one update seen: rho = 1, a slow regressor)."""
+
+    def __init__(self, n_lags: int) -> None:
+        self.n_lags = int(n_lags)
+        self._cross = np.zeros((self.n_lags + 1, 10))
+        self._power = np.zeros((self.n_lags + 1, 10))
+        self._history: list[tuple[int, np.ndarray]] = []
+
+    def add(self, index: int, regressor: np.ndarray) -> None:
+        """Account for the regressor (6, 10) of update ``index`` (update counts, increasing)."""
+        a = np.asarray(regressor, dtype=float)
+        power = np.einsum("rk,rk->k", a, a)
+        self._history = [(i, b) for i, b in self._history if 0 < index - i <= self.n_lags]
+        self._cross[0] += power
+        self._power[0] += power
+        for i, b in self._history:
+            lag = index - i
+            self._cross[lag] += np.einsum("rk,rk->k", a, b)
+            self._power[lag] += 0.5 * (power + np.einsum("rk,rk->k", b, b))
+        self._history.append((int(index), a))
+
+    def rho(self) -> np.ndarray:
+        """rho(L) (n_lags + 1,), rho(0) = 1."""
+        seen = self._power[:, self._power[0] > 0]
+        if seen.shape[1] == 0:
+            return np.ones(self.n_lags + 1)
+        cross = self._cross[:, self._power[0] > 0]
+        rho = np.ones(self.n_lags + 1)
+        for lag in range(1, self.n_lags + 1):
+            ok = seen[lag] > 0
+            rho[lag] = np.mean(cross[lag, ok] / seen[lag, ok]) if ok.any() else rho[lag - 1]
+        return rho
+
+
+@njit(cache=True)
+def sample_jacobian(arrays, imu_pos, w_base, acc_imu, q, qd, thrust_base, step=1e-4):
+    """d sample / dx (``momentum.SIZE``, 6 + 2 nj) of the momentum-form sample
+    (``momentum.momentum_pass``) with respect to the rate filter's outputs
+    x = (gyro (3) rad/s, the IMU point's acceleration (3) m/s^2, q (nj) rad, qd (nj) rad/s), base
+    frame, by central differences: exact for the rates and the acceleration (the sample is
+    quadratic in them), O(step^2) for the angles."""
+    nj = q.shape[0]
+    no_var = np.zeros(nj)
+    x = np.concatenate((w_base, acc_imu, q, qd))
+    jac = np.empty((SIZE, x.shape[0]))
+    for k in range(x.shape[0]):
+        sides = []
+        for sign in (1.0, -1.0):
+            xs = x.copy()
+            xs[k] += sign * step
+            out, _, _ = momentum_pass(arrays, imu_pos, xs[0:3], xs[3:6], xs[6 : 6 + nj],
+                                      xs[6 + nj :], thrust_base, no_var)  # fmt: skip
+            sides.append(out)
+        jac[:, k] = (sides[0] - sides[1]) / (2.0 * step)
+    return jac
+
+
+def _readout_columns(jac: np.ndarray, derivative: bool) -> tuple[np.ndarray, np.ndarray]:
+    """The balance's model-side noise n = d(links + Y pi - thrust) from sample noise
+    ``jac`` (``SIZE``, c) read out of the slow filter's derivative (its P channels) or value (its
+    thrust and Q channels; ``momentum.balance_from_filtered``): (d links - d thrust (6, c),
+    d Y (c, 6, 10))."""
+    if derivative:
+        d_links = jac[LINKS_P]
+        d_y = CARGO_P_MAP @ jac[CARGO_P]
+    else:
+        d_links = jac[LINKS_Q] - jac[THRUST]
+        d_y = CARGO_Q_MAP @ jac[CARGO_Q]
+    return d_links, d_y.T.reshape(-1, 6, 10)
+
+
+def momentum_noise_columns(
+    jac: np.ndarray, jac_rate: np.ndarray, n_joints: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per sensor channel, the balance noise's columns per chain kernel and twin
+    (``CHAIN_KERNELS``, ``time_weighted_kernels``): (d links - d thrust (6, 24 + 8 nj),
+    d Y (24 + 8 nj, 6, 10)) from the sample's Jacobian ``jac`` (``sample_jacobian``) and its
+    time derivative ``jac_rate`` (1/s). Channel order: gyro (3), accelerometer (3) (held:
+    kernels value->value, value->derivative, then the same of ``jac_rate``), encoders (nj)
+    (point: q's two, qd's two, then the same of ``jac_rate``)."""
+    parts = []
+    for j in (jac, jac_rate):
+        parts.append((_readout_columns(j, derivative=False), _readout_columns(j, derivative=True)))
+    cols = []
+    for k in range(6):
+        cols += [(p[r], k) for p in parts for r in (0, 1)]
+    for j in range(n_joints):
+        q, qd = 6 + j, 6 + n_joints + j
+        cols += [(p[r], x) for p in parts for x, r in ((q, 0), (q, 1), (qd, 0), (qd, 1))]
+    d_links = np.stack([src[0][:, k] for src, k in cols], axis=1)
+    d_y = np.stack([src[1][k] for src, k in cols])
+    return d_links, d_y

@@ -42,7 +42,7 @@ from .momentum import (
 )
 from .motion import grasp_acc_map
 from .preprocess import _first_order_hold_step
-from .rne import RobotArrays, _grasp_from_base, balance_motion_jacobians
+from .rne import RobotArrays, _grasp_from_base
 
 # Outcomes of `estimator_step` (its first return value).
 NOT_USABLE, NO_FIX, FIX, BAD_FIX = range(4)
@@ -439,15 +439,13 @@ class EstimatorInputs:
         links = terms[:, 12:18]
         return self.update_every * self._rate_square_var * ((links.T * weights) @ links)
 
-    def _motion_fields(self, b) -> tuple[tuple | None, dict]:
-        """The instant's motion Jacobians (``rne.balance_motion_jacobians``, None without
-        motion fusion) and the message's motion fields."""
+    def _motion_fields(self, b, stamp: int) -> tuple[tuple | None, dict]:
+        """The instant's sensor-noise modes in the momentum chain
+        (``NoiseModel.momentum_jacobians``, None without motion fusion) and the message's motion
+        fields."""
         if self.motion_fusion == "none":
             return None, {}
-        m = self.pre.motion()
-        jac = balance_motion_jacobians(
-            self.robot, m.w_base, m.wd_base, m.acc_base, m.q, m.qd, m.qdd
-        )
+        jac = self.noise.momentum_jacobians(stamp, b.regressor, self.pre.filter.state)
         motion = {
             "grasp_acc": b.regressor[:3, 0].copy(),
             "motion_links_jac": jac[0],
@@ -467,7 +465,7 @@ class EstimatorInputs:
         self._act_cov_n = 0
         sent_cov = act_cov + self._rate_square_links_cov(stamp)
         tainted = stamp <= self._tainted_until
-        jac, motion = self._motion_fields(b)
+        jac, motion = self._motion_fields(b, stamp)
         self._pending[stamp] = _Instant(
             thrust=b.thrust.copy(),
             links=b.links.copy(),

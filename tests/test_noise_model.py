@@ -93,9 +93,9 @@ def test_noise_model_is_the_estimator_s():
     # The floors and the mismatch's model error are white-equivalent per update alike.
     c = decorrelation_updates(est.balance_filter.delay_s, est.update_every * est.dt_s)
     assert model.correlated == pytest.approx(c) and c > 1
-    floors = np.array([6.1e-5, 2.1e-5])
+    floors = np.array([2.5e-6, 6.6e-7])
     np.testing.assert_allclose(np.diag(model.floor_cov)[[0, 3]], c * floors**2)
-    assert model.mismatch_model_var == pytest.approx(c * 1.7e-5**2)
+    assert model.mismatch_model_var == pytest.approx(c * 5.3e-7**2)
     wrench = np.array([1.0, 0, 0, 0, 0, 0.1])
     pose = model.relative_pose_cov(wrench, 8)
     assert pose[0, 0] == pytest.approx(0.25 * model.loc_att_std**2)
@@ -125,3 +125,88 @@ def test_excitation_snr_counts_sigmas_of_the_filtered_motion():
     regressor[:3, 0] = [7.0 * model.acc_noise, 0.0, 0.0]
     assert model.excitation_snr(regressor, 0.0) == pytest.approx(7.0)
     assert model.excitation_snr(regressor, 0.4) < 7.0
+
+
+def _chain_noise(robot, readings, std, n_rep, n_updates, params, rng):
+    """Monte Carlo of the estimator's momentum chain (``Preprocessor``'s rate and product
+    filters with the momentum-form sample, then the slow balance filter) at constant readings
+    ``readings`` (accel, gyro, q, thrust) plus white noise of std ``std`` (accel, gyro, encoder)
+    per step: the balance's model-side noise n = d(links + Y pi - thrust) at the update instants
+    after the chain's memory, (n_rep, n_updates, 6)."""
+    from astrocargo.estimator.momentum import SIZE, balance_from_filtered
+    from astrocargo.estimator.preprocess import Preprocessor
+
+    def residual(state):
+        b = balance_from_filtered(state[0], state[1])
+        return b.links + b.regressor @ params - b.thrust
+
+    warm = 400  # steps: ten times the chain's delay
+    sizes = np.array([3, 3, robot.n_joints])
+    scale = np.repeat(std, sizes)
+    out = np.empty((n_rep, n_updates, 6))
+    for rep in range(n_rep + 1):  # replica 0: noise-free, the reference
+        # With the encoders' noise its square's mean in Q is subtracted, as the estimator does.
+        pre = Preprocessor(robot, DT, PRE_HZ, encoder_std_rad=std[2] if rep else 0.0)
+        slow = StateVariableFilter(SIZE, DT * EVERY, SLOW_HZ)
+        clean = np.concatenate(readings[:3])
+        for k in range(warm + n_updates * UPDATE + 1):
+            noise = rng.normal(size=clean.size) * scale if rep else 0.0
+            a, g, q = np.split(clean + noise, np.cumsum(sizes)[:2])
+            pre.step(a, g, q, readings[3])
+            if k % EVERY == 0:
+                slow.step(pre.product_filter.state[0])
+            if k > warm and (k - warm) % UPDATE == 0:
+                r = residual(slow.state)
+                if rep == 0:
+                    reference = r  # stationary: the same at every instant
+                else:
+                    out[rep - 1, (k - warm) // UPDATE - 1] = r - reference
+    return out
+
+
+def test_momentum_chain_noise_matches_a_monte_carlo_of_the_chain():
+    """The noise model's exact linear map of each white sensor noise through the momentum chain
+    (``NoiseModel.momentum_jacobians``: the sample's Jacobian, the chain's kernels and their lag
+    covariances) against the estimator's own filters fed with noisy readings of a robot that
+    turns steadily (0.15 rad/s), accelerates and thrusts, arm bent: the covariance of the
+    balance's noise at one update and between updates 1 and 3 apart (the slow filter's memory
+    correlates them), source by source and all together, within the Monte Carlo's spread."""
+    from astrocargo.estimator.motion import kernel_lag_covariances
+
+    robot = _robot()
+    nj = robot.n_joints
+    rng = np.random.default_rng(3)
+    w = np.array([0.05, -0.1, 0.1])
+    acc = np.array([0.01, -0.005, 0.008])  # the IMU point's, base frame (imu_rot applied below)
+    q = np.linspace(0.4, -0.6, nj)
+    thrust = np.array([0.1, -0.05, 0.08, 2e-3, -1e-3, 3e-3])
+    rot = np.asarray(robot.imu_rot)
+    readings = (rot.T @ acc, rot.T @ w, q, thrust)
+    params = np.array([5.0, 0.05, 0.9, -0.05, 0.1, 0.08, 0.12, 0.0, 0.01, 0.0])
+    # The noise-free chain's steady state (rates constant): its pre-filter state is the motion.
+    pre_state = np.zeros((3, 12 + nj))
+    pre_state[0] = np.concatenate((w, acc, q, np.asarray(robot.thrust_to_base) @ thrust))
+    from astrocargo.estimator.motion import chain_kernels, momentum_noise_columns, sample_jacobian
+
+    jac = sample_jacobian(robot.arrays, np.asarray(robot.imu_pos, dtype=float), w, acc, q,
+                          np.zeros(nj), pre_state[0, 6 + nj :])  # fmt: skip
+    # Steady motion: the map does not drift (its rate's columns are zero).
+    d_links, d_y = momentum_noise_columns(jac, np.zeros_like(jac), nj)
+    cols = d_links + (d_y @ params).T  # (6, 24 + 8 nj)
+    lag_cov = kernel_lag_covariances(chain_kernels(DT, 8.0, PRE_HZ, SLOW_HZ, EVERY), UPDATE, 3)
+    channels = [(k, slice(4 * k, 4 * k + 2), slice(0, 2)) for k in range(6)]
+    channels += [(6 + j, slice(24 + 8 * j, 28 + 8 * j), slice(2, 6)) for j in range(nj)]
+    stds = {"gyro": (0, 2e-4, 0), "accelerometer": (1e-3, 0, 0), "encoders": (0, 0, 1e-3)}
+    stds["all"] = (1e-3, 2e-4, 1e-3)
+    for name, std in stds.items():
+        var = np.array([std[1]] * 3 + [std[0]] * 3 + [std[2]] * nj) ** 2
+        predicted = sum(
+            var[c] * cols[:, cs] @ lag_cov[:, ks, ks] @ cols[:, cs].T for c, cs, ks in channels
+        )  # (4, 6, 6): lags 0 to 3
+        n = _chain_noise(robot, readings, np.array(std), 30, 80, params, rng)
+        scale = np.linalg.norm(predicted[0])
+        for lag in (0, 1, 3):
+            a, b = n[:, : 80 - lag].reshape(-1, 6), n[:, lag:].reshape(-1, 6)
+            empirical = 0.5 * (a.T @ b + b.T @ a) / a.shape[0]
+            err = np.linalg.norm(empirical - 0.5 * (predicted[lag] + predicted[lag].T)) / scale
+            assert err < 0.3, (name, lag, err)
