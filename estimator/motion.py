@@ -413,61 +413,88 @@ class RegressorAutocorrelation:
     run: per parameter column k, rho_k(L) = sum_i <A_i,k, A_i-L,k> over the pairs L updates
     apart, normalised by those pairs' mean power, then averaged over the columns with power (each
     parameter counts alike, whatever its units). Lags not yet seen take the longest seen lag's
-    value (one update seen: rho = 1, a slow regressor)."""
+    value (one update seen: rho = 1, a slow regressor). The last ``n_lags`` regressors are kept
+    in a ring (row ``index`` mod n_lags)."""
 
     def __init__(self, n_lags: int) -> None:
         self.n_lags = int(n_lags)
         self._cross = np.zeros((self.n_lags + 1, 10))
         self._power = np.zeros((self.n_lags + 1, 10))
-        self._history: list[tuple[int, np.ndarray]] = []
+        self._ring = np.zeros((max(self.n_lags, 1), 6, 10))
+        self._ring_power = np.zeros((max(self.n_lags, 1), 10))
+        self._ring_index = np.full(max(self.n_lags, 1), -(10**9), dtype=np.int64)
 
     def add(self, index: int, regressor: np.ndarray) -> None:
         """Account for the regressor (6, 10) of update ``index`` (update counts, increasing)."""
         a = np.asarray(regressor, dtype=float)
         power = np.einsum("rk,rk->k", a, a)
-        self._history = [(i, b) for i, b in self._history if 0 < index - i <= self.n_lags]
         self._cross[0] += power
         self._power[0] += power
-        for i, b in self._history:
-            lag = index - i
-            self._cross[lag] += np.einsum("rk,rk->k", a, b)
-            self._power[lag] += 0.5 * (power + np.einsum("rk,rk->k", b, b))
-        self._history.append((int(index), a))
+        lag = index - self._ring_index
+        seen = (lag > 0) & (lag <= self.n_lags)
+        if seen.any():
+            lags = lag[seen]
+            np.add.at(self._cross, lags, np.einsum("lrk,rk->lk", self._ring[seen], a))
+            np.add.at(self._power, lags, 0.5 * (power + self._ring_power[seen]))
+        if self.n_lags:
+            slot = index % self.n_lags
+            self._ring[slot], self._ring_power[slot], self._ring_index[slot] = a, power, index
 
     def rho(self) -> np.ndarray:
         """rho(L) (n_lags + 1,), rho(0) = 1."""
-        seen = self._power[:, self._power[0] > 0]
-        if seen.shape[1] == 0:
-            return np.ones(self.n_lags + 1)
-        cross = self._cross[:, self._power[0] > 0]
+        columns = self._power[0] > 0
         rho = np.ones(self.n_lags + 1)
-        for lag in range(1, self.n_lags + 1):
-            ok = seen[lag] > 0
-            rho[lag] = np.mean(cross[lag, ok] / seen[lag, ok]) if ok.any() else rho[lag - 1]
+        if not columns.any():
+            return rho
+        power, cross = self._power[:, columns], self._cross[:, columns]
+        ok = power > 0
+        ratio = np.where(ok, cross / np.where(ok, power, 1.0), 0.0)
+        counted = ok.sum(axis=1)
+        mean = ratio.sum(axis=1) / np.maximum(counted, 1)
+        # A lag not seen yet: the longest seen lag's value (index carried forward).
+        last = np.maximum.accumulate(np.where(counted > 0, np.arange(self.n_lags + 1), 0))
+        rho[1:] = mean[last][1:]
         return rho
 
 
 @njit(cache=True)
-def sample_jacobian(arrays, imu_pos, w_base, acc_imu, q, qd, thrust_base, step=1e-4):
+def sample_jacobian(arrays, imu_pos, w_base, acc_imu, q, qd, thrust_base, step=1e-6):
     """d sample / dx (``momentum.SIZE``, 6 + 2 nj) of the momentum-form sample
     (``momentum.momentum_pass``) with respect to the rate filter's outputs
     x = (gyro (3) rad/s, the IMU point's acceleration (3) m/s^2, q (nj) rad, qd (nj) rad/s), base
-    frame, by central differences: exact for the rates and the acceleration (the sample is
-    quadratic in them), O(step^2) for the angles."""
+    frame, by forward differences of ``step``: the sample is quadratic in the rates and the
+    acceleration, so the error is ``step`` times the quadratic coefficient (relative 1e-6 at the
+    robot's scale), O(step) for the angles."""
     nj = q.shape[0]
     no_var = np.zeros(nj)
     x = np.concatenate((w_base, acc_imu, q, qd))
+    base, _, _ = momentum_pass(arrays, imu_pos, w_base, acc_imu, q, qd, thrust_base, no_var)
     jac = np.empty((SIZE, x.shape[0]))
     for k in range(x.shape[0]):
-        sides = []
-        for sign in (1.0, -1.0):
-            xs = x.copy()
-            xs[k] += sign * step
-            out, _, _ = momentum_pass(arrays, imu_pos, xs[0:3], xs[3:6], xs[6 : 6 + nj],
-                                      xs[6 + nj :], thrust_base, no_var)  # fmt: skip
-            sides.append(out)
-        jac[:, k] = (sides[0] - sides[1]) / (2.0 * step)
+        xs = x.copy()
+        xs[k] += step
+        out, _, _ = momentum_pass(arrays, imu_pos, xs[0:3], xs[3:6], xs[6 : 6 + nj],
+                                  xs[6 + nj :], thrust_base, no_var)  # fmt: skip
+        jac[:, k] = (out - base) / step
     return jac
+
+
+@njit(cache=True)
+def drifting_sample_jacobian(arrays, imu_pos, state, n_joints, step_s):
+    """``sample_jacobian`` J (``SIZE``, 6 + 2 nj) at the rate filter's motion x and its time
+    derivative dJ/dt (1/s), from the pre-filter's state (3, 12 + nj) over [gyro_B (rad/s), the
+    IMU point's acceleration_B (m/s^2), q (rad), thrust_B] (value, derivative, second
+    derivative): x = (gyro, acceleration, q, qd = q's derivative, thrust) at the state, and from
+    J+- = J(x +- step_s x' / 2) along the state's derivatives, J = (J+ + J-) / 2 and
+    dJ/dt = (J+ - J-) / step_s (central, second order in step_s)."""
+    nj = n_joints
+    out = np.empty((2, SIZE, 6 + 2 * nj))
+    for k, sign in enumerate((-0.5, 0.5)):
+        value = state[0] + sign * step_s * state[1]
+        rate = state[1] + sign * step_s * state[2]
+        out[k] = sample_jacobian(arrays, imu_pos, value[0:3], value[3:6], value[6 : 6 + nj],
+                                 rate[6 : 6 + nj], value[6 + nj :])  # fmt: skip
+    return 0.5 * (out[0] + out[1]), (out[1] - out[0]) / step_s
 
 
 def _readout_columns(jac: np.ndarray, derivative: bool) -> tuple[np.ndarray, np.ndarray]:
@@ -484,24 +511,37 @@ def _readout_columns(jac: np.ndarray, derivative: bool) -> tuple[np.ndarray, np.
     return d_links, d_y.T.reshape(-1, 6, 10)
 
 
-def momentum_noise_columns(
-    jac: np.ndarray, jac_rate: np.ndarray, n_joints: int
+def momentum_noise_modes(
+    jac: np.ndarray,
+    jac_rate: np.ndarray,
+    n_joints: int,
+    held_factor: np.ndarray | None = None,
+    point_factor: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Per sensor channel, the balance noise's columns per chain kernel and twin
-    (``CHAIN_KERNELS``, ``time_weighted_kernels``): (d links - d thrust (6, 24 + 8 nj),
-    d Y (24 + 8 nj, 6, 10)) from the sample's Jacobian ``jac`` (``sample_jacobian``) and its
-    time derivative ``jac_rate`` (1/s). Channel order: gyro (3), accelerometer (3) (held:
-    kernels value->value, value->derivative, then the same of ``jac_rate``), encoders (nj)
-    (point: q's two, qd's two, then the same of ``jac_rate``)."""
-    parts = []
-    for j in (jac, jac_rate):
-        parts.append((_readout_columns(j, derivative=False), _readout_columns(j, derivative=True)))
-    cols = []
-    for k in range(6):
-        cols += [(p[r], k) for p in parts for r in (0, 1)]
-    for j in range(n_joints):
-        q, qd = 6 + j, 6 + n_joints + j
-        cols += [(p[r], x) for p in parts for x, r in ((q, 0), (q, 1), (qd, 0), (qd, 1))]
-    d_links = np.stack([src[0][:, k] for src, k in cols], axis=1)
-    d_y = np.stack([src[1][k] for src, k in cols])
+    (``CHAIN_KERNELS``, ``time_weighted_kernels``), times the channel kind's factor F (F F^T
+    the kernels' lag-weighted covariance; None: the identity, the columns themselves):
+    (d links - d thrust (6, 24 + 8 nj), d Y (24 + 8 nj, 6, 10)) from the sample's Jacobian
+    ``jac`` (``sample_jacobian``) and its time derivative ``jac_rate`` (1/s) (both from
+    ``drifting_sample_jacobian``). Channel order:
+    gyro (3), accelerometer (3) (held, 4 columns each: value->value, value->derivative, the same
+    of ``jac_rate``), encoders (nj) (point, 8 each: q's two, qd's two, then the same of
+    ``jac_rate``)."""
+    nj = n_joints
+    # (6, 6 + 2 nj, 4) and (6 + 2 nj, 4, 60): per input x, (jac or its rate) x (value, derivative)
+    parts = [_readout_columns(j, d) for j in (jac, jac_rate) for d in (False, True)]
+    links = np.stack([p[0] for p in parts], axis=-1)
+    y = np.stack([p[1].reshape(-1, 60) for p in parts], axis=1)
+    q, qd = slice(6, 6 + nj), slice(6 + nj, 6 + 2 * nj)
+    links_point = np.concatenate((links[:, q, :2], links[:, qd, :2], links[:, q, 2:],
+                                  links[:, qd, 2:]), axis=-1)  # fmt: skip
+    y_point = np.concatenate((y[q, :2], y[qd, :2], y[q, 2:], y[qd, 2:]), axis=1)
+    links_held, y_held = links[:, :6], y[:6]
+    if held_factor is not None:
+        links_held, y_held = links_held @ held_factor, np.einsum("cka,km->cma", y_held, held_factor)
+    if point_factor is not None:
+        links_point = links_point @ point_factor
+        y_point = np.einsum("cka,km->cma", y_point, point_factor)
+    d_links = np.concatenate((links_held.reshape(6, -1), links_point.reshape(6, -1)), axis=1)
+    d_y = np.concatenate((y_held.reshape(-1, 6, 10), y_point.reshape(-1, 6, 10)))
     return d_links, d_y

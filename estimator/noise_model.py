@@ -40,9 +40,9 @@ from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
-import scipy.linalg
 from numba import njit
 
+from .momentum import CARGO_Q, CARGO_Q_MAP, LINKS_Q
 from .motion import (
     HELD_EXTENDED,
     POINT_EXTENDED,
@@ -52,13 +52,13 @@ from .motion import (
     band_factors,
     chain_kernels,
     condition_maps,
+    drifting_sample_jacobian,
     filtered_motion_gains,
     kernel_lag_covariances,
     lag_weighted_covariance,
-    momentum_noise_columns,
+    momentum_noise_modes,
     noise_cov,
     psd_factor,
-    sample_jacobian,
     time_weighted_kernels,
 )
 from .preprocess import DEFAULT_RATE_CUTOFF_HZ, StateVariableFilter
@@ -66,6 +66,9 @@ from .rne import RobotDescription
 
 # Ways the motion's sensor noise enters the measurement (``NoiseModel.motion_noise``).
 MOTION_FUSION = ("none", "own", "team")
+# Updates between refreshes of the IMU channels' lag-weighted factor (the regressor's
+# autocorrelation changes slowly; ``NoiseModel.momentum_jacobians``).
+FACTOR_REFRESH_UPDATES = 8
 
 
 class PeerMotion(Protocol):
@@ -258,8 +261,15 @@ class NoiseModel:
         n_lags = int(np.ceil(kernels.shape[1] / self.update_every))
         self._lag_cov = kernel_lag_covariances(kernels, self.update_every, n_lags)
         self.autocorrelation = RegressorAutocorrelation(n_lags)
+        self._held_factor = None  # refreshed every FACTOR_REFRESH_UPDATES updates
+        # The encoders (the regressor's own noise): the per-update covariance G(0), see
+        # ``momentum_jacobians``.
+        self._point_factor = psd_factor(self._lag_cov[0][np.ix_(POINT_EXTENDED, POINT_EXTENDED)])
         nj = robot.n_joints
-        var = np.repeat([sensor[1] ** 2, sensor[0] ** 2, sensor[2] ** 2], [12, 12, 8 * nj])
+        # The squared rate noise's modes (``momentum.rate_square_terms``), with the encoders.
+        self._n_rate_modes = (nj * (nj + 1)) // 2 if sensor[2] > 0 else 0
+        var = np.repeat([sensor[1] ** 2, sensor[0] ** 2, sensor[2] ** 2, 1.0],
+                        [12, 12, 8 * nj, self._n_rate_modes])  # fmt: skip
         self.momentum_motion = MotionNoiseSpec(var=var, band=np.ones(var.size))
         self._robot_arrays = robot.arrays
         self._imu_pos = np.ascontiguousarray(robot.imu_pos, dtype=float)
@@ -268,7 +278,11 @@ class NoiseModel:
         self._states: list[tuple[int, np.ndarray]] = []
 
     def momentum_jacobians(
-        self, stamp: int, regressor: np.ndarray, pre_state: np.ndarray
+        self,
+        stamp: int,
+        regressor: np.ndarray,
+        pre_state: np.ndarray,
+        rate_terms: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """The balance's sensor-noise modes at update ``stamp`` in the momentum chain:
         (d links - d thrust (6, n), d Y (n, 6, 10)), each mode of unit variance per unit
@@ -280,7 +294,7 @@ class NoiseModel:
         ``sample_jacobian`` at x the motion of the balance's samples), and the balance, read out of
         the slow filter's value (thrust, Q) and derivative (P), by n_i = sum_k c_k (K_k * e_c)_i
         over the chain's kernels K_k (``chain_kernels``) with columns c_k
-        (``momentum_noise_columns``). Successive updates are correlated over the slow filter's
+        (``momentum_noise_modes``). Successive updates are correlated over the slow filter's
         memory: Cov(n_i, n_i+L) = s_c^2 C G_c(L) C^T (``kernel_lag_covariances``). A filter that
         treats updates as independent is consistent when each update carries the lag-weighted
         covariance s_c^2 C W_c C^T, W_c = G_c(0) + sum_L rho(L) (G_c(L) + G_c(L)^T)
@@ -288,25 +302,28 @@ class NoiseModel:
         (``RegressorAutocorrelation``, updated here with ``regressor``); the modes are C F_c with
         F_c F_c^T = W_c. ``pre_state`` (3, 12 + nj): the pre-filter's state over [gyro_B, the IMU
         point's acceleration_B, q, thrust_B] (``preprocess.Preprocessor``)."""
-        self.autocorrelation.add(stamp // self.update_every, regressor)
+        index = stamp // self.update_every
+        self.autocorrelation.add(index, regressor)
         x = self._delayed_motion(stamp, pre_state)
-        h = self._jacobian_rate_step_s
-        jac = self._sample_jacobian(x[0], x[1])
-        ahead = self._sample_jacobian(x[0] + h * x[1], x[1] + h * x[2])
-        behind = self._sample_jacobian(x[0] - h * x[1], x[1] - h * x[2])
-        nj = self._n_joints
-        d_links, d_y = momentum_noise_columns(jac, (ahead - behind) / (2 * h), nj)
-        w = lag_weighted_covariance(self._lag_cov, self.autocorrelation.rho())
-        blocks = [psd_factor(w[np.ix_(HELD_EXTENDED, HELD_EXTENDED)])] * 6
-        blocks += [psd_factor(w[np.ix_(POINT_EXTENDED, POINT_EXTENDED)])] * nj
-        factor = scipy.linalg.block_diag(*blocks)
-        return d_links @ factor, np.einsum("kab,km->mab", d_y, factor)
-
-    def _sample_jacobian(self, value: np.ndarray, rate: np.ndarray) -> np.ndarray:
-        """``sample_jacobian`` at the pre-filter's value and derivative (12 + nj,) each."""
-        nj = self._n_joints
-        return sample_jacobian(self._robot_arrays, self._imu_pos, value[0:3], value[3:6],
-                               value[6 : 6 + nj], rate[6 : 6 + nj], value[6 + nj :])  # fmt: skip
+        jac, jac_rate = drifting_sample_jacobian(
+            self._robot_arrays, self._imu_pos, x, self._n_joints, self._jacobian_rate_step_s
+        )
+        if self._held_factor is None or index % FACTOR_REFRESH_UPDATES == 0:
+            w = lag_weighted_covariance(self._lag_cov, self.autocorrelation.rho())
+            self._held_factor = psd_factor(w[np.ix_(HELD_EXTENDED, HELD_EXTENDED)])
+        d_links, d_y = momentum_noise_modes(
+            jac, jac_rate, self._n_joints, self._held_factor, self._point_factor
+        )
+        if not self._n_rate_modes:
+            return d_links, d_y
+        n_rate = self._n_rate_modes
+        rate_links, rate_y = np.zeros((6, n_rate)), np.zeros((n_rate, 6, 10))
+        if rate_terms is not None:
+            terms, variances = rate_terms
+            scale = np.sqrt(variances)
+            rate_links[:] = (terms[:, LINKS_Q] * scale[:, None]).T
+            rate_y[:] = ((terms[:, CARGO_Q] * scale[:, None]) @ CARGO_Q_MAP.T).reshape(-1, 6, 10)
+        return np.hstack((d_links, rate_links)), np.concatenate((d_y, rate_y))
 
     def _delayed_motion(self, stamp: int, pre_state: np.ndarray) -> np.ndarray:
         """The pre-filter's (value, derivative, second derivative) (3, 12 + nj) about
@@ -428,9 +445,12 @@ class NoiseModel:
         else:
             mean, cov = condition_maps(n_map, d_map, level, mismatch, self.mismatch_model_var)
         if params_cov is not None:
-            n_own = np.shape(d_y)[0]
+            # sum_k level_k dY_k P dY_k^T as one product over the stacked (6, 10 n) rows.
             d_y = np.asarray(d_y, dtype=float)
-            cov = cov + np.einsum("k,kai,ij,kbj->ab", level[:n_own], d_y, params_cov, d_y)
+            scaled = np.sqrt(level[: d_y.shape[0], None, None]) * d_y
+            rows = scaled.transpose(1, 0, 2).reshape(6, -1)
+            spread = (scaled @ params_cov).transpose(1, 0, 2).reshape(6, -1)
+            cov = cov + spread @ rows.T
         return mean, cov
 
     def _stacked_motion(self, own, params, d_links, d_y, regressor, peers):

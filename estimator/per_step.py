@@ -445,7 +445,12 @@ class EstimatorInputs:
         fields."""
         if self.motion_fusion == "none":
             return None, {}
-        jac = self.noise.momentum_jacobians(stamp, b.regressor, self.pre.filter.state)
+        # The squared rate noise joins the modes (``NoiseModel.momentum_jacobians``): it enters
+        # the team's mismatch too, and neither the message's covariance nor
+        # ``_rate_square_cov`` carries it then.
+        entry = self._rate_terms.pop(stamp, None)
+        rate = None if entry is None else (entry[0], self._rate_square_var * entry[1])
+        jac = self.noise.momentum_jacobians(stamp, b.regressor, self.pre.filter.state, rate)
         motion = {
             "grasp_acc": b.regressor[:3, 0].copy(),
             "motion_links_jac": jac[0],
@@ -463,9 +468,10 @@ class EstimatorInputs:
         act_cov = self._act_cov_sum / max(self._act_cov_n, 1)
         self._act_cov_sum = np.zeros((6, 6))
         self._act_cov_n = 0
-        sent_cov = act_cov + self._rate_square_links_cov(stamp)
+        rate_links_cov = self._rate_square_links_cov(stamp)
         tainted = stamp <= self._tainted_until
         jac, motion = self._motion_fields(b, stamp)
+        sent_cov = act_cov + rate_links_cov if jac is None else act_cov
         self._pending[stamp] = _Instant(
             thrust=b.thrust.copy(),
             links=b.links.copy(),

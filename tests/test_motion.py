@@ -162,7 +162,7 @@ def test_team_fusion_in_the_env(noise):
         obs, *_ = env.step(actions)
     assert est.counters["updates"] > 0 and seen
     inst, msgs, (mean, cov) = seen[-1]
-    # The momentum chain's noise modes: per IMU axis 4, per joint 8 (``momentum_noise_columns``).
+    # The momentum chain's noise modes: per IMU axis 4, per joint 8 (``momentum_noise_modes``).
     n_modes = 24 + 8 * est.robot.n_joints
     assert msgs[0].grasp_acc is not None and msgs[0].motion_links_jac.shape == (6, n_modes)
     rel = est._relative[est.peers[0]].transform()

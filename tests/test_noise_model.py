@@ -186,12 +186,12 @@ def test_momentum_chain_noise_matches_a_monte_carlo_of_the_chain():
     # The noise-free chain's steady state (rates constant): its pre-filter state is the motion.
     pre_state = np.zeros((3, 12 + nj))
     pre_state[0] = np.concatenate((w, acc, q, np.asarray(robot.thrust_to_base) @ thrust))
-    from astrocargo.estimator.motion import chain_kernels, momentum_noise_columns, sample_jacobian
+    from astrocargo.estimator.motion import chain_kernels, momentum_noise_modes, sample_jacobian
 
     jac = sample_jacobian(robot.arrays, np.asarray(robot.imu_pos, dtype=float), w, acc, q,
                           np.zeros(nj), pre_state[0, 6 + nj :])  # fmt: skip
     # Steady motion: the map does not drift (its rate's columns are zero).
-    d_links, d_y = momentum_noise_columns(jac, np.zeros_like(jac), nj)
+    d_links, d_y = momentum_noise_modes(jac, np.zeros_like(jac), nj)
     cols = d_links + (d_y @ params).T  # (6, 24 + 8 nj)
     lag_cov = kernel_lag_covariances(chain_kernels(DT, 8.0, PRE_HZ, SLOW_HZ, EVERY), UPDATE, 3)
     channels = [(k, slice(4 * k, 4 * k + 2), slice(0, 2)) for k in range(6)]
