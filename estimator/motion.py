@@ -433,9 +433,9 @@ class RegressorAutocorrelation:
         lag = index - self._ring_index
         seen = (lag > 0) & (lag <= self.n_lags)
         if seen.any():
-            lags = lag[seen]
-            np.add.at(self._cross, lags, np.einsum("lrk,rk->lk", self._ring[seen], a))
-            np.add.at(self._power, lags, 0.5 * (power + self._ring_power[seen]))
+            lags = lag[seen]  # distinct: one ring slot per update
+            self._cross[lags] += np.einsum("lrk,rk->lk", self._ring[seen], a)
+            self._power[lags] += 0.5 * (power + self._ring_power[seen])
         if self.n_lags:
             slot = index % self.n_lags
             self._ring[slot], self._ring_power[slot], self._ring_index[slot] = a, power, index
@@ -538,10 +538,11 @@ def momentum_noise_modes(
     y_point = np.concatenate((y[q, :2], y[qd, :2], y[q, 2:], y[qd, 2:]), axis=1)
     links_held, y_held = links[:, :6], y[:6]
     if held_factor is not None:
-        links_held, y_held = links_held @ held_factor, np.einsum("cka,km->cma", y_held, held_factor)
+        links_held = links_held @ held_factor
+        y_held = (y_held.transpose(0, 2, 1) @ held_factor).transpose(0, 2, 1)
     if point_factor is not None:
         links_point = links_point @ point_factor
-        y_point = np.einsum("cka,km->cma", y_point, point_factor)
+        y_point = (y_point.transpose(0, 2, 1) @ point_factor).transpose(0, 2, 1)
     d_links = np.concatenate((links_held.reshape(6, -1), links_point.reshape(6, -1)), axis=1)
     d_y = np.concatenate((y_held.reshape(-1, 6, 10), y_point.reshape(-1, 6, 10)))
     return d_links, d_y

@@ -35,6 +35,7 @@ frequency and is weighed at the regressor's own frequencies.
 
 from __future__ import annotations
 
+import functools
 import itertools
 from dataclasses import dataclass
 from typing import Protocol
@@ -146,6 +147,28 @@ def _nonnegative(value, size: int, name: str) -> np.ndarray:
     return arr
 
 
+@functools.lru_cache(maxsize=16)
+def _momentum_chain(dt_s, rate_hz, product_hz, cutoff_hz, every, update_every):
+    """What ``NoiseModel`` needs of the momentum chain, a pure function of its six numbers
+    (cached: computed once per set-up, not per estimator and reset): the Jacobians' lag (control
+    steps) and their drift's step (s), the kernels' lag covariances G (n_lags + 1, 12, 12) and
+    the encoders' factor F (8, 8), F F^T = G(0) over their kernels (read-only arrays).
+
+    The balance at an update sums the samples of about one chain delay before it: the Jacobians
+    are taken there, from the pre-filter (which already lags by the product filter's delay) one
+    slow-filter and one rate-filter delay back, with their rate."""
+    kernels = chain_kernels(dt_s, rate_hz, product_hz, cutoff_hz, every)
+    delays = [StateVariableFilter(1, dt_s, f).delay_s for f in (rate_hz, product_hz)]
+    delays.append(StateVariableFilter(1, dt_s * every, cutoff_hz).delay_s)
+    kernels = time_weighted_kernels(kernels, dt_s, sum(delays))
+    n_lags = int(np.ceil(kernels.shape[1] / update_every))
+    lag_cov = kernel_lag_covariances(kernels, update_every, n_lags)
+    point = psd_factor(lag_cov[0][np.ix_(POINT_EXTENDED, POINT_EXTENDED)])
+    for a in (lag_cov, point):
+        a.setflags(write=False)
+    return (delays[0] + delays[2]) / dt_s, delays[2], lag_cov, point
+
+
 @dataclass(frozen=True)
 class MotionNoiseSpec:
     """Per-sample variance of the filtered motion's noise xi = (a_B, wd_B, qdd) (``var``) and each
@@ -249,22 +272,14 @@ class NoiseModel:
         """The momentum chain's kernels and their lag covariances (``motion.chain_kernels``),
         the regressor's autocorrelation, the per-mode variances (``momentum_motion``) and what
         ``momentum_jacobians`` needs of the robot."""
-        kernels = chain_kernels(dt_s, rate_hz, product_hz, cutoff_hz, every)
-        # The balance at an update sums the samples of about one chain delay before it: the
-        # Jacobians are taken there, from the pre-filter (which already lags by the product
-        # filter's delay) one slow-filter and one rate-filter delay back, with their rate.
-        delays = [StateVariableFilter(1, dt_s, f).delay_s for f in (rate_hz, product_hz)]
-        delays.append(StateVariableFilter(1, dt_s * every, cutoff_hz).delay_s)
-        self._jacobian_lag_steps = (delays[0] + delays[2]) / dt_s
-        self._jacobian_rate_step_s = delays[2]
-        kernels = time_weighted_kernels(kernels, dt_s, sum(delays))
-        n_lags = int(np.ceil(kernels.shape[1] / self.update_every))
-        self._lag_cov = kernel_lag_covariances(kernels, self.update_every, n_lags)
+        chain = _momentum_chain(dt_s, rate_hz, product_hz, cutoff_hz, every, self.update_every)
+        self._jacobian_lag_steps, self._jacobian_rate_step_s, self._lag_cov = chain[:3]
+        n_lags = self._lag_cov.shape[0] - 1
         self.autocorrelation = RegressorAutocorrelation(n_lags)
         self._held_factor = None  # refreshed every FACTOR_REFRESH_UPDATES updates
         # The encoders (the regressor's own noise): the per-update covariance G(0), see
         # ``momentum_jacobians``.
-        self._point_factor = psd_factor(self._lag_cov[0][np.ix_(POINT_EXTENDED, POINT_EXTENDED)])
+        self._point_factor = chain[3]
         nj = robot.n_joints
         # The squared rate noise's modes (``momentum.rate_square_terms``), with the encoders.
         self._n_rate_modes = (nj * (nj + 1)) // 2 if sensor[2] > 0 else 0

@@ -210,3 +210,77 @@ def test_momentum_chain_noise_matches_a_monte_carlo_of_the_chain():
             empirical = 0.5 * (a.T @ b + b.T @ a) / a.shape[0]
             err = np.linalg.norm(empirical - 0.5 * (predicted[lag] + predicted[lag].T)) / scale
             assert err < 0.3, (name, lag, err)
+
+
+def test_lag_weighted_covariance_is_exact_for_a_scalar_regressor():
+    """For a scalar regressor a_i and noise correlated as C(L) between updates L apart, the
+    least-squares estimate sum a_i z_i / sum a_i^2 has the variance
+    sum_ij a_i a_j C(i - j) / (sum a_i^2)^2: the filter is consistent at the white covariance
+    W = C(0) + 2 sum_L rho(L) C(L) with the regressor's autocorrelation rho as
+    ``RegressorAutocorrelation`` accumulates it (a slow sinusoid with an offset: rho near 1),
+    and W is far from both C(0) and the long-run sum for noise read out of a derivative."""
+    from astrocargo.estimator.motion import RegressorAutocorrelation, lag_weighted_covariance
+
+    n_lags, n = 6, 4000
+    a = 1.0 + np.sin(2 * np.pi * np.arange(n) / 40.0)
+    # Derivative-like noise: C(0) = 2, C(1) = -1 (a differenced white sequence), zero beyond.
+    lag_cov = np.zeros((n_lags + 1, 1, 1))
+    lag_cov[0], lag_cov[1] = 2.0, -1.0
+    acf = RegressorAutocorrelation(n_lags)
+    for i in range(n):
+        regressor = np.zeros((6, 10))
+        regressor[0, 0] = a[i]
+        acf.add(i, regressor)
+    rho = acf.rho()
+    assert 0.9 < rho[1] < 1.0 and rho[0] == 1.0
+    w = lag_weighted_covariance(lag_cov, rho)[0, 0]
+    exact = (2.0 * a @ a - 2.0 * a[1:] @ a[:-1]) / (a @ a)
+    # Exact up to the run's two ends (rho normalises each lag by its pairs' power): 5 %.
+    assert w == pytest.approx(exact, rel=0.05)
+    assert 0.0 < w < 0.1 * lag_cov[0, 0, 0]  # far below C(0), above the long-run sum (zero)
+
+
+def test_rate_square_terms_join_the_motion_modes():
+    """The encoders' squared rate noise (``momentum.rate_square_terms``) enters the motion's
+    modes: their covariance is var sum_k w_k b_k b_k^T, b_k = Q_links + Q_Y pi of each term (the
+    covariance ``CargoEstimator._rate_square_cov`` adds without motion fusion), and the IMU's and
+    encoders' modes come first, as many as ``momentum_motion.var`` says."""
+    from astrocargo.estimator.momentum import cargo_regressor_parts, rate_square_terms
+
+    robot = _robot()
+    nj = robot.n_joints
+    est = CargoEstimator(robot, 0, [], DT, sensor_noise=(1e-3, 2e-4, 1e-3))
+    model = est.noise
+    q = np.linspace(0.3, -0.5, nj)
+    pre_state = np.zeros((3, 12 + nj))
+    pre_state[0, 6 : 6 + nj] = q
+    pre_state[1, 6 : 6 + nj] = 0.05
+    terms, weights = rate_square_terms(robot, q)
+    variances = 3e-5 * weights
+    regressor = np.random.default_rng(0).normal(size=(6, 10))
+    d_links, d_y = model.momentum_jacobians(100, regressor, pre_state, (terms, variances))
+    n_rate = terms.shape[0]
+    assert d_links.shape[1] == model.momentum_motion.var.size == 24 + 8 * nj + n_rate
+    params = np.array([5.0, 0.05, 0.9, -0.05, 0.1, 0.08, 0.12, 0.0, 0.01, 0.0])
+    modes = d_links[:, -n_rate:] + (d_y[-n_rate:] @ params).T
+    b = np.array([t[12:18] + cargo_regressor_parts(t)[1] @ params for t in terms])
+    np.testing.assert_allclose(modes @ modes.T, (b.T * variances) @ b, rtol=1e-10, atol=1e-18)
+    np.testing.assert_array_equal(model.momentum_motion.var[-n_rate:], 1.0)
+
+
+def test_noise_modes_carry_each_channel_s_factor():
+    """``momentum_noise_modes``: the modes are the kernels' columns times the block-diagonal
+    factor of their channel kind (4 per IMU axis, 8 per joint)."""
+    import scipy.linalg
+
+    from astrocargo.estimator.motion import momentum_noise_modes
+
+    rng = np.random.default_rng(2)
+    nj = 2
+    jac, jac_rate = rng.normal(size=(2, 33, 6 + 2 * nj))
+    held, point = rng.normal(size=(4, 4)), rng.normal(size=(8, 8))
+    cols_links, cols_y = momentum_noise_modes(jac, jac_rate, nj)
+    links, y = momentum_noise_modes(jac, jac_rate, nj, held, point)
+    factor = scipy.linalg.block_diag(*([held] * 6 + [point] * nj))
+    np.testing.assert_allclose(links, cols_links @ factor, atol=1e-12)
+    np.testing.assert_allclose(y, np.einsum("kab,km->mab", cols_y, factor), atol=1e-12)
