@@ -25,12 +25,18 @@ grasp frame G (moments about the grasp point) and summed:
 
 Correlated updates. The slow filter's memory (about 1 s) spans several updates (6.25 Hz), so the
 sensor noise of successive updates is correlated, C(L) between updates L apart. The filter treats
-updates as independent; it is consistent when each carries W = C(0) + sum_L rho(L) (C(L) +
-C(L)^T), rho the regressor's own autocorrelation over updates (``motion.lag_weighted_covariance``:
-exact for a scalar regressor): the long-run covariance for noise on the filtered values (a slow
-regressor sees its spectral density at zero frequency), and far less for noise read out of a
-derivative (gyro and encoders through the momenta), whose spectral density vanishes at zero
-frequency and is weighed at the regressor's own frequencies.
+updates as independent; for noise independent of the regressor it is consistent when each
+carries W = C(0) + sum_L rho(L) (C(L) + C(L)^T), rho the regressor's own autocorrelation over
+updates (``motion.lag_weighted_covariance``: exact for a scalar regressor): the long-run
+covariance for noise on the filtered values (a slow regressor sees its spectral density at zero
+frequency), and far less for noise read out of a derivative (the gyro through the momenta), whose
+spectral density vanishes at zero frequency and is weighed at the regressor's own frequencies.
+The IMU's channels carry W. The encoders' noise is the regressor's own (dY pi: the joint rates in
+the grasp's velocity and angular velocity carry almost all of it), where that weighting fails:
+the gain multiplies the regressor's noise by the noise itself (errors in variables), a bias of
+relative size var(dY) / var(Y) that W, far below C(0) for noise read out of a derivative, leaves
+uncovered (one robot, encoders alone: NEES 66 at W, 6 at C(0)). Their modes carry the per-update
+covariance C(0).
 """
 
 from __future__ import annotations
@@ -171,8 +177,10 @@ def _momentum_chain(dt_s, rate_hz, product_hz, cutoff_hz, every, update_every):
 
 @dataclass(frozen=True)
 class MotionNoiseSpec:
-    """Per-sample variance of the filtered motion's noise xi = (a_B, wd_B, qdd) (``var``) and each
-    coordinate's weight per update for its colour (``band``, ``motion.band_factors``)."""
+    """Per-coordinate variance of the motion's noise (``var``) and each coordinate's weight per
+    update for its colour (``band``): for ``NoiseModel.motion`` the filtered xi = (a_B, wd_B,
+    qdd) per sample and ``motion.band_factors``; for ``NoiseModel.momentum_motion`` each
+    channel's per-sample variance (its modes carry the chain, band 1)."""
 
     var: np.ndarray
     band: np.ndarray
@@ -301,22 +309,31 @@ class NoiseModel:
     ) -> tuple[np.ndarray, np.ndarray]:
         """The balance's sensor-noise modes at update ``stamp`` in the momentum chain:
         (d links - d thrust (6, n), d Y (n, 6, 10)), each mode of unit variance per unit
-        per-sample variance of its channel (``momentum_motion.var``), n = 24 + 8 n_joints.
+        per-sample variance of its channel (``momentum_motion.var``).
 
         Derivation. White noise e_c on channel c (gyro or accelerometer axis, base frame, held; an
         encoder, point) moves the rate filter's value by r * e_c and its derivative by r' * e_c
         (impulse responses), hence the momentum-form sample by J_x (r * e_c) (J =
-        ``sample_jacobian`` at x the motion of the balance's samples), and the balance, read out of
-        the slow filter's value (thrust, Q) and derivative (P), by n_i = sum_k c_k (K_k * e_c)_i
-        over the chain's kernels K_k (``chain_kernels``) with columns c_k
+        ``sample_jacobian`` at x the motion of the balance's samples, with its drift J' over the
+        chain's memory), and the balance, read out of the slow filter's value (thrust, Q) and
+        derivative (P), by n_i = sum_k c_k (K_k * e_c)_i over the chain's kernels K_k
+        (``chain_kernels``, ``time_weighted_kernels``) with columns c_k
         (``momentum_noise_modes``). Successive updates are correlated over the slow filter's
-        memory: Cov(n_i, n_i+L) = s_c^2 C G_c(L) C^T (``kernel_lag_covariances``). A filter that
-        treats updates as independent is consistent when each update carries the lag-weighted
-        covariance s_c^2 C W_c C^T, W_c = G_c(0) + sum_L rho(L) (G_c(L) + G_c(L)^T)
-        (``lag_weighted_covariance``), rho the regressor's autocorrelation over the run so far
-        (``RegressorAutocorrelation``, updated here with ``regressor``); the modes are C F_c with
-        F_c F_c^T = W_c. ``pre_state`` (3, 12 + nj): the pre-filter's state over [gyro_B, the IMU
-        point's acceleration_B, q, thrust_B] (``preprocess.Preprocessor``)."""
+        memory: Cov(n_i, n_i+L) = s_c^2 C G_c(L) C^T (``kernel_lag_covariances``). The modes are
+        C F_c with F_c F_c^T = W_c: for the IMU's channels the lag-weighted
+        W_c = G_c(0) + sum_L rho(L) (G_c(L) + G_c(L)^T) (``lag_weighted_covariance``), rho the
+        regressor's autocorrelation over the run so far (``RegressorAutocorrelation``, updated
+        here with ``regressor``; the factor refreshed every ``FACTOR_REFRESH_UPDATES`` updates);
+        for the encoders G_c(0) (module docstring). ``pre_state`` (3, 12 + nj): the pre-filter's
+        state over [gyro_B, the IMU point's acceleration_B, q, thrust_B]
+        (``preprocess.Preprocessor``).
+
+        ``rate_terms``: the encoders' squared rate noise at this instant, (terms (k, ``SIZE``),
+        variances (k,) per update) of ``momentum.rate_square_terms`` (variance w_k v^2 of term
+        k's white coefficient, v the rate noise's variance): k further modes of unit variance,
+        sqrt(var_k) (Q_links, Q_Y) of each term, value read-outs flat in the excitation's band;
+        None (or no encoder noise): zero columns, so that the count stays that of
+        ``momentum_motion.var``, n = 24 + 8 nj + nj (nj + 1) / 2 with encoder noise."""
         index = stamp // self.update_every
         self.autocorrelation.add(index, regressor)
         x = self._delayed_motion(stamp, pre_state)
