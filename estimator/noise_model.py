@@ -357,6 +357,19 @@ class NoiseModel:
             rate_y[:] = ((terms[:, CARGO_Q] * scale[:, None]) @ CARGO_Q_MAP.T).reshape(-1, 6, 10)
         return np.hstack((d_links, rate_links)), np.concatenate((d_y, rate_y))
 
+    def message_modes(
+        self, d_links: np.ndarray, d_grasp: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """What a peer needs of this robot's modes (``momentum_jacobians``), in 9 modes of unit
+        variance: the peer's conditioning (``motion_noise``) sees them only through the links'
+        map L (6, n) and the grasp acceleration's map A (3, n) (``motion.grasp_acc_map``), so
+        their joint covariance M diag(v) M^T, M = [L; A], is all it uses, and F (9, 9) with
+        F F^T = M diag(v) M^T carries it exactly (v = ``momentum_motion.var``). Returns
+        (F's links rows (6, 9), its grasp rows (3, 9), ones (9,): variances and bands)."""
+        stacked = np.vstack((d_links, d_grasp)) * np.sqrt(self.momentum_motion.var)
+        factor = psd_factor(stacked @ stacked.T)
+        return factor[:6], factor[6:], np.ones(9)
+
     def _delayed_motion(self, stamp: int, pre_state: np.ndarray) -> np.ndarray:
         """The pre-filter's (value, derivative, second derivative) (3, 12 + nj) about
         ``_jacobian_lag_steps`` before ``stamp``: the recorded state nearest that instant, moved

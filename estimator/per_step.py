@@ -451,12 +451,13 @@ class EstimatorInputs:
         entry = self._rate_terms.pop(stamp, None)
         rate = None if entry is None else (entry[0], self._rate_square_var * entry[1])
         jac = self.noise.momentum_jacobians(stamp, b.regressor, self.pre.filter.state, rate)
+        links, grasp, var = self.noise.message_modes(jac[0], grasp_acc_map(jac[1]))
         motion = {
             "grasp_acc": b.regressor[:3, 0].copy(),
-            "motion_links_jac": jac[0],
-            "motion_grasp_jac": grasp_acc_map(jac[1]),
-            "motion_var": self._motion_var,
-            "motion_band": self._motion_band,
+            "motion_links_jac": links,
+            "motion_grasp_jac": grasp,
+            "motion_var": var,
+            "motion_band": var,
         }
         return jac, motion
 

@@ -162,9 +162,9 @@ def test_team_fusion_in_the_env(noise):
         obs, *_ = env.step(actions)
     assert est.counters["updates"] > 0 and seen
     inst, msgs, (mean, cov) = seen[-1]
-    # The momentum chain's noise modes: per IMU axis 4, per joint 8 (``momentum_noise_modes``).
-    n_modes = 24 + 8 * est.robot.n_joints
-    assert msgs[0].grasp_acc is not None and msgs[0].motion_links_jac.shape == (6, n_modes)
+    # The momentum chain's noise modes, sent as the 9 that carry their links' and grasp
+    # acceleration's joint covariance (``NoiseModel.message_modes``).
+    assert msgs[0].grasp_acc is not None and msgs[0].motion_links_jac.shape == (6, 9)
     rel = est._relative[est.peers[0]].transform()
     rot = rel[:3, :3]
     lever = rel[3:, :3] @ rot.T

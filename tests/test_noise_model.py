@@ -284,3 +284,39 @@ def test_noise_modes_carry_each_channel_s_factor():
     factor = scipy.linalg.block_diag(*([held] * 6 + [point] * nj))
     np.testing.assert_allclose(links, cols_links @ factor, atol=1e-12)
     np.testing.assert_allclose(y, np.einsum("kab,km->mab", cols_y, factor), atol=1e-12)
+
+
+def test_message_modes_condition_the_team_exactly():
+    """A peer's modes sent as the 9 of ``NoiseModel.message_modes`` give the receiver the same
+    conditioned mean and covariance (``motion_noise``, "team") as all of them: the receiver sees
+    them only through their links' and grasp acceleration's joint covariance."""
+    from types import SimpleNamespace
+
+    from astrocargo.estimator.geometry import skew
+    from astrocargo.estimator.motion import grasp_acc_map
+
+    robot = _robot()
+    model = CargoEstimator(robot, 0, [1], DT, sensor_noise=(1e-3, 2e-4, 1e-3)).noise
+    n = model.momentum_motion.var.size
+    rng = np.random.default_rng(4)
+    own = (rng.normal(size=(6, n)), rng.normal(size=(n, 6, 10)))
+    peer_links, peer_y = rng.normal(size=(6, n)), rng.normal(size=(n, 6, 10))
+    rot = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    transform = np.zeros((6, 6))
+    transform[:3, :3] = transform[3:, 3:] = rot
+    transform[3:, :3] = skew(np.array([0.1, -0.9, 0.05])) @ rot
+    grasp = grasp_acc_map(peer_y)
+    full = SimpleNamespace(grasp_acc=rng.normal(0.0, 0.01, 3), motion_links_jac=peer_links,
+                           motion_grasp_jac=grasp, motion_var=model.momentum_motion.var,
+                           motion_band=model.momentum_motion.band)  # fmt: skip
+    links9, grasp9, ones = model.message_modes(peer_links, grasp)
+    fields = {"motion_links_jac": links9, "motion_grasp_jac": grasp9}
+    sent = SimpleNamespace(**{**vars(full), **fields, "motion_var": ones, "motion_band": ones})
+    params = np.array([5.0, 0.05, 0.9, -0.05, 0.1, 0.08, 0.12, 0.0, 0.01, 0.0])
+    regressor = rng.normal(size=(6, 10))
+    args = ("team", params, own, regressor)
+    kwargs = {"own": model.momentum_motion}
+    mean_full, cov_full = model.motion_noise(*args, [(transform, full)], **kwargs)
+    mean_sent, cov_sent = model.motion_noise(*args, [(transform, sent)], **kwargs)
+    np.testing.assert_allclose(mean_sent, mean_full, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(cov_sent, cov_full, rtol=1e-9, atol=1e-12 * np.abs(cov_full).max())
