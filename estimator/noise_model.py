@@ -358,15 +358,16 @@ class NoiseModel:
         return np.hstack((d_links, rate_links)), np.concatenate((d_y, rate_y))
 
     def message_modes(
-        self, d_links: np.ndarray, d_grasp: np.ndarray
+        self, d_links: np.ndarray, d_y: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """What a peer needs of this robot's modes (``momentum_jacobians``), in 9 modes of unit
-        variance: the peer's conditioning (``motion_noise``) sees them only through the links'
-        map L (6, n) and the grasp acceleration's map A (3, n) (``motion.grasp_acc_map``), so
-        their joint covariance M diag(v) M^T, M = [L; A], is all it uses, and F (9, 9) with
-        F F^T = M diag(v) M^T carries it exactly (v = ``momentum_motion.var``). Returns
-        (F's links rows (6, 9), its grasp rows (3, 9), ones (9,): variances and bands)."""
-        stacked = np.vstack((d_links, d_grasp)) * np.sqrt(self.momentum_motion.var)
+        """What a peer needs of this robot's modes (``momentum_jacobians``: d links (6, n),
+        d Y (n, 6, 10)), in 9 modes of unit variance: the peer's conditioning (``motion_noise``)
+        sees them only through the links' map L (6, n) and the grasp acceleration's map
+        A = d Y[:, :3, 0]^T (3, n) (the force rows' mass column, ``motion.grasp_acc_map`` at the
+        grasp point), so their joint covariance M diag(v) M^T, M = [L; A], is all it uses, and F
+        (9, 9) with F F^T = M diag(v) M^T carries it exactly (v = ``momentum_motion.var``).
+        Returns (F's links rows (6, 9), its grasp rows (3, 9), ones (9,): variances and bands)."""
+        stacked = np.vstack((d_links, d_y[:, :3, 0].T)) * np.sqrt(self.momentum_motion.var)
         factor = psd_factor(stacked @ stacked.T)
         return factor[:6], factor[6:], np.ones(9)
 

@@ -40,7 +40,6 @@ from .momentum import (
     sample_from_rate_filter,
     servo_ripple_velocities,
 )
-from .motion import grasp_acc_map
 from .preprocess import _first_order_hold_step
 from .rne import RobotArrays, _grasp_from_base
 
@@ -451,7 +450,7 @@ class EstimatorInputs:
         entry = self._rate_terms.pop(stamp, None)
         rate = None if entry is None else (entry[0], self._rate_square_var * entry[1])
         jac = self.noise.momentum_jacobians(stamp, b.regressor, self.pre.filter.state, rate)
-        links, grasp, var = self.noise.message_modes(jac[0], grasp_acc_map(jac[1]))
+        links, grasp, var = self.noise.message_modes(*jac)
         motion = {
             "grasp_acc": b.regressor[:3, 0].copy(),
             "motion_links_jac": links,

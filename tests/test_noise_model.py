@@ -309,7 +309,7 @@ def test_message_modes_condition_the_team_exactly():
     full = SimpleNamespace(grasp_acc=rng.normal(0.0, 0.01, 3), motion_links_jac=peer_links,
                            motion_grasp_jac=grasp, motion_var=model.momentum_motion.var,
                            motion_band=model.momentum_motion.band)  # fmt: skip
-    links9, grasp9, ones = model.message_modes(peer_links, grasp)
+    links9, grasp9, ones = model.message_modes(peer_links, peer_y)
     fields = {"motion_links_jac": links9, "motion_grasp_jac": grasp9}
     sent = SimpleNamespace(**{**vars(full), **fields, "motion_var": ones, "motion_band": ones})
     params = np.array([5.0, 0.05, 0.9, -0.05, 0.1, 0.08, 0.12, 0.0, 0.01, 0.0])
