@@ -297,7 +297,6 @@ class CargoEstimator(EstimatorInputs):
         self._act_cov_n = 0
         self._thrust_to_base = self.robot.thrust_to_base
         self._peer_noise_cov, self._peer_noise = n.peer_noise_cov, n.has_peer_noise
-        self._motion_var, self._motion_band = n.momentum_motion.var, n.momentum_motion.band
         # The encoders' noise squared in the momentum form's products of joint rates: its
         # fluctuation about the subtracted mean, per update (``rate_square_var``), and each
         # pending instant's vectors of it (``momentum.rate_square_terms``).

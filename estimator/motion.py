@@ -308,7 +308,6 @@ CHAIN_KERNELS = (
     ("point", "derivative", "value"),
     ("point", "derivative", "derivative"),
 )
-HELD_KERNELS, POINT_KERNELS = slice(0, 2), slice(2, 6)
 # With the time-weighted twins of ``time_weighted_kernels`` (rows 6 to 11): each channel's
 # kernels, then their twins.
 HELD_EXTENDED, POINT_EXTENDED = np.array([0, 1, 6, 7]), np.array([2, 3, 4, 5, 8, 9, 10, 11])
