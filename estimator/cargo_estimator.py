@@ -189,8 +189,8 @@ class CargoEstimator(EstimatorInputs):
         prior_params: np.ndarray | None = None,
         *,
         update_every: int = 10,
-        force_std_n: float = 6.1e-5,
-        torque_std_nm: float = 2.1e-5,
+        force_std_n: float = 2.5e-6,
+        torque_std_nm: float = 6.6e-7,
         actuation_noise: tuple[float, float, float, float] = (5e-3, 0.02, 5e-4, 0.02),
         prior_std: tuple[float, float, float, float] = DEFAULT_PRIOR_STD,
         process_std_rel: float = DEFAULT_PROCESS_STD_REL,
@@ -208,7 +208,7 @@ class CargoEstimator(EstimatorInputs):
         relative_grasps: dict[int, tuple[np.ndarray, np.ndarray]] | None = None,
         record: bool = False,
         motion_fusion: str = "team",
-        mismatch_model_std: float = 1.7e-5,
+        mismatch_model_std: float = 5.3e-7,
         rate_cutoff_hz: float | None = None,
     ) -> None:
         if motion_fusion not in MOTION_FUSION:
@@ -287,7 +287,7 @@ class CargoEstimator(EstimatorInputs):
             kinematics_cutoff_hz, force_std_n=force_std_n, torque_std_nm=torque_std_nm,
             actuation_noise=actuation_noise, sensor_noise=sensor_noise,
             peer_noise_std=peer_noise_std, localization_noise=localization_noise,
-            mismatch_model_std=self._mismatch_model_std,
+            mismatch_model_std=self._mismatch_model_std, rate_cutoff_hz=self.pre.rate_cutoff_hz,
         )  # fmt: skip
         n = self.noise
         self.meas_cov = n.floor_cov
@@ -297,7 +297,6 @@ class CargoEstimator(EstimatorInputs):
         self._act_cov_n = 0
         self._thrust_to_base = self.robot.thrust_to_base
         self._peer_noise_cov, self._peer_noise = n.peer_noise_cov, n.has_peer_noise
-        self._motion_var, self._motion_band = n.motion.var, n.motion.band
         # The encoders' noise squared in the momentum form's products of joint rates: its
         # fluctuation about the subtracted mean, per update (``rate_square_var``), and each
         # pending instant's vectors of it (``momentum.rate_square_terms``).
@@ -439,7 +438,7 @@ class CargoEstimator(EstimatorInputs):
         peers = [(self._relative[p].transform(), m) for p, m in zip(self.peers, msgs, strict=True)]
         return self.noise.motion_noise(
             self.motion_fusion, self.ukf.params_mean(), inst.motion_jac, inst.regressor, peers,
-            self._grasp_lever,
+            self._grasp_lever, own=self.noise.momentum_motion, params_cov=self.ukf.P,
         )  # fmt: skip
 
     def _rate_square_cov(self, stamp: int) -> np.ndarray:

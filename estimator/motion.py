@@ -51,6 +51,17 @@ from collections.abc import Callable
 import numpy as np
 from numba import njit
 
+from .momentum import (
+    CARGO_P,
+    CARGO_P_MAP,
+    CARGO_Q,
+    CARGO_Q_MAP,
+    LINKS_P,
+    LINKS_Q,
+    SIZE,
+    THRUST,
+    momentum_pass,
+)
 from .preprocess import StateVariableFilter
 
 
@@ -281,3 +292,256 @@ def band_factors(
     chain = power(kinematics_cutoff_hz) * power(cutoff_hz)
     level = np.array([np.max(2 * dt_s * w ** (2 * c) * chain) for c in range(3)])
     return level / (2 * dt_s * update_every * gains**2)
+
+
+# --------------------------------------------------------------- the momentum chain's noise
+# The chain's kernels (``chain_kernels`` rows): (input kind, rate-filter output, slow output).
+# A held channel (the IMU's period means: gyro, accelerometer) enters the balance through the
+# rate filter's value only; a point channel (the encoders) through its value (q) and its
+# derivative (qd). The momentum form reads its P channels out of the slow filter's derivative and
+# its Q channels out of its value (``momentum``).
+CHAIN_KERNELS = (
+    ("held", "value", "value"),
+    ("held", "value", "derivative"),
+    ("point", "value", "value"),
+    ("point", "value", "derivative"),
+    ("point", "derivative", "value"),
+    ("point", "derivative", "derivative"),
+)
+# With the time-weighted twins of ``time_weighted_kernels`` (rows 6 to 11): each channel's
+# kernels, then their twins.
+HELD_EXTENDED, POINT_EXTENDED = np.array([0, 1, 6, 7]), np.array([2, 3, 4, 5, 8, 9, 10, 11])
+
+
+@functools.lru_cache(maxsize=16)
+def chain_kernels(
+    dt_s: float,
+    rate_cutoff_hz: float,
+    product_cutoff_hz: float,
+    cutoff_hz: float,
+    regressor_every: int,
+    n_delays: float = 10.0,
+) -> np.ndarray:
+    """Impulse responses K (6, span) of the momentum chain (``CHAIN_KERNELS``): K[r, m] is the
+    slow filter's output r at one of its samples per unit impulse m control steps earlier on one
+    input channel.
+
+    The chain, as the estimator runs it (``preprocess.Preprocessor``, ``per_step``): the rate
+    filter (``rate_cutoff_hz``; held channels with a zero-order hold of the new sample, point
+    channels with a first-order hold), a momentum-form sample of its value and derivative every
+    step, the product filter (``product_cutoff_hz``) every step, and the slow filter
+    (``cutoff_hz``, period ``regressor_every`` steps) on the product filter's value, read out as
+    value and derivative. Linear: the noise of an output at a slow sample is sum_m K[m] e_-m for
+    white input e. Exact up to the truncation after ``n_delays`` of the chain's delays (the
+    responses have decayed by then). Cached, read-only."""
+    if regressor_every < 1:
+        raise ValueError(f"regressor_every must be >= 1, got {regressor_every}")
+    delays = [StateVariableFilter(1, dt_s, f).delay_s for f in (rate_cutoff_hz, product_cutoff_hz)]
+    delays.append(StateVariableFilter(1, dt_s * regressor_every, cutoff_hz).delay_s)
+    span = int(np.ceil(n_delays * sum(delays) / dt_s))
+    span += regressor_every - span % regressor_every  # output at a slow-filter sample
+    # Channel block 0: a held input; block 1: a point input (impulse at step k in column k).
+    rate = StateVariableFilter(2 * span, dt_s, rate_cutoff_hz, held=slice(0, span))
+    product = StateVariableFilter(3 * span, dt_s, product_cutoff_hz)
+    slow = StateVariableFilter(3 * span, dt_s * regressor_every, cutoff_hz)
+    for f in (rate, product, slow):  # a first sample sets the state: start at rest at zero
+        f.step(np.zeros(f.n_channels))
+    out = (np.zeros(3 * span), np.zeros(3 * span))
+    for k in range(span + 1):
+        impulse = np.zeros(2 * span)
+        if k < span:
+            impulse[[k, span + k]] = 1.0
+        y, yd, _ = rate.step(impulse)
+        value, _, _ = product.step(np.concatenate((y[:span], y[span:], yd[span:])))
+        if k % regressor_every == 0:
+            v, d, _ = slow.step(value)
+            out = (v, d)
+    # Output after step span: column k is the impulse span - k steps earlier; order m = 0, 1, ...
+    v, d = (x.reshape(3, span)[:, ::-1] for x in out)
+    kernels = np.stack([v[0], d[0], v[1], d[1], v[2], d[2]])
+    kernels.setflags(write=False)
+    return kernels
+
+
+def time_weighted_kernels(kernels: np.ndarray, dt_s: float, at_s: float) -> np.ndarray:
+    """The kernels and their time-weighted twins (2 r, span): K[r, m] and (at - m dt) K[r, m].
+    A map that drifts over the chain's memory, J(t) = J(t0) + (t - t0) J', carries white noise
+    e to sum_m J(t - m dt) K[m] e_-m = J(t0) (K * e) + J' (K_t * e) with t0 = t - ``at_s``: the
+    twin is the kernel of the map's rate J' (s per unit)."""
+    lag_s = at_s - dt_s * np.arange(kernels.shape[1])
+    out = np.vstack((kernels, lag_s * kernels))
+    out.setflags(write=False)
+    return out
+
+
+def kernel_lag_covariances(kernels: np.ndarray, update_every: int, n_lags: int) -> np.ndarray:
+    """G (n_lags + 1, r, r): G[L, a, b] = sum_m K_a[m] K_b[m + L update_every], the covariance of
+    outputs a at one update and b L updates later per unit white input variance."""
+    span = kernels.shape[1]
+    out = np.zeros((n_lags + 1, kernels.shape[0], kernels.shape[0]))
+    for lag in range(n_lags + 1):
+        shift = lag * update_every
+        if shift < span:
+            out[lag] = kernels[:, : span - shift] @ kernels[:, shift:].T
+    return out
+
+
+def lag_weighted_covariance(lag_cov: np.ndarray, rho: np.ndarray) -> np.ndarray:
+    """W = G(0) + sum_L>=1 rho(L) (G(L) + G(L)^T), symmetric: the per-update covariance at which
+    a sequential filter must weigh updates whose noise is correlated as G(L) when its regressor's
+    autocorrelation is rho(L) (rho(0) = 1). For a scalar regressor a_i and noise covariance
+    C(i - j) the estimate sum a_i z_i / sum a_i^2 has the variance
+    sum_ij a_i a_j C(i - j) / (sum a_i^2)^2 = W / sum a_i^2 exactly: the filter is consistent
+    with the white measurement covariance W. For a regressor slow against the noise (rho = 1)
+    W is the long-run covariance sum_L C(L) (the noise's spectral density at zero frequency);
+    for noise read out of a derivative it is the spectral density averaged over the regressor's
+    spectrum, (2 pi f)^2 S(f) at the regressor's rms frequency f."""
+    w = lag_cov[0] + np.einsum("l,lab->ab", rho[1:], lag_cov[1:] + lag_cov[1:].transpose(0, 2, 1))
+    return 0.5 * (w + w.T)
+
+
+def psd_factor(w: np.ndarray) -> np.ndarray:
+    """F with F F^T = W for a symmetric W, negative eigenvalues (round-off of a weighted sum of
+    lag covariances with an estimated autocorrelation) set to zero."""
+    s, u = np.linalg.eigh(w)
+    return u * np.sqrt(np.clip(s, 0.0, None))
+
+
+class RegressorAutocorrelation:
+    """The regressor's autocorrelation over update lags, rho(L) (n_lags + 1,), accumulated over a
+    run: per parameter column k, rho_k(L) = sum_i <A_i,k, A_i-L,k> over the pairs L updates
+    apart, normalised by those pairs' mean power, then averaged over the columns with power (each
+    parameter counts alike, whatever its units). Lags not yet seen take the longest seen lag's
+    value (one update seen: rho = 1, a slow regressor). The last ``n_lags`` regressors are kept
+    in a ring (row ``index`` mod n_lags)."""
+
+    def __init__(self, n_lags: int) -> None:
+        self.n_lags = int(n_lags)
+        self._cross = np.zeros((self.n_lags + 1, 10))
+        self._power = np.zeros((self.n_lags + 1, 10))
+        self._ring = np.zeros((max(self.n_lags, 1), 6, 10))
+        self._ring_power = np.zeros((max(self.n_lags, 1), 10))
+        self._ring_index = np.full(max(self.n_lags, 1), -(10**9), dtype=np.int64)
+
+    def add(self, index: int, regressor: np.ndarray) -> None:
+        """Account for the regressor (6, 10) of update ``index`` (update counts, increasing)."""
+        a = np.asarray(regressor, dtype=float)
+        power = np.einsum("rk,rk->k", a, a)
+        self._cross[0] += power
+        self._power[0] += power
+        lag = index - self._ring_index
+        seen = (lag > 0) & (lag <= self.n_lags)
+        if seen.any():
+            lags = lag[seen]  # distinct: one ring slot per update
+            self._cross[lags] += np.einsum("lrk,rk->lk", self._ring[seen], a)
+            self._power[lags] += 0.5 * (power + self._ring_power[seen])
+        if self.n_lags:
+            slot = index % self.n_lags
+            self._ring[slot], self._ring_power[slot], self._ring_index[slot] = a, power, index
+
+    def rho(self) -> np.ndarray:
+        """rho(L) (n_lags + 1,), rho(0) = 1."""
+        columns = self._power[0] > 0
+        rho = np.ones(self.n_lags + 1)
+        if not columns.any():
+            return rho
+        power, cross = self._power[:, columns], self._cross[:, columns]
+        ok = power > 0
+        ratio = np.where(ok, cross / np.where(ok, power, 1.0), 0.0)
+        counted = ok.sum(axis=1)
+        mean = ratio.sum(axis=1) / np.maximum(counted, 1)
+        # A lag not seen yet: the longest seen lag's value (index carried forward).
+        last = np.maximum.accumulate(np.where(counted > 0, np.arange(self.n_lags + 1), 0))
+        rho[1:] = mean[last][1:]
+        return rho
+
+
+@njit(cache=True)
+def sample_jacobian(arrays, imu_pos, w_base, acc_imu, q, qd, thrust_base, step=1e-6):
+    """d sample / dx (``momentum.SIZE``, 6 + 2 nj) of the momentum-form sample
+    (``momentum.momentum_pass``) with respect to the rate filter's outputs
+    x = (gyro (3) rad/s, the IMU point's acceleration (3) m/s^2, q (nj) rad, qd (nj) rad/s), base
+    frame, by forward differences of ``step``: the sample is quadratic in the rates and the
+    acceleration, so the error is ``step`` times the quadratic coefficient (relative 1e-6 at the
+    robot's scale), O(step) for the angles."""
+    nj = q.shape[0]
+    no_var = np.zeros(nj)
+    x = np.concatenate((w_base, acc_imu, q, qd))
+    base, _, _ = momentum_pass(arrays, imu_pos, w_base, acc_imu, q, qd, thrust_base, no_var)
+    jac = np.empty((SIZE, x.shape[0]))
+    for k in range(x.shape[0]):
+        xs = x.copy()
+        xs[k] += step
+        out, _, _ = momentum_pass(arrays, imu_pos, xs[0:3], xs[3:6], xs[6 : 6 + nj],
+                                  xs[6 + nj :], thrust_base, no_var)  # fmt: skip
+        jac[:, k] = (out - base) / step
+    return jac
+
+
+@njit(cache=True)
+def drifting_sample_jacobian(arrays, imu_pos, state, n_joints, step_s):
+    """``sample_jacobian`` J (``SIZE``, 6 + 2 nj) at the rate filter's motion x and its time
+    derivative dJ/dt (1/s), from the pre-filter's state (3, 12 + nj) over [gyro_B (rad/s), the
+    IMU point's acceleration_B (m/s^2), q (rad), thrust_B] (value, derivative, second
+    derivative): x = (gyro, acceleration, q, qd = q's derivative, thrust) at the state, and from
+    J+- = J(x +- step_s x' / 2) along the state's derivatives, J = (J+ + J-) / 2 and
+    dJ/dt = (J+ - J-) / step_s (central, second order in step_s)."""
+    nj = n_joints
+    out = np.empty((2, SIZE, 6 + 2 * nj))
+    for k, sign in enumerate((-0.5, 0.5)):
+        value = state[0] + sign * step_s * state[1]
+        rate = state[1] + sign * step_s * state[2]
+        out[k] = sample_jacobian(arrays, imu_pos, value[0:3], value[3:6], value[6 : 6 + nj],
+                                 rate[6 : 6 + nj], value[6 + nj :])  # fmt: skip
+    return 0.5 * (out[0] + out[1]), (out[1] - out[0]) / step_s
+
+
+def _readout_columns(jac: np.ndarray, derivative: bool) -> tuple[np.ndarray, np.ndarray]:
+    """The balance's model-side noise n = d(links + Y pi - thrust) from sample noise
+    ``jac`` (``SIZE``, c) read out of the slow filter's derivative (its P channels) or value (its
+    thrust and Q channels; ``momentum.balance_from_filtered``): (d links - d thrust (6, c),
+    d Y (c, 6, 10))."""
+    if derivative:
+        d_links = jac[LINKS_P]
+        d_y = CARGO_P_MAP @ jac[CARGO_P]
+    else:
+        d_links = jac[LINKS_Q] - jac[THRUST]
+        d_y = CARGO_Q_MAP @ jac[CARGO_Q]
+    return d_links, d_y.T.reshape(-1, 6, 10)
+
+
+def momentum_noise_modes(
+    jac: np.ndarray,
+    jac_rate: np.ndarray,
+    n_joints: int,
+    held_factor: np.ndarray | None = None,
+    point_factor: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per sensor channel, the balance noise's columns per chain kernel and twin
+    (``CHAIN_KERNELS``, ``time_weighted_kernels``), times the channel kind's factor F (F F^T
+    the kernels' lag-weighted covariance; None: the identity, the columns themselves):
+    (d links - d thrust (6, 24 + 8 nj), d Y (24 + 8 nj, 6, 10)) from the sample's Jacobian
+    ``jac`` (``sample_jacobian``) and its time derivative ``jac_rate`` (1/s) (both from
+    ``drifting_sample_jacobian``). Channel order:
+    gyro (3), accelerometer (3) (held, 4 columns each: value->value, value->derivative, the same
+    of ``jac_rate``), encoders (nj) (point, 8 each: q's two, qd's two, then the same of
+    ``jac_rate``)."""
+    nj = n_joints
+    # (6, 6 + 2 nj, 4) and (6 + 2 nj, 4, 60): per input x, (jac or its rate) x (value, derivative)
+    parts = [_readout_columns(j, d) for j in (jac, jac_rate) for d in (False, True)]
+    links = np.stack([p[0] for p in parts], axis=-1)
+    y = np.stack([p[1].reshape(-1, 60) for p in parts], axis=1)
+    q, qd = slice(6, 6 + nj), slice(6 + nj, 6 + 2 * nj)
+    links_point = np.concatenate((links[:, q, :2], links[:, qd, :2], links[:, q, 2:],
+                                  links[:, qd, 2:]), axis=-1)  # fmt: skip
+    y_point = np.concatenate((y[q, :2], y[qd, :2], y[q, 2:], y[qd, 2:]), axis=1)
+    links_held, y_held = links[:, :6], y[:6]
+    if held_factor is not None:
+        links_held = links_held @ held_factor
+        y_held = (y_held.transpose(0, 2, 1) @ held_factor).transpose(0, 2, 1)
+    if point_factor is not None:
+        links_point = links_point @ point_factor
+        y_point = (y_point.transpose(0, 2, 1) @ point_factor).transpose(0, 2, 1)
+    d_links = np.concatenate((links_held.reshape(6, -1), links_point.reshape(6, -1)), axis=1)
+    d_y = np.concatenate((y_held.reshape(-1, 6, 10), y_point.reshape(-1, 6, 10)))
+    return d_links, d_y

@@ -8,25 +8,40 @@ grasp frame G (moments about the grasp point) and summed:
     R_k = R_model + R_act,k / update_every + R_motion,k + R_peer,k,
 
 - R_model, the floors: the balance's model error, what remains of the filtered balance with no
-  noise in it (the pre-filter's distortion of the products of the motion), as the variance of an
-  independent residual per update: c diag(f^2 I, t^2 I), c the number of updates per
-  decorrelation time of the slow filter (``decorrelation_updates``);
+  noise in it (in the momentum form, the rate filter's departure from a pure delay under the
+  products of the motion), as the variance of an independent residual per update:
+  c diag(f^2 I, t^2 I), c the number of updates per decorrelation time of the slow filter
+  (``decorrelation_updates``);
 - R_act: the actuation's white per-step noise (std abs + rel |command| per thruster axis, the
   robot's own, and the peers' sent with their messages), averaged over the update's window;
-- R_motion: the sensors' noise on the motion the balance is built from (accelerometer, gyro,
-  encoders), carried through the balance's exact Jacobians and the filter chain (``motion``) and,
-  with the team's motion fusion, conditioned on what the peers' IMUs report (``motion_noise``);
+- R_motion: the sensors' white noise (gyro, accelerometer, encoders) carried through the momentum
+  chain (``momentum_jacobians``): the rate filter, the momentum-form sample's exact Jacobian in
+  the rate filter's value and derivative (products, rotations by the joint angles, the thrust
+  turned into G), the product filter and the slow filter read out as value (thrust, Q) and
+  derivative (P); and, with the team's motion fusion, conditioned on what the peers' IMUs report
+  (``motion_noise``);
 - R_peer: the channel's noise on the peers' wrenches and the error of a fix-averaged relative
   grasp pose (``relative_pose_cov``).
 
-Correlated residuals are treated as independent updates at their white-equivalent level: a
-source of power spectral density S(f) (two-sided, per Hz) enters each update with the variance
-S(f) / (2 dt_update) at the highest level it reaches in the band of the excitation (f <= the slow
-filter's cutoff): conservative, never below the noise the band holds.
+Correlated updates. The slow filter's memory (about 1 s) spans several updates (6.25 Hz), so the
+sensor noise of successive updates is correlated, C(L) between updates L apart. The filter treats
+updates as independent; for noise independent of the regressor it is consistent when each
+carries W = C(0) + sum_L rho(L) (C(L) + C(L)^T), rho the regressor's own autocorrelation over
+updates (``motion.lag_weighted_covariance``: exact for a scalar regressor): the long-run
+covariance for noise on the filtered values (a slow regressor sees its spectral density at zero
+frequency), and far less for noise read out of a derivative (the gyro through the momenta), whose
+spectral density vanishes at zero frequency and is weighed at the regressor's own frequencies.
+The IMU's channels carry W. The encoders' noise is the regressor's own (dY pi: the joint rates in
+the grasp's velocity and angular velocity carry almost all of it), where that weighting fails:
+the gain multiplies the regressor's noise by the noise itself (errors in variables), a bias of
+relative size var(dY) / var(Y) that W, far below C(0) for noise read out of a derivative, leaves
+uncovered (one robot, encoders alone: NEES 66 at W, 6 at C(0)). Their modes carry the per-update
+covariance C(0).
 """
 
 from __future__ import annotations
 
+import functools
 import itertools
 from dataclasses import dataclass
 from typing import Protocol
@@ -34,19 +49,33 @@ from typing import Protocol
 import numpy as np
 from numba import njit
 
+from .momentum import CARGO_Q, CARGO_Q_MAP, LINKS_Q
 from .motion import (
+    HELD_EXTENDED,
+    POINT_EXTENDED,
+    RegressorAutocorrelation,
     _balance_noise_map,
     _grasp_acc_map,
     band_factors,
+    chain_kernels,
     condition_maps,
+    drifting_sample_jacobian,
     filtered_motion_gains,
+    kernel_lag_covariances,
+    lag_weighted_covariance,
+    momentum_noise_modes,
     noise_cov,
+    psd_factor,
+    time_weighted_kernels,
 )
-from .preprocess import StateVariableFilter
+from .preprocess import DEFAULT_RATE_CUTOFF_HZ, StateVariableFilter
 from .rne import RobotDescription
 
 # Ways the motion's sensor noise enters the measurement (``NoiseModel.motion_noise``).
 MOTION_FUSION = ("none", "own", "team")
+# Updates between refreshes of the IMU channels' lag-weighted factor (the regressor's
+# autocorrelation changes slowly; ``NoiseModel.momentum_jacobians``).
+FACTOR_REFRESH_UPDATES = 8
 
 
 class PeerMotion(Protocol):
@@ -124,10 +153,34 @@ def _nonnegative(value, size: int, name: str) -> np.ndarray:
     return arr
 
 
+@functools.lru_cache(maxsize=16)
+def _momentum_chain(dt_s, rate_hz, product_hz, cutoff_hz, every, update_every):
+    """What ``NoiseModel`` needs of the momentum chain, a pure function of its six numbers
+    (cached: computed once per set-up, not per estimator and reset): the Jacobians' lag (control
+    steps) and their drift's step (s), the kernels' lag covariances G (n_lags + 1, 12, 12) and
+    the encoders' factor F (8, 8), F F^T = G(0) over their kernels (read-only arrays).
+
+    The balance at an update sums the samples of about one chain delay before it: the Jacobians
+    are taken there, from the pre-filter (which already lags by the product filter's delay) one
+    slow-filter and one rate-filter delay back, with their rate."""
+    kernels = chain_kernels(dt_s, rate_hz, product_hz, cutoff_hz, every)
+    delays = [StateVariableFilter(1, dt_s, f).delay_s for f in (rate_hz, product_hz)]
+    delays.append(StateVariableFilter(1, dt_s * every, cutoff_hz).delay_s)
+    kernels = time_weighted_kernels(kernels, dt_s, sum(delays))
+    n_lags = int(np.ceil(kernels.shape[1] / update_every))
+    lag_cov = kernel_lag_covariances(kernels, update_every, n_lags)
+    point = psd_factor(lag_cov[0][np.ix_(POINT_EXTENDED, POINT_EXTENDED)])
+    for a in (lag_cov, point):
+        a.setflags(write=False)
+    return (delays[0] + delays[2]) / dt_s, delays[2], lag_cov, point
+
+
 @dataclass(frozen=True)
 class MotionNoiseSpec:
-    """Per-sample variance of the filtered motion's noise xi = (a_B, wd_B, qdd) (``var``) and each
-    coordinate's weight per update for its colour (``band``, ``motion.band_factors``)."""
+    """Per-coordinate variance of the motion's noise (``var``) and each coordinate's weight per
+    update for its colour (``band``): for ``NoiseModel.motion`` the filtered xi = (a_B, wd_B,
+    qdd) per sample and ``motion.band_factors``; for ``NoiseModel.momentum_motion`` each
+    channel's per-sample variance (its modes carry the chain, band 1)."""
 
     var: np.ndarray
     band: np.ndarray
@@ -151,18 +204,14 @@ class NoiseModel:
             (what it holds with perfect sensors), weighted like the floors.
 
     The defaults' measured values (``CargoEstimator``; 90 s figure8_tumble, 2 robots, ``ideal``
-    sensors, seed 0, the residual at the true parameters): white-equivalent per update
-    (Bartlett sum of the autocovariance over 32 updates, 3 decorrelation times) over the number
-    of updates per decorrelation time, worst axis: moment rows 2.1e-5 N m with their mean
-    (0.8e-5 without: the y moment's 1.1e-5 mean is model error too, and with 1e-5 the
-    ideal-sensor NEES was 18); force rows 6.1e-5 N without their mean (1.35e-4 with it, at which
-    the ideal-sensor NEES fell to 2-4: the force rows' mean barely projects on the parameters);
-    the mismatch 1.0 / 2.3 / 1.6e-5 m/s^2 per axis without its mean, rms 1.7e-5. These were
-    measured on the former acceleration form of the balance. In the momentum form (``momentum``)
-    the same measurement gives 2.5e-6 N, 6.6e-7 N m and 5.3e-7 m/s^2, but the motion terms above
-    still describe the former filter chain, and with floors that low the filter is overconfident
-    with one motion sensor alone; the defaults keep the former values, which now also cover that
-    under-modelled sensor noise (docs/design.md, "Known gap").
+    sensors, seed 0, the residual at the true parameters, momentum form): white-equivalent per
+    update (Bartlett sum of the autocovariance over 32 updates, 3 decorrelation times) over the
+    number of updates per decorrelation time, worst axis: 2.5e-6 N on the force rows, 6.6e-7 N m
+    on the moment rows, 5.3e-7 m/s^2 on the mismatch. (The former acceleration form's were
+    6.1e-5 N, 2.1e-5 N m and 1.7e-5 m/s^2.) ``motion`` is the acceleration form's model of the
+    motion noise (xi = (a_B, wd_B, qdd) of the 1 Hz pre-filter, ``filtered_motion_gains``,
+    ``band_factors``), which the excitation designer plans with; the estimator uses
+    ``momentum_motion`` and ``momentum_jacobians``.
     """
 
     def __init__(
@@ -181,6 +230,7 @@ class NoiseModel:
         peer_noise_std=(0.0, 0.0),
         localization_noise=(0.0, 0.0),
         mismatch_model_std: float = 0.0,
+        rate_cutoff_hz: float = DEFAULT_RATE_CUTOFF_HZ,
     ) -> None:
         if not (force_std_n > 0 and torque_std_nm > 0):
             raise ValueError("force_std_n and torque_std_nm must be positive")
@@ -219,10 +269,120 @@ class NoiseModel:
         self.motion = MotionNoiseSpec(
             var=np.repeat((sensor * chain) ** 2, sizes), band=np.repeat(factors, sizes)
         )
+        self._init_momentum_chain(robot, dt_s, rate_cutoff_hz, kinematics_cutoff_hz, cutoff_hz,
+                                  regressor_every, sensor)  # fmt: skip
         self.robot_mass = robot.total_mass
         self.robot_inertia = sum(
             float(np.linalg.eigvalsh(link.inertia_com)[-1]) for link in robot.links
         )
+
+    def _init_momentum_chain(self, robot, dt_s, rate_hz, product_hz, cutoff_hz, every, sensor):
+        """The momentum chain's kernels and their lag covariances (``motion.chain_kernels``),
+        the regressor's autocorrelation, the per-mode variances (``momentum_motion``) and what
+        ``momentum_jacobians`` needs of the robot."""
+        chain = _momentum_chain(dt_s, rate_hz, product_hz, cutoff_hz, every, self.update_every)
+        self._jacobian_lag_steps, self._jacobian_rate_step_s, self._lag_cov = chain[:3]
+        n_lags = self._lag_cov.shape[0] - 1
+        self.autocorrelation = RegressorAutocorrelation(n_lags)
+        self._held_factor = None  # refreshed every FACTOR_REFRESH_UPDATES updates
+        # The encoders (the regressor's own noise): the per-update covariance G(0), see
+        # ``momentum_jacobians``.
+        self._point_factor = chain[3]
+        nj = robot.n_joints
+        # The squared rate noise's modes (``momentum.rate_square_terms``), with the encoders.
+        self._n_rate_modes = (nj * (nj + 1)) // 2 if sensor[2] > 0 else 0
+        var = np.repeat([sensor[1] ** 2, sensor[0] ** 2, sensor[2] ** 2, 1.0],
+                        [12, 12, 8 * nj, self._n_rate_modes])  # fmt: skip
+        self.momentum_motion = MotionNoiseSpec(var=var, band=np.ones(var.size))
+        self._robot_arrays = robot.arrays
+        self._imu_pos = np.ascontiguousarray(robot.imu_pos, dtype=float)
+        self._n_joints = nj
+        self._dt_s = dt_s
+        self._states: list[tuple[int, np.ndarray]] = []
+
+    def momentum_jacobians(
+        self,
+        stamp: int,
+        regressor: np.ndarray,
+        pre_state: np.ndarray,
+        rate_terms: tuple[np.ndarray, np.ndarray] | None = None,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The balance's sensor-noise modes at update ``stamp`` in the momentum chain:
+        (d links - d thrust (6, n), d Y (n, 6, 10)), each mode of unit variance per unit
+        per-sample variance of its channel (``momentum_motion.var``).
+
+        Derivation. White noise e_c on channel c (gyro or accelerometer axis, base frame, held; an
+        encoder, point) moves the rate filter's value by r * e_c and its derivative by r' * e_c
+        (impulse responses), hence the momentum-form sample by J_x (r * e_c) (J =
+        ``sample_jacobian`` at x the motion of the balance's samples, with its drift J' over the
+        chain's memory), and the balance, read out of the slow filter's value (thrust, Q) and
+        derivative (P), by n_i = sum_k c_k (K_k * e_c)_i over the chain's kernels K_k
+        (``chain_kernels``, ``time_weighted_kernels``) with columns c_k
+        (``momentum_noise_modes``). Successive updates are correlated over the slow filter's
+        memory: Cov(n_i, n_i+L) = s_c^2 C G_c(L) C^T (``kernel_lag_covariances``). The modes are
+        C F_c with F_c F_c^T = W_c: for the IMU's channels the lag-weighted
+        W_c = G_c(0) + sum_L rho(L) (G_c(L) + G_c(L)^T) (``lag_weighted_covariance``), rho the
+        regressor's autocorrelation over the run so far (``RegressorAutocorrelation``, updated
+        here with ``regressor``; the factor refreshed every ``FACTOR_REFRESH_UPDATES`` updates);
+        for the encoders G_c(0) (module docstring). ``pre_state`` (3, 12 + nj): the pre-filter's
+        state over [gyro_B, the IMU point's acceleration_B, q, thrust_B]
+        (``preprocess.Preprocessor``).
+
+        ``rate_terms``: the encoders' squared rate noise at this instant, (terms (k, ``SIZE``),
+        variances (k,) per update) of ``momentum.rate_square_terms`` (variance w_k v^2 of term
+        k's white coefficient, v the rate noise's variance): k further modes of unit variance,
+        sqrt(var_k) (Q_links, Q_Y) of each term, value read-outs flat in the excitation's band;
+        None (or no encoder noise): zero columns, so that the count stays that of
+        ``momentum_motion.var``, n = 24 + 8 nj + nj (nj + 1) / 2 with encoder noise."""
+        index = stamp // self.update_every
+        self.autocorrelation.add(index, regressor)
+        x = self._delayed_motion(stamp, pre_state)
+        jac, jac_rate = drifting_sample_jacobian(
+            self._robot_arrays, self._imu_pos, x, self._n_joints, self._jacobian_rate_step_s
+        )
+        if self._held_factor is None or index % FACTOR_REFRESH_UPDATES == 0:
+            w = lag_weighted_covariance(self._lag_cov, self.autocorrelation.rho())
+            self._held_factor = psd_factor(w[np.ix_(HELD_EXTENDED, HELD_EXTENDED)])
+        d_links, d_y = momentum_noise_modes(
+            jac, jac_rate, self._n_joints, self._held_factor, self._point_factor
+        )
+        if not self._n_rate_modes:
+            return d_links, d_y
+        n_rate = self._n_rate_modes
+        rate_links, rate_y = np.zeros((6, n_rate)), np.zeros((n_rate, 6, 10))
+        if rate_terms is not None:
+            terms, variances = rate_terms
+            scale = np.sqrt(variances)
+            rate_links[:] = (terms[:, LINKS_Q] * scale[:, None]).T
+            rate_y[:] = ((terms[:, CARGO_Q] * scale[:, None]) @ CARGO_Q_MAP.T).reshape(-1, 6, 10)
+        return np.hstack((d_links, rate_links)), np.concatenate((d_y, rate_y))
+
+    def message_modes(
+        self, d_links: np.ndarray, d_y: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """What a peer needs of this robot's modes (``momentum_jacobians``: d links (6, n),
+        d Y (n, 6, 10)), in 9 modes of unit variance: the peer's conditioning (``motion_noise``)
+        sees them only through the links' map L (6, n) and the grasp acceleration's map
+        A = d Y[:, :3, 0]^T (3, n) (the force rows' mass column, ``motion.grasp_acc_map`` at the
+        grasp point), so their joint covariance M diag(v) M^T, M = [L; A], is all it uses, and F
+        (9, 9) with F F^T = M diag(v) M^T carries it exactly (v = ``momentum_motion.var``).
+        Returns (F's links rows (6, 9), its grasp rows (3, 9), ones (9,): variances and bands)."""
+        stacked = np.vstack((d_links, d_y[:, :3, 0].T)) * np.sqrt(self.momentum_motion.var)
+        factor = psd_factor(stacked @ stacked.T)
+        return factor[:6], factor[6:], np.ones(9)
+
+    def _delayed_motion(self, stamp: int, pre_state: np.ndarray) -> np.ndarray:
+        """The pre-filter's (value, derivative, second derivative) (3, 12 + nj) about
+        ``_jacobian_lag_steps`` before ``stamp``: the recorded state nearest that instant, moved
+        the rest of the way along its derivatives (first order)."""
+        target = stamp - self._jacobian_lag_steps
+        self._states = [(s, x) for s, x in self._states if s >= target - 2 * self.update_every]
+        self._states.append((int(stamp), np.array(pre_state[:3], dtype=float)))
+        s, x = min(self._states, key=lambda item: abs(item[0] - target))
+        back = (s - target) * self._dt_s
+        moved = x.copy()
+        moved[:2] -= back * x[1:3]
+        return moved
 
     def relative_pose_cov(self, wrench: np.ndarray, n_fixes: int) -> np.ndarray:
         """Covariance (6, 6) a peer's wrench (in G) gains from the error of a relative grasp pose
@@ -282,13 +442,22 @@ class NoiseModel:
         regressor: np.ndarray,
         peers: list[tuple[np.ndarray, PeerMotion]],
         lever_m: float = 0.0,
+        own: MotionNoiseSpec | None = None,
+        params_cov: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """Mean (6,) and covariance (6, 6) of the balance's motion noise at one recorded instant.
 
         ``fusion`` one of ``MOTION_FUSION``; ``params`` the cargo's parameters (10,) in G;
         ``motion_jac`` the instant's (d links (6, n), d Y (n, 6, 10)) (``rne``); ``regressor``
         its filtered Y (6, 10); ``peers`` per peer (T_ij (6, 6) wrench transform G_j -> G_i, its
-        message); ``lever_m`` the base-to-grasp lever of the scalar model.
+        message); ``lever_m`` the base-to-grasp lever of the scalar model; ``own`` the variances
+        of this robot's coordinates: ``momentum_motion`` for the modes of
+        ``momentum_jacobians`` (the estimator's), None for ``motion`` (the acceleration form's
+        xi of ``rne.balance_motion_jacobians``, the excitation designer's planning model);
+        ``params_cov`` (10, 10) the uncertainty of ``params``: the regressor's noise moves the
+        balance by dY pi with the true pi, so over the posterior its covariance is
+        dY (pi pi^T + P) dY^T, the dY P dY^T part uncorrelated with the mismatch and added after
+        the conditioning (None: P = 0).
 
         "none" (or a peer that sends no motion): zero mean, ``sensor_cov_at``. "own": E Sigma E^T
         over this robot and the peers (``motion.condition_on_mismatch`` without a mismatch).
@@ -304,7 +473,10 @@ class NoiseModel:
         ):
             return np.zeros(6), self.sensor_cov_at(params, lever_m)
         d_links, d_y = motion_jac
-        var, band, stacked, offsets = self._stacked_motion(params, d_links, d_y, regressor, peers)
+        own = self.motion if own is None else own
+        var, band, stacked, offsets = self._stacked_motion(
+            own, params, d_links, d_y, regressor, peers
+        )
         n_map, d_map, mismatch = _team_maps(
             np.ascontiguousarray(params, dtype=float),
             np.ascontiguousarray(d_links, dtype=float),
@@ -315,15 +487,24 @@ class NoiseModel:
         )
         level = var * band
         if fusion == "own" or not peers:
-            return np.zeros(6), noise_cov(n_map, level)
-        return condition_maps(n_map, d_map, level, mismatch, self.mismatch_model_var)
+            mean, cov = np.zeros(6), noise_cov(n_map, level)
+        else:
+            mean, cov = condition_maps(n_map, d_map, level, mismatch, self.mismatch_model_var)
+        if params_cov is not None:
+            # sum_k level_k dY_k P dY_k^T as one product over the stacked (6, 10 n) rows.
+            d_y = np.asarray(d_y, dtype=float)
+            scaled = np.sqrt(level[: d_y.shape[0], None, None]) * d_y
+            rows = scaled.transpose(1, 0, 2).reshape(6, -1)
+            spread = (scaled @ params_cov).transpose(1, 0, 2).reshape(6, -1)
+            cov = cov + spread @ rows.T
+        return mean, cov
 
-    def _stacked_motion(self, params, d_links, d_y, regressor, peers):
+    def _stacked_motion(self, own, params, d_links, d_y, regressor, peers):
         """This robot's and the peers' motion noise stacked for ``_team_maps``: per-coordinate
         variances and band weights (n_own + sum n_j,), the peers' (T_ij, d links_j, d a_Gj,
         a_Gj) as arrays, and each peer's first coordinate; ValueError on inconsistent shapes."""
-        var = np.concatenate([self.motion.var] + [m.motion_var for _, m in peers])
-        band = np.concatenate([self.motion.band] + [m.motion_band for _, m in peers])
+        var = np.concatenate([own.var] + [m.motion_var for _, m in peers])
+        band = np.concatenate([own.band] + [m.motion_band for _, m in peers])
         sizes = [np.shape(m.motion_links_jac)[1] for _, m in peers]
         if var.shape != (np.shape(d_y)[0] + sum(sizes),) or band.shape != var.shape:
             raise ValueError(

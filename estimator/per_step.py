@@ -40,9 +40,8 @@ from .momentum import (
     sample_from_rate_filter,
     servo_ripple_velocities,
 )
-from .motion import grasp_acc_map
 from .preprocess import _first_order_hold_step
-from .rne import RobotArrays, _grasp_from_base, balance_motion_jacobians
+from .rne import RobotArrays, _grasp_from_base
 
 # Outcomes of `estimator_step` (its first return value).
 NOT_USABLE, NO_FIX, FIX, BAD_FIX = range(4)
@@ -448,21 +447,25 @@ class EstimatorInputs:
         links = terms[:, 12:18]
         return self.update_every * self._rate_square_var * ((links.T * weights) @ links)
 
-    def _motion_fields(self, b) -> tuple[tuple | None, dict]:
-        """The instant's motion Jacobians (``rne.balance_motion_jacobians``, None without
-        motion fusion) and the message's motion fields."""
+    def _motion_fields(self, b, stamp: int) -> tuple[tuple | None, dict]:
+        """The instant's sensor-noise modes in the momentum chain
+        (``NoiseModel.momentum_jacobians``, None without motion fusion) and the message's motion
+        fields."""
         if self.motion_fusion == "none":
             return None, {}
-        m = self.pre.motion()
-        jac = balance_motion_jacobians(
-            self.robot, m.w_base, m.wd_base, m.acc_base, m.q, m.qd, m.qdd
-        )
+        # The squared rate noise joins the modes (``NoiseModel.momentum_jacobians``): it enters
+        # the team's mismatch too, and neither the message's covariance nor
+        # ``_rate_square_cov`` carries it then.
+        entry = self._rate_terms.pop(stamp, None)
+        rate = None if entry is None else (entry[0], self._rate_square_var * entry[1])
+        jac = self.noise.momentum_jacobians(stamp, b.regressor, self.pre.filter.state, rate)
+        links, grasp, var = self.noise.message_modes(*jac)
         motion = {
             "grasp_acc": b.regressor[:3, 0].copy(),
-            "motion_links_jac": jac[0],
-            "motion_grasp_jac": grasp_acc_map(jac[1]),
-            "motion_var": self._motion_var,
-            "motion_band": self._motion_band,
+            "motion_links_jac": links,
+            "motion_grasp_jac": grasp,
+            "motion_var": var,
+            "motion_band": var,
         }
         return jac, motion
 
@@ -474,9 +477,10 @@ class EstimatorInputs:
         act_cov = self._act_cov_sum / max(self._act_cov_n, 1)
         self._act_cov_sum = np.zeros((6, 6))
         self._act_cov_n = 0
-        sent_cov = act_cov + self._rate_square_links_cov(stamp)
+        rate_links_cov = self._rate_square_links_cov(stamp)
         tainted = stamp <= self._tainted_until
-        jac, motion = self._motion_fields(b)
+        jac, motion = self._motion_fields(b, stamp)
+        sent_cov = act_cov + rate_links_cov if jac is None else act_cov
         self._pending[stamp] = _Instant(
             thrust=b.thrust.copy(),
             links=b.links.copy(),

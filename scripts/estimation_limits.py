@@ -90,6 +90,9 @@ sensors.NOISE_PROFILES.update({f"limits_{name}": profile for name, _, profile in
 def build_parser() -> argparse.ArgumentParser:
     parser = cli.limits_parser(__doc__, 1)
     parser.add_argument("--alone", action="store_true", help="each noise source alone: NEES")
+    parser.add_argument(
+        "--only", nargs="+", default=None, help="fly only these variants (names as in the code)"
+    )
     return parser
 
 
@@ -109,6 +112,11 @@ def _run(job: tuple[str, int, argparse.Namespace]) -> tuple[str, int, dict]:
 def main(argv: list[str] | None = None) -> None:
     args = parse_args(argv)
     variants = ALONE if args.alone else VARIANTS
+    if args.only is not None:
+        unknown = set(args.only) - {name for name, _, _ in variants}
+        if unknown:
+            raise SystemExit(f"--only: unknown variants {sorted(unknown)}")
+        variants = tuple(v for v in variants if v[0] in args.only)
     jobs = [(name, seed, args) for name, _, _ in variants for seed in args.seeds]
     with ProcessPoolExecutor(args.workers) as pool:
         results = list(pool.map(_run, jobs))
@@ -172,6 +180,8 @@ def _print_nees(results: list[tuple[str, int, dict]], args: argparse.Namespace) 
     print("|---|---|---|---|")
     for name, label, _ in ALONE:
         runs = [r for v, _, r in results if v == name]
+        if not runs:
+            continue
         per_seed = [[a["nees"] for a in r["agents"].values()] for r in runs]
         mean = float(np.mean([np.mean(x) for x in per_seed]))
         cells = "; ".join(" / ".join(f"{x:.1f}" for x in seed) for seed in per_seed)

@@ -216,10 +216,13 @@ def test_yaw_only_leaves_two_moments_unseen():
     # shrinks: it is not asserted here.
     assert np.all(ratio[[1, 2]] > 0.3), ratio
     assert ratio[0] < 0.1, ratio  # I_xx: revealed
-    # The Fisher information of the same data says which: two principal moments get (almost) none
-    # (the third functional, I_yz, gets a little from the controller's small off-axis corrections).
+    # The Fisher information of the same data says which: two principal moments get less than the
+    # prior's own information (the controller's small off-axis corrections give them a little:
+    # with the floors at the momentum form's model error, 0.09 / 0.45 / 0.63 of the prior's
+    # information on the three weakest functionals, against 2.7e5 on I_xx's).
     prior_cov = prior.params_cov()
-    unseen = unrevealed_directions(fisher_information(Recording.from_log(est.log)), prior_cov)
+    fisher = fisher_information(Recording.from_log(est.log))
+    unseen = unrevealed_directions(fisher, prior_cov, ratio=1.0)
     assert len(unseen) >= 2
 
 

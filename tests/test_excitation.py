@@ -283,11 +283,17 @@ def test_motion_covariance_is_the_estimators(n_robots, fusion):
             WrenchMessage(
                 i, 0, np.zeros(6), np.zeros(6), np.zeros(3), np.eye(3), False, np.zeros((6, 6)),
                 grasp_acc=rng.normal(0.0, 0.01, 3), motion_links_jac=d_links,
-                motion_grasp_jac=grasp_acc_map(d_y), motion_var=e._motion_var,
-                motion_band=e._motion_band,
+                motion_grasp_jac=grasp_acc_map(d_y), motion_var=e.noise.motion.var,
+                motion_band=e.noise.motion.band,
             )
         )  # fmt: skip
-    _, expected = est._motion_noise(inst, msgs)
+    # The designer plans with the acceleration form's motion noise (``NoiseModel.motion``), the
+    # estimator's own model of that configuration before the momentum chain's.
+    peers = [(est._relative[p].transform(), m) for p, m in zip(est.peers, msgs, strict=True)]
+    _, expected = est.noise.motion_noise(
+        est.motion_fusion, est.ukf.params_mean(), inst.motion_jac, inst.regressor, peers,
+        est._grasp_lever,
+    )  # fmt: skip
     terms = estimator_noise_terms(
         model.estimator, model.robots, model.relative_grasps, model.cargo_grasp, q
     )

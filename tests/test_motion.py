@@ -162,7 +162,9 @@ def test_team_fusion_in_the_env(noise):
         obs, *_ = env.step(actions)
     assert est.counters["updates"] > 0 and seen
     inst, msgs, (mean, cov) = seen[-1]
-    assert msgs[0].grasp_acc is not None and msgs[0].motion_links_jac.shape == (6, 8)
+    # The momentum chain's noise modes, sent as the 9 that carry their links' and grasp
+    # acceleration's joint covariance (``NoiseModel.message_modes``).
+    assert msgs[0].grasp_acc is not None and msgs[0].motion_links_jac.shape == (6, 9)
     rel = est._relative[est.peers[0]].transform()
     rot = rel[:3, :3]
     lever = rel[3:, :3] @ rot.T

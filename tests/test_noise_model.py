@@ -93,9 +93,9 @@ def test_noise_model_is_the_estimator_s():
     # The floors and the mismatch's model error are white-equivalent per update alike.
     c = decorrelation_updates(est.balance_filter.delay_s, est.update_every * est.dt_s)
     assert model.correlated == pytest.approx(c) and c > 1
-    floors = np.array([6.1e-5, 2.1e-5])
+    floors = np.array([2.5e-6, 6.6e-7])
     np.testing.assert_allclose(np.diag(model.floor_cov)[[0, 3]], c * floors**2)
-    assert model.mismatch_model_var == pytest.approx(c * 1.7e-5**2)
+    assert model.mismatch_model_var == pytest.approx(c * 5.3e-7**2)
     wrench = np.array([1.0, 0, 0, 0, 0, 0.1])
     pose = model.relative_pose_cov(wrench, 8)
     assert pose[0, 0] == pytest.approx(0.25 * model.loc_att_std**2)
@@ -125,3 +125,198 @@ def test_excitation_snr_counts_sigmas_of_the_filtered_motion():
     regressor[:3, 0] = [7.0 * model.acc_noise, 0.0, 0.0]
     assert model.excitation_snr(regressor, 0.0) == pytest.approx(7.0)
     assert model.excitation_snr(regressor, 0.4) < 7.0
+
+
+def _chain_noise(robot, readings, std, n_rep, n_updates, params, rng):
+    """Monte Carlo of the estimator's momentum chain (``Preprocessor``'s rate and product
+    filters with the momentum-form sample, then the slow balance filter) at constant readings
+    ``readings`` (accel, gyro, q, thrust) plus white noise of std ``std`` (accel, gyro, encoder)
+    per step: the balance's model-side noise n = d(links + Y pi - thrust) at the update instants
+    after the chain's memory, (n_rep, n_updates, 6)."""
+    from astrocargo.estimator.momentum import SIZE, balance_from_filtered
+    from astrocargo.estimator.preprocess import Preprocessor
+
+    def residual(state):
+        b = balance_from_filtered(state[0], state[1])
+        return b.links + b.regressor @ params - b.thrust
+
+    warm = 400  # steps: ten times the chain's delay
+    sizes = np.array([3, 3, robot.n_joints])
+    scale = np.repeat(std, sizes)
+    out = np.empty((n_rep, n_updates, 6))
+    for rep in range(n_rep + 1):  # replica 0: noise-free, the reference
+        # With the encoders' noise its square's mean in Q is subtracted, as the estimator does.
+        pre = Preprocessor(robot, DT, PRE_HZ, encoder_std_rad=std[2] if rep else 0.0)
+        slow = StateVariableFilter(SIZE, DT * EVERY, SLOW_HZ)
+        clean = np.concatenate(readings[:3])
+        for k in range(warm + n_updates * UPDATE + 1):
+            noise = rng.normal(size=clean.size) * scale if rep else 0.0
+            a, g, q = np.split(clean + noise, np.cumsum(sizes)[:2])
+            pre.step(a, g, q, readings[3])
+            if k % EVERY == 0:
+                slow.step(pre.product_filter.state[0])
+            if k > warm and (k - warm) % UPDATE == 0:
+                r = residual(slow.state)
+                if rep == 0:
+                    reference = r  # stationary: the same at every instant
+                else:
+                    out[rep - 1, (k - warm) // UPDATE - 1] = r - reference
+    return out
+
+
+def test_momentum_chain_noise_matches_a_monte_carlo_of_the_chain():
+    """The noise model's exact linear map of each white sensor noise through the momentum chain
+    (``NoiseModel.momentum_jacobians``: the sample's Jacobian, the chain's kernels and their lag
+    covariances) against the estimator's own filters fed with noisy readings of a robot that
+    turns steadily (0.15 rad/s), accelerates and thrusts, arm bent: the covariance of the
+    balance's noise at one update and between updates 1 and 3 apart (the slow filter's memory
+    correlates them), source by source and all together, within the Monte Carlo's spread."""
+    from astrocargo.estimator.motion import kernel_lag_covariances
+
+    robot = _robot()
+    nj = robot.n_joints
+    rng = np.random.default_rng(3)
+    w = np.array([0.05, -0.1, 0.1])
+    acc = np.array([0.01, -0.005, 0.008])  # the IMU point's, base frame (imu_rot applied below)
+    q = np.linspace(0.4, -0.6, nj)
+    thrust = np.array([0.1, -0.05, 0.08, 2e-3, -1e-3, 3e-3])
+    rot = np.asarray(robot.imu_rot)
+    readings = (rot.T @ acc, rot.T @ w, q, thrust)
+    params = np.array([5.0, 0.05, 0.9, -0.05, 0.1, 0.08, 0.12, 0.0, 0.01, 0.0])
+    # The noise-free chain's steady state (rates constant): its pre-filter state is the motion.
+    pre_state = np.zeros((3, 12 + nj))
+    pre_state[0] = np.concatenate((w, acc, q, np.asarray(robot.thrust_to_base) @ thrust))
+    from astrocargo.estimator.motion import chain_kernels, momentum_noise_modes, sample_jacobian
+
+    jac = sample_jacobian(robot.arrays, np.asarray(robot.imu_pos, dtype=float), w, acc, q,
+                          np.zeros(nj), pre_state[0, 6 + nj :])  # fmt: skip
+    # Steady motion: the map does not drift (its rate's columns are zero).
+    d_links, d_y = momentum_noise_modes(jac, np.zeros_like(jac), nj)
+    cols = d_links + (d_y @ params).T  # (6, 24 + 8 nj)
+    lag_cov = kernel_lag_covariances(chain_kernels(DT, 8.0, PRE_HZ, SLOW_HZ, EVERY), UPDATE, 3)
+    channels = [(k, slice(4 * k, 4 * k + 2), slice(0, 2)) for k in range(6)]
+    channels += [(6 + j, slice(24 + 8 * j, 28 + 8 * j), slice(2, 6)) for j in range(nj)]
+    stds = {"gyro": (0, 2e-4, 0), "accelerometer": (1e-3, 0, 0), "encoders": (0, 0, 1e-3)}
+    stds["all"] = (1e-3, 2e-4, 1e-3)
+    for name, std in stds.items():
+        var = np.array([std[1]] * 3 + [std[0]] * 3 + [std[2]] * nj) ** 2
+        predicted = sum(
+            var[c] * cols[:, cs] @ lag_cov[:, ks, ks] @ cols[:, cs].T for c, cs, ks in channels
+        )  # (4, 6, 6): lags 0 to 3
+        n = _chain_noise(robot, readings, np.array(std), 30, 80, params, rng)
+        scale = np.linalg.norm(predicted[0])
+        for lag in (0, 1, 3):
+            a, b = n[:, : 80 - lag].reshape(-1, 6), n[:, lag:].reshape(-1, 6)
+            empirical = 0.5 * (a.T @ b + b.T @ a) / a.shape[0]
+            err = np.linalg.norm(empirical - 0.5 * (predicted[lag] + predicted[lag].T)) / scale
+            assert err < 0.3, (name, lag, err)
+
+
+def test_lag_weighted_covariance_is_exact_for_a_scalar_regressor():
+    """For a scalar regressor a_i and noise correlated as C(L) between updates L apart, the
+    least-squares estimate sum a_i z_i / sum a_i^2 has the variance
+    sum_ij a_i a_j C(i - j) / (sum a_i^2)^2: the filter is consistent at the white covariance
+    W = C(0) + 2 sum_L rho(L) C(L) with the regressor's autocorrelation rho as
+    ``RegressorAutocorrelation`` accumulates it (a slow sinusoid with an offset: rho near 1),
+    and W is far from both C(0) and the long-run sum for noise read out of a derivative."""
+    from astrocargo.estimator.motion import RegressorAutocorrelation, lag_weighted_covariance
+
+    n_lags, n = 6, 4000
+    a = 1.0 + np.sin(2 * np.pi * np.arange(n) / 40.0)
+    # Derivative-like noise: C(0) = 2, C(1) = -1 (a differenced white sequence), zero beyond.
+    lag_cov = np.zeros((n_lags + 1, 1, 1))
+    lag_cov[0], lag_cov[1] = 2.0, -1.0
+    acf = RegressorAutocorrelation(n_lags)
+    for i in range(n):
+        regressor = np.zeros((6, 10))
+        regressor[0, 0] = a[i]
+        acf.add(i, regressor)
+    rho = acf.rho()
+    assert 0.9 < rho[1] < 1.0 and rho[0] == 1.0
+    w = lag_weighted_covariance(lag_cov, rho)[0, 0]
+    exact = (2.0 * a @ a - 2.0 * a[1:] @ a[:-1]) / (a @ a)
+    # Exact up to the run's two ends (rho normalises each lag by its pairs' power): 5 %.
+    assert w == pytest.approx(exact, rel=0.05)
+    assert 0.0 < w < 0.1 * lag_cov[0, 0, 0]  # far below C(0), above the long-run sum (zero)
+
+
+def test_rate_square_terms_join_the_motion_modes():
+    """The encoders' squared rate noise (``momentum.rate_square_terms``) enters the motion's
+    modes: their covariance is var sum_k w_k b_k b_k^T, b_k = Q_links + Q_Y pi of each term (the
+    covariance ``CargoEstimator._rate_square_cov`` adds without motion fusion), and the IMU's and
+    encoders' modes come first, as many as ``momentum_motion.var`` says."""
+    from astrocargo.estimator.momentum import cargo_regressor_parts, rate_square_terms
+
+    robot = _robot()
+    nj = robot.n_joints
+    est = CargoEstimator(robot, 0, [], DT, sensor_noise=(1e-3, 2e-4, 1e-3))
+    model = est.noise
+    q = np.linspace(0.3, -0.5, nj)
+    pre_state = np.zeros((3, 12 + nj))
+    pre_state[0, 6 : 6 + nj] = q
+    pre_state[1, 6 : 6 + nj] = 0.05
+    terms, weights = rate_square_terms(robot, q)
+    variances = 3e-5 * weights
+    regressor = np.random.default_rng(0).normal(size=(6, 10))
+    d_links, d_y = model.momentum_jacobians(100, regressor, pre_state, (terms, variances))
+    n_rate = terms.shape[0]
+    assert d_links.shape[1] == model.momentum_motion.var.size == 24 + 8 * nj + n_rate
+    params = np.array([5.0, 0.05, 0.9, -0.05, 0.1, 0.08, 0.12, 0.0, 0.01, 0.0])
+    modes = d_links[:, -n_rate:] + (d_y[-n_rate:] @ params).T
+    b = np.array([t[12:18] + cargo_regressor_parts(t)[1] @ params for t in terms])
+    np.testing.assert_allclose(modes @ modes.T, (b.T * variances) @ b, rtol=1e-10, atol=1e-18)
+    np.testing.assert_array_equal(model.momentum_motion.var[-n_rate:], 1.0)
+
+
+def test_noise_modes_carry_each_channel_s_factor():
+    """``momentum_noise_modes``: the modes are the kernels' columns times the block-diagonal
+    factor of their channel kind (4 per IMU axis, 8 per joint)."""
+    import scipy.linalg
+
+    from astrocargo.estimator.motion import momentum_noise_modes
+
+    rng = np.random.default_rng(2)
+    nj = 2
+    jac, jac_rate = rng.normal(size=(2, 33, 6 + 2 * nj))
+    held, point = rng.normal(size=(4, 4)), rng.normal(size=(8, 8))
+    cols_links, cols_y = momentum_noise_modes(jac, jac_rate, nj)
+    links, y = momentum_noise_modes(jac, jac_rate, nj, held, point)
+    factor = scipy.linalg.block_diag(*([held] * 6 + [point] * nj))
+    np.testing.assert_allclose(links, cols_links @ factor, atol=1e-12)
+    np.testing.assert_allclose(y, np.einsum("kab,km->mab", cols_y, factor), atol=1e-12)
+
+
+def test_message_modes_condition_the_team_exactly():
+    """A peer's modes sent as the 9 of ``NoiseModel.message_modes`` give the receiver the same
+    conditioned mean and covariance (``motion_noise``, "team") as all of them: the receiver sees
+    them only through their links' and grasp acceleration's joint covariance."""
+    from types import SimpleNamespace
+
+    from astrocargo.estimator.geometry import skew
+    from astrocargo.estimator.motion import grasp_acc_map
+
+    robot = _robot()
+    model = CargoEstimator(robot, 0, [1], DT, sensor_noise=(1e-3, 2e-4, 1e-3)).noise
+    n = model.momentum_motion.var.size
+    rng = np.random.default_rng(4)
+    own = (rng.normal(size=(6, n)), rng.normal(size=(n, 6, 10)))
+    peer_links, peer_y = rng.normal(size=(6, n)), rng.normal(size=(n, 6, 10))
+    rot = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    transform = np.zeros((6, 6))
+    transform[:3, :3] = transform[3:, 3:] = rot
+    transform[3:, :3] = skew(np.array([0.1, -0.9, 0.05])) @ rot
+    grasp = grasp_acc_map(peer_y)
+    full = SimpleNamespace(grasp_acc=rng.normal(0.0, 0.01, 3), motion_links_jac=peer_links,
+                           motion_grasp_jac=grasp, motion_var=model.momentum_motion.var,
+                           motion_band=model.momentum_motion.band)  # fmt: skip
+    links9, grasp9, ones = model.message_modes(peer_links, peer_y)
+    fields = {"motion_links_jac": links9, "motion_grasp_jac": grasp9}
+    sent = SimpleNamespace(**{**vars(full), **fields, "motion_var": ones, "motion_band": ones})
+    params = np.array([5.0, 0.05, 0.9, -0.05, 0.1, 0.08, 0.12, 0.0, 0.01, 0.0])
+    regressor = rng.normal(size=(6, 10))
+    args = ("team", params, own, regressor)
+    kwargs = {"own": model.momentum_motion}
+    mean_full, cov_full = model.motion_noise(*args, [(transform, full)], **kwargs)
+    mean_sent, cov_sent = model.motion_noise(*args, [(transform, sent)], **kwargs)
+    np.testing.assert_allclose(mean_sent, mean_full, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(cov_sent, cov_full, rtol=1e-9, atol=1e-12 * np.abs(cov_full).max())
