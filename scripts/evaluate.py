@@ -61,6 +61,7 @@ from cli import (  # noqa: E402
 
 from astrocargo.agents.controllers import CARGO_MODELS, ObservationController  # noqa: E402
 from astrocargo.agents.excitation import is_trajectory_name, trajectory_choices  # noqa: E402
+from astrocargo.agents.feedforward import FeedForwardObservation  # noqa: E402
 from astrocargo.agents.model_correction import ModelCorrection  # noqa: E402
 from astrocargo.agents.trajectories import Trajectory  # noqa: E402
 from astrocargo.envs import astrobee_cargo_v0  # noqa: E402
@@ -140,7 +141,8 @@ class TrainedPolicy:
     acting at the env's control rate as its ``DecisionEnv`` did in training: a new decision every
     ``action_repeat`` steps from the observation less the estimates if it hid them, held in
     between, added (times ``residual_scale``) to the action of its scripted base controller
-    (``base_model``) at every step if residual."""
+    (``base_model``) at every step if residual; with ``feedforward_obs`` the decision's
+    observation ends with the cargo model's feed-forward, as in ``DecisionEnv``."""
 
     trajectory = None
 
@@ -167,6 +169,9 @@ class TrainedPolicy:
         self.base_model = kwargs.get("base_model", "none")
         self.residual_scale = float(kwargs.get("residual_scale", 0.0))
         self.action_repeat = int(kwargs.get("action_repeat", 1))
+        self.feedforward_obs = kwargs.get("feedforward_obs")
+        self.feedforward = None
+        self.agents: list[str] = []
         self.decision = {"residual_scale": self.residual_scale, "action_repeat": self.action_repeat}
         self.name = str(run_dir) if samples is None else f"{run_dir}@{samples}"
         self.base = None
@@ -183,12 +188,19 @@ class TrainedPolicy:
             self.policy_obs = policy_observation_index(env.sim.obs_layout, True)
         if self.residual_scale:
             self.base = ObservationController.for_env(env, self.base_model)
+        if self.feedforward_obs:
+            self.feedforward = FeedForwardObservation(env, self.feedforward_obs)
+        self.agents = list(env.possible_agents)
 
     def decide(self, obs: np.ndarray) -> np.ndarray:
         """The model's deterministic action (n, 8) from the policy's part of the env's
         observations (n, obs_dim): after ``reset``, the part it saw in training."""
         n = obs.shape[0]
-        obs = np.stack([row[self.policy_obs] for row in obs])  # rows as DecisionEnv gives them
+        rows = [row[self.policy_obs] for row in obs]  # rows as DecisionEnv gives them
+        if self.feedforward is not None:
+            u_ff = self.feedforward(dict(zip(self.agents, obs, strict=True)))
+            rows = [np.concatenate([r, u_ff[a]]) for a, r in zip(self.agents, rows, strict=True)]
+        obs = np.stack(rows)
         if self.view == "central":
             obs = obs.reshape(1, -1)
         action, _ = self.model.predict(self.normalizer.normalize_obs(obs), deterministic=True)
@@ -463,6 +475,8 @@ def arm_key(config: dict) -> str:
     base = kwargs.get("base_model", "none")
     on = f" on {base}" if base != "none" else ""
     kind = f"{config['algo'].upper()}{f' residual x{residual:g}{on}' if residual else ''}"
+    if kwargs.get("feedforward_obs"):
+        kind += " + feed-forward input"
     obs = "with" if policy_observes_estimates(kwargs) else "without"
     return f"{kind}, {config['view']}, task {config.get('task', '?')}, {obs} estimates"
 
@@ -714,6 +728,7 @@ def task_of(args: argparse.Namespace, trained: list[dict]) -> dict[str, Any]:
     else:
         task = {**LEARNING_TASKS[args.task or DEFAULT_TASK], "n_robots": 2}
     decision = ("residual_scale", "action_repeat", "base_model", "hide_estimates")
+    decision += ("feedforward_obs",)
     for key in (*decision, "observe_estimates", "estimators"):
         task.pop(key, None)
     for flag in TASK_FLAGS:
