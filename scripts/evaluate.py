@@ -684,6 +684,15 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--ablation", action="store_true", help="group run folders into arms over seeds"
     )
+    parser.add_argument(
+        "--results",
+        nargs="+",
+        type=Path,
+        default=[],
+        metavar="FILE",
+        help="add the results of earlier --json files scored on the same episodes (task, "
+        "--seed, --episodes, --mass-bins: checked) to the table and the ablation",
+    )
     parser.add_argument("--json", type=Path, metavar="FILE", help="write the results here")
     parser.add_argument("--video", type=Path, metavar="DIR", help="GIF of episode 0 per policy")
     return parser
@@ -694,8 +703,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     before any model is loaded or episode run."""
     parser = build_parser()
     args = parser.parse_args(argv)
-    if not args.policy and not args.curve:
-        parser.error("give --policy or --curve")
+    if not args.policy and not args.curve and not args.results:
+        parser.error("give --policy, --curve or --results")
+    for path in args.results:
+        if not path.is_file():
+            parser.error(f"--results: {path} is not a file")
     if args.robots is not None and not 1 <= args.robots <= MAX_ROBOTS:
         parser.error(f"--robots must be in 1..{MAX_ROBOTS}, got {args.robots}")
     for spec in args.policy:
@@ -740,13 +752,30 @@ def task_of(args: argparse.Namespace, trained: list[dict]) -> dict[str, Any]:
     return task
 
 
+def earlier_results(paths: list[Path], task: dict, seed: int, episodes: int, bins: list) -> list:
+    """The results of earlier ``--json`` files, each checked to hold the same episodes
+    (ValueError otherwise)."""
+    same = json.loads(json.dumps([task, seed, episodes, [list(b) for b in bins]]))
+    results = []
+    for path in paths:
+        data = json.loads(path.read_text())
+        if [data["task"], data["seed"], data["episodes"], data["mass_bins"]] != same:
+            raise ValueError(f"{path} was scored on other episodes (task, seed, episodes, bins)")
+        results += data["results"]
+    return results
+
+
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     policies = [make_policy(spec, args.cargo_model) for spec in args.policy]
     trained = [p.config for p in policies if isinstance(p, TrainedPolicy)]
     trained += [json.loads((run / "config.json").read_text()) for run in args.curve]
+    if not trained and args.results:  # the task of the first earlier file's first run
+        earlier = [r["config"] for r in json.loads(args.results[0].read_text())["results"]]
+        trained = [c for c in earlier if c is not None][:1]
     task = task_of(args, trained)
     bins = mass_bins(args.mass_bins, task)
+    previous = earlier_results(args.results, task, args.seed, args.episodes, bins)
     print(f"seed {args.seed} (episodes {args.seed}..{args.seed + args.episodes - 1}); task {task}")
     results = []
     for policy in policies:
@@ -763,6 +792,7 @@ def main(argv: list[str] | None = None) -> int:
             )
         )
         print(f"  {policy.name}: {results[-1]['wall_s']:.0f} s")
+    results += previous
     if results:
         print_table(results)
     table = ablation(results) if args.ablation else None

@@ -292,6 +292,15 @@ def test_evaluate_scores_policies_on_the_same_episodes(trained_runs, tmp_path):
     zero, scripted = results["results"][1:]
     # The scripted controller follows the reference that the zero policy lets go.
     assert scripted["summary"]["final_pos_m"]["mean"] < zero["summary"]["final_pos_m"]["mean"]
+    # Earlier results join the table when scored on the same episodes, and only then.
+    again = tmp_path / "again.json"
+    argv = ["--policy", "zero", "--episodes", "2", "--results", str(out), "--json", str(again)]
+    assert evaluate.main(argv) == 0
+    joined = json.loads(again.read_text())["results"]
+    assert [r["policy"] for r in joined] == ["zero", *names]
+    assert joined[0]["episodes"] == joined[2]["episodes"]  # the zero policy, scored again
+    with pytest.raises(ValueError, match="other episodes"):
+        evaluate.main(["--results", str(out), "--episodes", "3"])
 
 
 # --------------------------------------------------------------------------- tasks, decisions
