@@ -93,8 +93,10 @@ BOUND_METRICS = (
 MASS_CONV_TOL = 0.05  # mass_conv_s: the mass error stays within this (relative) from then on
 CORRECTION_METRICS = (("correction_mean", "correction"), ("correction_p95", "correction p95"))
 POLICY_HELP = (
-    "'zero', 'scripted' or a run folder of scripts/train.py (with model.zip and config.json); "
-    "'scripted:MODEL@TRAJECTORY' picks the cargo model (estimate, none, truth) and trajectory"
+    "'zero', 'scripted', 'feedforward' or a run folder of scripts/train.py (with model.zip and "
+    "config.json); 'scripted:MODEL@TRAJECTORY' picks the cargo model (estimate, none, truth) and "
+    "trajectory; 'feedforward': the no-model controller plus u_ff of the live estimate, held; "
+    "'RUN@SAMPLES': the run's checkpoint after SAMPLES samples"
 )
 
 
@@ -136,6 +138,34 @@ class ScriptedPolicy:
         return self.controller.predict(obs)[0]
 
 
+class FeedForwardPolicy:
+    """The residual a policy with the feed-forward input could learn first: its input as it
+    is, a = u_ff (live estimate), decided every ``action_repeat`` steps (the cargo task's) and held,
+    added to the no-model scripted controller's thrust at every step (residual scale 1)."""
+
+    name = "feedforward (no model + u_ff held)"
+    observe_estimates = True
+    trajectory = None
+    decision = {}
+
+    def __init__(self, action_repeat: int) -> None:
+        self.action_repeat = action_repeat
+
+    def reset(self, env) -> None:
+        self.base = ObservationController.for_env(env, "none")
+        self.feedforward = FeedForwardObservation(env, "estimate")
+        self.agents, self.steps = list(env.possible_agents), 0
+
+    def act(self, obs: np.ndarray) -> np.ndarray:
+        from astrocargo.envs.wrappers import residual_actions
+
+        if self.steps % self.action_repeat == 0:
+            u_ff = self.feedforward(dict(zip(self.agents, obs, strict=True)))
+            self.held = np.stack([u_ff[a] for a in self.agents])
+        self.steps += 1
+        return residual_actions(self.base.predict(obs)[0], self.held, 1.0)
+
+
 class TrainedPolicy:
     """A scripts/train.py run: its model, observation normalisation and view, deterministic,
     acting at the env's control rate as its ``DecisionEnv`` did in training: a new decision every
@@ -151,6 +181,8 @@ class TrainedPolicy:
         from stable_baselines3 import PPO, SAC, TD3
 
         self.config = json.loads((run_dir / "config.json").read_text())
+        if samples is not None:
+            self.config["checkpoint_samples"] = samples
         algo = {"ppo": PPO, "sac": SAC, "td3": TD3}[self.config["algo"]]
         model_path, stats_path = run_dir / "model.zip", run_dir / "vecnormalize.pkl"
         if samples is not None:
@@ -228,7 +260,7 @@ def parse_scripted(spec: str) -> tuple[str, str | None] | None:
 
 def check_policy_spec(spec: str) -> None:
     """ValueError unless ``spec`` is 'zero', a scripted spec or a run folder of scripts/train.py."""
-    if spec == "zero":
+    if spec in ("zero", "feedforward"):
         return
     scripted = parse_scripted(spec)
     if scripted is not None:
@@ -238,19 +270,32 @@ def check_policy_spec(spec: str) -> None:
         if trajectory is not None and not is_trajectory_name(trajectory):
             raise ValueError(f"unknown trajectory {trajectory!r}; {trajectory_choices()}")
         return
-    run_dir = Path(spec)
+    run_dir, samples = run_and_checkpoint(spec)
     if not (run_dir / "model.zip").is_file() or not (run_dir / "config.json").is_file():
         raise ValueError(f"policy must be {POLICY_HELP}, got {spec!r}")
+    if samples is not None and samples not in checkpoint_samples(run_dir):
+        raise ValueError(f"{run_dir} has no checkpoint after {samples} samples")
+
+
+def run_and_checkpoint(spec: str) -> tuple[Path, int | None]:
+    """'RUN@SAMPLES' -> (RUN, SAMPLES): the run's checkpoint after SAMPLES; 'RUN' -> (RUN,
+    None): its final model."""
+    head, sep, tail = spec.rpartition("@")
+    if sep and tail.isdigit():
+        return Path(head), int(tail)
+    return Path(spec), None
 
 
 def make_policy(spec: str, cargo_model: str):
     check_policy_spec(spec)
     if spec == "zero":
         return ZeroPolicy()
+    if spec == "feedforward":
+        return FeedForwardPolicy(LEARNING_TASKS[DEFAULT_TASK]["action_repeat"])
     scripted = parse_scripted(spec)
     if scripted is not None:
         return ScriptedPolicy(scripted[0] or cargo_model, scripted[1])
-    return TrainedPolicy(Path(spec))
+    return TrainedPolicy(*run_and_checkpoint(spec))
 
 
 # --------------------------------------------------------------------------- episodes
@@ -477,6 +522,8 @@ def arm_key(config: dict) -> str:
     kind = f"{config['algo'].upper()}{f' residual x{residual:g}{on}' if residual else ''}"
     if kwargs.get("feedforward_obs"):
         kind += " + feed-forward input"
+    if "checkpoint_samples" in config:
+        kind += f" at {config['checkpoint_samples']} samples"
     obs = "with" if policy_observes_estimates(kwargs) else "without"
     return f"{kind}, {config['view']}, task {config.get('task', '?')}, {obs} estimates"
 

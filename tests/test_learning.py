@@ -221,6 +221,7 @@ def trained_runs(tmp_path_factory):
     res = train.main(
         ["--algo", "ppo", "--copies", "1", "--timesteps", "64", "--log-dir", str(base / "res")]
         + ["--residual-scale", "0.3", "--action-repeat", "2", "--no-estimates"]
+        + ["--checkpoint-every", "32"]
         + common
         + ["--hyperparams", "n_steps=32", "batch_size=32", "n_epochs=1"]
     )
@@ -543,6 +544,19 @@ def test_evaluation_replays_a_residual_policy_as_in_training(trained_runs, run):
     assert moved  # the residual is not zero: the comparison tests the residual path
 
 
+def test_a_checkpoint_is_a_policy_of_its_own_arm(trained_runs):
+    evaluate = _load_script("evaluate")
+    run = trained_runs / "res"
+    assert evaluate.checkpoint_samples(run) == [32, 64]
+    final, early = (evaluate.make_policy(spec, "estimate") for spec in (str(run), f"{run}@32"))
+    assert early.name == f"{run}@32" and early.config["checkpoint_samples"] == 32
+    assert evaluate.arm_key(early.config) == evaluate.arm_key(final.config).replace(
+        "x0.3", "x0.3 at 32 samples"
+    )
+    with pytest.raises(ValueError, match="no checkpoint"):
+        evaluate.check_policy_spec(f"{run}@48")
+
+
 def test_fast_inference_keeps_the_actions(trained_runs):
     from stable_baselines3 import PPO
 
@@ -659,10 +673,16 @@ def test_evaluate_bins_masses_and_bounds_the_principal_moments(tmp_path):
 def test_correction_is_what_the_estimate_adds_and_grows_with_the_mass(tmp_path):
     evaluate = _load_script("evaluate")
     out = tmp_path / "eval.json"
-    argv = ["--policy", "scripted", "scripted:none", "--episodes", "1", "--task", "cargo"]
-    argv += ["--max-cycles", "450", "--mass-bins", "1,2,19,20", "--correction"]
+    argv = ["--policy", "scripted", "scripted:none", "feedforward", "--episodes", "1"]
+    argv += ["--task", "cargo", "--max-cycles", "450", "--mass-bins", "1,2,19,20", "--correction"]
     assert evaluate.main(argv + ["--json", str(out)]) == 0
-    estimate, none = json.loads(out.read_text())["results"]
+    estimate, none, feedforward = json.loads(out.read_text())["results"]
+    # The no-model controller plus the feed-forward input as it is tracks a heavy cargo better.
+    heaviest = "19-20 kg"
+    assert (
+        feedforward["bins"][heaviest]["track_pos_m"]["mean"]
+        < none["bins"][heaviest]["track_pos_m"]["mean"]
+    )
     light, _, heavy = (e["correction_mean"] for e in estimate["episodes"])
     # The estimate's share of the thrust scales with the cargo's mass (about 20x from 1 to 20 kg).
     assert 0 < light and heavy > 5 * light
