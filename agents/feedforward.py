@@ -40,23 +40,34 @@ FEEDFORWARD_DIM = 6  # per robot: force (3) and torque (3) thrust entries, fract
 
 class FeedForwardController(ObservationController):
     """``ObservationController`` with zero PD gains (a = a_ref, w' = w'_ref: the feed-forward
-    only) and the cargo model "estimate" (live), "prior" (``default_prior`` of each robot, in
-    its grasp frame) or "none"."""
+    only). ``for_env(env, cargo_model)`` takes the controller's cargo models and "prior":
+    ``default_prior`` of each robot, in its grasp frame (the fixed-parameter path of "truth"
+    with ``prior_in_grasp`` (n, 10) in place of the truth)."""
 
-    def __init__(self, env: Any, cargo: str) -> None:
-        if cargo not in (*FEEDFORWARD_SOURCES, "none"):
-            raise ValueError(
-                f"cargo must be one of {(*FEEDFORWARD_SOURCES, 'none')}, got {cargo!r}"
-            )
-        sim = env.sim
-        # The prior goes through the controller's fixed-parameter ("truth") path, replaced below.
-        model = {"estimate": "estimate", "prior": "truth", "none": "none"}[cargo]
-        truth = np.zeros(10) if cargo == "prior" else None
-        agents = list(env.possible_agents)
-        super().__init__(sim.robots, sim.handrail_pose, sim.obs_layout, model, truth, agents=agents)
+    def __init__(self, *args: Any, prior_in_grasp: np.ndarray | None = None, **kwargs: Any):
+        super().__init__(*args, **kwargs)
         self.team = CooperativeController(self.robots, 0.0, 0.0, 0.0, 0.0)
-        if cargo == "prior":
-            self._truth_in_grasp = np.stack([default_prior(robot) for robot in self.robots])
+        if prior_in_grasp is not None:
+            self._truth_in_grasp = np.asarray(prior_in_grasp, dtype=float)
+
+    @classmethod
+    def for_env(cls, env, cargo_model: str = "estimate", **kwargs: Any) -> FeedForwardController:
+        if cargo_model != "prior":
+            return super().for_env(env, cargo_model, **kwargs)
+        sim = env.sim
+        prior = np.stack([default_prior(robot) for robot in sim.robots])
+        agents = list(env.possible_agents)
+        layout, zeros = sim.obs_layout, np.zeros(10)
+        return cls(
+            sim.robots,
+            sim.handrail_pose,
+            layout,
+            "truth",
+            zeros,
+            agents=agents,
+            prior_in_grasp=prior,
+            **kwargs,
+        )
 
 
 class FeedForwardObservation:
@@ -67,8 +78,8 @@ class FeedForwardObservation:
         if source not in FEEDFORWARD_SOURCES:
             raise ValueError(f"source must be one of {FEEDFORWARD_SOURCES}, got {source!r}")
         self.source = source
-        self.with_cargo = FeedForwardController(env, source)
-        self.without_cargo = FeedForwardController(env, "none")
+        self.with_cargo = FeedForwardController.for_env(env, source)
+        self.without_cargo = FeedForwardController.for_env(env, "none")
 
     def __call__(self, obs: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         """agent -> u_ff (6,) for the agents of ``obs`` (the robots holding the cargo)."""

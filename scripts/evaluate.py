@@ -95,7 +95,8 @@ CORRECTION_METRICS = (("correction_mean", "correction"), ("correction_p95", "cor
 POLICY_HELP = (
     "'zero', 'scripted', 'feedforward' or a run folder of scripts/train.py (with model.zip and "
     "config.json); 'scripted:MODEL@TRAJECTORY' picks the cargo model (estimate, none, truth) and "
-    "trajectory; 'feedforward': the no-model controller plus u_ff of the live estimate, held; "
+    "trajectory; 'feedforward': the no-model controller plus u_ff of the live estimate, held "
+    "('feedforward:prior': of the estimator's prior); "
     "'RUN@SAMPLES': the run's checkpoint after SAMPLES samples"
 )
 
@@ -140,20 +141,21 @@ class ScriptedPolicy:
 
 class FeedForwardPolicy:
     """The residual a policy with the feed-forward input could learn first: its input as it
-    is, a = u_ff (live estimate), decided every ``action_repeat`` steps (the cargo task's) and held,
-    added to the no-model scripted controller's thrust at every step (residual scale 1)."""
+    is, a = u_ff (of the live estimate, or with ``source`` "prior" of the estimator's prior),
+    decided every ``action_repeat`` steps (the cargo task's) and held, added to the no-model
+    scripted controller's thrust at every step (residual scale 1)."""
 
-    name = "feedforward (no model + u_ff held)"
     observe_estimates = True
     trajectory = None
     decision = {}
 
-    def __init__(self, action_repeat: int) -> None:
-        self.action_repeat = action_repeat
+    def __init__(self, action_repeat: int, source: str = "estimate") -> None:
+        self.action_repeat, self.source = action_repeat, source
+        self.name = f"feedforward ({source}; no model + u_ff held)"
 
     def reset(self, env) -> None:
         self.base = ObservationController.for_env(env, "none")
-        self.feedforward = FeedForwardObservation(env, "estimate")
+        self.feedforward = FeedForwardObservation(env, self.source)
         self.agents, self.steps = list(env.possible_agents), 0
 
     def act(self, obs: np.ndarray) -> np.ndarray:
@@ -260,7 +262,7 @@ def parse_scripted(spec: str) -> tuple[str, str | None] | None:
 
 def check_policy_spec(spec: str) -> None:
     """ValueError unless ``spec`` is 'zero', a scripted spec or a run folder of scripts/train.py."""
-    if spec in ("zero", "feedforward"):
+    if spec in ("zero", "feedforward", "feedforward:prior"):
         return
     scripted = parse_scripted(spec)
     if scripted is not None:
@@ -290,8 +292,9 @@ def make_policy(spec: str, cargo_model: str):
     check_policy_spec(spec)
     if spec == "zero":
         return ZeroPolicy()
-    if spec == "feedforward":
-        return FeedForwardPolicy(LEARNING_TASKS[DEFAULT_TASK]["action_repeat"])
+    if spec.startswith("feedforward"):
+        source = "prior" if spec.endswith(":prior") else "estimate"
+        return FeedForwardPolicy(LEARNING_TASKS[DEFAULT_TASK]["action_repeat"], source)
     scripted = parse_scripted(spec)
     if scripted is not None:
         return ScriptedPolicy(scripted[0] or cargo_model, scripted[1])
