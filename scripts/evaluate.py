@@ -516,8 +516,8 @@ ABLATION_METRICS = ("track_pos_m", "track_att_rad", "return")
 
 
 def arm_key(config: dict) -> str:
-    """A run's arm: its configuration without the seed (algorithm, view, task, env arguments,
-    hyperparameters, training length)."""
+    """A run's arm: its configuration without the seed (algorithm, residual scale and base,
+    feed-forward input, training length or checkpoint, view, task, estimates observed)."""
     kwargs = config["env_kwargs"]
     residual = kwargs.get("residual_scale", 0.0)
     base = kwargs.get("base_model", "none")
@@ -525,8 +525,10 @@ def arm_key(config: dict) -> str:
     kind = f"{config['algo'].upper()}{f' residual x{residual:g}{on}' if residual else ''}"
     if kwargs.get("feedforward_obs"):
         kind += " + feed-forward input"
-    if "checkpoint_samples" in config:
-        kind += f" at {config['checkpoint_samples']} samples"
+    if "checkpoint_samples" in config:  # a checkpoint is an arm of its own training length
+        kind += f" (checkpoint at {config['checkpoint_samples']} samples)"
+    elif "timesteps" in config:
+        kind += f" ({config['timesteps']} samples)"
     obs = "with" if policy_observes_estimates(kwargs) else "without"
     return f"{kind}, {config['view']}, task {config.get('task', '?')}, {obs} estimates"
 
@@ -754,7 +756,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser = build_parser()
     args = parser.parse_args(argv)
     if not args.policy and not args.curve and not args.results:
-        parser.error("give --policy, --curve or --results")
+        parser.error("give --policy or --curve (or --results)")
     for path in args.results:
         if not path.is_file():
             parser.error(f"--results: {path} is not a file")

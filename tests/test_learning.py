@@ -551,7 +551,7 @@ def test_a_checkpoint_is_a_policy_of_its_own_arm(trained_runs):
     final, early = (evaluate.make_policy(spec, "estimate") for spec in (str(run), f"{run}@32"))
     assert early.name == f"{run}@32" and early.config["checkpoint_samples"] == 32
     assert evaluate.arm_key(early.config) == evaluate.arm_key(final.config).replace(
-        "x0.3", "x0.3 at 32 samples"
+        "(64 samples)", "(checkpoint at 32 samples)"
     )
     with pytest.raises(ValueError, match="no checkpoint"):
         evaluate.check_policy_spec(f"{run}@48")
