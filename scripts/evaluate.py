@@ -93,9 +93,9 @@ BOUND_METRICS = (
 MASS_CONV_TOL = 0.05  # mass_conv_s: the mass error stays within this (relative) from then on
 CORRECTION_METRICS = (("correction_mean", "correction"), ("correction_p95", "correction p95"))
 POLICY_HELP = (
-    "'zero', 'scripted', 'feedforward' or a run folder of scripts/train.py (with model.zip and "
-    "config.json); 'scripted:MODEL@TRAJECTORY' picks the cargo model (estimate, none, truth) and "
-    "trajectory; 'feedforward': the no-model controller plus u_ff of the live estimate, held "
+    "'zero', 'scripted' or a run folder of scripts/train.py (with model.zip and config.json), "
+    "or 'feedforward'; 'scripted:MODEL@TRAJECTORY' picks the cargo model (estimate, none, "
+    "truth) and trajectory; 'feedforward': the no-model controller plus u_ff of the live estimate, held "
     "('feedforward:prior': of the estimator's prior); "
     "'RUN@SAMPLES': the run's checkpoint after SAMPLES samples"
 )
