@@ -95,9 +95,9 @@ CORRECTION_METRICS = (("correction_mean", "correction"), ("correction_p95", "cor
 POLICY_HELP = (
     "'zero', 'scripted' or a run folder of scripts/train.py (with model.zip and config.json), "
     "or 'feedforward'; 'scripted:MODEL@TRAJECTORY' picks the cargo model (estimate, none, "
-    "truth) and trajectory; 'feedforward': the no-model controller plus u_ff of the live estimate, held "
-    "('feedforward:prior': of the estimator's prior); "
-    "'RUN@SAMPLES': the run's checkpoint after SAMPLES samples"
+    "truth) and trajectory; 'feedforward': the no-model controller plus u_ff of the live "
+    "estimate, held ('feedforward:prior': of the estimator's prior); 'RUN@SAMPLES': the run's "
+    "checkpoint after SAMPLES samples"
 )
 
 
