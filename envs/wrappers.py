@@ -13,8 +13,9 @@
 - ``DecisionEnv``: the parallel env as a learned policy sees it: one decision every
   ``action_repeat`` control steps, optionally a residual added to the thrust of the scripted
   controller with no cargo model or with the live estimate, optionally with the estimates
-  hidden from the policy (``cargo_env_fn(residual_scale=..., action_repeat=..., base_model=...,
-  hide_estimates=...)`` builds it).
+  hidden from the policy, optionally with the cargo model's feed-forward as an input
+  (``cargo_env_fn(residual_scale=..., action_repeat=..., base_model=..., hide_estimates=...,
+  feedforward_obs=...)`` builds it).
 - ``fast_inference``: SB3's ``predict`` without its per-call overhead, the same actions.
 - ``CentralizedCargoEnv``: a single-agent ``gymnasium.Env`` in which one policy drives all robots:
   the observation is the robots' observations concatenated in agent order, the action the robots'
@@ -52,6 +53,11 @@ from stable_baselines3.common.vec_env.base_vec_env import (
     VecEnvStepReturn,
 )
 
+from astrocargo.agents.feedforward import (
+    FEEDFORWARD_DIM,
+    FEEDFORWARD_SOURCES,
+    FeedForwardObservation,
+)
 from astrocargo.envs import ENV_ID  # noqa: F401  (registered by astrocargo/envs/__init__.py)
 from astrocargo.envs.config import LEARNING_TASKS
 from astrocargo.envs.observations import ESTIMATE_BLOCKS
@@ -65,17 +71,19 @@ def cargo_env_fn(
     action_repeat: int = 1,
     base_model: str = "none",
     hide_estimates: bool = False,
+    feedforward_obs: str | None = None,
     **env_kwargs: Any,
 ) -> Callable[[], ParallelEnv]:
     """A picklable factory of ``astrobee_cargo_v0.parallel_env(**env_kwargs)``, wrapped in
-    ``DecisionEnv(env, residual_scale, action_repeat, base_model, hide_estimates)`` unless those
-    are the defaults (0, 1, "none", False)."""
+    ``DecisionEnv(env, residual_scale, action_repeat, base_model, hide_estimates,
+    feedforward_obs)`` unless those are the defaults (0, 1, "none", False, None)."""
     return functools.partial(
         _make_cargo_env,
         residual_scale=residual_scale,
         action_repeat=action_repeat,
         base_model=base_model,
         hide_estimates=hide_estimates,
+        feedforward_obs=feedforward_obs,
         **env_kwargs,
     )
 
@@ -85,13 +93,15 @@ def _make_cargo_env(
     action_repeat: int = 1,
     base_model: str = "none",
     hide_estimates: bool = False,
+    feedforward_obs: str | None = None,
     **env_kwargs: Any,
 ) -> ParallelEnv:
     from astrocargo.envs import astrobee_cargo_v0
 
     env = astrobee_cargo_v0.parallel_env(**env_kwargs)
-    if residual_scale or action_repeat != 1 or base_model != "none" or hide_estimates:
-        return DecisionEnv(env, residual_scale, action_repeat, base_model, hide_estimates)
+    decision = (residual_scale, action_repeat, base_model, hide_estimates, feedforward_obs)
+    if decision != (0.0, 1, "none", False, None):
+        return DecisionEnv(env, *decision)
     return env
 
 
@@ -140,6 +150,16 @@ def policy_observation_index(layout: dict[str, slice], hide_estimates: bool) -> 
     return np.setdiff1d(index, hidden)
 
 
+def check_feedforward_obs(source: str | None, layout: dict[str, slice]) -> str | None:
+    """``source`` None or one of ``FEEDFORWARD_SOURCES``; "estimate" needs an env that
+    observes the estimates (ValueError)."""
+    if source is not None and source not in FEEDFORWARD_SOURCES:
+        raise ValueError(f"feedforward_obs must be None or one of {FEEDFORWARD_SOURCES}")
+    if source == "estimate" and "estimate_mean" not in layout:
+        raise ValueError('feedforward_obs="estimate" needs an env that observes the estimates')
+    return source
+
+
 class DecisionEnv(ParallelEnv):
     """The env as a learned policy sees it: one decision every ``action_repeat`` control steps,
     optionally a residual on top of the scripted controller, optionally without the estimates.
@@ -166,6 +186,13 @@ class DecisionEnv(ParallelEnv):
     (``estimate_mean``, ``estimate_std``), while the base controller still reads them: the
     ablation of what observing the estimates adds to a residual on the "estimate" base.
 
+    ``feedforward_obs`` "estimate" or "prior": the policy's observation ends with six more
+    entries, robot i's u_ff,i, the thrust (fractions of its limits, its base frame: the
+    residual's units) that the cargo model adds to the scripted controller's feed-forward
+    (``astrocargo.agents.feedforward``) with its live estimate ("estimate") or the estimator's
+    prior ("prior": the same form without the cargo's information), from the decision's
+    observation.
+
     A decision returns the last step's observations, terminations, truncations and infos and
     the sum of its steps' rewards; it ends early when the episode ends. Each agent's info gets
     ``decision_steps`` (control steps made), ``saturated_mean`` (the mean of ``saturated`` over
@@ -180,11 +207,14 @@ class DecisionEnv(ParallelEnv):
         action_repeat: int = 1,
         base_model: str = "none",
         hide_estimates: bool = False,
+        feedforward_obs: str | None = None,
     ):
         self.residual_scale, self.action_repeat = check_decision_args(
             residual_scale, action_repeat, base_model
         )
         self.base_model = base_model
+        self.feedforward_obs = check_feedforward_obs(feedforward_obs, env.sim.obs_layout)
+        self.feedforward: Any = None
         self.env = env
         self.possible_agents = list(env.possible_agents)
         self.metadata = env.metadata
@@ -194,8 +224,11 @@ class DecisionEnv(ParallelEnv):
         self._residual_space = spaces.Box(-1.0, 1.0, (RESIDUAL_DIM,), np.float32)
         self.policy_obs = policy_observation_index(env.sim.obs_layout, hide_estimates)
         space = env.observation_space(self.possible_agents[0])
+        extra = FEEDFORWARD_DIM if self.feedforward_obs else 0
         self._obs_space = spaces.Box(
-            space.low[self.policy_obs], space.high[self.policy_obs], dtype=space.dtype
+            np.concatenate([space.low[self.policy_obs], np.full(extra, -np.inf)]),
+            np.concatenate([space.high[self.policy_obs], np.full(extra, np.inf)]),
+            dtype=space.dtype,
         )
 
     @property
@@ -225,11 +258,19 @@ class DecisionEnv(ParallelEnv):
         obs, infos = self.env.reset(seed=seed, options=options)
         if self.residual_scale:
             self.controller = ObservationController.for_env(self.env, self.base_model)
+        if self.feedforward_obs:
+            self.feedforward = FeedForwardObservation(self.env, self.feedforward_obs)
         self._obs = obs
         return self._policy_view(obs), infos
 
     def _policy_view(self, obs: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-        return {a: o[self.policy_obs] for a, o in obs.items()}
+        if not self.feedforward_obs:
+            return {a: o[self.policy_obs] for a, o in obs.items()}
+        # The robots holding the cargo (all of them in the final observation of an episode);
+        # a robot that has let go gets zeros.
+        u_ff = self.feedforward({a: obs[a] for a in self.env.agents} or obs)
+        none = np.zeros(FEEDFORWARD_DIM)
+        return {a: np.concatenate([o[self.policy_obs], u_ff.get(a, none)]) for a, o in obs.items()}
 
     def base_actions(self) -> dict[str, np.ndarray]:
         """a_base of every live agent from the last observation (zeros without a residual)."""

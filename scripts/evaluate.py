@@ -61,6 +61,7 @@ from cli import (  # noqa: E402
 
 from astrocargo.agents.controllers import CARGO_MODELS, ObservationController  # noqa: E402
 from astrocargo.agents.excitation import is_trajectory_name, trajectory_choices  # noqa: E402
+from astrocargo.agents.feedforward import FeedForwardObservation  # noqa: E402
 from astrocargo.agents.model_correction import ModelCorrection  # noqa: E402
 from astrocargo.agents.trajectories import Trajectory  # noqa: E402
 from astrocargo.envs import astrobee_cargo_v0  # noqa: E402
@@ -92,8 +93,11 @@ BOUND_METRICS = (
 MASS_CONV_TOL = 0.05  # mass_conv_s: the mass error stays within this (relative) from then on
 CORRECTION_METRICS = (("correction_mean", "correction"), ("correction_p95", "correction p95"))
 POLICY_HELP = (
-    "'zero', 'scripted' or a run folder of scripts/train.py (with model.zip and config.json); "
-    "'scripted:MODEL@TRAJECTORY' picks the cargo model (estimate, none, truth) and trajectory"
+    "'zero', 'scripted' or a run folder of scripts/train.py (with model.zip and config.json), "
+    "or 'feedforward'; 'scripted:MODEL@TRAJECTORY' picks the cargo model (estimate, none, "
+    "truth) and trajectory; 'feedforward': the no-model controller plus u_ff of the live "
+    "estimate, held ('feedforward:prior': of the estimator's prior); 'RUN@SAMPLES': the run's "
+    "checkpoint after SAMPLES samples"
 )
 
 
@@ -135,12 +139,42 @@ class ScriptedPolicy:
         return self.controller.predict(obs)[0]
 
 
+class FeedForwardPolicy:
+    """The residual a policy with the feed-forward input could learn first: its input as it
+    is, a = u_ff (of the live estimate, or with ``source`` "prior" of the estimator's prior),
+    decided every ``action_repeat`` steps (the cargo task's) and held, added to the no-model
+    scripted controller's thrust at every step (residual scale 1)."""
+
+    observe_estimates = True
+    trajectory = None
+    decision = {}
+
+    def __init__(self, action_repeat: int, source: str = "estimate") -> None:
+        self.action_repeat, self.source = action_repeat, source
+        self.name = f"feedforward ({source}; no model + u_ff held)"
+
+    def reset(self, env) -> None:
+        self.base = ObservationController.for_env(env, "none")
+        self.feedforward = FeedForwardObservation(env, self.source)
+        self.agents, self.steps = list(env.possible_agents), 0
+
+    def act(self, obs: np.ndarray) -> np.ndarray:
+        from astrocargo.envs.wrappers import residual_actions
+
+        if self.steps % self.action_repeat == 0:
+            u_ff = self.feedforward(dict(zip(self.agents, obs, strict=True)))
+            self.held = np.stack([u_ff[a] for a in self.agents])
+        self.steps += 1
+        return residual_actions(self.base.predict(obs)[0], self.held, 1.0)
+
+
 class TrainedPolicy:
     """A scripts/train.py run: its model, observation normalisation and view, deterministic,
     acting at the env's control rate as its ``DecisionEnv`` did in training: a new decision every
     ``action_repeat`` steps from the observation less the estimates if it hid them, held in
     between, added (times ``residual_scale``) to the action of its scripted base controller
-    (``base_model``) at every step if residual."""
+    (``base_model``) at every step if residual; with ``feedforward_obs`` the decision's
+    observation ends with the cargo model's feed-forward, as in ``DecisionEnv``."""
 
     trajectory = None
 
@@ -149,6 +183,8 @@ class TrainedPolicy:
         from stable_baselines3 import PPO, SAC, TD3
 
         self.config = json.loads((run_dir / "config.json").read_text())
+        if samples is not None:
+            self.config["checkpoint_samples"] = samples
         algo = {"ppo": PPO, "sac": SAC, "td3": TD3}[self.config["algo"]]
         model_path, stats_path = run_dir / "model.zip", run_dir / "vecnormalize.pkl"
         if samples is not None:
@@ -167,6 +203,9 @@ class TrainedPolicy:
         self.base_model = kwargs.get("base_model", "none")
         self.residual_scale = float(kwargs.get("residual_scale", 0.0))
         self.action_repeat = int(kwargs.get("action_repeat", 1))
+        self.feedforward_obs = kwargs.get("feedforward_obs")
+        self.feedforward = None
+        self.agents: list[str] = []
         self.decision = {"residual_scale": self.residual_scale, "action_repeat": self.action_repeat}
         self.name = str(run_dir) if samples is None else f"{run_dir}@{samples}"
         self.base = None
@@ -183,12 +222,19 @@ class TrainedPolicy:
             self.policy_obs = policy_observation_index(env.sim.obs_layout, True)
         if self.residual_scale:
             self.base = ObservationController.for_env(env, self.base_model)
+        if self.feedforward_obs:
+            self.feedforward = FeedForwardObservation(env, self.feedforward_obs)
+        self.agents = list(env.possible_agents)
 
     def decide(self, obs: np.ndarray) -> np.ndarray:
         """The model's deterministic action (n, 8) from the policy's part of the env's
         observations (n, obs_dim): after ``reset``, the part it saw in training."""
         n = obs.shape[0]
-        obs = np.stack([row[self.policy_obs] for row in obs])  # rows as DecisionEnv gives them
+        rows = [row[self.policy_obs] for row in obs]  # rows as DecisionEnv gives them
+        if self.feedforward is not None:
+            u_ff = self.feedforward(dict(zip(self.agents, obs, strict=True)))
+            rows = [np.concatenate([r, u_ff[a]]) for a, r in zip(self.agents, rows, strict=True)]
+        obs = np.stack(rows)
         if self.view == "central":
             obs = obs.reshape(1, -1)
         action, _ = self.model.predict(self.normalizer.normalize_obs(obs), deterministic=True)
@@ -216,7 +262,7 @@ def parse_scripted(spec: str) -> tuple[str, str | None] | None:
 
 def check_policy_spec(spec: str) -> None:
     """ValueError unless ``spec`` is 'zero', a scripted spec or a run folder of scripts/train.py."""
-    if spec == "zero":
+    if spec in ("zero", "feedforward", "feedforward:prior"):
         return
     scripted = parse_scripted(spec)
     if scripted is not None:
@@ -226,19 +272,33 @@ def check_policy_spec(spec: str) -> None:
         if trajectory is not None and not is_trajectory_name(trajectory):
             raise ValueError(f"unknown trajectory {trajectory!r}; {trajectory_choices()}")
         return
-    run_dir = Path(spec)
+    run_dir, samples = run_and_checkpoint(spec)
     if not (run_dir / "model.zip").is_file() or not (run_dir / "config.json").is_file():
         raise ValueError(f"policy must be {POLICY_HELP}, got {spec!r}")
+    if samples is not None and samples not in checkpoint_samples(run_dir):
+        raise ValueError(f"{run_dir} has no checkpoint after {samples} samples")
+
+
+def run_and_checkpoint(spec: str) -> tuple[Path, int | None]:
+    """'RUN@SAMPLES' -> (RUN, SAMPLES): the run's checkpoint after SAMPLES; 'RUN' -> (RUN,
+    None): its final model."""
+    head, sep, tail = spec.rpartition("@")
+    if sep and tail.isdigit():
+        return Path(head), int(tail)
+    return Path(spec), None
 
 
 def make_policy(spec: str, cargo_model: str):
     check_policy_spec(spec)
     if spec == "zero":
         return ZeroPolicy()
+    if spec.startswith("feedforward"):
+        source = "prior" if spec.endswith(":prior") else "estimate"
+        return FeedForwardPolicy(LEARNING_TASKS[DEFAULT_TASK]["action_repeat"], source)
     scripted = parse_scripted(spec)
     if scripted is not None:
         return ScriptedPolicy(scripted[0] or cargo_model, scripted[1])
-    return TrainedPolicy(Path(spec))
+    return TrainedPolicy(*run_and_checkpoint(spec))
 
 
 # --------------------------------------------------------------------------- episodes
@@ -456,13 +516,19 @@ ABLATION_METRICS = ("track_pos_m", "track_att_rad", "return")
 
 
 def arm_key(config: dict) -> str:
-    """A run's arm: its configuration without the seed (algorithm, view, task, env arguments,
-    hyperparameters, training length)."""
+    """A run's arm: its configuration without the seed (algorithm, residual scale and base,
+    feed-forward input, training length or checkpoint, view, task, estimates observed)."""
     kwargs = config["env_kwargs"]
     residual = kwargs.get("residual_scale", 0.0)
     base = kwargs.get("base_model", "none")
     on = f" on {base}" if base != "none" else ""
     kind = f"{config['algo'].upper()}{f' residual x{residual:g}{on}' if residual else ''}"
+    if kwargs.get("feedforward_obs"):
+        kind += " + feed-forward input"
+    if "checkpoint_samples" in config:  # a checkpoint is an arm of its own training length
+        kind += f" (checkpoint at {config['checkpoint_samples']} samples)"
+    elif "timesteps" in config:
+        kind += f" ({config['timesteps']} samples)"
     obs = "with" if policy_observes_estimates(kwargs) else "without"
     return f"{kind}, {config['view']}, task {config.get('task', '?')}, {obs} estimates"
 
@@ -670,6 +736,15 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--ablation", action="store_true", help="group run folders into arms over seeds"
     )
+    parser.add_argument(
+        "--results",
+        nargs="+",
+        type=Path,
+        default=[],
+        metavar="FILE",
+        help="add the results of earlier --json files scored on the same episodes (task, "
+        "--seed, --episodes, --mass-bins: checked) to the table and the ablation",
+    )
     parser.add_argument("--json", type=Path, metavar="FILE", help="write the results here")
     parser.add_argument("--video", type=Path, metavar="DIR", help="GIF of episode 0 per policy")
     return parser
@@ -680,8 +755,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     before any model is loaded or episode run."""
     parser = build_parser()
     args = parser.parse_args(argv)
-    if not args.policy and not args.curve:
-        parser.error("give --policy or --curve")
+    if not args.policy and not args.curve and not args.results:
+        parser.error("give --policy or --curve (or --results)")
+    for path in args.results:
+        if not path.is_file():
+            parser.error(f"--results: {path} is not a file")
     if args.robots is not None and not 1 <= args.robots <= MAX_ROBOTS:
         parser.error(f"--robots must be in 1..{MAX_ROBOTS}, got {args.robots}")
     for spec in args.policy:
@@ -714,6 +792,7 @@ def task_of(args: argparse.Namespace, trained: list[dict]) -> dict[str, Any]:
     else:
         task = {**LEARNING_TASKS[args.task or DEFAULT_TASK], "n_robots": 2}
     decision = ("residual_scale", "action_repeat", "base_model", "hide_estimates")
+    decision += ("feedforward_obs",)
     for key in (*decision, "observe_estimates", "estimators"):
         task.pop(key, None)
     for flag in TASK_FLAGS:
@@ -725,13 +804,30 @@ def task_of(args: argparse.Namespace, trained: list[dict]) -> dict[str, Any]:
     return task
 
 
+def earlier_results(paths: list[Path], task: dict, seed: int, episodes: int, bins: list) -> list:
+    """The results of earlier ``--json`` files, each checked to hold the same episodes
+    (ValueError otherwise)."""
+    same = json.loads(json.dumps([task, seed, episodes, [list(b) for b in bins]]))
+    results = []
+    for path in paths:
+        data = json.loads(path.read_text())
+        if [data["task"], data["seed"], data["episodes"], data["mass_bins"]] != same:
+            raise ValueError(f"{path} was scored on other episodes (task, seed, episodes, bins)")
+        results += data["results"]
+    return results
+
+
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     policies = [make_policy(spec, args.cargo_model) for spec in args.policy]
     trained = [p.config for p in policies if isinstance(p, TrainedPolicy)]
     trained += [json.loads((run / "config.json").read_text()) for run in args.curve]
+    if not trained and args.results:  # the task of the first earlier file's first run
+        earlier = [r["config"] for r in json.loads(args.results[0].read_text())["results"]]
+        trained = [c for c in earlier if c is not None][:1]
     task = task_of(args, trained)
     bins = mass_bins(args.mass_bins, task)
+    previous = earlier_results(args.results, task, args.seed, args.episodes, bins)
     print(f"seed {args.seed} (episodes {args.seed}..{args.seed + args.episodes - 1}); task {task}")
     results = []
     for policy in policies:
@@ -748,6 +844,7 @@ def main(argv: list[str] | None = None) -> int:
             )
         )
         print(f"  {policy.name}: {results[-1]['wall_s']:.0f} s")
+    results += previous
     if results:
         print_table(results)
     table = ablation(results) if args.ablation else None

@@ -8,7 +8,9 @@ Two views of the multi-robot env:
 The task is one of ``LEARNING_TASKS`` (``--task``, default ``cargo``: 1-20 kg cargo, 30 s, env
 at 62.5 Hz, decisions at 12.5 Hz); ``--residual-scale S`` > 0 trains a residual policy whose
 action, times S, is added to the thrust of the scripted controller (``DecisionEnv``), which has no
-cargo model (``--base-model none``) or each robot's live estimate (``--base-model estimate``).
+cargo model (``--base-model none``) or each robot's live estimate (``--base-model estimate``);
+``--feedforward-obs`` adds to the policy's observation the thrust the cargo model adds to that
+controller's feed-forward (from the live estimate; with ``--no-estimates`` from the prior).
 PPO, SAC or TD3 (``--algo``). Observations and rewards are normalised with ``VecNormalize``.
 The run folder receives ``model.zip``, ``vecnormalize.pkl``, ``config.json`` (every setting, the
 task, the seed, the wall time), ``monitor.csv`` (one row per finished episode of one robot or of
@@ -201,6 +203,11 @@ def env_kwargs(args: argparse.Namespace) -> dict[str, Any]:
     kwargs["observe_estimates"] = observed
     kwargs["hide_estimates"] = observed and not args.estimates
     kwargs["estimators"] = observed or bool(kwargs.get("w_info", 0.0))
+    # The cargo model's feed-forward as an input: from the live estimate where the policy
+    # observes the estimates, else from the estimator's prior (the same form, no cargo).
+    kwargs["feedforward_obs"] = None
+    if args.feedforward_obs:
+        kwargs["feedforward_obs"] = "estimate" if args.estimates else "prior"
     return kwargs
 
 
@@ -216,6 +223,7 @@ def bare_env_kwargs(args: argparse.Namespace) -> dict[str, Any]:
     kwargs = env_kwargs(args)
     for key in ("residual_scale", "action_repeat", "base_model", "hide_estimates"):
         del kwargs[key]
+    del kwargs["feedforward_obs"]
     return kwargs
 
 
@@ -537,6 +545,13 @@ def build_parser() -> argparse.ArgumentParser:
         "(the estimators then run; --no-estimates hides them from the policy only)",
     )
     parser.add_argument(
+        "--feedforward-obs",
+        action="store_true",
+        help="add to the policy's observation the thrust the cargo model adds to the scripted "
+        "controller's feed-forward (astrocargo.agents.feedforward): from the live estimate, "
+        "or with --no-estimates from the estimator's prior",
+    )
+    parser.add_argument(
         "--env",
         nargs="+",
         type=parse_override,
@@ -583,8 +598,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     if args.backend == "rllib":
         if args.algo != "ppo" or args.view != "shared":
             parser.error("--backend rllib trains PPO in the shared view only")
-        if args.residual_scale or env_kwargs(args)["action_repeat"] != 1:
-            parser.error("--backend rllib trains on the bare env: no residual, no action repeat")
+        if args.residual_scale or args.feedforward_obs or env_kwargs(args)["action_repeat"] != 1:
+            parser.error(
+                "--backend rllib trains on the bare env: no residual, no action repeat, "
+                "no --feedforward-obs"
+            )
         try:
             import_ray("--backend rllib needs Ray and RLlib")
         except ImportError as err:

@@ -19,6 +19,7 @@ from pettingzoo import ParallelEnv
 from stable_baselines3.common.env_checker import check_env as sb3_check_env
 
 from astrocargo.agents.controllers import ObservationController
+from astrocargo.agents.feedforward import FeedForwardObservation
 from astrocargo.envs import astrobee_cargo_v0
 from astrocargo.envs.config import LEARNING_TASKS
 from astrocargo.envs.wrappers import (
@@ -32,6 +33,7 @@ from astrocargo.envs.wrappers import (
     make_vec_env,
 )
 from astrocargo.estimator.inertia import mass_com_inertia_from_params
+from astrocargo.estimator.prior import default_prior
 
 ROOT = Path(__file__).resolve().parents[1]
 FAST = {
@@ -219,6 +221,7 @@ def trained_runs(tmp_path_factory):
     res = train.main(
         ["--algo", "ppo", "--copies", "1", "--timesteps", "64", "--log-dir", str(base / "res")]
         + ["--residual-scale", "0.3", "--action-repeat", "2", "--no-estimates"]
+        + ["--checkpoint-every", "32"]
         + common
         + ["--hyperparams", "n_steps=32", "batch_size=32", "n_epochs=1"]
     )
@@ -229,7 +232,13 @@ def trained_runs(tmp_path_factory):
         + common
         + ["--hyperparams", "n_steps=32", "batch_size=32", "n_epochs=1"]
     )
-    assert ppo == sac == res == resb == 0
+    resff = train.main(
+        ["--algo", "ppo", "--copies", "1", "--timesteps", "64", "--log-dir", str(base / "resff")]
+        + ["--residual-scale", "1.0", "--action-repeat", "2", "--feedforward-obs"]
+        + common
+        + ["--hyperparams", "n_steps=32", "batch_size=32", "n_epochs=1"]
+    )
+    assert ppo == sac == res == resb == resff == 0
     return base
 
 
@@ -284,6 +293,15 @@ def test_evaluate_scores_policies_on_the_same_episodes(trained_runs, tmp_path):
     zero, scripted = results["results"][1:]
     # The scripted controller follows the reference that the zero policy lets go.
     assert scripted["summary"]["final_pos_m"]["mean"] < zero["summary"]["final_pos_m"]["mean"]
+    # Earlier results join the table when scored on the same episodes, and only then.
+    again = tmp_path / "again.json"
+    argv = ["--policy", "zero", "--episodes", "2", "--results", str(out), "--json", str(again)]
+    assert evaluate.main(argv) == 0
+    joined = json.loads(again.read_text())["results"]
+    assert [r["policy"] for r in joined] == ["zero", *names]
+    assert joined[0]["episodes"] == joined[2]["episodes"]  # the zero policy, scored again
+    with pytest.raises(ValueError, match="other episodes"):
+        evaluate.main(["--results", str(out), "--episodes", "3"])
 
 
 # --------------------------------------------------------------------------- tasks, decisions
@@ -371,6 +389,82 @@ def test_hidden_estimates_leave_the_policy_without_them_and_the_base_with_them()
         hobs, *_ = hidden.step(residual)  # the same physics: the base still reads the estimates
 
 
+def _at_reference(obs: dict[str, np.ndarray], layout: dict[str, slice]) -> dict:
+    """The observations with zero tracking errors, the base turning at the reference's rate
+    and every arm at rest: the scripted controller's feedback is then zero."""
+    out = {}
+    for a, o in obs.items():
+        o = o.copy()
+        for name in ("base_pos_err", "base_vel_err", "base_att_err"):
+            o[layout[name]] = 0.0
+        o[layout["base_ang_vel"]] = o[layout["ref_ang_vel"]]
+        for name in [n for n in layout if n.endswith("joint_vel")]:
+            o[layout[name]] = 0.0
+        out[a] = o
+    return out
+
+
+def test_feedforward_input_is_the_scripted_feedforward_of_the_estimate():
+    kwargs = {**FAST, "max_cycles": 60, "observe_estimates": True, "estimators": True}
+    env = astrobee_cargo_v0.parallel_env(**kwargs, cargo_mass_kg=12.0)
+    obs, _ = env.reset(seed=5)
+    layout = env.sim.obs_layout
+    estimate, none = (ObservationController.for_env(env, m) for m in ("estimate", "none"))
+    for _ in range(40):  # the reference accelerates from rest
+        obs, *_ = env.step(estimate.predict(obs)[0])
+    feedforward = FeedForwardObservation(env, "estimate")
+    at_ref = _at_reference(obs, layout)
+    u_ff = feedforward(at_ref)
+    scripted = {a: estimate.predict(at_ref)[0][a][:6] - none.predict(at_ref)[0][a][:6] for a in obs}
+    for a in obs:
+        assert u_ff[a].shape == (6,)
+        assert np.max(np.abs(u_ff[a])) > 1e-3  # the cargo's feed-forward is not nothing
+        np.testing.assert_allclose(u_ff[a], scripted[a], rtol=1e-10, atol=1e-12)
+    # With tracking errors the correction holds the feedback too; the input does not.
+    moved = {a: o.copy() for a, o in at_ref.items()}
+    for o in moved.values():
+        o[layout["base_vel_err"]] = 0.05
+    diff = {a: estimate.predict(moved)[0][a][:6] - none.predict(moved)[0][a][:6] for a in obs}
+    for a in obs:
+        np.testing.assert_allclose(feedforward(moved)[a], u_ff[a], rtol=1e-10, atol=1e-12)
+        assert np.max(np.abs(diff[a] - u_ff[a])) > 1e-3
+    # The prior's input is the estimate's when the estimate is the prior.
+    prior = FeedForwardObservation(env, "prior")
+    for a, robot in zip(env.possible_agents, env.sim.robots, strict=True):
+        at_ref[a][layout["estimate_mean"]] = default_prior(robot)
+    np.testing.assert_allclose(
+        np.stack(list(prior(at_ref).values())), np.stack(list(feedforward(at_ref).values()))
+    )
+    env.close()
+
+
+@pytest.mark.parametrize("observe", [True, False])
+def test_decision_env_appends_the_feedforward_input(observe):
+    kwargs = {**FAST, "max_cycles": 12, "observe_estimates": observe, "estimators": observe}
+    source = "estimate" if observe else "prior"
+    env = astrobee_cargo_v0.parallel_env(**kwargs)
+    wrapped = cargo_env_fn(residual_scale=1.0, feedforward_obs=source, **kwargs)()
+    dim = env.sim.obs_layout["all"].stop
+    assert wrapped.observation_space("astrobee_0").shape == (dim + 6,)
+    obs, _ = env.reset(seed=7)
+    wobs, _ = wrapped.reset(seed=7)
+    controller = ObservationController.for_env(env, "none")
+    feedforward = FeedForwardObservation(env, source)
+    zeros = dict.fromkeys(env.possible_agents, np.zeros(6))
+    while True:
+        u_ff = feedforward(obs)
+        for a in env.possible_agents:
+            np.testing.assert_array_equal(wobs[a][:dim], obs[a])
+            np.testing.assert_array_equal(wobs[a][dim:], u_ff[a])
+            assert wrapped.observation_space(a).contains(wobs[a].astype(np.float32))
+        if not env.agents:
+            break
+        obs, *_ = env.step(controller.predict(obs)[0])
+        wobs, *_ = wrapped.step(zeros)
+    with pytest.raises(ValueError):  # the live estimate needs the estimates observed
+        cargo_env_fn(residual_scale=1.0, feedforward_obs="estimate", **FAST)()
+
+
 @pytest.mark.parametrize(
     "kwargs",
     [{"base_model": "truth"}, {"hide_estimates": True}],
@@ -410,18 +504,21 @@ def test_decision_env_rejects_bad_arguments(kwargs):
         DecisionEnv(astrobee_cargo_v0.parallel_env(**FAST), **kwargs)
 
 
-@pytest.mark.parametrize("run", ["res", "resb"])
+@pytest.mark.parametrize("run", ["res", "resb", "resff"])
 def test_evaluation_replays_a_residual_policy_as_in_training(trained_runs, run):
-    """evaluate.py's TrainedPolicy at the control rate (repeat, residual on its base and the
-    hidden estimates done by itself) and the training env's DecisionEnv driven by the same model
-    make the same episode."""
+    """evaluate.py's TrainedPolicy at the control rate (repeat, residual on its base, the
+    hidden estimates and the feed-forward input done by itself) and the training env's
+    DecisionEnv driven by the same model make the same episode."""
     evaluate = _load_script("evaluate")
     policy = evaluate.TrainedPolicy(trained_runs / run)
     kwargs = policy.config["env_kwargs"]
-    assert kwargs["residual_scale"] == 0.3 and kwargs["action_repeat"] == 2
+    assert kwargs["residual_scale"] == (1.0 if run == "resff" else 0.3)
+    assert kwargs["action_repeat"] == 2
     assert kwargs.get("hide_estimates", False) == (run == "resb")
+    assert kwargs.get("feedforward_obs") == ("estimate" if run == "resff" else None)
     wrapped = cargo_env_fn(**kwargs)()
     decision = ("residual_scale", "action_repeat", "base_model", "hide_estimates")
+    decision += ("feedforward_obs",)
     bare = astrobee_cargo_v0.parallel_env(**{k: v for k, v in kwargs.items() if k not in decision})
     wobs, _ = wrapped.reset(seed=3)
     obs, _ = bare.reset(seed=3)
@@ -429,10 +526,12 @@ def test_evaluation_replays_a_residual_policy_as_in_training(trained_runs, run):
     agents = bare.possible_agents
     moved = False
     view = policy.policy_obs
+    feedforward = policy.feedforward
     while wrapped.agents:
-        policy.policy_obs = slice(None)  # the wrapped env hands the policy its view already
+        # The wrapped env hands the policy its view (estimates hidden, feed-forward appended).
+        policy.policy_obs, policy.feedforward = slice(None), None
         decision = policy.decide(np.stack([wobs[a] for a in agents]))
-        policy.policy_obs = view
+        policy.policy_obs, policy.feedforward = view, feedforward
         moved |= bool(np.any(decision))
         wobs, *_ = wrapped.step(dict(zip(agents, decision, strict=True)))
         for _ in range(2):
@@ -441,8 +540,21 @@ def test_evaluation_replays_a_residual_policy_as_in_training(trained_runs, run):
                     dict(zip(agents, policy.act(np.stack([obs[a] for a in agents])), strict=True))
                 )
         for a in agents:
-            np.testing.assert_array_equal(obs[a][view], wobs[a])
+            np.testing.assert_array_equal(obs[a][view], wobs[a][: len(obs[a][view])])
     assert moved  # the residual is not zero: the comparison tests the residual path
+
+
+def test_a_checkpoint_is_a_policy_of_its_own_arm(trained_runs):
+    evaluate = _load_script("evaluate")
+    run = trained_runs / "res"
+    assert evaluate.checkpoint_samples(run) == [32, 64]
+    final, early = (evaluate.make_policy(spec, "estimate") for spec in (str(run), f"{run}@32"))
+    assert early.name == f"{run}@32" and early.config["checkpoint_samples"] == 32
+    assert evaluate.arm_key(early.config) == evaluate.arm_key(final.config).replace(
+        "(64 samples)", "(checkpoint at 32 samples)"
+    )
+    with pytest.raises(ValueError, match="no checkpoint"):
+        evaluate.check_policy_spec(f"{run}@48")
 
 
 def test_fast_inference_keeps_the_actions(trained_runs):
@@ -526,6 +638,24 @@ def test_ablation_pairs_hidden_estimates_on_the_estimate_base():
     assert "on estimate" in pair["without"] and pair["without"].endswith("without estimates")
 
 
+def test_ablation_pairs_the_feedforward_arms_apart_from_the_plain_ones():
+    evaluate = _load_script("evaluate")
+
+    def result(observe, feedforward, seed):
+        kwargs = {"observe_estimates": observe, "residual_scale": 1.0}
+        if feedforward:
+            kwargs["feedforward_obs"] = "estimate" if observe else "prior"
+        config = {"algo": "ppo", "view": "shared", "task": "cargo", "seed": seed}
+        bins = {"all": {m: {"mean": 0.01 * seed, "std": 0.0} for m in evaluate.ABLATION_METRICS}}
+        return {"config": {**config, "env_kwargs": kwargs}, "bins": bins}
+
+    results = [result(o, f, s) for o in (True, False) for f in (True, False) for s in (1, 2)]
+    table = evaluate.ablation(results)
+    assert len(table["arms"]) == 4 and len(table["pairs"]) == 2
+    for pair in table["pairs"]:
+        assert ("feed-forward" in pair["with"]) == ("feed-forward" in pair["without"])
+
+
 def test_evaluate_bins_masses_and_bounds_the_principal_moments(tmp_path):
     evaluate = _load_script("evaluate")
     out = tmp_path / "eval.json"
@@ -552,10 +682,16 @@ def test_evaluate_bins_masses_and_bounds_the_principal_moments(tmp_path):
 def test_correction_is_what_the_estimate_adds_and_grows_with_the_mass(tmp_path):
     evaluate = _load_script("evaluate")
     out = tmp_path / "eval.json"
-    argv = ["--policy", "scripted", "scripted:none", "--episodes", "1", "--task", "cargo"]
-    argv += ["--max-cycles", "450", "--mass-bins", "1,2,19,20", "--correction"]
+    argv = ["--policy", "scripted", "scripted:none", "feedforward", "--episodes", "1"]
+    argv += ["--task", "cargo", "--max-cycles", "450", "--mass-bins", "1,2,19,20", "--correction"]
     assert evaluate.main(argv + ["--json", str(out)]) == 0
-    estimate, none = json.loads(out.read_text())["results"]
+    estimate, none, feedforward = json.loads(out.read_text())["results"]
+    # The no-model controller plus the feed-forward input as it is tracks a heavy cargo better.
+    heaviest = "19-20 kg"
+    assert (
+        feedforward["bins"][heaviest]["track_pos_m"]["mean"]
+        < none["bins"][heaviest]["track_pos_m"]["mean"]
+    )
     light, _, heavy = (e["correction_mean"] for e in estimate["episodes"])
     # The estimate's share of the thrust scales with the cargo's mass (about 20x from 1 to 20 kg).
     assert 0 < light and heavy > 5 * light
@@ -590,3 +726,9 @@ def test_train_parses_tasks_and_the_residual(capsys, tmp_path):
     with pytest.raises(SystemExit):
         train.parse_args(["--backend", "rllib", "--residual-scale", "0.3", "--log-dir", out])
     assert "no residual, no action repeat" in capsys.readouterr().err
+    # The feed-forward input: from the live estimate, or from the prior without the estimates.
+    argv = ["--residual-scale", "1.0", "--feedforward-obs", "--log-dir", out]
+    assert train.env_kwargs(train.parse_args(argv))["feedforward_obs"] == "estimate"
+    kwargs = train.env_kwargs(train.parse_args(argv + ["--no-estimates"]))
+    assert kwargs["feedforward_obs"] == "prior" and not kwargs["observe_estimates"]
+    assert train.env_kwargs(train.parse_args(argv[:2] + argv[3:]))["feedforward_obs"] is None
