@@ -159,7 +159,7 @@ class FeedForwardPolicy:
         self.agents, self.steps = list(env.possible_agents), 0
 
     def act(self, obs: np.ndarray) -> np.ndarray:
-        from astrocargo.envs.wrappers import residual_actions
+        from astrocargo.envs.decision import residual_actions
 
         if self.steps % self.action_repeat == 0:
             u_ff = self.feedforward(dict(zip(self.agents, obs, strict=True)))
@@ -214,7 +214,7 @@ class TrainedPolicy:
         self.policy_obs = slice(None)
 
     def reset(self, env) -> None:
-        from astrocargo.envs.wrappers import policy_observation_index
+        from astrocargo.envs.decision import policy_observation_index
 
         self.steps, self.held = 0, None
         # The observation as it is unless hidden: a copy would change torch's float rounding.
@@ -241,7 +241,7 @@ class TrainedPolicy:
         return np.asarray(action, dtype=np.float64).reshape(n, -1)
 
     def act(self, obs: np.ndarray) -> np.ndarray:
-        from astrocargo.envs.wrappers import residual_actions
+        from astrocargo.envs.decision import residual_actions
 
         if self.steps % self.action_repeat == 0:
             self.held = self.decide(obs)

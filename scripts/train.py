@@ -70,13 +70,12 @@ from stable_baselines3.common.vec_env import (  # noqa: E402
 )
 
 from astrocargo.agents.trajectories import Trajectory  # noqa: E402
+from astrocargo.envs.config import LEARNING_TASKS  # noqa: E402
+from astrocargo.envs.decision import BASE_MODELS, check_decision_args  # noqa: E402
 from astrocargo.envs.sensors import NOISE_PROFILES  # noqa: E402
 from astrocargo.envs.world import MAX_ROBOTS  # noqa: E402
 from astrocargo.envs.wrappers import (  # noqa: E402
-    BASE_MODELS,
-    LEARNING_TASKS,
     CentralizedCargoEnv,
-    check_decision_args,
     fast_inference,
     make_vec_env,
 )

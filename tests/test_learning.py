@@ -22,13 +22,12 @@ from astrocargo.agents.controllers import ObservationController
 from astrocargo.agents.feedforward import FeedForwardObservation
 from astrocargo.envs import astrobee_cargo_v0
 from astrocargo.envs.config import LEARNING_TASKS
+from astrocargo.envs.decision import DecisionEnv, cargo_env_fn
 from astrocargo.envs.wrappers import (
     ENV_ID,
     CentralizedCargoEnv,
-    DecisionEnv,
     SharedPolicyVecEnv,
     SlotController,
-    cargo_env_fn,
     fast_inference,
     make_vec_env,
 )
