@@ -98,6 +98,8 @@ Units: P in N s and N m s, Q and the balance in N and N m, velocities m/s and ra
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 from numba import njit
 
@@ -229,6 +231,42 @@ def _momentum_terms(arrays, imu_pos, pos, com_b, inertia_b, total_mass, first_mo
         out[27 + col] = w_g[i] * w_g[j]
 
 
+class LinkGeometry(NamedTuple):
+    """What a momentum-form sample needs of the joint angles alone (``link_geometry``), in B."""
+
+    rot: np.ndarray  # (n_links, 3, 3) link rotations
+    pos: np.ndarray  # (n_links, 3) link origins, m
+    grasp_rot: np.ndarray  # (3, 3) G's rotation
+    grasp_pos: np.ndarray  # (3,) G's origin, m
+    grasp_from_base: np.ndarray  # (6, 6) wrench map B -> G (``rne._grasp_from_base``)
+    com_b: np.ndarray  # (n_links, 3) centres of mass relative to the link origins, m
+    inertia_b: np.ndarray  # (n_links, 3, 3) inertias about them, kg m^2
+    total_mass: float  # kg
+    first_moment: np.ndarray  # (3,) sum m_k rho_k about G's origin, kg m
+
+
+@njit(cache=True)
+def link_geometry(arrays, q):
+    """The link frames and mass distribution at joint angles ``q`` (``LinkGeometry``): the part
+    of ``momentum_pass`` that the rates, the acceleration and the thrust leave unchanged."""
+    rot, pos, grasp_rot, grasp_pos = _link_frames(arrays, q)
+    com_b, inertia_b, total_mass, first_moment = _mass_geometry(arrays, rot, pos, grasp_pos)
+    return LinkGeometry(rot, pos, grasp_rot, grasp_pos, _grasp_from_base(grasp_rot, grasp_pos),
+                        com_b, inertia_b, total_mass, first_moment)  # fmt: skip
+
+
+@njit(cache=True)
+def momentum_at(arrays, imu_pos, geo, w_base, acc_imu, qd, thrust_base):
+    """``momentum_pass`` without the rate noise's expectation at the link geometry ``geo``
+    (``link_geometry`` of the joint angles): the sample (``SIZE``,)."""
+    w = _link_rates(arrays, geo.rot, w_base, qd)
+    out = np.empty(SIZE)
+    out[0:6] = geo.grasp_from_base @ thrust_base
+    _momentum_terms(arrays, imu_pos, geo.pos, geo.com_b, geo.inertia_b, geo.total_mass,
+                    geo.first_moment, w, geo.grasp_rot, geo.grasp_pos, acc_imu, out)  # fmt: skip
+    return out
+
+
 @njit(cache=True)
 def momentum_pass(arrays, imu_pos, w_base, acc_imu, q, qd, thrust_base, qd_var):
     """One sample's momentum form in G (module docstring): the vector (``SIZE``,)
@@ -237,25 +275,19 @@ def momentum_pass(arrays, imu_pos, w_base, acc_imu, q, qd, thrust_base, qd_var):
     G's pose in B (rotation, origin)."""
     zero3 = np.zeros(3)
     nj = q.shape[0]
-    rot, pos, grasp_rot, grasp_pos = _link_frames(arrays, q)
-    w = _link_rates(arrays, rot, w_base, qd)
-    geometry = _mass_geometry(arrays, rot, pos, grasp_pos)
-    out = np.empty(SIZE)
-    out[0:6] = _grasp_from_base(grasp_rot, grasp_pos) @ thrust_base
-    _momentum_terms(arrays, imu_pos, pos, *geometry, w, grasp_rot, grasp_pos, acc_imu, out)
+    geo = link_geometry(arrays, q)
+    out = momentum_at(arrays, imu_pos, geo, w_base, acc_imu, qd, thrust_base)
     # E[Q(n)] of zero-mean rate noise n: Q is quadratic in the rates (P linear), so it is
     # sum_j var_j Q(e_j), e_j = 1 rad/s on joint j alone, base at rest, no acceleration.
-    unit_out = np.zeros(SIZE)
+    no_thrust = np.zeros(6)
     for j in range(nj):
         if qd_var[j] > 0.0:
             unit = np.zeros(nj)
             unit[j] = 1.0
-            w_unit = _link_rates(arrays, rot, zero3, unit)
-            _momentum_terms(arrays, imu_pos, pos, *geometry, w_unit, grasp_rot, grasp_pos, zero3,
-                            unit_out)  # fmt: skip
+            unit_out = momentum_at(arrays, imu_pos, geo, zero3, zero3, unit, no_thrust)
             out[LINKS_Q] -= qd_var[j] * unit_out[LINKS_Q]
             out[CARGO_Q] -= qd_var[j] * unit_out[CARGO_Q]
-    return out, grasp_rot, grasp_pos
+    return out, geo.grasp_rot, geo.grasp_pos
 
 
 @njit(cache=True)

@@ -60,7 +60,8 @@ from .momentum import (
     LINKS_Q,
     SIZE,
     THRUST,
-    momentum_pass,
+    link_geometry,
+    momentum_at,
 )
 from .preprocess import StateVariableFilter
 
@@ -459,21 +460,22 @@ class RegressorAutocorrelation:
 @njit(cache=True)
 def sample_jacobian(arrays, imu_pos, w_base, acc_imu, q, qd, thrust_base, step=1e-6):
     """d sample / dx (``momentum.SIZE``, 6 + 2 nj) of the momentum-form sample
-    (``momentum.momentum_pass``) with respect to the rate filter's outputs
+    (``momentum.momentum_pass``, here ``momentum_at`` with the joint angles' geometry computed
+    once and again only for their own steps) with respect to the rate filter's outputs
     x = (gyro (3) rad/s, the IMU point's acceleration (3) m/s^2, q (nj) rad, qd (nj) rad/s), base
     frame, by forward differences of ``step``: the sample is quadratic in the rates and the
     acceleration, so the error is ``step`` times the quadratic coefficient (relative 1e-6 at the
     robot's scale), O(step) for the angles."""
     nj = q.shape[0]
-    no_var = np.zeros(nj)
     x = np.concatenate((w_base, acc_imu, q, qd))
-    base, _, _ = momentum_pass(arrays, imu_pos, w_base, acc_imu, q, qd, thrust_base, no_var)
+    geo = link_geometry(arrays, q)  # the angles' part, shared by every step but theirs
+    base = momentum_at(arrays, imu_pos, geo, w_base, acc_imu, qd, thrust_base)
     jac = np.empty((SIZE, x.shape[0]))
     for k in range(x.shape[0]):
         xs = x.copy()
         xs[k] += step
-        out, _, _ = momentum_pass(arrays, imu_pos, xs[0:3], xs[3:6], xs[6 : 6 + nj],
-                                  xs[6 + nj :], thrust_base, no_var)  # fmt: skip
+        geo_k = link_geometry(arrays, xs[6 : 6 + nj]) if 6 <= k < 6 + nj else geo
+        out = momentum_at(arrays, imu_pos, geo_k, xs[0:3], xs[3:6], xs[6 + nj :], thrust_base)
         jac[:, k] = (out - base) / step
     return jac
 
