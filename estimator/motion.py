@@ -498,18 +498,54 @@ def drifting_sample_jacobian(arrays, imu_pos, state, n_joints, step_s):
     return 0.5 * (out[0] + out[1]), (out[1] - out[0]) / step_s
 
 
-def _readout_columns(jac: np.ndarray, derivative: bool) -> tuple[np.ndarray, np.ndarray]:
-    """The balance's model-side noise n = d(links + Y pi - thrust) from sample noise
-    ``jac`` (``SIZE``, c) read out of the slow filter's derivative (its P channels) or value (its
-    thrust and Q channels; ``momentum.balance_from_filtered``): (d links - d thrust (6, c),
-    d Y (c, 6, 10))."""
-    if derivative:
-        d_links = jac[LINKS_P]
-        d_y = CARGO_P_MAP @ jac[CARGO_P]
-    else:
-        d_links = jac[LINKS_Q] - jac[THRUST]
-        d_y = CARGO_Q_MAP @ jac[CARGO_Q]
-    return d_links, d_y.T.reshape(-1, 6, 10)
+@njit(cache=True)
+def _readout_columns(jacs, p_map, q_map):
+    """The balance's model-side noise n = d(links + Y pi - thrust) from the sample noise of each
+    of ``jacs`` (2, ``SIZE``, c) (the Jacobian and its rate) read out of the slow filter's value
+    (its thrust and Q channels) and derivative (its P channels;
+    ``momentum.balance_from_filtered``): d links - d thrust (6, c, 4) and d Y (c, 4, 60), the
+    read-outs m = 2 j + (0 value, 1 derivative) of ``jacs[j]``; ``p_map``, ``q_map`` the
+    regressor's maps ``momentum.CARGO_P_MAP``, ``CARGO_Q_MAP``."""
+    n = jacs.shape[2]
+    links = np.empty((6, n, 4))
+    y = np.empty((n, 4, 60))
+    for j in range(2):
+        jac = jacs[j]
+        links[:, :, 2 * j] = jac[LINKS_Q] - jac[THRUST]
+        links[:, :, 2 * j + 1] = jac[LINKS_P]
+        y[:, 2 * j] = (q_map @ np.ascontiguousarray(jac[CARGO_Q])).T
+        y[:, 2 * j + 1] = (p_map @ np.ascontiguousarray(jac[CARGO_P])).T
+    return links, y
+
+
+@njit(cache=True)
+def _factored(links, y, factor):
+    """Each channel's columns links (6, k, m) and y (k, m, 60) times the factor F (m, m): d links
+    (6, k m) and d Y (k m, 6, 10), channel-major."""
+    k, m = y.shape[0], y.shape[1]
+    out_links = np.empty((6, k, m))
+    out_y = np.empty((k, m, 60))
+    for r in range(6):
+        out_links[r] = np.ascontiguousarray(links[r]) @ factor
+    for c in range(k):
+        out_y[c] = (np.ascontiguousarray(y[c].T) @ factor).T
+    return out_links.reshape(6, k * m), out_y.reshape(k * m, 6, 10)
+
+
+@njit(cache=True)
+def _noise_modes(jacs, n_joints, held_factor, point_factor, p_map, q_map):
+    """``momentum_noise_modes`` with both factors given."""
+    nj = n_joints
+    links, y = _readout_columns(jacs, p_map, q_map)
+    q, qd = slice(6, 6 + nj), slice(6 + nj, 6 + 2 * nj)
+    links_point = np.empty((6, nj, 8))
+    y_point = np.empty((nj, 8, 60))
+    for k, (x, m) in enumerate(((q, 0), (qd, 0), (q, 2), (qd, 2))):
+        links_point[:, :, 2 * k : 2 * k + 2] = links[:, x, m : m + 2]
+        y_point[:, 2 * k : 2 * k + 2] = y[x, m : m + 2]
+    held_links, held_y = _factored(links[:, :6], y[:6], held_factor)
+    point_links, point_y = _factored(links_point, y_point, point_factor)
+    return np.hstack((held_links, point_links)), np.concatenate((held_y, point_y))
 
 
 def momentum_noise_modes(
@@ -527,23 +563,8 @@ def momentum_noise_modes(
     ``drifting_sample_jacobian``). Channel order:
     gyro (3), accelerometer (3) (held, 4 columns each: value->value, value->derivative, the same
     of ``jac_rate``), encoders (nj) (point, 8 each: q's two, qd's two, then the same of
-    ``jac_rate``)."""
-    nj = n_joints
-    # (6, 6 + 2 nj, 4) and (6 + 2 nj, 4, 60): per input x, (jac or its rate) x (value, derivative)
-    parts = [_readout_columns(j, d) for j in (jac, jac_rate) for d in (False, True)]
-    links = np.stack([p[0] for p in parts], axis=-1)
-    y = np.stack([p[1].reshape(-1, 60) for p in parts], axis=1)
-    q, qd = slice(6, 6 + nj), slice(6 + nj, 6 + 2 * nj)
-    links_point = np.concatenate((links[:, q, :2], links[:, qd, :2], links[:, q, 2:],
-                                  links[:, qd, 2:]), axis=-1)  # fmt: skip
-    y_point = np.concatenate((y[q, :2], y[qd, :2], y[q, 2:], y[qd, 2:]), axis=1)
-    links_held, y_held = links[:, :6], y[:6]
-    if held_factor is not None:
-        links_held = links_held @ held_factor
-        y_held = (y_held.transpose(0, 2, 1) @ held_factor).transpose(0, 2, 1)
-    if point_factor is not None:
-        links_point = links_point @ point_factor
-        y_point = (y_point.transpose(0, 2, 1) @ point_factor).transpose(0, 2, 1)
-    d_links = np.concatenate((links_held.reshape(6, -1), links_point.reshape(6, -1)), axis=1)
-    d_y = np.concatenate((y_held.reshape(-1, 6, 10), y_point.reshape(-1, 6, 10)))
-    return d_links, d_y
+    ``jac_rate``). Compiled (``_noise_modes``)."""
+    held = np.eye(4) if held_factor is None else _float(held_factor)
+    point = np.eye(8) if point_factor is None else _float(point_factor)
+    jacs = np.stack((_float(jac), _float(jac_rate)))
+    return _noise_modes(jacs, int(n_joints), held, point, CARGO_P_MAP, CARGO_Q_MAP)
