@@ -408,6 +408,31 @@ def psd_factor(w: np.ndarray) -> np.ndarray:
     return u * np.sqrt(np.clip(s, 0.0, None))
 
 
+@njit(cache=True)
+def _add_regressor(cross, power, ring, ring_power, ring_index, index, a):
+    """``RegressorAutocorrelation.add``'s sums, in place: the regressor ``a`` (6, 10) of update
+    ``index``, per column k its power sum_r a_rk^2 into lag 0 and, for each ring slot L updates
+    back (0 < L <= n_lags), the cross sum_r ring_rk a_rk into ``cross[L]`` and the pair's mean
+    power into ``power[L]``; then ``a`` into the ring (slot ``index`` mod n_lags)."""
+    n_lags = cross.shape[0] - 1
+    own = np.zeros(a.shape[1])
+    for r in range(a.shape[0]):
+        own += a[r] * a[r]
+    cross[0] += own
+    power[0] += own
+    for slot in range(ring.shape[0]):
+        lag = index - ring_index[slot]
+        if 0 < lag <= n_lags:
+            pair = np.zeros(a.shape[1])
+            for r in range(a.shape[0]):
+                pair += ring[slot, r] * a[r]
+            cross[lag] += pair
+            power[lag] += 0.5 * (own + ring_power[slot])
+    if n_lags:
+        slot = index % n_lags
+        ring[slot], ring_power[slot], ring_index[slot] = a, own, index
+
+
 class RegressorAutocorrelation:
     """The regressor's autocorrelation over update lags, rho(L) (n_lags + 1,), accumulated over a
     run: per parameter column k, rho_k(L) = sum_i <A_i,k, A_i-L,k> over the pairs L updates
@@ -426,19 +451,8 @@ class RegressorAutocorrelation:
 
     def add(self, index: int, regressor: np.ndarray) -> None:
         """Account for the regressor (6, 10) of update ``index`` (update counts, increasing)."""
-        a = np.asarray(regressor, dtype=float)
-        power = np.einsum("rk,rk->k", a, a)
-        self._cross[0] += power
-        self._power[0] += power
-        lag = index - self._ring_index
-        seen = (lag > 0) & (lag <= self.n_lags)
-        if seen.any():
-            lags = lag[seen]  # distinct: one ring slot per update
-            self._cross[lags] += np.einsum("lrk,rk->lk", self._ring[seen], a)
-            self._power[lags] += 0.5 * (power + self._ring_power[seen])
-        if self.n_lags:
-            slot = index % self.n_lags
-            self._ring[slot], self._ring_power[slot], self._ring_index[slot] = a, power, index
+        _add_regressor(self._cross, self._power, self._ring, self._ring_power, self._ring_index,
+                       int(index), _float(regressor))  # fmt: skip
 
     def rho(self) -> np.ndarray:
         """rho(L) (n_lags + 1,), rho(0) = 1."""

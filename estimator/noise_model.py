@@ -294,6 +294,7 @@ class NoiseModel:
         var = np.repeat([sensor[1] ** 2, sensor[0] ** 2, sensor[2] ** 2, 1.0],
                         [12, 12, 8 * nj, self._n_rate_modes])  # fmt: skip
         self.momentum_motion = MotionNoiseSpec(var=var, band=np.ones(var.size))
+        self._mode_std = np.sqrt(var)  # ``message_modes``' scale, once
         self._robot_arrays = robot.arrays
         self._imu_pos = np.ascontiguousarray(robot.imu_pos, dtype=float)
         self._n_joints = nj
@@ -367,7 +368,7 @@ class NoiseModel:
         grasp point), so their joint covariance M diag(v) M^T, M = [L; A], is all it uses, and F
         (9, 9) with F F^T = M diag(v) M^T carries it exactly (v = ``momentum_motion.var``).
         Returns (F's links rows (6, 9), its grasp rows (3, 9), ones (9,): variances and bands)."""
-        stacked = np.vstack((d_links, d_y[:, :3, 0].T)) * np.sqrt(self.momentum_motion.var)
+        stacked = np.vstack((d_links, d_y[:, :3, 0].T)) * self._mode_std
         factor = psd_factor(stacked @ stacked.T)
         return factor[:6], factor[6:], np.ones(9)
 
