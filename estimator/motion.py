@@ -101,10 +101,9 @@ def _balance_noise_map(d_links: np.ndarray, d_y: np.ndarray, params: np.ndarray)
 @njit(cache=True)
 def _grasp_acc_map(d_y: np.ndarray, point_g: np.ndarray) -> np.ndarray:
     """G (3, n): column k is the force rows' a column plus their h columns times the point."""
-    out = np.empty((3, d_y.shape[0]))
-    for k in range(d_y.shape[0]):
-        out[:, k] = d_y[k, :3, 0] + np.ascontiguousarray(d_y[k, :3, 1:4]) @ point_g
-    return out
+    n = d_y.shape[0]
+    lever = np.ascontiguousarray(d_y[:, :3, 1:4]).reshape(3 * n, 3) @ point_g  # one product
+    return np.ascontiguousarray(d_y[:, :3, 0].T) + np.ascontiguousarray(lever.reshape(n, 3).T)
 
 
 @njit(cache=True)
