@@ -186,6 +186,17 @@ class MotionNoiseSpec:
     band: np.ndarray
 
 
+def _posterior_spread(d_y: np.ndarray, level: np.ndarray, params_cov: np.ndarray) -> np.ndarray:
+    """sum_k level_k dY_k P dY_k^T (6, 6): the regressor noise's spread over the posterior P
+    (10, 10), for the (n, 6, 10) d Y and the first n entries of ``level``, as one product over
+    the stacked (6, 10 n) rows."""
+    d_y = np.asarray(d_y, dtype=float)
+    scaled = np.sqrt(level[: d_y.shape[0], None, None]) * d_y
+    rows = scaled.transpose(1, 0, 2).reshape(6, -1)
+    spread = (scaled @ params_cov).transpose(1, 0, 2).reshape(6, -1)
+    return spread @ rows.T
+
+
 class NoiseModel:
     """One robot's measurement covariance (see the module docstring).
 
@@ -492,12 +503,7 @@ class NoiseModel:
         else:
             mean, cov = condition_maps(n_map, d_map, level, mismatch, self.mismatch_model_var)
         if params_cov is not None:
-            # sum_k level_k dY_k P dY_k^T as one product over the stacked (6, 10 n) rows.
-            d_y = np.asarray(d_y, dtype=float)
-            scaled = np.sqrt(level[: d_y.shape[0], None, None]) * d_y
-            rows = scaled.transpose(1, 0, 2).reshape(6, -1)
-            spread = (scaled @ params_cov).transpose(1, 0, 2).reshape(6, -1)
-            cov = cov + spread @ rows.T
+            cov = cov + _posterior_spread(d_y, level, params_cov)
         return mean, cov
 
     def _stacked_motion(self, own, params, d_links, d_y, regressor, peers):
