@@ -108,9 +108,9 @@ from .rne import (
     Balance,
     RobotArrays,
     RobotDescription,
-    _body_regressor,
-    _grasp_from_base,
-    _single,
+    as_single,
+    body_regressor_kernel,
+    grasp_from_base_kernel,
 )
 
 # Layout of the momentum-form sample (``momentum_sample``'s vector), all in G.
@@ -131,15 +131,15 @@ def _regressor_maps() -> tuple[np.ndarray, np.ndarray]:
     m_p = np.zeros((60, 6))
     m_q = np.zeros((60, 9))
     for i in range(3):
-        m_p[:, i] = _body_regressor(unit[i], zero, zero).ravel()
-        m_p[:, 3 + i] = _body_regressor(zero, zero, unit[i]).ravel()
+        m_p[:, i] = body_regressor_kernel(unit[i], zero, zero).ravel()
+        m_p[:, 3 + i] = body_regressor_kernel(zero, zero, unit[i]).ravel()
         m_q[:, i] = m_p[:, i]
-    square = [_body_regressor(zero, unit[i], zero).ravel() for i in range(3)]
+    square = [body_regressor_kernel(zero, unit[i], zero).ravel() for i in range(3)]
     for col, (i, j) in enumerate(_PRODUCTS):
         if i == j:
             m_q[:, 3 + col] = square[i]
         else:  # the quadratic form's cross term
-            pair = _body_regressor(zero, unit[i] + unit[j], zero).ravel()
+            pair = body_regressor_kernel(zero, unit[i] + unit[j], zero).ravel()
             m_q[:, 3 + col] = pair - square[i] - square[j]
     return m_p, m_q
 
@@ -238,7 +238,7 @@ class LinkGeometry(NamedTuple):
     pos: np.ndarray  # (n_links, 3) link origins, m
     grasp_rot: np.ndarray  # (3, 3) G's rotation
     grasp_pos: np.ndarray  # (3,) G's origin, m
-    grasp_from_base: np.ndarray  # (6, 6) wrench map B -> G (``rne._grasp_from_base``)
+    grasp_from_base: np.ndarray  # (6, 6) wrench map B -> G (``rne.grasp_from_base_kernel``)
     com_b: np.ndarray  # (n_links, 3) centres of mass relative to the link origins, m
     inertia_b: np.ndarray  # (n_links, 3, 3) inertias about them, kg m^2
     total_mass: float  # kg
@@ -251,8 +251,9 @@ def link_geometry(arrays, q):
     of ``momentum_pass`` that the rates, the acceleration and the thrust leave unchanged."""
     rot, pos, grasp_rot, grasp_pos = _link_frames(arrays, q)
     com_b, inertia_b, total_mass, first_moment = _mass_geometry(arrays, rot, pos, grasp_pos)
-    return LinkGeometry(rot, pos, grasp_rot, grasp_pos, _grasp_from_base(grasp_rot, grasp_pos),
-                        com_b, inertia_b, total_mass, first_moment)  # fmt: skip
+    to_grasp = grasp_from_base_kernel(grasp_rot, grasp_pos)
+    return LinkGeometry(rot, pos, grasp_rot, grasp_pos, to_grasp, com_b, inertia_b, total_mass,
+                        first_moment)  # fmt: skip
 
 
 @njit(cache=True)
@@ -348,7 +349,7 @@ def momentum_sample(
     and G's pose in B (rotation (3, 3), origin (3,) m)."""
     nj = (robot.n_joints,)
     var = np.zeros(nj) if qd_var is None else qd_var
-    args = [_single(x, shape, name) for x, shape, name in (
+    args = [as_single(x, shape, name) for x, shape, name in (
         (w_base, (3,), "w_base"), (acc_imu, (3,), "acc_imu"), (q, nj, "q"), (qd, nj, "qd"),
         (thrust_base, (6,), "thrust_base"), (var, nj, "qd_var"),
     )]  # fmt: skip
@@ -364,7 +365,7 @@ def rate_square_terms(robot: RobotDescription, q: np.ndarray) -> tuple[np.ndarra
     one's weight w (k,) in Var = w v^2 of white Gaussian noise (2 for a square, 1 for a product:
     the noise model's factor)."""
     nj = robot.n_joints
-    q = _single(q, (nj,), "q")
+    q = as_single(q, (nj,), "q")
     imu_pos = np.ascontiguousarray(robot.imu_pos, dtype=float)
     terms = _rate_square_terms(*robot.arrays, imu_pos, q)
     weights = np.array([2.0] * nj + [1.0] * (len(terms) - nj))
@@ -509,7 +510,7 @@ def servo_ripple_velocities(
     if robot.servo_gain is None:
         return None
     nj = (robot.n_joints,)
-    q, cargo = _single(q, nj, "q"), _single(cargo, (10,), "cargo")
+    q, cargo = as_single(q, nj, "q"), as_single(cargo, (10,), "cargo")
     imu_pos = np.ascontiguousarray(robot.imu_pos, dtype=float)
     per_torque = _servo_ripple_map(*robot.arrays, imu_pos, q, cargo, float(dt_s))
     return per_torque * (np.asarray(robot.servo_gain, dtype=float) * dt_s)
@@ -528,4 +529,4 @@ def servo_ripple(
     per_rate = servo_ripple_velocities(robot, q, cargo, dt_s)
     if per_rate is None:
         return np.zeros(3)
-    return per_rate @ _single(target_rate, (robot.n_joints,), "target_rate")
+    return per_rate @ as_single(target_rate, (robot.n_joints,), "target_rate")

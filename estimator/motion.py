@@ -90,8 +90,9 @@ def motion_jacobians(
 
 
 @njit(cache=True)
-def _balance_noise_map(d_links: np.ndarray, d_y: np.ndarray, params: np.ndarray) -> np.ndarray:
-    """E (6, n): column k is d links / dxi_k + (d Y / dxi_k) pi."""
+def balance_noise_map_kernel(d_links, d_y, params) -> np.ndarray:
+    """E (6, n): column k is d links / dxi_k + (d Y / dxi_k) pi (``balance_noise_map``, compiled
+    and unchecked, for compiled callers)."""
     out = d_links.copy()
     for k in range(d_y.shape[0]):
         out[:, k] += d_y[k] @ params
@@ -99,8 +100,9 @@ def _balance_noise_map(d_links: np.ndarray, d_y: np.ndarray, params: np.ndarray)
 
 
 @njit(cache=True)
-def _grasp_acc_map(d_y: np.ndarray, point_g: np.ndarray) -> np.ndarray:
-    """G (3, n): column k is the force rows' a column plus their h columns times the point."""
+def grasp_acc_map_kernel(d_y: np.ndarray, point_g: np.ndarray) -> np.ndarray:
+    """G (3, n): column k is the force rows' a column plus their h columns times the point
+    (``grasp_acc_map``, compiled and unchecked, for compiled callers)."""
     n = d_y.shape[0]
     lever = np.ascontiguousarray(d_y[:, :3, 1:4]).reshape(3 * n, 3) @ point_g  # one product
     return np.ascontiguousarray(d_y[:, :3, 0].T) + np.ascontiguousarray(lever.reshape(n, 3).T)
@@ -155,7 +157,7 @@ def condition_maps(
 
 def balance_noise_map(d_links: np.ndarray, d_y: np.ndarray, params: np.ndarray) -> np.ndarray:
     """E = d(links + Y pi)/dxi (6, n) at parameters pi (10,)."""
-    return _balance_noise_map(_float(d_links), _float(d_y), _float(params))
+    return balance_noise_map_kernel(_float(d_links), _float(d_y), _float(params))
 
 
 def grasp_acc_map(d_y: np.ndarray, point_g: np.ndarray | None = None) -> np.ndarray:
@@ -163,7 +165,7 @@ def grasp_acc_map(d_y: np.ndarray, point_g: np.ndarray | None = None) -> np.ndar
     origin; None: the grasp point) from the regressor's force rows, whose column m is a_G and
     columns h are skew(wd) + skew(w)^2 (so a_P = a_G + (skew(wd) + skew(w)^2) p)."""
     point = np.zeros(3) if point_g is None else _float(point_g)
-    return _grasp_acc_map(_float(d_y), point)
+    return grasp_acc_map_kernel(_float(d_y), point)
 
 
 def _float(x) -> np.ndarray:

@@ -33,15 +33,15 @@ import numpy as np
 from numba import boolean, float64, int64, njit, types
 
 from .geometry import exp_so3, quat_to_mat
-from .messages import WrenchMessage, _Instant
+from .messages import Instant, WrenchMessage
 from .momentum import (
     balance_from_filtered,
     rate_square_terms,
     sample_from_rate_filter,
     servo_ripple_velocities,
 )
-from .preprocess import _first_order_hold_step
-from .rne import RobotArrays, _grasp_from_base
+from .preprocess import first_order_hold_step
+from .rne import RobotArrays, grasp_from_base_kernel
 
 # Outcomes of `estimator_step` (its first return value).
 NOT_USABLE, NO_FIX, FIX, BAD_FIX = range(4)
@@ -80,7 +80,7 @@ def _usable(nj, accel, gyro, q, thrust, fix_pos, fix_quat, has_fix) -> bool:
 def filter_step(ad, b_value, b_slope, held, state, u_prev, u) -> None:
     """One step of a started ``StateVariableFilter`` in place: held channels take u_prev = u."""
     u_held = np.where(held, u, u_prev)
-    state[:] = _first_order_hold_step(ad, b_value, b_slope, state, u_held, u)
+    state[:] = first_order_hold_step(ad, b_value, b_slope, state, u_held, u)
     u_prev[:] = u
 
 
@@ -117,7 +117,7 @@ def actuation_cov_step(grasp_rot, grasp_pos, thrust_to_base, act_abs, act_rel, a
                        thrust_command) -> float:  # fmt: skip
     """Add this step's actuation covariance, carried into G, to ``act_cov_sum``:
     T_GB T_BS diag(std^2) T_BS^T T_GB^T, std = abs + rel |command|; returns the lever |p_BG| m."""
-    to_grasp = _grasp_from_base(grasp_rot, grasp_pos) @ thrust_to_base
+    to_grasp = grasp_from_base_kernel(grasp_rot, grasp_pos) @ thrust_to_base
     std = act_abs + act_rel * np.abs(thrust_command)
     act_cov_sum += (to_grasp * std**2) @ to_grasp.T
     return np.sqrt(grasp_pos @ grasp_pos)
@@ -481,7 +481,7 @@ class EstimatorInputs:
         tainted = stamp <= self._tainted_until
         jac, motion = self._motion_fields(b, stamp)
         sent_cov = act_cov + rate_links_cov if jac is None else act_cov
-        self._pending[stamp] = _Instant(
+        self._pending[stamp] = Instant(
             thrust=b.thrust.copy(),
             links=b.links.copy(),
             regressor=b.regressor.copy(),

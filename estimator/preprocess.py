@@ -53,7 +53,7 @@ DEFAULT_RATE_CUTOFF_HZ = 8.0
 
 
 @njit(cache=True)
-def _first_order_hold_step(ad, b_value, b_slope, state, u_prev, u):
+def first_order_hold_step(ad, b_value, b_slope, state, u_prev, u):
     """x_k+1 = Ad x_k + b_value u_k + b_slope (u_k+1 - u_k), every channel (column) at once.
     A held channel passes u_prev = u_k+1: x_k+1 = Ad x_k + b_value u_k+1 (zero-order hold of the
     new sample)."""
@@ -137,7 +137,7 @@ class StateVariableFilter:
             u_prev = self._u_prev
             if self._any_held:
                 u_prev = np.where(self._held, u, u_prev)
-            new = _first_order_hold_step(self.ad, self.b_value, self.b_slope, self.state, u_prev, u)
+            new = first_order_hold_step(self.ad, self.b_value, self.b_slope, self.state, u_prev, u)
         else:
             new = np.zeros((3, self.n_channels))
             new[0] = u
