@@ -66,6 +66,32 @@ def _any_nonzero(a: np.ndarray) -> bool:
     return False
 
 
+# ``_ripple_case``'s outcomes.
+RIPPLE_AT_REST, RIPPLE_UNUSABLE, RIPPLE_MOVING = range(3)
+
+
+@njit(cache=True)
+def _ripple_case(rate, previous, q) -> int:
+    """Whether the servos' ripple changes this step: RIPPLE_AT_REST when the targets' ``rate``
+    and the ``previous`` ripple are zero (a NaN counts as nonzero), RIPPLE_UNUSABLE when the
+    joint angles ``q`` or the rate are not finite, else RIPPLE_MOVING."""
+    if not (_any_nonzero(rate) or _any_nonzero(previous)):
+        return RIPPLE_AT_REST
+    if not (_all_finite(q) and _all_finite(rate)):
+        return RIPPLE_UNUSABLE
+    return RIPPLE_MOVING
+
+
+@njit(cache=True)
+def servo_ripple_step(ripple_map, rate, previous, imu_rot, dt_s, accel):
+    """The IMU point's ripple v_r = V rate (3,) m/s (B axes; V (3, n_joints) of
+    ``momentum.servo_ripple_velocities``, ``rate`` rad/s) and the accelerometer's period mean
+    less its change since the ``previous`` ripple, a - R_BI^T (v_r - v_r,prev) / dt (IMU axes,
+    m/s^2)."""
+    ripple = ripple_map @ rate
+    return ripple, accel - imu_rot.T @ ((ripple - previous) / dt_s)
+
+
 @njit(cache=True)
 def _usable(nj, accel, gyro, q, thrust, fix_pos, fix_quat, has_fix) -> bool:
     """Every reading of the right shape and finite (the fix's shape too, when given)."""
@@ -298,28 +324,27 @@ class EstimatorInputs:
         Unusable joint angles or rates (the Python path handles the readings) leave the reading
         and the last ripple as they are."""
         rate = np.asarray(target_rate, dtype=float)
+        q = np.asarray(joint_pos_rad, dtype=float)
         nj = (self.robot.n_joints,)
         previous = self._servo_ripple_prev
         if previous is None:
             previous = self._servo_ripple_prev = np.zeros(3)
-        if rate.shape == nj and not (_any_nonzero(rate) or _any_nonzero(previous)):
-            return accel_imu  # at rest (a NaN rate is not: it counts as nonzero)
-        q = np.asarray(joint_pos_rad, dtype=float)
-        usable = q.shape == nj and rate.shape == nj
-        if not (usable and _all_finite(q) and _all_finite(rate)):
-            return accel_imu
+        if rate.shape != nj or q.shape != nj or _ripple_case(rate, previous, q) != RIPPLE_MOVING:
+            return accel_imu  # at rest (a NaN rate is not: it counts as nonzero), or unusable
         if self._servo_ripple_map is None or stamp % self.update_every == 0:
             self._servo_ripple_map = servo_ripple_velocities(
                 self.robot, q, self.ukf.params_mean(), self.dt_s
             )
         if self._servo_ripple_map is None:
             return accel_imu  # the servos' gains are unknown
-        ripple = self._servo_ripple_map @ rate
-        self._servo_ripple_prev = ripple
         if accel_imu is None:
+            self._servo_ripple_prev = self._servo_ripple_map @ rate
             return None
-        correction = self._imu_rot.T @ ((ripple - previous) / self.dt_s)
-        return np.asarray(accel_imu, dtype=float) - correction
+        self._servo_ripple_prev, corrected = servo_ripple_step(
+            self._servo_ripple_map, rate, previous, self._imu_rot, self.dt_s,
+            np.asarray(accel_imu, dtype=float),
+        )  # fmt: skip
+        return corrected
 
     def _compiled_path_ready(self, stamp: int, accel_imu: np.ndarray | None) -> bool:
         """Can this step take ``estimator_step``: an IMU frame, an increasing stamp,
