@@ -483,16 +483,22 @@ def sample_jacobian(arrays, imu_pos, w_base, acc_imu, q, qd, thrust_base, step=1
     robot's scale), O(step) for the angles."""
     nj = q.shape[0]
     x = np.concatenate((w_base, acc_imu, q, qd))
-    geo = link_geometry(arrays, q)  # the angles' part, shared by every step but theirs
-    base = momentum_at(arrays, imu_pos, geo, w_base, acc_imu, qd, thrust_base)
-    jac = np.empty((SIZE, x.shape[0]))
-    for k in range(x.shape[0]):
-        xs = x.copy()
-        xs[k] += step
-        geo_k = link_geometry(arrays, xs[6 : 6 + nj]) if 6 <= k < 6 + nj else geo
-        out = momentum_at(arrays, imu_pos, geo_k, xs[0:3], xs[3:6], xs[6 + nj :], thrust_base)
-        jac[:, k] = (out - base) / step
-    return jac
+    n_x = x.shape[0]
+    # Row 0: x; row 1 + k: x with its entry k stepped. One batch at the angles' geometry, then
+    # the angles' own rows again at theirs.
+    xs = np.empty((1 + n_x, n_x))
+    xs[:] = x
+    for k in range(n_x):
+        xs[1 + k, k] += step
+    geo = link_geometry(arrays, q)
+    rates = xs[:, 6 + nj :]
+    samples = momentum_at(arrays, imu_pos, geo, xs[:, 0:3], xs[:, 3:6], rates, thrust_base)
+    for k in range(6, 6 + nj):
+        row = xs[1 + k : 2 + k]
+        geo_k = link_geometry(arrays, np.ascontiguousarray(row[0, 6 : 6 + nj]))
+        samples[1 + k] = momentum_at(arrays, imu_pos, geo_k, row[:, 0:3], row[:, 3:6],
+                                     row[:, 6 + nj :], thrust_base)[0]  # fmt: skip
+    return np.ascontiguousarray(((samples[1:] - samples[0]) / step).T)
 
 
 @njit(cache=True)
