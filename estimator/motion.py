@@ -416,19 +416,21 @@ def _add_regressor(cross, power, ring, ring_power, ring_index, index, a):
     back (0 < L <= n_lags), the cross sum_r ring_rk a_rk into ``cross[L]`` and the pair's mean
     power into ``power[L]``; then ``a`` into the ring (slot ``index`` mod n_lags)."""
     n_lags = cross.shape[0] - 1
-    own = np.zeros(a.shape[1])
-    for r in range(a.shape[0]):
+    n_rows, n_cols = a.shape
+    own = np.zeros(n_cols)
+    for r in range(n_rows):
         own += a[r] * a[r]
     cross[0] += own
     power[0] += own
     for slot in range(ring.shape[0]):
         lag = index - ring_index[slot]
         if 0 < lag <= n_lags:
-            pair = np.zeros(a.shape[1])
-            for r in range(a.shape[0]):
-                pair += ring[slot, r] * a[r]
-            cross[lag] += pair
-            power[lag] += 0.5 * (own + ring_power[slot])
+            for k in range(n_cols):  # sum_r ring_rk a_rk, in row order
+                pair = 0.0
+                for r in range(n_rows):
+                    pair += ring[slot, r, k] * a[r, k]
+                cross[lag, k] += pair
+                power[lag, k] += 0.5 * (own[k] + ring_power[slot, k])
     if n_lags:
         slot = index % n_lags
         ring[slot], ring_power[slot], ring_index[slot] = a, own, index

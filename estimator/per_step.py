@@ -103,14 +103,6 @@ def _usable(nj, accel, gyro, q, thrust, fix_pos, fix_quat, has_fix) -> bool:
 
 
 @njit(cache=True)
-def filter_step(ad, b_value, b_slope, held, state, u_prev, u) -> None:
-    """One step of a started ``StateVariableFilter`` in place: held channels take u_prev = u."""
-    u_held = np.where(held, u, u_prev)
-    state[:] = first_order_hold_step(ad, b_value, b_slope, state, u_held, u)
-    u_prev[:] = u
-
-
-@njit(cache=True)
 def update_attitude(rot_world_base, pos_world_base, imu_rot, gyro, dt_s, fix_pos, fix_quat,
                     has_fix) -> int:  # fmt: skip
     """R_WB and p_WB in place from a usable fix (finite, |quat| > 0), else R_WB propagated by
@@ -132,9 +124,13 @@ def momentum_step(arrays, imu_pos, qd_var, rate_ad, rate_b_value, rate_b_slope, 
     filter on the pre-filter's input ``u``, one momentum-form sample of its outputs
     (``momentum.sample_from_rate_filter``) into the product filter. Returns G's pose in B
     (rotation, origin m) at the rate filter's joint angles."""
-    filter_step(rate_ad, rate_b_value, rate_b_slope, rate_held, rate_state, rate_u_prev, u)
+    first_order_hold_step(
+        rate_ad, rate_b_value, rate_b_slope, rate_held, rate_state, rate_u_prev, u
+    )
     sample, grasp_rot, grasp_pos = sample_from_rate_filter(arrays, imu_pos, rate_state, qd_var)
-    filter_step(prod_ad, prod_b_value, prod_b_slope, prod_held, prod_state, prod_u_prev, sample)
+    first_order_hold_step(
+        prod_ad, prod_b_value, prod_b_slope, prod_held, prod_state, prod_u_prev, sample
+    )
     return grasp_rot, grasp_pos
 
 
@@ -230,7 +226,7 @@ def estimator_step(
         grasp_rot, grasp_pos,
     )  # fmt: skip
     u = pre_to_input @ np.concatenate((gyro, accel, q, thrust))
-    filter_step(pre_ad, pre_b_value, pre_b_slope, pre_held, pre_state, pre_u_prev, u)
+    first_order_hold_step(pre_ad, pre_b_value, pre_b_slope, pre_held, pre_state, pre_u_prev, u)
     rot_bg, pos_bg = momentum_step(
         arrays, imu_pos, qd_var, rate_ad, rate_b_value, rate_b_slope, rate_held, rate_state,
         rate_u_prev, prod_ad, prod_b_value, prod_b_slope, prod_held, prod_state, prod_u_prev, u,
@@ -244,7 +240,7 @@ def estimator_step(
         rot_bg, pos_bg, thrust_to_base, act_abs, act_rel, act_cov_sum, thrust
     )
     sample = np.ascontiguousarray(prod_state[0])
-    filter_step(bal_ad, bal_b_value, bal_b_slope, bal_held, bal_state, bal_u_prev, sample)
+    first_order_hold_step(bal_ad, bal_b_value, bal_b_slope, bal_held, bal_state, bal_u_prev, sample)
     return outcome, lever
 
 
