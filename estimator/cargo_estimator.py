@@ -73,7 +73,7 @@ from collections import deque
 import numpy as np
 from scipy.stats import chi2
 
-from .messages import WrenchMessage, _Instant, _RelativeGrasp  # noqa: F401 (re-exported)
+from .messages import Instant, RelativeGrasp, WrenchMessage  # noqa: F401 (re-exported)
 from .momentum import SIZE as MOMENTUM_SIZE
 from .momentum import cargo_regressor_parts
 from .noise_model import MOTION_FUSION, NoiseModel, rate_square_var
@@ -103,10 +103,12 @@ _cached_rate_square_var = functools.lru_cache(maxsize=16)(rate_square_var)
 
 def _check_arguments(
     index, peers, update_every, regressor_every, warmup_s, history_s, gate_prob,
-    min_excitation_snr, process_std_rel, min_relative_fixes,
+    min_excitation_snr, process_std_rel, min_relative_fixes, motion_fusion,
 ) -> None:  # fmt: skip
     """Raise ValueError for a constructor argument of ``CargoEstimator`` out of its range (the
     noise model's arguments: ``NoiseModel``)."""
+    if motion_fusion not in MOTION_FUSION:
+        raise ValueError(f"motion_fusion must be one of {MOTION_FUSION}, got {motion_fusion!r}")
     if regressor_every < 1 or update_every < 1 or update_every % regressor_every:
         raise ValueError(
             f"update_every ({update_every}) must be a positive multiple of regressor_every "
@@ -211,14 +213,31 @@ class CargoEstimator(EstimatorInputs):
         mismatch_model_std: float = 5.3e-7,
         rate_cutoff_hz: float | None = None,
     ) -> None:
-        if motion_fusion not in MOTION_FUSION:
-            raise ValueError(f"motion_fusion must be one of {MOTION_FUSION}, got {motion_fusion!r}")
-        self.motion_fusion = motion_fusion
-        self._mismatch_model_std = float(mismatch_model_std)
         _check_arguments(
             index, peers, update_every, regressor_every, warmup_s, history_s, gate_prob,
-            min_excitation_snr, process_std_rel, min_relative_fixes,
+            min_excitation_snr, process_std_rel, min_relative_fixes, motion_fusion,
         )  # fmt: skip
+        self.motion_fusion = motion_fusion
+        self._mismatch_model_std = float(mismatch_model_std)
+        self._init_schedule(
+            robot, index, peers, dt_s, update_every, regressor_every, warmup_s, history_s
+        )
+        self._init_signal_filters(sensor_noise, kinematics_cutoff_hz, cutoff_hz, rate_cutoff_hz)
+        self._init_ukf(prior_params, prior_std, process_std_rel, gate_prob)
+        self._init_noise_model(
+            force_std_n, torque_std_nm, actuation_noise, sensor_noise, peer_noise_std,
+            localization_noise, cutoff_hz, kinematics_cutoff_hz,
+        )  # fmt: skip
+        self.min_excitation_snr = float(min_excitation_snr)
+        self.min_relative_fixes = int(min_relative_fixes)
+        self._init_bookkeeping(relative_grasps, record)
+        self._step_constants = self._compiled_step_constants()
+
+    def _init_schedule(
+        self, robot, index, peers, dt_s, update_every, regressor_every, warmup_s, history_s
+    ) -> None:
+        """Who this robot and its peers are, the control period and the step counts of the
+        updates, the balance evaluations, the warm-up and the peers' wait; the readings' shapes."""
         self.robot = robot
         self.index = int(index)
         self.peers = tuple(int(p) for p in peers)
@@ -233,16 +252,6 @@ class CargoEstimator(EstimatorInputs):
             ("joint_pos_rad", (robot.n_joints,)),
             ("thrust_command", (6,)),
         )
-        self._init_signal_filters(sensor_noise, kinematics_cutoff_hz, cutoff_hz, rate_cutoff_hz)
-        self._init_ukf(prior_params, prior_std, process_std_rel, gate_prob)
-        self._init_noise_model(
-            force_std_n, torque_std_nm, actuation_noise, sensor_noise, peer_noise_std,
-            localization_noise, cutoff_hz, kinematics_cutoff_hz,
-        )  # fmt: skip
-        self.min_excitation_snr = float(min_excitation_snr)
-        self.min_relative_fixes = int(min_relative_fixes)
-        self._init_bookkeeping(relative_grasps, record)
-        self._step_constants = self._compiled_step_constants()
 
     def _init_signal_filters(
         self, sensor_noise, kinematics_cutoff_hz, cutoff_hz, rate_cutoff_hz
@@ -313,11 +322,11 @@ class CargoEstimator(EstimatorInputs):
         self._pos_world_base: np.ndarray | None = None
         self._last_input: tuple[np.ndarray, ...] | None = None
         self._tainted_until = -1
-        self._pending: dict[int, _Instant] = {}
+        self._pending: dict[int, Instant] = {}
         self._own_fix: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self._peer_msgs: dict[tuple[int, int], WrenchMessage] = {}
         self._oldest_peer_msg = math.inf  # a lower bound of the stamps in _peer_msgs
-        self._relative: dict[int, _RelativeGrasp] = {p: _RelativeGrasp() for p in self.peers}
+        self._relative: dict[int, RelativeGrasp] = {p: RelativeGrasp() for p in self.peers}
         for p, (rot, pos) in (relative_grasps or {}).items():
             if p not in self._relative:
                 raise ValueError(f"relative_grasps names robot {p}, which is not a peer")
@@ -432,7 +441,7 @@ class CargoEstimator(EstimatorInputs):
         self._forget_before(self.stamp - self.history_steps)
         return done
 
-    def _motion_noise(self, inst: _Instant, msgs: list) -> tuple[np.ndarray, np.ndarray]:
+    def _motion_noise(self, inst: Instant, msgs: list) -> tuple[np.ndarray, np.ndarray]:
         """Mean and covariance of the balance's motion noise at this instant
         (``NoiseModel.motion_noise``)."""
         peers = [(self._relative[p].transform(), m) for p, m in zip(self.peers, msgs, strict=True)]
@@ -508,7 +517,7 @@ class CargoEstimator(EstimatorInputs):
         if self.index in peers:
             raise ValueError(f"robot {self.index} cannot be its own peer")
         self.peers = peers
-        self._relative = {p: self._relative.get(p, _RelativeGrasp()) for p in self.peers}
+        self._relative = {p: self._relative.get(p, RelativeGrasp()) for p in self.peers}
         self.n_skipped_missing += len(self._pending)
         self._pending.clear()
         self._tainted_until = max(self._tainted_until, self.stamp + self.taint_steps)

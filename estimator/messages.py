@@ -1,6 +1,6 @@
 """What the cargo estimators exchange and keep: the message a robot publishes per update instant
-(``WrenchMessage``), its own record of an instant (``_Instant``) and the running average of a
-peer's grasp pose relative to its own (``_RelativeGrasp``).
+(``WrenchMessage``), its own record of an instant (``Instant``) and the running average of a
+peer's grasp pose relative to its own (``RelativeGrasp``).
 
 Frames: G is the robot's grasp frame (fixed to the cargo), moments about its origin; world axes
 where a name says so. Units: N, N m, m, m/s^2.
@@ -44,7 +44,9 @@ class WrenchMessage:
 
 
 @dataclass
-class _Instant:
+class Instant:
+    """One of the robot's own update instants, waiting for its peers' messages."""
+
     thrust: np.ndarray  # all in the grasp frame, moments about the grasp point
     links: np.ndarray
     regressor: np.ndarray
@@ -54,7 +56,10 @@ class _Instant:
 
 
 @dataclass
-class _RelativeGrasp:
+class RelativeGrasp:
+    """A peer's grasp frame in this robot's: known (``known``, wrench transform) or the running
+    sums of the fixes' relative poses."""
+
     rot_sum: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)))
     pos_sum: np.ndarray = field(default_factory=lambda: np.zeros(3))
     count: int = 0
@@ -65,5 +70,3 @@ class _RelativeGrasp:
             return self.known
         rot = _project_rotation(self.rot_sum)
         return wrench_transform(rot, self.pos_sum / self.count)
-
-

@@ -108,9 +108,9 @@ from .rne import (
     Balance,
     RobotArrays,
     RobotDescription,
-    _body_regressor,
-    _grasp_from_base,
-    _single,
+    as_single,
+    body_regressor_kernel,
+    grasp_from_base_kernel,
 )
 
 # Layout of the momentum-form sample (``momentum_sample``'s vector), all in G.
@@ -131,15 +131,15 @@ def _regressor_maps() -> tuple[np.ndarray, np.ndarray]:
     m_p = np.zeros((60, 6))
     m_q = np.zeros((60, 9))
     for i in range(3):
-        m_p[:, i] = _body_regressor(unit[i], zero, zero).ravel()
-        m_p[:, 3 + i] = _body_regressor(zero, zero, unit[i]).ravel()
+        m_p[:, i] = body_regressor_kernel(unit[i], zero, zero).ravel()
+        m_p[:, 3 + i] = body_regressor_kernel(zero, zero, unit[i]).ravel()
         m_q[:, i] = m_p[:, i]
-    square = [_body_regressor(zero, unit[i], zero).ravel() for i in range(3)]
+    square = [body_regressor_kernel(zero, unit[i], zero).ravel() for i in range(3)]
     for col, (i, j) in enumerate(_PRODUCTS):
         if i == j:
             m_q[:, 3 + col] = square[i]
         else:  # the quadratic form's cross term
-            pair = _body_regressor(zero, unit[i] + unit[j], zero).ravel()
+            pair = body_regressor_kernel(zero, unit[i] + unit[j], zero).ravel()
             m_q[:, 3 + col] = pair - square[i] - square[j]
     return m_p, m_q
 
@@ -166,13 +166,44 @@ def _link_frames(arrays, q):
 
 
 @njit(cache=True)
+def _cross_rows(a, b):
+    """a_r x b_r (n, 3) row by row (``geometry.cross3``'s formula) of two (n, 3) arrays; one
+    allocation for the whole batch."""
+    out = np.empty((a.shape[0], 3))
+    for r in range(a.shape[0]):
+        out[r, 0] = a[r, 1] * b[r, 2] - a[r, 2] * b[r, 1]
+        out[r, 1] = a[r, 2] * b[r, 0] - a[r, 0] * b[r, 2]
+        out[r, 2] = a[r, 0] * b[r, 1] - a[r, 1] * b[r, 0]
+    return out
+
+
+@njit(cache=True)
+def _matvec_rows(m, v):
+    """M v_r (n, 3) row by row (``geometry.matvec3``'s sum order) of a 3x3 matrix (any strides)
+    and an (n, 3) array; one allocation for the whole batch."""
+    out = np.empty((v.shape[0], 3))
+    for r in range(v.shape[0]):
+        for i in range(3):
+            out[r, i] = m[i, 0] * v[r, 0] + m[i, 1] * v[r, 1] + m[i, 2] * v[r, 2]
+    return out
+
+
+@njit(cache=True)
+def _rows(v, n):
+    """The vector ``v`` (3,) as n equal rows (n, 3) (read-only view)."""
+    return np.broadcast_to(v, (n, 3))
+
+
+@njit(cache=True)
 def _link_rates(arrays, rot, w_base, qd):
-    """Angular velocities (n_links, 3) of the links in B at the link frames ``rot``."""
+    """Angular velocities (n, n_links, 3) of the links in B at the link frames ``rot``, for n
+    rows of base rates ``w_base`` (n, 3) and joint rates ``qd`` (n, nj)."""
     n_links = arrays.parent.shape[0]
-    w = np.empty((n_links, 3))
-    w[0] = w_base
+    w = np.empty((w_base.shape[0], n_links, 3))
+    w[:, 0] = w_base
     for k in range(1, n_links):
-        w[k] = w[arrays.parent[k]] + qd[k - 1] * matvec3(rot[k], arrays.joint_axis[k])
+        axis = matvec3(rot[k], arrays.joint_axis[k])
+        w[:, k] = w[:, arrays.parent[k]] + qd[:, k - 1 : k] * axis
     return w
 
 
@@ -195,40 +226,41 @@ def _mass_geometry(arrays, rot, pos, grasp_pos):
 
 
 @njit(cache=True)
-def _momentum_terms(arrays, imu_pos, pos, com_b, inertia_b, total_mass, first_moment, w,
-                    grasp_rot, grasp_pos, acc_imu, out):  # fmt: skip
-    """Fill out[6:SIZE] (P_links, Q_links, the cargo's P and Q arguments; module docstring) from
-    the links' positions and mass distribution (``_mass_geometry``), their angular velocities
-    ``w`` (n_links, 3) and the IMU point's acceleration, all in B."""
-    n_links = arrays.parent.shape[0]
+def _momentum_terms(arrays, imu_pos, geo, w, acc_imu, out):
+    """Fill out[:, 6:SIZE] (n rows of P_links, Q_links, the cargo's P and Q arguments; module
+    docstring) from the links' positions and mass distribution at the link geometry ``geo``,
+    their angular velocities ``w`` (n, n_links, 3) and the IMU point's acceleration (n, 3), all
+    in B."""
+    n, n_links = w.shape[0], arrays.parent.shape[0]
+    pos, com_b, grasp_pos = geo.pos, geo.com_b, geo.grasp_pos
     # Velocities of the link origins relative to the frame translating with the IMU point.
-    vel = np.empty((n_links, 3))
-    vel[0] = cross3(w[0], -imu_pos)
+    vel = np.empty((n, n_links, 3))
+    vel[:, 0] = _cross_rows(w[:, 0], _rows(-imu_pos, n))
     for k in range(1, n_links):
         p = arrays.parent[k]
-        vel[k] = vel[p] + cross3(w[p], pos[k] - pos[p])
+        vel[:, k] = vel[:, p] + _cross_rows(w[:, p], _rows(pos[k] - pos[p], n))
     g = arrays.grasp_link
-    nu_g = vel[g] + cross3(w[g], grasp_pos - pos[g])
-    momentum, ang_momentum = np.zeros(3), np.zeros(3)
+    nu_g = vel[:, g] + _cross_rows(w[:, g], _rows(grasp_pos - pos[g], n))
+    momentum, ang_momentum = np.zeros((n, 3)), np.zeros((n, 3))
     for k in range(n_links):
-        nu = vel[k] + cross3(w[k], com_b[k])
+        nu = vel[:, k] + _cross_rows(w[:, k], _rows(com_b[k], n))
         rho = pos[k] + com_b[k] - grasp_pos
         m = arrays.mass[k]
         momentum += m * nu
-        ang_momentum += matvec3(inertia_b[k], w[k]) + m * cross3(rho, nu)
-    rot_t = grasp_rot.T
-    w_g = matvec3(rot_t, w[g])
-    p_g, l_g = matvec3(rot_t, momentum), matvec3(rot_t, ang_momentum)
-    out[6:9], out[9:12] = p_g, l_g
-    out[12:15] = matvec3(rot_t, total_mass * acc_imu) + cross3(w_g, p_g)
-    moment = cross3(first_moment, acc_imu) + cross3(nu_g, momentum)
-    out[15:18] = matvec3(rot_t, moment) + cross3(w_g, l_g)
-    nu_gg = matvec3(rot_t, nu_g)
-    out[18:21], out[21:24] = nu_gg, w_g
-    out[24:27] = matvec3(rot_t, acc_imu) + cross3(w_g, nu_gg)
+        ang_momentum += _matvec_rows(geo.inertia_b[k], w[:, k]) + m * _cross_rows(_rows(rho, n), nu)
+    rot_t = geo.grasp_rot.T
+    w_g = _matvec_rows(rot_t, w[:, g])
+    p_g, l_g = _matvec_rows(rot_t, momentum), _matvec_rows(rot_t, ang_momentum)
+    out[:, 6:9], out[:, 9:12] = p_g, l_g
+    out[:, 12:15] = _matvec_rows(rot_t, geo.total_mass * acc_imu) + _cross_rows(w_g, p_g)
+    moment = _cross_rows(_rows(geo.first_moment, n), acc_imu) + _cross_rows(nu_g, momentum)
+    out[:, 15:18] = _matvec_rows(rot_t, moment) + _cross_rows(w_g, l_g)
+    nu_gg = _matvec_rows(rot_t, nu_g)
+    out[:, 18:21], out[:, 21:24] = nu_gg, w_g
+    out[:, 24:27] = _matvec_rows(rot_t, acc_imu) + _cross_rows(w_g, nu_gg)
     for col in range(6):
         i, j = _PRODUCTS[col]
-        out[27 + col] = w_g[i] * w_g[j]
+        out[:, 27 + col] = w_g[:, i] * w_g[:, j]
 
 
 class LinkGeometry(NamedTuple):
@@ -238,7 +270,7 @@ class LinkGeometry(NamedTuple):
     pos: np.ndarray  # (n_links, 3) link origins, m
     grasp_rot: np.ndarray  # (3, 3) G's rotation
     grasp_pos: np.ndarray  # (3,) G's origin, m
-    grasp_from_base: np.ndarray  # (6, 6) wrench map B -> G (``rne._grasp_from_base``)
+    grasp_from_base: np.ndarray  # (6, 6) wrench map B -> G (``rne.grasp_from_base_kernel``)
     com_b: np.ndarray  # (n_links, 3) centres of mass relative to the link origins, m
     inertia_b: np.ndarray  # (n_links, 3, 3) inertias about them, kg m^2
     total_mass: float  # kg
@@ -251,19 +283,21 @@ def link_geometry(arrays, q):
     of ``momentum_pass`` that the rates, the acceleration and the thrust leave unchanged."""
     rot, pos, grasp_rot, grasp_pos = _link_frames(arrays, q)
     com_b, inertia_b, total_mass, first_moment = _mass_geometry(arrays, rot, pos, grasp_pos)
-    return LinkGeometry(rot, pos, grasp_rot, grasp_pos, _grasp_from_base(grasp_rot, grasp_pos),
-                        com_b, inertia_b, total_mass, first_moment)  # fmt: skip
+    to_grasp = grasp_from_base_kernel(grasp_rot, grasp_pos)
+    return LinkGeometry(rot, pos, grasp_rot, grasp_pos, to_grasp, com_b, inertia_b, total_mass,
+                        first_moment)  # fmt: skip
 
 
 @njit(cache=True)
 def momentum_at(arrays, imu_pos, geo, w_base, acc_imu, qd, thrust_base):
     """``momentum_pass`` without the rate noise's expectation at the link geometry ``geo``
-    (``link_geometry`` of the joint angles): the sample (``SIZE``,)."""
+    (``link_geometry`` of the joint angles), for n rows of motion at once (base rates
+    ``w_base`` (n, 3), the IMU point's acceleration ``acc_imu`` (n, 3), joint rates ``qd``
+    (n, nj)) and one thrust (6,): the samples (n, ``SIZE``)."""
     w = _link_rates(arrays, geo.rot, w_base, qd)
-    out = np.empty(SIZE)
-    out[0:6] = geo.grasp_from_base @ thrust_base
-    _momentum_terms(arrays, imu_pos, geo.pos, geo.com_b, geo.inertia_b, geo.total_mass,
-                    geo.first_moment, w, geo.grasp_rot, geo.grasp_pos, acc_imu, out)  # fmt: skip
+    out = np.empty((w_base.shape[0], SIZE))
+    out[:, 0:6] = geo.grasp_from_base @ thrust_base
+    _momentum_terms(arrays, imu_pos, geo, w, acc_imu, out)
     return out
 
 
@@ -273,20 +307,20 @@ def momentum_pass(arrays, imu_pos, w_base, acc_imu, q, qd, thrust_base, qd_var):
     [thrust_G, P_links, Q_links, cargo P arguments, cargo Q arguments], less the expectation of
     the joint-rate noise's square in Q (variances ``qd_var`` (nj,), ``momentum_sample``), and
     G's pose in B (rotation, origin)."""
-    zero3 = np.zeros(3)
     nj = q.shape[0]
     geo = link_geometry(arrays, q)
-    out = momentum_at(arrays, imu_pos, geo, w_base, acc_imu, qd, thrust_base)
     # E[Q(n)] of zero-mean rate noise n: Q is quadratic in the rates (P linear), so it is
-    # sum_j var_j Q(e_j), e_j = 1 rad/s on joint j alone, base at rest, no acceleration.
-    no_thrust = np.zeros(6)
+    # sum_j var_j Q(e_j), e_j = 1 rad/s on joint j alone, base at rest, no acceleration: the
+    # rows 1 + j beside the sample's row 0.
+    w_rows, acc_rows, qd_rows = np.zeros((1 + nj, 3)), np.zeros((1 + nj, 3)), np.zeros((1 + nj, nj))
+    w_rows[0], acc_rows[0], qd_rows[0] = w_base, acc_imu, qd
+    qd_rows[1:] = np.eye(nj)
+    rows = momentum_at(arrays, imu_pos, geo, w_rows, acc_rows, qd_rows, thrust_base)
+    out = rows[0]
     for j in range(nj):
         if qd_var[j] > 0.0:
-            unit = np.zeros(nj)
-            unit[j] = 1.0
-            unit_out = momentum_at(arrays, imu_pos, geo, zero3, zero3, unit, no_thrust)
-            out[LINKS_Q] -= qd_var[j] * unit_out[LINKS_Q]
-            out[CARGO_Q] -= qd_var[j] * unit_out[CARGO_Q]
+            out[LINKS_Q] -= qd_var[j] * rows[1 + j, LINKS_Q]
+            out[CARGO_Q] -= qd_var[j] * rows[1 + j, CARGO_Q]
     return out, geo.grasp_rot, geo.grasp_pos
 
 
@@ -348,7 +382,7 @@ def momentum_sample(
     and G's pose in B (rotation (3, 3), origin (3,) m)."""
     nj = (robot.n_joints,)
     var = np.zeros(nj) if qd_var is None else qd_var
-    args = [_single(x, shape, name) for x, shape, name in (
+    args = [as_single(x, shape, name) for x, shape, name in (
         (w_base, (3,), "w_base"), (acc_imu, (3,), "acc_imu"), (q, nj, "q"), (qd, nj, "qd"),
         (thrust_base, (6,), "thrust_base"), (var, nj, "qd_var"),
     )]  # fmt: skip
@@ -364,7 +398,7 @@ def rate_square_terms(robot: RobotDescription, q: np.ndarray) -> tuple[np.ndarra
     one's weight w (k,) in Var = w v^2 of white Gaussian noise (2 for a square, 1 for a product:
     the noise model's factor)."""
     nj = robot.n_joints
-    q = _single(q, (nj,), "q")
+    q = as_single(q, (nj,), "q")
     imu_pos = np.ascontiguousarray(robot.imu_pos, dtype=float)
     terms = _rate_square_terms(*robot.arrays, imu_pos, q)
     weights = np.array([2.0] * nj + [1.0] * (len(terms) - nj))
@@ -382,22 +416,24 @@ def _rate_square_terms(
         grasp_rot, grasp_pos,
     )  # fmt: skip
     nj = q.shape[0]
-    zero3, no_thrust, no_var = np.zeros(3), np.zeros(6), np.zeros(nj)
-    keep = np.zeros(SIZE)
-    keep[LINKS_Q] = keep[CARGO_Q] = 1.0
-    unit = np.eye(nj)
-    terms = np.empty((nj + nj * (nj - 1) // 2, SIZE))
+    n_terms = nj + nj * (nj - 1) // 2
+    # Unit rates on each joint, then on each pair (i < j) of joints, base at rest.
+    rates = np.zeros((n_terms, nj))
+    rates[:nj] = np.eye(nj)
     row = nj
     for i in range(nj):
-        rates = unit[i]
-        terms[i] = keep * momentum_pass(arrays, imu_pos, zero3, zero3, q, rates, no_thrust,
-                                        no_var)[0]  # fmt: skip
+        for j in range(i + 1, nj):
+            rates[row, i] = rates[row, j] = 1.0
+            row += 1
+    keep = np.zeros(SIZE)
+    keep[LINKS_Q] = keep[CARGO_Q] = 1.0
+    rest = np.zeros((n_terms, 3))
+    samples = momentum_at(arrays, imu_pos, link_geometry(arrays, q), rest, rest, rates, np.zeros(6))
+    terms = keep * samples
+    row = nj
     for i in range(nj):
         for j in range(i + 1, nj):
-            rates = unit[i] + unit[j]
-            pair = keep * momentum_pass(arrays, imu_pos, zero3, zero3, q, rates, no_thrust,
-                                        no_var)[0]  # fmt: skip
-            terms[row] = pair - terms[i] - terms[j]
+            terms[row] = terms[row] - terms[i] - terms[j]
             row += 1
     return terms
 
@@ -509,7 +545,7 @@ def servo_ripple_velocities(
     if robot.servo_gain is None:
         return None
     nj = (robot.n_joints,)
-    q, cargo = _single(q, nj, "q"), _single(cargo, (10,), "cargo")
+    q, cargo = as_single(q, nj, "q"), as_single(cargo, (10,), "cargo")
     imu_pos = np.ascontiguousarray(robot.imu_pos, dtype=float)
     per_torque = _servo_ripple_map(*robot.arrays, imu_pos, q, cargo, float(dt_s))
     return per_torque * (np.asarray(robot.servo_gain, dtype=float) * dt_s)
@@ -528,4 +564,4 @@ def servo_ripple(
     per_rate = servo_ripple_velocities(robot, q, cargo, dt_s)
     if per_rate is None:
         return np.zeros(3)
-    return per_rate @ _single(target_rate, (robot.n_joints,), "target_rate")
+    return per_rate @ as_single(target_rate, (robot.n_joints,), "target_rate")

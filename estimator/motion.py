@@ -90,8 +90,9 @@ def motion_jacobians(
 
 
 @njit(cache=True)
-def _balance_noise_map(d_links: np.ndarray, d_y: np.ndarray, params: np.ndarray) -> np.ndarray:
-    """E (6, n): column k is d links / dxi_k + (d Y / dxi_k) pi."""
+def balance_noise_map_kernel(d_links, d_y, params) -> np.ndarray:
+    """E (6, n): column k is d links / dxi_k + (d Y / dxi_k) pi (``balance_noise_map``, compiled
+    and unchecked, for compiled callers)."""
     out = d_links.copy()
     for k in range(d_y.shape[0]):
         out[:, k] += d_y[k] @ params
@@ -99,8 +100,9 @@ def _balance_noise_map(d_links: np.ndarray, d_y: np.ndarray, params: np.ndarray)
 
 
 @njit(cache=True)
-def _grasp_acc_map(d_y: np.ndarray, point_g: np.ndarray) -> np.ndarray:
-    """G (3, n): column k is the force rows' a column plus their h columns times the point."""
+def grasp_acc_map_kernel(d_y: np.ndarray, point_g: np.ndarray) -> np.ndarray:
+    """G (3, n): column k is the force rows' a column plus their h columns times the point
+    (``grasp_acc_map``, compiled and unchecked, for compiled callers)."""
     n = d_y.shape[0]
     lever = np.ascontiguousarray(d_y[:, :3, 1:4]).reshape(3 * n, 3) @ point_g  # one product
     return np.ascontiguousarray(d_y[:, :3, 0].T) + np.ascontiguousarray(lever.reshape(n, 3).T)
@@ -155,7 +157,7 @@ def condition_maps(
 
 def balance_noise_map(d_links: np.ndarray, d_y: np.ndarray, params: np.ndarray) -> np.ndarray:
     """E = d(links + Y pi)/dxi (6, n) at parameters pi (10,)."""
-    return _balance_noise_map(_float(d_links), _float(d_y), _float(params))
+    return balance_noise_map_kernel(_float(d_links), _float(d_y), _float(params))
 
 
 def grasp_acc_map(d_y: np.ndarray, point_g: np.ndarray | None = None) -> np.ndarray:
@@ -163,7 +165,7 @@ def grasp_acc_map(d_y: np.ndarray, point_g: np.ndarray | None = None) -> np.ndar
     origin; None: the grasp point) from the regressor's force rows, whose column m is a_G and
     columns h are skew(wd) + skew(w)^2 (so a_P = a_G + (skew(wd) + skew(w)^2) p)."""
     point = np.zeros(3) if point_g is None else _float(point_g)
-    return _grasp_acc_map(_float(d_y), point)
+    return grasp_acc_map_kernel(_float(d_y), point)
 
 
 def _float(x) -> np.ndarray:
@@ -414,19 +416,21 @@ def _add_regressor(cross, power, ring, ring_power, ring_index, index, a):
     back (0 < L <= n_lags), the cross sum_r ring_rk a_rk into ``cross[L]`` and the pair's mean
     power into ``power[L]``; then ``a`` into the ring (slot ``index`` mod n_lags)."""
     n_lags = cross.shape[0] - 1
-    own = np.zeros(a.shape[1])
-    for r in range(a.shape[0]):
+    n_rows, n_cols = a.shape
+    own = np.zeros(n_cols)
+    for r in range(n_rows):
         own += a[r] * a[r]
     cross[0] += own
     power[0] += own
     for slot in range(ring.shape[0]):
         lag = index - ring_index[slot]
         if 0 < lag <= n_lags:
-            pair = np.zeros(a.shape[1])
-            for r in range(a.shape[0]):
-                pair += ring[slot, r] * a[r]
-            cross[lag] += pair
-            power[lag] += 0.5 * (own + ring_power[slot])
+            for k in range(n_cols):  # sum_r ring_rk a_rk, in row order
+                pair = 0.0
+                for r in range(n_rows):
+                    pair += ring[slot, r, k] * a[r, k]
+                cross[lag, k] += pair
+                power[lag, k] += 0.5 * (own[k] + ring_power[slot, k])
     if n_lags:
         slot = index % n_lags
         ring[slot], ring_power[slot], ring_index[slot] = a, own, index
@@ -481,16 +485,22 @@ def sample_jacobian(arrays, imu_pos, w_base, acc_imu, q, qd, thrust_base, step=1
     robot's scale), O(step) for the angles."""
     nj = q.shape[0]
     x = np.concatenate((w_base, acc_imu, q, qd))
-    geo = link_geometry(arrays, q)  # the angles' part, shared by every step but theirs
-    base = momentum_at(arrays, imu_pos, geo, w_base, acc_imu, qd, thrust_base)
-    jac = np.empty((SIZE, x.shape[0]))
-    for k in range(x.shape[0]):
-        xs = x.copy()
-        xs[k] += step
-        geo_k = link_geometry(arrays, xs[6 : 6 + nj]) if 6 <= k < 6 + nj else geo
-        out = momentum_at(arrays, imu_pos, geo_k, xs[0:3], xs[3:6], xs[6 + nj :], thrust_base)
-        jac[:, k] = (out - base) / step
-    return jac
+    n_x = x.shape[0]
+    # Row 0: x; row 1 + k: x with its entry k stepped. One batch at the angles' geometry, then
+    # the angles' own rows again at theirs.
+    xs = np.empty((1 + n_x, n_x))
+    xs[:] = x
+    for k in range(n_x):
+        xs[1 + k, k] += step
+    geo = link_geometry(arrays, q)
+    rates = xs[:, 6 + nj :]
+    samples = momentum_at(arrays, imu_pos, geo, xs[:, 0:3], xs[:, 3:6], rates, thrust_base)
+    for k in range(6, 6 + nj):
+        row = xs[1 + k : 2 + k]
+        geo_k = link_geometry(arrays, np.ascontiguousarray(row[0, 6 : 6 + nj]))
+        samples[1 + k] = momentum_at(arrays, imu_pos, geo_k, row[:, 0:3], row[:, 3:6],
+                                     row[:, 6 + nj :], thrust_base)[0]  # fmt: skip
+    return np.ascontiguousarray(((samples[1:] - samples[0]) / step).T)
 
 
 @njit(cache=True)

@@ -54,13 +54,13 @@ from .motion import (
     HELD_EXTENDED,
     POINT_EXTENDED,
     RegressorAutocorrelation,
-    _balance_noise_map,
-    _grasp_acc_map,
+    balance_noise_map_kernel,
     band_factors,
     chain_kernels,
     condition_maps,
     drifting_sample_jacobian,
     filtered_motion_gains,
+    grasp_acc_map_kernel,
     kernel_lag_covariances,
     lag_weighted_covariance,
     momentum_noise_modes,
@@ -103,7 +103,7 @@ def _team_maps(params, d_links, d_y, regressor, transforms, peer_links, peer_gra
     n_map = np.zeros((6, n_own + peer_links.shape[1]))
     d_map = np.zeros((3 * n_peers, n_map.shape[1]))
     mismatch = np.empty(3 * n_peers)
-    n_map[:, :n_own] = _balance_noise_map(d_links, d_y, params)
+    n_map[:, :n_own] = balance_noise_map_kernel(d_links, d_y, params)
     acc_g = regressor[:3, 0].copy()
     ang_g = np.ascontiguousarray(regressor[:3, 1:4])  # skew(wd) + skew(w)^2
     for k in range(n_peers):
@@ -114,7 +114,7 @@ def _team_maps(params, d_links, d_y, regressor, transforms, peer_links, peer_gra
         peer = slice(peer_start[k], peer_start[k + 1])
         rows = slice(3 * k, 3 * k + 3)
         n_map[:, cols] = transforms[k] @ np.ascontiguousarray(peer_links[:, peer])
-        d_map[rows, :n_own] = -_grasp_acc_map(d_y, pos)
+        d_map[rows, :n_own] = -grasp_acc_map_kernel(d_y, pos)
         d_map[rows, cols] = rot @ np.ascontiguousarray(peer_grasp[:, peer])
         mismatch[rows] = rot @ peer_acc[k] - (acc_g + ang_g @ pos)
     return n_map, d_map, mismatch
@@ -262,8 +262,20 @@ class NoiseModel:
         self.has_peer_noise = bool(np.any(peer > 0))  # else its covariance adds zeros
         loc = _nonnegative(localization_noise, 2, "localization_noise")
         self.loc_pos_std, self.loc_att_std = (float(x) for x in loc)
-        # Scalar model (``sensor_cov_at``): white noise of std s per step through the slow filter
-        # becomes s * g on the filtered value and its derivatives.
+        self.mismatch_model_var = self.correlated * float(mismatch_model_std) ** 2
+        self._init_scalar_model(robot, dt_s, cutoff_hz, sensor)
+        self._init_acceleration_form(robot, dt_s, kinematics_cutoff_hz, cutoff_hz,
+                                     regressor_every, sensor)  # fmt: skip
+        self._init_momentum_chain(robot, dt_s, rate_cutoff_hz, kinematics_cutoff_hz, cutoff_hz,
+                                  regressor_every, sensor)  # fmt: skip
+        self.robot_mass = robot.total_mass
+        self.robot_inertia = sum(
+            float(np.linalg.eigvalsh(link.inertia_com)[-1]) for link in robot.links
+        )
+
+    def _init_scalar_model(self, robot, dt_s, cutoff_hz, sensor) -> None:
+        """The scalar model (``sensor_cov_at``): white noise of std s per step through the slow
+        filter becomes s * g on the filtered value and its derivatives (``noise_gains``)."""
         gains = StateVariableFilter(1, dt_s, cutoff_hz).noise_gains()
         self.acc_noise = sensor[0] * gains[0]
         self.ang_acc_noise = sensor[1] * gains[1]
@@ -272,19 +284,15 @@ class NoiseModel:
         self.grasp_ang_acc_noise = np.hypot(
             self.ang_acc_noise, np.sqrt(robot.n_joints) * self.joint_acc_noise
         )
-        self.mismatch_model_var = self.correlated * float(mismatch_model_std) ** 2
-        # Exact filter chain per motion source (``motion``).
-        chain = filtered_motion_gains(dt_s, kinematics_cutoff_hz, cutoff_hz, regressor_every)
-        factors = band_factors(chain, dt_s, kinematics_cutoff_hz, cutoff_hz, update_every)
+
+    def _init_acceleration_form(self, robot, dt_s, product_hz, cutoff_hz, every, sensor) -> None:
+        """``motion``: the acceleration form's exact filter chain per motion source (``motion``
+        module), which the excitation designer plans with."""
+        chain = filtered_motion_gains(dt_s, product_hz, cutoff_hz, every)
+        factors = band_factors(chain, dt_s, product_hz, cutoff_hz, self.update_every)
         sizes = [3, 3, robot.n_joints]
         self.motion = MotionNoiseSpec(
             var=np.repeat((sensor * chain) ** 2, sizes), band=np.repeat(factors, sizes)
-        )
-        self._init_momentum_chain(robot, dt_s, rate_cutoff_hz, kinematics_cutoff_hz, cutoff_hz,
-                                  regressor_every, sensor)  # fmt: skip
-        self.robot_mass = robot.total_mass
-        self.robot_inertia = sum(
-            float(np.linalg.eigvalsh(link.inertia_com)[-1]) for link in robot.links
         )
 
     def _init_momentum_chain(self, robot, dt_s, rate_hz, product_hz, cutoff_hz, every, sensor):

@@ -33,15 +33,15 @@ import numpy as np
 from numba import boolean, float64, int64, njit, types
 
 from .geometry import exp_so3, quat_to_mat
-from .messages import WrenchMessage, _Instant
+from .messages import Instant, WrenchMessage
 from .momentum import (
     balance_from_filtered,
     rate_square_terms,
     sample_from_rate_filter,
     servo_ripple_velocities,
 )
-from .preprocess import _first_order_hold_step
-from .rne import RobotArrays, _grasp_from_base
+from .preprocess import first_order_hold_step
+from .rne import RobotArrays, grasp_from_base_kernel
 
 # Outcomes of `estimator_step` (its first return value).
 NOT_USABLE, NO_FIX, FIX, BAD_FIX = range(4)
@@ -66,6 +66,32 @@ def _any_nonzero(a: np.ndarray) -> bool:
     return False
 
 
+# ``_ripple_case``'s outcomes.
+RIPPLE_AT_REST, RIPPLE_UNUSABLE, RIPPLE_MOVING = range(3)
+
+
+@njit(cache=True)
+def _ripple_case(rate, previous, q) -> int:
+    """Whether the servos' ripple changes this step: RIPPLE_AT_REST when the targets' ``rate``
+    and the ``previous`` ripple are zero (a NaN counts as nonzero), RIPPLE_UNUSABLE when the
+    joint angles ``q`` or the rate are not finite, else RIPPLE_MOVING."""
+    if not (_any_nonzero(rate) or _any_nonzero(previous)):
+        return RIPPLE_AT_REST
+    if not (_all_finite(q) and _all_finite(rate)):
+        return RIPPLE_UNUSABLE
+    return RIPPLE_MOVING
+
+
+@njit(cache=True)
+def servo_ripple_step(ripple_map, rate, previous, imu_rot, dt_s, accel):
+    """The IMU point's ripple v_r = V rate (3,) m/s (B axes; V (3, n_joints) of
+    ``momentum.servo_ripple_velocities``, ``rate`` rad/s) and the accelerometer's period mean
+    less its change since the ``previous`` ripple, a - R_BI^T (v_r - v_r,prev) / dt (IMU axes,
+    m/s^2)."""
+    ripple = ripple_map @ rate
+    return ripple, accel - imu_rot.T @ ((ripple - previous) / dt_s)
+
+
 @njit(cache=True)
 def _usable(nj, accel, gyro, q, thrust, fix_pos, fix_quat, has_fix) -> bool:
     """Every reading of the right shape and finite (the fix's shape too, when given)."""
@@ -74,14 +100,6 @@ def _usable(nj, accel, gyro, q, thrust, fix_pos, fix_quat, has_fix) -> bool:
     if has_fix and (fix_pos.shape[0] != 3 or fix_quat.shape[0] != 4):
         return False
     return _all_finite(accel) and _all_finite(gyro) and _all_finite(q) and _all_finite(thrust)
-
-
-@njit(cache=True)
-def filter_step(ad, b_value, b_slope, held, state, u_prev, u) -> None:
-    """One step of a started ``StateVariableFilter`` in place: held channels take u_prev = u."""
-    u_held = np.where(held, u, u_prev)
-    state[:] = _first_order_hold_step(ad, b_value, b_slope, state, u_held, u)
-    u_prev[:] = u
 
 
 @njit(cache=True)
@@ -106,9 +124,13 @@ def momentum_step(arrays, imu_pos, qd_var, rate_ad, rate_b_value, rate_b_slope, 
     filter on the pre-filter's input ``u``, one momentum-form sample of its outputs
     (``momentum.sample_from_rate_filter``) into the product filter. Returns G's pose in B
     (rotation, origin m) at the rate filter's joint angles."""
-    filter_step(rate_ad, rate_b_value, rate_b_slope, rate_held, rate_state, rate_u_prev, u)
+    first_order_hold_step(
+        rate_ad, rate_b_value, rate_b_slope, rate_held, rate_state, rate_u_prev, u
+    )
     sample, grasp_rot, grasp_pos = sample_from_rate_filter(arrays, imu_pos, rate_state, qd_var)
-    filter_step(prod_ad, prod_b_value, prod_b_slope, prod_held, prod_state, prod_u_prev, sample)
+    first_order_hold_step(
+        prod_ad, prod_b_value, prod_b_slope, prod_held, prod_state, prod_u_prev, sample
+    )
     return grasp_rot, grasp_pos
 
 
@@ -117,7 +139,7 @@ def actuation_cov_step(grasp_rot, grasp_pos, thrust_to_base, act_abs, act_rel, a
                        thrust_command) -> float:  # fmt: skip
     """Add this step's actuation covariance, carried into G, to ``act_cov_sum``:
     T_GB T_BS diag(std^2) T_BS^T T_GB^T, std = abs + rel |command|; returns the lever |p_BG| m."""
-    to_grasp = _grasp_from_base(grasp_rot, grasp_pos) @ thrust_to_base
+    to_grasp = grasp_from_base_kernel(grasp_rot, grasp_pos) @ thrust_to_base
     std = act_abs + act_rel * np.abs(thrust_command)
     act_cov_sum += (to_grasp * std**2) @ to_grasp.T
     return np.sqrt(grasp_pos @ grasp_pos)
@@ -204,7 +226,7 @@ def estimator_step(
         grasp_rot, grasp_pos,
     )  # fmt: skip
     u = pre_to_input @ np.concatenate((gyro, accel, q, thrust))
-    filter_step(pre_ad, pre_b_value, pre_b_slope, pre_held, pre_state, pre_u_prev, u)
+    first_order_hold_step(pre_ad, pre_b_value, pre_b_slope, pre_held, pre_state, pre_u_prev, u)
     rot_bg, pos_bg = momentum_step(
         arrays, imu_pos, qd_var, rate_ad, rate_b_value, rate_b_slope, rate_held, rate_state,
         rate_u_prev, prod_ad, prod_b_value, prod_b_slope, prod_held, prod_state, prod_u_prev, u,
@@ -218,7 +240,7 @@ def estimator_step(
         rot_bg, pos_bg, thrust_to_base, act_abs, act_rel, act_cov_sum, thrust
     )
     sample = np.ascontiguousarray(prod_state[0])
-    filter_step(bal_ad, bal_b_value, bal_b_slope, bal_held, bal_state, bal_u_prev, sample)
+    first_order_hold_step(bal_ad, bal_b_value, bal_b_slope, bal_held, bal_state, bal_u_prev, sample)
     return outcome, lever
 
 
@@ -298,28 +320,27 @@ class EstimatorInputs:
         Unusable joint angles or rates (the Python path handles the readings) leave the reading
         and the last ripple as they are."""
         rate = np.asarray(target_rate, dtype=float)
+        q = np.asarray(joint_pos_rad, dtype=float)
         nj = (self.robot.n_joints,)
         previous = self._servo_ripple_prev
         if previous is None:
             previous = self._servo_ripple_prev = np.zeros(3)
-        if rate.shape == nj and not (_any_nonzero(rate) or _any_nonzero(previous)):
-            return accel_imu  # at rest (a NaN rate is not: it counts as nonzero)
-        q = np.asarray(joint_pos_rad, dtype=float)
-        usable = q.shape == nj and rate.shape == nj
-        if not (usable and _all_finite(q) and _all_finite(rate)):
-            return accel_imu
+        if rate.shape != nj or q.shape != nj or _ripple_case(rate, previous, q) != RIPPLE_MOVING:
+            return accel_imu  # at rest (a NaN rate is not: it counts as nonzero), or unusable
         if self._servo_ripple_map is None or stamp % self.update_every == 0:
             self._servo_ripple_map = servo_ripple_velocities(
                 self.robot, q, self.ukf.params_mean(), self.dt_s
             )
         if self._servo_ripple_map is None:
             return accel_imu  # the servos' gains are unknown
-        ripple = self._servo_ripple_map @ rate
-        self._servo_ripple_prev = ripple
         if accel_imu is None:
+            self._servo_ripple_prev = self._servo_ripple_map @ rate
             return None
-        correction = self._imu_rot.T @ ((ripple - previous) / self.dt_s)
-        return np.asarray(accel_imu, dtype=float) - correction
+        self._servo_ripple_prev, corrected = servo_ripple_step(
+            self._servo_ripple_map, rate, previous, self._imu_rot, self.dt_s,
+            np.asarray(accel_imu, dtype=float),
+        )  # fmt: skip
+        return corrected
 
     def _compiled_path_ready(self, stamp: int, accel_imu: np.ndarray | None) -> bool:
         """Can this step take ``estimator_step``: an IMU frame, an increasing stamp,
@@ -481,7 +502,7 @@ class EstimatorInputs:
         tainted = stamp <= self._tainted_until
         jac, motion = self._motion_fields(b, stamp)
         sent_cov = act_cov + rate_links_cov if jac is None else act_cov
-        self._pending[stamp] = _Instant(
+        self._pending[stamp] = Instant(
             thrust=b.thrust.copy(),
             links=b.links.copy(),
             regressor=b.regressor.copy(),

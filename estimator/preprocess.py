@@ -53,11 +53,16 @@ DEFAULT_RATE_CUTOFF_HZ = 8.0
 
 
 @njit(cache=True)
-def _first_order_hold_step(ad, b_value, b_slope, state, u_prev, u):
-    """x_k+1 = Ad x_k + b_value u_k + b_slope (u_k+1 - u_k), every channel (column) at once.
-    A held channel passes u_prev = u_k+1: x_k+1 = Ad x_k + b_value u_k+1 (zero-order hold of the
-    new sample)."""
-    return ad @ state + b_value[:, None] * u_prev + b_slope[:, None] * (u - u_prev)
+def first_order_hold_step(ad, b_value, b_slope, held, state, u_prev, u) -> None:
+    """One step of every channel (column) in place: x_k+1 = Ad x_k + b_value u_k +
+    b_slope (u_k+1 - u_k) into ``state`` (3, n), then u_prev <- u_k+1. A ``held`` channel
+    passes u_k = u_k+1: x_k+1 = Ad x_k + b_value u_k+1 (zero-order hold of the new sample)."""
+    free = ad @ state
+    for c in range(state.shape[1]):
+        prev = u[c] if held[c] else u_prev[c]
+        for i in range(3):
+            state[i, c] = free[i, c] + b_value[i] * prev + b_slope[i] * (u[c] - prev)
+        u_prev[c] = u[c]
 
 
 @functools.lru_cache(maxsize=64)
@@ -117,7 +122,6 @@ class StateVariableFilter:
         self._held = np.zeros(self.n_channels, dtype=bool)
         if held is not None:
             self._held[held] = True
-        self._any_held = bool(self._held.any())
         self.delay_s = 3.0 / w
         self.state = np.zeros((3, self.n_channels))
         self._u_prev = np.zeros(self.n_channels)
@@ -134,17 +138,15 @@ class StateVariableFilter:
             raise ValueError(f"filter input must have shape ({self.n_channels},), got {u.shape}")
         # The state and the previous input are updated in place (``per_step`` steps them too).
         if self.started:
-            u_prev = self._u_prev
-            if self._any_held:
-                u_prev = np.where(self._held, u, u_prev)
-            new = _first_order_hold_step(self.ad, self.b_value, self.b_slope, self.state, u_prev, u)
+            first_order_hold_step(
+                self.ad, self.b_value, self.b_slope, self._held, self.state, self._u_prev, u
+            )
         else:
-            new = np.zeros((3, self.n_channels))
-            new[0] = u
+            self.state[:] = 0.0
+            self.state[0] = u
+            self._u_prev[:] = u
             self.started = True
-        self.state[:] = new
-        self._u_prev[:] = u
-        return new[0], new[1], new[2]
+        return self.state[0].copy(), self.state[1].copy(), self.state[2].copy()
 
     def noise_gains(self) -> np.ndarray:
         """(g_y, g_yd, g_ydd) (3,): white noise of standard deviation s per sample leaves s * g on

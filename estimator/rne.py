@@ -253,8 +253,9 @@ def _inertia_map(v: np.ndarray) -> np.ndarray:
 
 
 @njit(cache=True)
-def _body_regressor(acc: np.ndarray, w: np.ndarray, wd: np.ndarray) -> np.ndarray:
-    """Y (6, 10) of one sample; see ``body_regressor``."""
+def body_regressor_kernel(acc: np.ndarray, w: np.ndarray, wd: np.ndarray) -> np.ndarray:
+    """Y (6, 10) of one sample (acc, w, wd (3,) float64, body frame); ``body_regressor``'s
+    equation, compiled and unchecked, for compiled callers."""
     y = np.zeros((6, 10))
     skew_w = skew(w)
     y[:3, 0] = acc
@@ -274,7 +275,9 @@ def _wrench_transform(rot: np.ndarray, pos: np.ndarray) -> np.ndarray:
 
 
 @njit(cache=True)
-def _grasp_from_base(rot: np.ndarray, pos: np.ndarray) -> np.ndarray:
+def grasp_from_base_kernel(rot: np.ndarray, pos: np.ndarray) -> np.ndarray:
+    """``grasp_from_base`` (6, 6) compiled and unchecked, for compiled callers: f_G = R^T f,
+    n_G = R^T (n - pos x f)."""
     rot_t = np.ascontiguousarray(rot.T)
     t = np.zeros((6, 6))
     t[:3, :3] = rot_t
@@ -323,11 +326,11 @@ def _links_and_regressor(arrays, w_base, wd_base, acc_base, q, qd, qdd):
     rot, pos, w, wd, acc, grasp_rot, grasp_pos, grasp_acc = _forward_pass(
         arrays, w_base, wd_base, acc_base, q, qd, qdd
     )
-    to_grasp = _grasp_from_base(grasp_rot, grasp_pos)
+    to_grasp = grasp_from_base_kernel(grasp_rot, grasp_pos)
     links = _momentum_rate_pass(arrays, rot, pos, w, wd, acc)
     g = arrays.grasp_link
     # Vectors in G: R_G^T v is v @ R_G.
-    y = _body_regressor(grasp_acc @ grasp_rot, w[g] @ grasp_rot, wd[g] @ grasp_rot)
+    y = body_regressor_kernel(grasp_acc @ grasp_rot, w[g] @ grasp_rot, wd[g] @ grasp_rot)
     return to_grasp @ links, y, to_grasp, grasp_rot, grasp_pos
 
 
@@ -382,8 +385,8 @@ def _balance_jacobians(
     wd_g = np.ascontiguousarray(jac_wd[g].T) @ rot_g
     d_y = np.empty((n, 6, 10))
     for m in range(n):
-        d_y[m] = _body_regressor(acc_g[m], zero3, wd_g[m])
-    return _grasp_from_base(rot_g, pos_g) @ d_links, d_y
+        d_y[m] = body_regressor_kernel(acc_g[m], zero3, wd_g[m])
+    return grasp_from_base_kernel(rot_g, pos_g) @ d_links, d_y
 
 
 @njit(cache=True)
@@ -425,7 +428,7 @@ def _momentum_rate_batch(
 def _body_regressor_batch(acc, w, wd):
     out = np.empty((acc.shape[0], 6, 10))
     for i in range(acc.shape[0]):
-        out[i] = _body_regressor(acc[i], w[i], wd[i])
+        out[i] = body_regressor_kernel(acc[i], w[i], wd[i])
     return out
 
 
@@ -434,7 +437,7 @@ def _cargo_regressor_batch(grasp_rot, grasp_pos, grasp_acc, grasp_w, grasp_wd):
     out = np.empty((grasp_rot.shape[0], 6, 10))
     for i in range(grasp_rot.shape[0]):
         rot = grasp_rot[i]
-        y = _body_regressor(grasp_acc[i] @ rot, grasp_w[i] @ rot, grasp_wd[i] @ rot)
+        y = body_regressor_kernel(grasp_acc[i] @ rot, grasp_w[i] @ rot, grasp_wd[i] @ rot)
         out[i] = _wrench_transform(rot, grasp_pos[i]) @ y
     return out
 
@@ -448,8 +451,9 @@ def _flat(x, trailing: tuple[int, ...], batch: tuple[int, ...], name: str) -> np
     return np.ascontiguousarray(a.reshape(-1, *trailing))
 
 
-def _single(x, shape: tuple[int, ...], name: str) -> np.ndarray:
-    """``x`` as a contiguous float64 array of ``shape`` (one sample)."""
+def as_single(x, shape: tuple[int, ...], name: str) -> np.ndarray:
+    """``x`` as a contiguous float64 array of ``shape`` (one sample, what the compiled kernels
+    take); ValueError naming ``name`` for another shape."""
     a = np.asarray(x, dtype=float)
     if a.shape != shape:
         raise ValueError(f"{name} must have shape {shape}, got {a.shape}")
@@ -504,7 +508,7 @@ def link_poses(robot: RobotDescription, q: np.ndarray) -> tuple[np.ndarray, np.n
 def grasp_pose(robot: RobotDescription, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Grasp frame G in the base frame at joint angles ``q`` (n_joints,) rad: rotation (3, 3)
     and origin (3,) m (``propagate`` at rest)."""
-    return _grasp_pose(*robot.arrays, _single(q, (robot.n_joints,), "q"))
+    return _grasp_pose(*robot.arrays, as_single(q, (robot.n_joints,), "q"))
 
 
 def link_momentum_rate(robot: RobotDescription, kin: Kinematics) -> np.ndarray:
@@ -535,13 +539,13 @@ def body_regressor(acc: np.ndarray, w: np.ndarray, wd: np.ndarray) -> np.ndarray
 def wrench_transform(rot: np.ndarray, pos: np.ndarray) -> np.ndarray:
     """6x6 map of a wrench [f; n about A's origin] in frame A to frame B, where A's pose in B is
     (rot (3, 3), pos (3,) m): f_B = R f, n_B = R n + pos x (R f)."""
-    return _wrench_transform(_single(rot, (3, 3), "rot"), _single(pos, (3,), "pos"))
+    return _wrench_transform(as_single(rot, (3, 3), "rot"), as_single(pos, (3,), "pos"))
 
 
 def grasp_from_base(rot: np.ndarray, pos: np.ndarray) -> np.ndarray:
     """Inverse of ``wrench_transform(rot, pos)``: wrench in B (about B's origin) -> frame G whose
     pose in B is (rot, pos), moments about G's origin: f_G = R^T f, n_G = R^T (n - pos x f)."""
-    return _grasp_from_base(_single(rot, (3, 3), "rot"), _single(pos, (3,), "pos"))
+    return grasp_from_base_kernel(as_single(rot, (3, 3), "rot"), as_single(pos, (3,), "pos"))
 
 
 def cargo_regressor(kin: Kinematics) -> np.ndarray:
@@ -564,7 +568,7 @@ def thrust_wrench(robot: RobotDescription, command: np.ndarray) -> np.ndarray:
 def _single_motion(robot, w_base, wd_base, acc_base, q, qd, qdd) -> list[np.ndarray]:
     """One sample's motion inputs checked for shape, as the compiled kernels take them."""
     nj = (robot.n_joints,)
-    return [_single(x, shape, name) for x, shape, name in (
+    return [as_single(x, shape, name) for x, shape, name in (
         (w_base, (3,), "w_base"), (wd_base, (3,), "wd_base"), (acc_base, (3,), "acc_base"),
         (q, nj, "q"), (qd, nj, "qd"), (qdd, nj, "qdd"),
     )]  # fmt: skip
@@ -585,7 +589,7 @@ def balance_in_grasp_frame(
     ``thrust_base`` (6,) in B about B's origin. Both passes and the regressor in one compiled
     call: the estimator evaluates it every other control step."""
     inputs = _single_motion(robot, w_base, wd_base, acc_base, q, qd, qdd)
-    thrust = _single(thrust_base, (6,), "thrust_base")
+    thrust = as_single(thrust_base, (6,), "thrust_base")
     thrust_g, links_g, y, rot, pos = _grasp_balance(*robot.arrays, *inputs, thrust)
     return Balance(thrust_g, links_g, y), rot, pos
 

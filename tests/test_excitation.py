@@ -22,7 +22,7 @@ from astrocargo.agents.excitation_design import (
 )
 from astrocargo.envs.sensors import estimator_noise_kwargs, noise_profile
 from astrocargo.envs.world import World
-from astrocargo.estimator.cargo_estimator import CargoEstimator, WrenchMessage, _Instant
+from astrocargo.estimator.cargo_estimator import CargoEstimator, Instant, WrenchMessage
 from astrocargo.estimator.motion import grasp_acc_map
 from astrocargo.estimator.rne import (
     balance_motion_jacobians,
@@ -274,7 +274,7 @@ def test_motion_covariance_is_the_estimators(n_robots, fusion):
         w, wd, acc, qd, qdd = (rng.normal(0.0, 0.05, k) for k in (3, 3, 3, 2, 2))
         d_links, d_y = balance_motion_jacobians(e.robot, w, wd, acc, q, qd, qdd)
         if i == 0:
-            inst = _Instant(
+            inst = Instant(
                 np.zeros(6), np.zeros(6), rng.normal(size=(6, 10)), np.zeros((6, 6)), False,
                 (d_links, d_y),
             )  # fmt: skip
