@@ -41,7 +41,6 @@ The whole evaluation is compiled with numba (``@njit(cache=True)``): one call pe
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import NamedTuple
 
 import numpy as np
 from numba import njit
@@ -83,19 +82,23 @@ class Reference:
     pan_rate: float
 
 
-class _Shape(NamedTuple):
-    """A trajectory's constants, as the compiled evaluation takes them."""
-
-    moving: bool  # figure-eight and yaw ramp (False: hover)
-    tumble: bool  # roll, pitch and yaw oscillations
-    pan_ramp: bool
-    center_m: np.ndarray  # (3,)
-    figure8_amp_m: np.ndarray  # (2,) A, B
-    figure8_harmonic: np.ndarray  # (2,) 1, 2
-    omega_radps: float
-    ramp_s: float
-    tumble_amp_rad: np.ndarray  # (3,) roll, pitch, yaw oscillation amplitudes
-    tumble_omega_radps: np.ndarray  # (3,)
+# A trajectory's constants, as the compiled evaluation takes them: one record (a record array
+# of one crosses into numba as one argument).
+SHAPE_DTYPE = np.dtype(
+    [
+        ("moving", "?"),  # figure-eight and yaw ramp (False: hover)
+        ("tumble", "?"),  # roll, pitch and yaw oscillations
+        ("pan_ramp", "?"),
+        ("center_m", "f8", 3),
+        ("figure8_amp_m", "f8", 2),  # A, B
+        ("figure8_harmonic", "f8", 2),  # 1, 2
+        ("omega_radps", "f8"),
+        ("ramp_s", "f8"),
+        ("tumble_amp_rad", "f8", 3),  # roll, pitch, yaw oscillation amplitudes
+        ("tumble_omega_radps", "f8", 3),
+    ],
+    align=True,
+)
 
 
 @njit(cache=True)
@@ -137,7 +140,7 @@ def _oscillation(
 
 @njit(cache=True)
 def _figure_eight_into(vecs: np.ndarray, t: float, ramp: tuple[float, float, float],
-                       shape: _Shape) -> None:  # fmt: skip
+                       shape: np.record) -> None:  # fmt: skip
     """Position (m), velocity and acceleration of the time-warped figure-eight about the centre,
     written into the rows 0, 1, 2 of ``vecs``: p_k = A_k sin(k th) for k = 1 (x), 2 (y),
     th = omega int s (the phase rate rises smoothly from 0 to omega, so the motion starts at
@@ -155,7 +158,9 @@ def _figure_eight_into(vecs: np.ndarray, t: float, ramp: tuple[float, float, flo
 
 
 @njit(cache=True)
-def _yaw(t: float, ramp: tuple[float, float, float], shape: _Shape) -> tuple[float, float, float]:
+def _yaw(
+    t: float, ramp: tuple[float, float, float], shape: np.record
+) -> tuple[float, float, float]:
     """Yaw angle (rad), rate and acceleration: a ramp to YAW_RATE_RADPS (smoothstep ``ramp``), the
     rate doubled from 40 to 50 s (edges YAW_TURN_EDGE_S), plus the tumble's yaw oscillation."""
     if not shape.moving:
@@ -225,7 +230,7 @@ def _attitude_zxy_into(
 
 
 @njit(cache=True)
-def _pan(t: float, ramp: tuple[float, float, float], shape: _Shape) -> tuple[float, float]:
+def _pan(t: float, ramp: tuple[float, float, float], shape: np.record) -> tuple[float, float]:
     """Pan angle (rad) and rate: a triangle wave of +-PAN_AMPLITUDE_RAD at PAN_RATE_RADPS,
     faded in by the start's smoothstep ``ramp`` (zero without a pan ramp)."""
     if not shape.pan_ramp:
@@ -245,9 +250,10 @@ def _pan(t: float, ramp: tuple[float, float, float], shape: _Shape) -> tuple[flo
 
 @njit(cache=True)
 def _evaluate_into(rot: np.ndarray, vecs: np.ndarray, pan: np.ndarray, t: float,
-                   shape: _Shape) -> None:  # fmt: skip
+                   shapes: np.ndarray) -> None:  # fmt: skip
     """The reference at t written into ``rot`` (3, 3); ``vecs`` (5, 3), whose rows are pos,
-    vel, acc, w, wd; ``pan`` (2,): pan angle and rate."""
+    vel, acc, w, wd; ``pan`` (2,): pan angle and rate. ``shapes``: (1,) of ``SHAPE_DTYPE``."""
+    shape = shapes[0]
     ramp = _smoothstep(t, 0.0, shape.ramp_s)
     if shape.moving:
         _figure_eight_into(vecs, t, ramp, shape)
@@ -262,37 +268,9 @@ def _evaluate_into(rot: np.ndarray, vecs: np.ndarray, pan: np.ndarray, t: float,
     pan[0], pan[1] = _pan(t, ramp, shape)
 
 
-@njit(cache=True)
-def _evaluate_arrays(t: float, shape: _Shape) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The reference at t as three new arrays (``_evaluate_into``): rot (3, 3); pos, vel, acc,
-    w, wd as the rows of a (5, 3); (pan, pan_rate) (2,)."""
-    rot, vecs, pan = np.empty((3, 3)), np.empty((5, 3)), np.empty(2)
-    _evaluate_into(rot, vecs, pan, t, shape)
-    return rot, vecs, pan
-
-
-@njit(cache=True)
-def _evaluate(t: float, shape: _Shape) -> tuple:
-    """The reference at t: (pos, vel, acc, rot, w, wd, pan, pan_rate), as ``Reference``."""
-    rot, vecs, pan = _evaluate_arrays(t, shape)
-    return vecs[0], vecs[1], vecs[2], rot, vecs[3], vecs[4], pan[0], pan[1]
-
-
-@njit(cache=True)
-def _evaluate_arrays_of(t, moving, tumble, pan_ramp, center_m, figure8_amp_m, figure8_harmonic,
-                        omega_radps, ramp_s, tumble_amp_rad, tumble_omega_radps):  # fmt: skip
-    """``_evaluate_arrays`` with the ``_Shape`` given field by field (numba types a tuple's
-    fields one by one in Python at each call, separate arguments at C speed)."""
-    shape = _Shape(
-        moving, tumble, pan_ramp, center_m, figure8_amp_m, figure8_harmonic, omega_radps,
-        ramp_s, tumble_amp_rad, tumble_omega_radps,
-    )  # fmt: skip
-    return _evaluate_arrays(t, shape)
-
-
 class Trajectory:
     """A named reference: ``Trajectory(name, fast=False)(t)`` -> ``Reference`` at t (s);
-    ``arrays(t)`` packs the same numbers for the env's per-step kernels."""
+    ``arrays(t)`` (or ``arrays_into``) packs the same numbers for the env's per-step kernels."""
 
     NAMES = ("figure8_yaw", "figure8_tumble", "hover")
     # figure8_tumble's (amplitude deg, period s) of roll (about x) then pitch (about y), and of
@@ -320,23 +298,29 @@ class Trajectory:
         self.omega = 0.11 * (FAST_FACTOR if self.fast else 1.0)
         self.ramp_s = 15.0  # smooth start of every motion
         amp_deg, period_s = np.array([*self.TUMBLE, self.TUMBLE_YAW]).T
-        self._shape = _Shape(
-            moving=name != "hover",
-            tumble=name == "figure8_tumble",
-            pan_ramp=self.pan_ramp,
-            center_m=self.center.copy(),
-            figure8_amp_m=self.amp.copy(),
-            figure8_harmonic=np.array([1.0, 2.0]),
-            omega_radps=float(self.omega),
-            ramp_s=self.ramp_s,
-            tumble_amp_rad=np.deg2rad(amp_deg),
-            tumble_omega_radps=2 * np.pi / period_s,
-        )
+        self._shape = np.zeros(1, dtype=SHAPE_DTYPE)
+        shape = self._shape[0]
+        shape["moving"], shape["tumble"] = name != "hover", name == "figure8_tumble"
+        shape["pan_ramp"], shape["center_m"] = self.pan_ramp, self.center
+        shape["figure8_amp_m"], shape["figure8_harmonic"] = self.amp, (1.0, 2.0)
+        shape["omega_radps"], shape["ramp_s"] = self.omega, self.ramp_s
+        shape["tumble_amp_rad"] = np.deg2rad(amp_deg)
+        shape["tumble_omega_radps"] = 2 * np.pi / period_s
 
     def __call__(self, t: float) -> Reference:
-        return Reference(*_evaluate(float(t), self._shape))
+        rot, vecs, pan = self.arrays(t)
+        return Reference(
+            vecs[0], vecs[1], vecs[2], rot, vecs[3], vecs[4], float(pan[0]), float(pan[1])
+        )
 
     def arrays(self, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The reference at ``t`` as arrays (the same numbers as ``self(t)``): rotation (3, 3);
         pos, vel, acc, w, wd as the rows of a (5, 3), world axes; (pan, pan_rate) (2,)."""
-        return _evaluate_arrays_of(float(t), *self._shape)
+        rot, vecs, pan = np.empty((3, 3)), np.empty((5, 3)), np.empty(2)
+        self.arrays_into(t, rot, vecs, pan)
+        return rot, vecs, pan
+
+    def arrays_into(self, t: float, rot: np.ndarray, vecs: np.ndarray, pan: np.ndarray) -> None:
+        """``arrays(t)`` written into ``rot`` (3, 3), ``vecs`` (5, 3) and ``pan`` (2,), float64
+        and C-contiguous (the env's per-step call: nothing is allocated)."""
+        _evaluate_into(rot, vecs, pan, float(t), self._shape)
