@@ -40,7 +40,7 @@ from astrocargo.estimator.rne import RobotDescription
 NAV_STD_FLOOR = 1e-9
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _propagate(f, gyro, accel, dt_s, work_rot, work_vec):
     """Dead reckoning of one robot's IMU point over one period, in place on its filter record
     ``f`` (rot, point_pos, point_vel, w_base); ``work_rot`` (3, 3, 3), ``work_vec`` (3, 3):
@@ -66,7 +66,7 @@ def _propagate(f, gyro, accel, dt_s, work_rot, work_vec):
     f.w_base[:] = w
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _blend_fix(f, fix_quat, fix_pos, gain_att, gain_pos, gain_vel, work_rot, work_vec):
     """One robot's Kalman blend of a localization fix, in place on its filter record ``f``:
     R, p, v; ``work_rot`` (3, 3, 3), ``work_vec`` (3, 3): scratch."""

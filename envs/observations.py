@@ -74,7 +74,7 @@ def observation_bounds(layout: dict[str, slice]) -> tuple[np.ndarray, np.ndarray
     return low, high
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def grasp_pose_into(rot_out, pos_out, rots, poss, link_parent, link_rot, link_pos, link_axis,
                     grasp_link, grasp_rot, grasp_pos, q):  # fmt: skip
     """Grasp frame in the base frame at joint angles q (module docstring's chain), written into
@@ -113,7 +113,7 @@ def grasp_pose(link_parent, link_rot, link_pos, link_axis, grasp_link, grasp_rot
     return rot, pos
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _add_to(out, a, b):
     """out = a + b (3-vectors), written into ``out`` without a temporary (``out`` may be a or
     b)."""
@@ -121,14 +121,14 @@ def _add_to(out, a, b):
         out[i] = a[i] + b[i]
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _put(row, start, value):
     """row[start : start + len(value)] = value."""
     for k in range(value.shape[0]):
         row[start + k] = value[k]
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _put_in_base(row, start, rot, a, b):
     """row[start : start + 3] = R^T (a - b): a difference of world vectors in base axes (as
     ``matvec3(rot.T, a - b)``, without temporaries)."""
@@ -139,7 +139,7 @@ def _put_in_base(row, start, rot, a, b):
         row[start + i] = total
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _own_blocks(out, starts, rot, base_pos, base_vel, w, q, target, rot_ref, pos_ref, vel_ref,
                 ref_vecs, ref_pan, qd, zero, work_rot, work_vec):  # fmt: skip
     """Write the OWN_BLOCKS of one row at ``starts`` (in OWN_BLOCKS order); ref_vecs rows: the

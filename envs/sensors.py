@@ -161,7 +161,7 @@ class SensorReadings:
         return SensorReadings(self.time_s, *out)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def imu_site_state_into(vel, rot, cvel, site_xpos, site_xmat, subtree_com, bodies, roots, sites):
     """Linear velocity ``vel`` (n, 3), world axes, and rotation ``rot`` (n, 3, 3) of each site,
     written in place: its body's spatial velocity (MuJoCo's ``cvel``: angular, linear at the
@@ -188,7 +188,7 @@ def imu_site_state(cvel, site_xpos, site_xmat, subtree_com, bodies, roots, sites
     return vel, rot
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def imu_period_means_into(accel, gyro, v0, r0, v1, r1, dt_s):
     """Mean specific force ``accel`` and angular rate ``gyro`` of each IMU over a period of
     ``dt_s``, IMU frame (n, 3) each, written in place, from its velocity (world axes) and
@@ -241,7 +241,7 @@ def noisy_readings(v0, r0, dt_s, cvel, site_xpos, site_xmat, subtree_com, bodies
     return accel, gyro, joints, pos, quat
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _readings_into(v0, r0, v1, r1, dt_s, sensordata, joint_adr, pos_adr, quat_adr, noise, fix,
                    rows, accel, gyro, joints, pos, quat):  # fmt: skip
     """``noisy_readings``' values from the IMU states at the period's start and end, robot k's

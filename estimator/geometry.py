@@ -15,8 +15,9 @@ that writes its result into ``out`` (which must not share memory with an input, 
 docstring says so) and allocates nothing: the returning form is that one writing into a new
 array, so both give the same numbers. Kernels that run every control step use the ``_into``
 forms with work arrays they allocate once per call (each numba heap allocation costs more than
-a 3x3 product). ``matmul3`` and ``matvec3`` are the 3x3 products for compiled kernels (see
-their docstrings for why they exist). Batched forms, where a caller needs them, are numpy
+a 3x3 product); the ``_into`` forms are inlined into their callers (``inline="always"``: a
+call passing several arrays costs more than these bodies). ``matmul3`` and ``matvec3`` are the
+3x3 products for compiled kernels (see their docstrings for why they exist). Batched forms, where a caller needs them, are numpy
 one-liners on top (``rotation_matrices``).
 
 Equations:
@@ -65,7 +66,7 @@ __all__ = [
 _SMALL_ANGLE_RAD = 1e-12
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def matmul3_into(out: np.ndarray, a: np.ndarray, b: np.ndarray) -> None:
     """out = a b (3, 3) of two 3x3 matrices, C_ij = sum_k A_ik B_kj, any strides (a.T too).
 
@@ -85,7 +86,7 @@ def matmul3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def matvec3_into(out: np.ndarray, a: np.ndarray, v: np.ndarray) -> None:
     """out = a v (3,) of a 3x3 matrix and a 3-vector, any strides; ``matmul3_into``'s reason
     (a loop, not BLAS) holds here too. Equal to ``a @ v`` to rounding."""
@@ -101,7 +102,7 @@ def matvec3(a: np.ndarray, v: np.ndarray) -> np.ndarray:
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def cross3_into(out: np.ndarray, a: np.ndarray, b: np.ndarray) -> None:
     """out = a x b (3,) of two 3-vectors, any strides; ``matmul3_into``'s reason (numba's
     ``np.cross`` is a general broadcasting kernel) holds here too. Equal to ``np.cross``."""
@@ -118,7 +119,7 @@ def cross3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def skew_into(out: np.ndarray, v: np.ndarray) -> None:
     """out = [v]x (3, 3), the cross-product matrix of v (3,): ``skew(v) @ u == v x u``."""
     out[0, 0], out[0, 1], out[0, 2] = 0.0, -v[2], v[1]
@@ -134,7 +135,7 @@ def skew(v: np.ndarray) -> np.ndarray:
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def exp_so3_into(out: np.ndarray, rotvec: np.ndarray) -> None:
     """out = exp(rotvec) (3, 3), the rotation matrix of a rotation vector (3,) in radians
     (Rodrigues)."""
@@ -161,7 +162,7 @@ def exp_so3(rotvec: np.ndarray) -> np.ndarray:
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _rotvec_of(out: np.ndarray, w: float, v: np.ndarray) -> None:
     """out = the rotation vector (angle in [0, pi]) of the quaternion (w, v); ``out`` may be
     ``v`` itself."""
@@ -182,7 +183,7 @@ def _rotvec_of(out: np.ndarray, w: float, v: np.ndarray) -> None:
         out[i] = scale * out[i]
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def quat_to_rotvec_into(out: np.ndarray, quat: np.ndarray) -> None:
     """out = the rotation vector (3,), angle in [0, pi], of a quaternion (w, x, y, z) of any
     norm > 0."""
@@ -197,7 +198,7 @@ def quat_to_rotvec(quat: np.ndarray) -> np.ndarray:
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def rotvec_to_quat_into(out: np.ndarray, rotvec: np.ndarray) -> None:
     """out = the unit quaternion (w, x, y, z) of a rotation vector (3,) in radians."""
     angle = math.sqrt(rotvec[0] ** 2 + rotvec[1] ** 2 + rotvec[2] ** 2)
@@ -219,7 +220,7 @@ def rotvec_to_quat(rotvec: np.ndarray) -> np.ndarray:
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def quat_to_mat_into(out: np.ndarray, quat: np.ndarray) -> None:
     """out = the rotation matrix (3, 3) of a quaternion (w, x, y, z); the quaternion is
     normalised first (q / |q| = (w, v))."""
@@ -242,7 +243,7 @@ def quat_to_mat(quat: np.ndarray) -> np.ndarray:
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _shepperd(rot: np.ndarray, v: np.ndarray) -> float:
     """Shepperd's method on a rotation matrix (3, 3): a quaternion (w, v) of it, neither sign
     nor norm fixed; the vector part goes into ``v`` (3,), w is returned."""
@@ -274,7 +275,7 @@ def _shepperd(rot: np.ndarray, v: np.ndarray) -> float:
     return w
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _unit_positive(w: float, v: np.ndarray) -> float:
     """The quaternion (w, v) made unit with w >= 0, in place on ``v``; returns the new w."""
     if w < 0.0:
@@ -287,7 +288,7 @@ def _unit_positive(w: float, v: np.ndarray) -> float:
     return w / norm
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def mat_to_quat_into(out: np.ndarray, rot: np.ndarray) -> None:
     """out = the unit quaternion (w, x, y, z), w >= 0, of a rotation matrix (3, 3) (Shepperd's
     method)."""
@@ -303,7 +304,7 @@ def mat_to_quat(rot: np.ndarray) -> np.ndarray:
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def log_so3_into(out: np.ndarray, rot: np.ndarray) -> None:
     """out = log(rot), the rotation vector (3,), angle in [0, pi], of a rotation matrix (3, 3):
     through its unit quaternion (``mat_to_quat_into`` then ``quat_to_rotvec_into``)."""
@@ -319,7 +320,7 @@ def log_so3(rot: np.ndarray) -> np.ndarray:
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def quat_mul_into(out: np.ndarray, a: np.ndarray, b: np.ndarray) -> None:
     """out = a * b, the Hamilton product of quaternions (w, x, y, z): rotation b first, then a."""
     out[0] = a[0] * b[0] - a[1] * b[1] - a[2] * b[2] - a[3] * b[3]
