@@ -17,8 +17,8 @@ array, so both give the same numbers. Kernels that run every control step use th
 forms with work arrays they allocate once per call (each numba heap allocation costs more than
 a 3x3 product); the ``_into`` forms are inlined into their callers (``inline="always"``: a
 call passing several arrays costs more than these bodies). ``matmul3`` and ``matvec3`` are the
-3x3 products for compiled kernels (see their docstrings for why they exist). Batched forms, where a caller needs them, are numpy
-one-liners on top (``rotation_matrices``).
+3x3 products for compiled kernels (see their docstrings for why they exist). Batched forms,
+where a caller needs them, are numpy one-liners on top (``rotation_matrices``).
 
 Equations:
 - Rodrigues: ``exp(phi) = I + sin(a) K + (1 - cos(a)) K^2 = cos(a) I + sin(a) K + (1 - cos(a))
