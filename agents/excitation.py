@@ -334,6 +334,10 @@ class DesignedTrajectory:
         vecs = np.stack((m.pos[0], m.vel[0], m.acc[0], m.w[0], m.wd[0]))
         return np.ascontiguousarray(m.rot[0]), vecs, np.array((m.pan[0], m.pan_rate[0]))
 
+    def arrays_into(self, t: float, rot: np.ndarray, vecs: np.ndarray, pan: np.ndarray) -> None:
+        """``arrays(t)`` written into ``rot``, ``vecs`` and ``pan`` (``Trajectory.arrays_into``)."""
+        rot[:], vecs[:], pan[:] = self.arrays(t)
+
     def __call__(self, t: float) -> Reference:
         m = self.motion(np.array([float(t)]))
         return Reference(

@@ -41,12 +41,11 @@ The whole evaluation is compiled with numba (``@njit(cache=True)``): one call pe
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import NamedTuple
 
 import numpy as np
 from numba import njit
 
-from astrocargo.estimator.geometry import exp_so3, matmul3
+from astrocargo.estimator.geometry import cross3_into, exp_so3_into, matmul3_into
 
 NOMINAL_SPEED_MPS = 0.2
 NOMINAL_ACCEL_MPS2 = 0.0175
@@ -83,19 +82,23 @@ class Reference:
     pan_rate: float
 
 
-class _Shape(NamedTuple):
-    """A trajectory's constants, as the compiled evaluation takes them."""
-
-    moving: bool  # figure-eight and yaw ramp (False: hover)
-    tumble: bool  # roll, pitch and yaw oscillations
-    pan_ramp: bool
-    center_m: np.ndarray  # (3,)
-    figure8_amp_m: np.ndarray  # (2,) A, B
-    figure8_harmonic: np.ndarray  # (2,) 1, 2
-    omega_radps: float
-    ramp_s: float
-    tumble_amp_rad: np.ndarray  # (3,) roll, pitch, yaw oscillation amplitudes
-    tumble_omega_radps: np.ndarray  # (3,)
+# A trajectory's constants, as the compiled evaluation takes them: one record (a record array
+# of one crosses into numba as one argument).
+SHAPE_DTYPE = np.dtype(
+    [
+        ("moving", "?"),  # figure-eight and yaw ramp (False: hover)
+        ("tumble", "?"),  # roll, pitch and yaw oscillations
+        ("pan_ramp", "?"),
+        ("center_m", "f8", 3),
+        ("figure8_amp_m", "f8", 2),  # A, B
+        ("figure8_harmonic", "f8", 2),  # 1, 2
+        ("omega_radps", "f8"),
+        ("ramp_s", "f8"),
+        ("tumble_amp_rad", "f8", 3),  # roll, pitch, yaw oscillation amplitudes
+        ("tumble_omega_radps", "f8", 3),
+    ],
+    align=True,
+)
 
 
 @njit(cache=True)
@@ -136,26 +139,28 @@ def _oscillation(
 
 
 @njit(cache=True)
-def _figure_eight(
-    t: float, ramp: tuple[float, float, float], shape: _Shape
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Position (m), velocity and acceleration of the time-warped figure-eight about the centre:
-    p_k = A_k sin(k th) for k = 1 (x), 2 (y), th = omega int s (the phase rate rises smoothly from
-    0 to omega, so the motion starts at rest without a burst of acceleration)."""
+def _figure_eight_into(vecs: np.ndarray, t: float, ramp: tuple[float, float, float],
+                       shape: np.record) -> None:  # fmt: skip
+    """Position (m), velocity and acceleration of the time-warped figure-eight about the centre,
+    written into the rows 0, 1, 2 of ``vecs``: p_k = A_k sin(k th) for k = 1 (x), 2 (y),
+    th = omega int s (the phase rate rises smoothly from 0 to omega, so the motion starts at
+    rest without a burst of acceleration)."""
     s, ds, _ = ramp
     omega, amp, k = shape.omega_radps, shape.figure8_amp_m, shape.figure8_harmonic
     th = omega * _ramp_integral(t, 0.0, shape.ramp_s)
     thd, thdd = omega * s, omega * ds
-    sn, cs = np.sin(k * th), np.cos(k * th)
-    pos, vel, acc = shape.center_m.copy(), np.zeros(3), np.zeros(3)
-    pos[:2] += amp * sn
-    vel[:2] = amp * k * thd * cs
-    acc[:2] = amp * k * (thdd * cs - k * thd**2 * sn)
-    return pos, vel, acc
+    vecs[0], vecs[1], vecs[2] = shape.center_m, 0.0, 0.0
+    for d in range(2):
+        sn, cs = np.sin(k[d] * th), np.cos(k[d] * th)
+        vecs[0, d] += amp[d] * sn
+        vecs[1, d] = amp[d] * k[d] * thd * cs
+        vecs[2, d] = amp[d] * k[d] * (thdd * cs - k[d] * thd**2 * sn)
 
 
 @njit(cache=True)
-def _yaw(t: float, ramp: tuple[float, float, float], shape: _Shape) -> tuple[float, float, float]:
+def _yaw(
+    t: float, ramp: tuple[float, float, float], shape: np.record
+) -> tuple[float, float, float]:
     """Yaw angle (rad), rate and acceleration: a ramp to YAW_RATE_RADPS (smoothstep ``ramp``), the
     rate doubled from 40 to 50 s (edges YAW_TURN_EDGE_S), plus the tumble's yaw oscillation."""
     if not shape.moving:
@@ -180,36 +185,52 @@ def _yaw(t: float, ramp: tuple[float, float, float], shape: _Shape) -> tuple[flo
 
 
 @njit(cache=True)
-def _attitude_zxy(
+def _attitude_zxy_into(
+    rot: np.ndarray,
+    w: np.ndarray,
+    wd: np.ndarray,
     yaw: tuple[float, float, float],
     roll: tuple[float, float, float],
     pitch: tuple[float, float, float],
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+) -> None:
     """R = Rz(yaw) Rx(roll) Ry(pitch) and its angular velocity and acceleration in world axes,
-    from each angle's (value rad, rate rad/s, acceleration rad/s^2): w = yaw' e_z + roll' e_x +
-    pitch' e_y with e_x = Rz[:, 0], e_y = (Rz Rx)[:, 1]; de_x/dt = (yaw' e_z) x e_x and
-    de_y/dt = (yaw' e_z + roll' e_x) x e_y give w'."""
-    e_z = np.array([0.0, 0.0, 1.0])
-    rot_z = exp_so3(yaw[0] * e_z)
-    rot_zx = matmul3(rot_z, exp_so3(np.array([roll[0], 0.0, 0.0])))
-    rot = matmul3(rot_zx, exp_so3(np.array([0.0, pitch[0], 0.0])))
-    e_x = rot_z[:, 0].copy()
-    e_y = rot_zx[:, 1].copy()
-    w_z = yaw[1] * e_z
-    w_zx = w_z + roll[1] * e_x
-    w = w_zx + pitch[1] * e_y
-    wd = (
-        yaw[2] * e_z
-        + roll[2] * e_x
-        + roll[1] * np.cross(w_z, e_x)
-        + pitch[2] * e_y
-        + pitch[1] * np.cross(w_zx, e_y)
-    )
-    return rot, w, wd
+    written into ``rot``, ``w`` and ``wd``, from each angle's (value rad, rate rad/s,
+    acceleration rad/s^2): w = yaw' e_z + roll' e_x + pitch' e_y with e_x = Rz[:, 0],
+    e_y = (Rz Rx)[:, 1]; de_x/dt = (yaw' e_z) x e_x and de_y/dt = (yaw' e_z + roll' e_x) x e_y
+    give w'."""
+    work_rot, work_vec = np.empty((3, 3, 3)), np.zeros((8, 3))
+    rot_z, rot_zx, factor = work_rot[0], work_rot[1], work_rot[2]
+    e_z, rotvec, e_x, e_y = work_vec[0], work_vec[1], work_vec[2], work_vec[3]
+    w_z, w_zx, turn_x, turn_y = work_vec[4], work_vec[5], work_vec[6], work_vec[7]
+    e_z[2] = 1.0
+    for d in range(3):
+        rotvec[d] = yaw[0] * e_z[d]
+    exp_so3_into(rot_z, rotvec)
+    rotvec[0], rotvec[1], rotvec[2] = roll[0], 0.0, 0.0
+    exp_so3_into(factor, rotvec)
+    matmul3_into(rot_zx, rot_z, factor)
+    rotvec[0], rotvec[1], rotvec[2] = 0.0, pitch[0], 0.0
+    exp_so3_into(factor, rotvec)
+    matmul3_into(rot, rot_zx, factor)
+    for d in range(3):
+        e_x[d], e_y[d] = rot_z[d, 0], rot_zx[d, 1]
+        w_z[d] = yaw[1] * e_z[d]
+        w_zx[d] = w_z[d] + roll[1] * e_x[d]
+        w[d] = w_zx[d] + pitch[1] * e_y[d]
+    cross3_into(turn_x, w_z, e_x)
+    cross3_into(turn_y, w_zx, e_y)
+    for d in range(3):
+        wd[d] = (
+            yaw[2] * e_z[d]
+            + roll[2] * e_x[d]
+            + roll[1] * turn_x[d]
+            + pitch[2] * e_y[d]
+            + pitch[1] * turn_y[d]
+        )
 
 
 @njit(cache=True)
-def _pan(t: float, ramp: tuple[float, float, float], shape: _Shape) -> tuple[float, float]:
+def _pan(t: float, ramp: tuple[float, float, float], shape: np.record) -> tuple[float, float]:
     """Pan angle (rad) and rate: a triangle wave of +-PAN_AMPLITUDE_RAD at PAN_RATE_RADPS,
     faded in by the start's smoothstep ``ramp`` (zero without a pan ramp)."""
     if not shape.pan_ramp:
@@ -228,48 +249,28 @@ def _pan(t: float, ramp: tuple[float, float, float], shape: _Shape) -> tuple[flo
 
 
 @njit(cache=True)
-def _evaluate(t: float, shape: _Shape) -> tuple:
-    """The reference at t: (pos, vel, acc, rot, w, wd, pan, pan_rate), as ``Reference``."""
+def _evaluate_into(rot: np.ndarray, vecs: np.ndarray, pan: np.ndarray, t: float,
+                   shapes: np.ndarray) -> None:  # fmt: skip
+    """The reference at t written into ``rot`` (3, 3); ``vecs`` (5, 3), whose rows are pos,
+    vel, acc, w, wd; ``pan`` (2,): pan angle and rate. ``shapes``: (1,) of ``SHAPE_DTYPE``."""
+    shape = shapes[0]
     ramp = _smoothstep(t, 0.0, shape.ramp_s)
     if shape.moving:
-        pos, vel, acc = _figure_eight(t, ramp, shape)
+        _figure_eight_into(vecs, t, ramp, shape)
     else:
-        pos, vel, acc = shape.center_m.copy(), np.zeros(3), np.zeros(3)
+        vecs[0], vecs[1], vecs[2] = shape.center_m, 0.0, 0.0
     roll = pitch = (0.0, 0.0, 0.0)
     if shape.tumble:
         amp, omega = shape.tumble_amp_rad, shape.tumble_omega_radps
         roll = _oscillation(t, ramp, amp[0], omega[0])
         pitch = _oscillation(t, ramp, amp[1], omega[1])
-    rot, w, wd = _attitude_zxy(_yaw(t, ramp, shape), roll, pitch)
-    pan, pan_rate = _pan(t, ramp, shape)
-    return pos, vel, acc, rot, w, wd, pan, pan_rate
-
-
-@njit(cache=True)
-def _evaluate_arrays(t: float, shape: _Shape) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The reference at t as three arrays: rot (3, 3); pos, vel, acc, w, wd as the rows of a
-    (5, 3); (pan, pan_rate) (2,)."""
-    pos, vel, acc, rot, w, wd, pan, pan_rate = _evaluate(t, shape)
-    vecs = np.empty((5, 3))
-    vecs[0], vecs[1], vecs[2], vecs[3], vecs[4] = pos, vel, acc, w, wd
-    return rot, vecs, np.array([pan, pan_rate])
-
-
-@njit(cache=True)
-def _evaluate_arrays_of(t, moving, tumble, pan_ramp, center_m, figure8_amp_m, figure8_harmonic,
-                        omega_radps, ramp_s, tumble_amp_rad, tumble_omega_radps):  # fmt: skip
-    """``_evaluate_arrays`` with the ``_Shape`` given field by field (numba types a tuple's
-    fields one by one in Python at each call, separate arguments at C speed)."""
-    shape = _Shape(
-        moving, tumble, pan_ramp, center_m, figure8_amp_m, figure8_harmonic, omega_radps,
-        ramp_s, tumble_amp_rad, tumble_omega_radps,
-    )  # fmt: skip
-    return _evaluate_arrays(t, shape)
+    _attitude_zxy_into(rot, vecs[3], vecs[4], _yaw(t, ramp, shape), roll, pitch)
+    pan[0], pan[1] = _pan(t, ramp, shape)
 
 
 class Trajectory:
     """A named reference: ``Trajectory(name, fast=False)(t)`` -> ``Reference`` at t (s);
-    ``arrays(t)`` packs the same numbers for the env's per-step kernels."""
+    ``arrays(t)`` (or ``arrays_into``) packs the same numbers for the env's per-step kernels."""
 
     NAMES = ("figure8_yaw", "figure8_tumble", "hover")
     # figure8_tumble's (amplitude deg, period s) of roll (about x) then pitch (about y), and of
@@ -297,23 +298,29 @@ class Trajectory:
         self.omega = 0.11 * (FAST_FACTOR if self.fast else 1.0)
         self.ramp_s = 15.0  # smooth start of every motion
         amp_deg, period_s = np.array([*self.TUMBLE, self.TUMBLE_YAW]).T
-        self._shape = _Shape(
-            moving=name != "hover",
-            tumble=name == "figure8_tumble",
-            pan_ramp=self.pan_ramp,
-            center_m=self.center.copy(),
-            figure8_amp_m=self.amp.copy(),
-            figure8_harmonic=np.array([1.0, 2.0]),
-            omega_radps=float(self.omega),
-            ramp_s=self.ramp_s,
-            tumble_amp_rad=np.deg2rad(amp_deg),
-            tumble_omega_radps=2 * np.pi / period_s,
-        )
+        self._shape = np.zeros(1, dtype=SHAPE_DTYPE)
+        shape = self._shape[0]
+        shape["moving"], shape["tumble"] = name != "hover", name == "figure8_tumble"
+        shape["pan_ramp"], shape["center_m"] = self.pan_ramp, self.center
+        shape["figure8_amp_m"], shape["figure8_harmonic"] = self.amp, (1.0, 2.0)
+        shape["omega_radps"], shape["ramp_s"] = self.omega, self.ramp_s
+        shape["tumble_amp_rad"] = np.deg2rad(amp_deg)
+        shape["tumble_omega_radps"] = 2 * np.pi / period_s
 
     def __call__(self, t: float) -> Reference:
-        return Reference(*_evaluate(float(t), self._shape))
+        rot, vecs, pan = self.arrays(t)
+        return Reference(
+            vecs[0], vecs[1], vecs[2], rot, vecs[3], vecs[4], float(pan[0]), float(pan[1])
+        )
 
     def arrays(self, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The reference at ``t`` as arrays (the same numbers as ``self(t)``): rotation (3, 3);
         pos, vel, acc, w, wd as the rows of a (5, 3), world axes; (pan, pan_rate) (2,)."""
-        return _evaluate_arrays_of(float(t), *self._shape)
+        rot, vecs, pan = np.empty((3, 3)), np.empty((5, 3)), np.empty(2)
+        self.arrays_into(t, rot, vecs, pan)
+        return rot, vecs, pan
+
+    def arrays_into(self, t: float, rot: np.ndarray, vecs: np.ndarray, pan: np.ndarray) -> None:
+        """``arrays(t)`` written into ``rot`` (3, 3), ``vecs`` (5, 3) and ``pan`` (2,), float64
+        and C-contiguous (the env's per-step call: nothing is allocated)."""
+        _evaluate_into(rot, vecs, pan, float(t), self._shape)

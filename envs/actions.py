@@ -29,6 +29,30 @@ def first_non_finite(actions, acting):
 
 
 @njit(cache=True)
+def scale_actions_into(clipped, n_clipped, effort, commands, targets, actions, acting,
+                       thrust_limits, arm_targets, joint_low, joint_high, max_move_rad,
+                       deployed_rad, offset_rad):  # fmt: skip
+    """``scale_actions``' results written into its first five arguments (``targets`` must not
+    be ``arm_targets``)."""
+    n = actions.shape[0]
+    clipped[:], n_clipped[:], effort[:] = 0.0, 0, 0.0
+    for i in range(n):
+        if not acting[i]:
+            continue
+        for j in range(8):
+            clipped[i, j] = min(max(actions[i, j], -1.0), 1.0)
+            n_clipped[i] += clipped[i, j] != actions[i, j]
+            effort[i] += clipped[i, j] ** 2
+    for i in range(n):
+        for j in range(commands.shape[1]):
+            commands[i, j] = clipped[i, j] * thrust_limits[i, j]
+        for j in range(arm_targets.shape[1]):
+            wanted = deployed_rad[j] + offset_rad * clipped[i, 6 + j]
+            move = min(max(wanted - arm_targets[i, j], -max_move_rad), max_move_rad)
+            targets[i, j] = min(max(arm_targets[i, j] + move, joint_low[i, j]), joint_high[i, j])
+
+
+@njit(cache=True)
 def scale_actions(actions, acting, thrust_limits, arm_targets, joint_low, joint_high,
                   max_move_rad, deployed_rad, offset_rad):  # fmt: skip
     """The module docstring's map for every robot: the clipped actions (N, 8) (zeros for robots
@@ -37,21 +61,25 @@ def scale_actions(actions, acting, thrust_limits, arm_targets, joint_low, joint_
     approaching the deployed pose)."""
     n = actions.shape[0]
     clipped, n_clipped, effort = np.zeros((n, 8)), np.zeros(n, dtype=np.int64), np.zeros(n)
-    for i in range(n):
-        if not acting[i]:
-            continue
-        for j in range(8):
-            clipped[i, j] = min(max(actions[i, j], -1.0), 1.0)
-            n_clipped[i] += clipped[i, j] != actions[i, j]
-            effort[i] += clipped[i, j] ** 2
-    commands = clipped[:, :6] * thrust_limits
-    targets = np.empty_like(arm_targets)
-    for i in range(n):
-        for j in range(arm_targets.shape[1]):
-            wanted = deployed_rad[j] + offset_rad * clipped[i, 6 + j]
-            move = min(max(wanted - arm_targets[i, j], -max_move_rad), max_move_rad)
-            targets[i, j] = min(max(arm_targets[i, j] + move, joint_low[i, j]), joint_high[i, j])
+    commands, targets = np.empty((n, 6)), np.empty_like(arm_targets)
+    scale_actions_into(
+        clipped, n_clipped, effort, commands, targets, actions, acting, thrust_limits,
+        arm_targets, joint_low, joint_high, max_move_rad, deployed_rad, offset_rad,
+    )  # fmt: skip
     return clipped, n_clipped, effort, commands, targets
+
+
+@njit(cache=True)
+def thrust_saturation_into(out, actions, clipped):
+    """``thrust_saturation`` written into ``out`` (N,)."""
+    for i in range(actions.shape[0]):
+        wanted, delivered = 0.0, 0.0
+        for j in range(6):
+            wanted += actions[i, j] ** 2
+            delivered += clipped[i, j] ** 2
+        out[i] = 0.0
+        if wanted > 0:
+            out[i] = 1.0 - np.sqrt(delivered) / np.sqrt(wanted)
 
 
 @njit(cache=True)
@@ -59,14 +87,8 @@ def thrust_saturation(actions: np.ndarray, clipped: np.ndarray) -> np.ndarray:
     """Per row, the share of the requested thrust a robot could not deliver: 1 - |a_c| / |a|
     over the six thrust entries of the action a as given and a_c as clipped to [-1, 1] (0 for
     a zero request), in [0, 1]."""
-    out = np.zeros(actions.shape[0])
-    for i in range(actions.shape[0]):
-        wanted, delivered = 0.0, 0.0
-        for j in range(6):
-            wanted += actions[i, j] ** 2
-            delivered += clipped[i, j] ** 2
-        if wanted > 0:
-            out[i] = 1.0 - np.sqrt(delivered) / np.sqrt(wanted)
+    out = np.empty(actions.shape[0])
+    thrust_saturation_into(out, actions, clipped)
     return out
 
 
@@ -82,14 +104,16 @@ def command_period(actions, acting, thrust_limits, joint_low, joint_high, max_mo
     = s (u + (std_abs + std_rel |u|) n) with the standard normals n: ``normals``' first 6 H as (H,
     6); ``actuation_std`` rows (std_abs, std_rel) and the thrust scale s (H,) of faults, and the
     servo targets."""
-    clipped, clipped_count, effort_now, commands, targets = scale_actions(
-        actions, acting, thrust_limits, arm_targets, joint_low, joint_high, max_move_rad,
-        ARM_DEPLOYED, ARM_OFFSET_RAD,
+    n = actions.shape[0]
+    clipped, commands, targets = np.empty((n, 8)), np.empty((n, 6)), np.empty_like(arm_targets)
+    scale_actions_into(
+        clipped, n_clipped, effort, commands, targets, actions, acting, thrust_limits,
+        arm_targets, joint_low, joint_high, max_move_rad, ARM_DEPLOYED, ARM_OFFSET_RAD,
     )  # fmt: skip
-    saturated = thrust_saturation(actions, clipped)
-    for i in range(actions.shape[0]):
-        n_clipped[i], effort[i] = clipped_count[i], effort_now[i]
-        saturation[i] = saturated[i] if acting[i] else 0.0
+    thrust_saturation_into(saturation, actions, clipped)
+    for i in range(n):
+        if not acting[i]:
+            saturation[i] = 0.0
         for j in range(arm_targets.shape[1]):
             arm_rates[i, j] = (targets[i, j] - arm_targets[i, j]) / dt_s
             arm_targets[i, j] = targets[i, j]

@@ -207,7 +207,7 @@ class FaultSchedule:
         """Every robot's counters (with the channel's ``channel_stats`` as messages_<name>)
         and the kinds of its faults active at step ``k``."""
         if not self.windows:  # none injected: every counter stays 0
-            return [{**NO_FAULT_COUNTS, "active": []} for _ in range(self.n_robots)]
+            return [dict(NO_FAULT_COUNTS, active=[]) for _ in range(self.n_robots)]
         counts = {name: v.tolist() for name, v in self.counts.items()}
         counts.update({f"messages_{name}": v.tolist() for name, v in channel_stats.items()})
         active: list[list[str]] = [[] for _ in range(self.n_robots)]

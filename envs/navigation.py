@@ -26,12 +26,13 @@ from numba import njit
 
 from astrocargo.envs.sensors import NoiseProfile, SensorReadings
 from astrocargo.estimator.geometry import (
-    cross3,
-    exp_so3,
-    log_so3,
-    matmul3,
-    matvec3,
+    cross3_into,
+    exp_so3_into,
+    log_so3_into,
+    matmul3_into,
+    matvec3_into,
     quat_to_mat,
+    quat_to_mat_into,
 )
 from astrocargo.estimator.rne import RobotDescription
 
@@ -39,14 +40,25 @@ from astrocargo.estimator.rne import RobotDescription
 NAV_STD_FLOOR = 1e-9
 
 
-@njit(cache=True)
-def _propagate(f, gyro, accel, dt_s):
+@njit(cache=True, inline="always")
+def _propagate(f, gyro, accel, dt_s, work_rot, work_vec):
     """Dead reckoning of one robot's IMU point over one period, in place on its filter record
-    ``f`` (rot, point_pos, point_vel, w_base)."""
-    w = matvec3(f.imu_rot, gyro)
-    rot_mid_imu = matmul3(matmul3(f.rot, exp_so3(0.5 * dt_s * w)), f.imu_rot)
-    accel_world = matvec3(rot_mid_imu, accel)
-    f.rot[:] = matmul3(f.rot, exp_so3(dt_s * w))
+    ``f`` (rot, point_pos, point_vel, w_base); ``work_rot`` (3, 3, 3), ``work_vec`` (3, 3):
+    scratch."""
+    exp_rot, product, rot_mid_imu = work_rot[0], work_rot[1], work_rot[2]
+    w, rotvec, accel_world = work_vec[0], work_vec[1], work_vec[2]
+    matvec3_into(w, f.imu_rot, gyro)
+    for k in range(3):
+        rotvec[k] = 0.5 * dt_s * w[k]
+    exp_so3_into(exp_rot, rotvec)
+    matmul3_into(product, f.rot, exp_rot)
+    matmul3_into(rot_mid_imu, product, f.imu_rot)
+    matvec3_into(accel_world, rot_mid_imu, accel)
+    for k in range(3):
+        rotvec[k] = dt_s * w[k]
+    exp_so3_into(exp_rot, rotvec)
+    matmul3_into(product, f.rot, exp_rot)
+    f.rot[:] = product
     for k in range(3):  # v' = v + dt a, p' = p + dt (v + v') / 2
         vel_new = f.point_vel[k] + dt_s * accel_world[k]
         f.point_pos[k] += 0.5 * dt_s * (f.point_vel[k] + vel_new)
@@ -54,13 +66,25 @@ def _propagate(f, gyro, accel, dt_s):
     f.w_base[:] = w
 
 
-@njit(cache=True)
-def _blend_fix(rot, pos, vel, fix_quat, fix_pos, imu_pos, gain_att, gain_pos, gain_vel):
-    """One robot's Kalman blend of a localization fix: R, p, v."""
-    fix_rot = quat_to_mat(fix_quat)
-    rot = matmul3(rot, exp_so3(gain_att * log_so3(matmul3(rot.T, fix_rot))))
-    innovation = fix_pos + matvec3(rot, imu_pos) - pos
-    return rot, pos + gain_pos * innovation, vel + gain_vel * innovation
+@njit(cache=True, inline="always")
+def _blend_fix(f, fix_quat, fix_pos, gain_att, gain_pos, gain_vel, work_rot, work_vec):
+    """One robot's Kalman blend of a localization fix, in place on its filter record ``f``:
+    R, p, v; ``work_rot`` (3, 3, 3), ``work_vec`` (3, 3): scratch."""
+    fix_rot, relative, new_rot = work_rot[0], work_rot[1], work_rot[2]
+    correction, innovation = work_vec[0], work_vec[1]
+    quat_to_mat_into(fix_rot, fix_quat)
+    matmul3_into(relative, f.rot.T, fix_rot)
+    log_so3_into(correction, relative)
+    for k in range(3):
+        correction[k] = gain_att * correction[k]
+    exp_so3_into(relative, correction)
+    matmul3_into(new_rot, f.rot, relative)
+    f.rot[:] = new_rot
+    matvec3_into(innovation, f.rot, f.imu_pos)
+    for k in range(3):
+        innovation[k] = fix_pos[k] + innovation[k] - f.point_pos[k]
+        f.point_pos[k] = f.point_pos[k] + gain_pos * innovation[k]
+        f.point_vel[k] = f.point_vel[k] + gain_vel * innovation[k]
 
 
 # One robot's filter as a record: its state, then what it knows (IMU pose in the base frame, its
@@ -96,13 +120,15 @@ def navigate(filters, dt_s, gyro_now, accel_now, has_imu, fix_pos, fix_quat, has
     """One period of every ``acting`` robot's filter (module docstring), in place:
     ``filters`` (N,) of ``FILTER_DTYPE``. ``held_gyro``, ``held_accel`` become this period's
     IMU means (``gyro_now``, ``accel_now``) where ``has_imu``; a fix where ``has_fix``."""
+    work_rot, work_vec = np.empty((3, 3, 3)), np.empty((3, 3))  # the helpers' scratch
+    arm, arm_vel, spin = work_vec[0], work_vec[1], work_vec[2]
     for i in range(filters.shape[0]):
         if not acting[i]:
             continue
         f = filters[i]
         if has_imu[i]:
             f.held_gyro[:], f.held_accel[:] = gyro_now[i], accel_now[i]
-        _propagate(f, f.held_gyro, f.held_accel, dt_s)
+        _propagate(f, f.held_gyro, f.held_accel, dt_s, work_rot, work_vec)
         c00, c01, c10, c11 = f.cov[0], f.cov[1], f.cov[2], f.cov[3]
         a00, a01 = c00 + dt_s * c10, c01 + dt_s * c11  # first row of F C
         c00, c01 = a00 + a01 * dt_s + f.q[0], a01 + f.q[1]
@@ -111,11 +137,7 @@ def navigate(filters, dt_s, gyro_now, accel_now, has_imu, fix_pos, fix_quat, has
         if has_fix[i]:
             gain_att = f.att_cov / (f.att_cov + f.att_var)
             gain_p, gain_v = c00 / (c00 + f.pos_var), c10 / (c00 + f.pos_var)
-            rot, pos, vel = _blend_fix(
-                f.rot, f.point_pos, f.point_vel, fix_quat[i], fix_pos[i], f.imu_pos, gain_att,
-                gain_p, gain_v,
-            )  # fmt: skip
-            f.rot[:], f.point_pos[:], f.point_vel[:] = rot, pos, vel
+            _blend_fix(f, fix_quat[i], fix_pos[i], gain_att, gain_p, gain_v, work_rot, work_vec)
             f.att_cov *= 1.0 - gain_att
             c00, c01, c10, c11 = (
                 c00 - gain_p * c00,
@@ -124,8 +146,9 @@ def navigate(filters, dt_s, gyro_now, accel_now, has_imu, fix_pos, fix_quat, has
                 (c11 - gain_v * c01),
             )
         f.cov[0], f.cov[1], f.cov[2], f.cov[3] = c00, c01, c10, c11
-        arm = matvec3(f.rot, f.imu_pos)
-        arm_vel = matvec3(f.rot, cross3(f.w_base, f.imu_pos))
+        matvec3_into(arm, f.rot, f.imu_pos)
+        cross3_into(spin, f.w_base, f.imu_pos)
+        matvec3_into(arm_vel, f.rot, spin)
         for k in range(3):  # base origin: p_b = p - R r_i, v_b = v - R (w x r_i)
             f.base_pos[k] = f.point_pos[k] - arm[k]
             f.base_vel[k] = f.point_vel[k] - arm_vel[k]

@@ -16,7 +16,13 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from astrocargo.estimator.geometry import cross3, exp_so3, log_so3, matmul3, matvec3
+from astrocargo.estimator.geometry import (
+    cross3_into,
+    exp_so3_into,
+    log_so3_into,
+    matmul3_into,
+    matvec3_into,
+)
 from astrocargo.estimator.rne import RobotDescription
 
 # The robot's own blocks, in order: (name, size). The kernel below fills them by name through
@@ -68,39 +74,61 @@ def observation_bounds(layout: dict[str, slice]) -> tuple[np.ndarray, np.ndarray
     return low, high
 
 
-@njit(cache=True)
-def grasp_pose(link_parent, link_rot, link_pos, link_axis, grasp_link, grasp_rot, grasp_pos, q):
-    """Grasp frame in the base frame at joint angles q (module docstring's chain): rotation
-    (3, 3) and position (3,). Links: parents before children, link 0 the base."""
+@njit(cache=True, inline="always")
+def grasp_pose_into(rot_out, pos_out, rots, poss, link_parent, link_rot, link_pos, link_axis,
+                    grasp_link, grasp_rot, grasp_pos, q):  # fmt: skip
+    """Grasp frame in the base frame at joint angles q (module docstring's chain), written into
+    ``rot_out`` (3, 3) and ``pos_out`` (3,). Links: parents before children, link 0 the base.
+    Work arrays: ``rots`` (n_links + 1, 3, 3) and ``poss`` (n_links, 3), each link's pose, the
+    last rotation a scratch; ``rot_out`` and ``pos_out`` serve as scratch until the end."""
     n_links = link_parent.shape[0]
-    rots, poss = np.zeros((n_links, 3, 3)), np.zeros((n_links, 3))
-    for d in range(3):  # the base: identity, at the origin
+    scratch = rots[n_links]
+    rots[0], poss[0] = 0.0, 0.0  # the base: identity, at the origin
+    for d in range(3):
         rots[0, d, d] = 1.0
     for k in range(1, n_links):
-        rot_p = rots[link_parent[k]]
-        rots[k] = matmul3(matmul3(rot_p, link_rot[k]), exp_so3(link_axis[k] * q[k - 1]))
-        _add_to(poss[k], poss[link_parent[k]], matvec3(rot_p, link_pos[k]))
-    rot_g = rots[grasp_link]
-    pos_g = np.empty(3)
-    _add_to(pos_g, poss[grasp_link], matvec3(rot_g, grasp_pos))
-    return matmul3(rot_g, grasp_rot), pos_g
+        parent = link_parent[k]
+        for d in range(3):  # the joint's rotation vector a_k q_k
+            pos_out[d] = link_axis[k, d] * q[k - 1]
+        exp_so3_into(rot_out, pos_out)
+        matmul3_into(scratch, rots[parent], link_rot[k])
+        matmul3_into(rots[k], scratch, rot_out)
+        matvec3_into(pos_out, rots[parent], link_pos[k])
+        _add_to(poss[k], poss[parent], pos_out)
+    matvec3_into(pos_out, rots[grasp_link], grasp_pos)
+    _add_to(pos_out, poss[grasp_link], pos_out)
+    matmul3_into(rot_out, rots[grasp_link], grasp_rot)
 
 
 @njit(cache=True)
+def grasp_pose(link_parent, link_rot, link_pos, link_axis, grasp_link, grasp_rot, grasp_pos, q):
+    """``grasp_pose_into`` into new arrays: the grasp frame's rotation (3, 3) and position (3,)
+    in the base frame."""
+    n_links = link_parent.shape[0]
+    rot, pos = np.empty((3, 3)), np.empty(3)
+    grasp_pose_into(
+        rot, pos, np.empty((n_links + 1, 3, 3)), np.empty((n_links, 3)), link_parent, link_rot,
+        link_pos, link_axis, grasp_link, grasp_rot, grasp_pos, q,
+    )  # fmt: skip
+    return rot, pos
+
+
+@njit(cache=True, inline="always")
 def _add_to(out, a, b):
-    """out = a + b (3-vectors), written into ``out`` without a temporary."""
+    """out = a + b (3-vectors), written into ``out`` without a temporary (``out`` may be a or
+    b)."""
     for i in range(3):
         out[i] = a[i] + b[i]
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _put(row, start, value):
     """row[start : start + len(value)] = value."""
     for k in range(value.shape[0]):
         row[start + k] = value[k]
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _put_in_base(row, start, rot, a, b):
     """row[start : start + 3] = R^T (a - b): a difference of world vectors in base axes (as
     ``matvec3(rot.T, a - b)``, without temporaries)."""
@@ -111,15 +139,18 @@ def _put_in_base(row, start, rot, a, b):
         row[start + i] = total
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _own_blocks(out, starts, rot, base_pos, base_vel, w, q, target, rot_ref, pos_ref, vel_ref,
-                ref_vecs, ref_pan, qd, zero):  # fmt: skip
+                ref_vecs, ref_pan, qd, zero, work_rot, work_vec):  # fmt: skip
     """Write the OWN_BLOCKS of one row at ``starts`` (in OWN_BLOCKS order); ref_vecs rows: the
     cargo reference's position, velocity, acceleration, angular velocity and angular
-    acceleration (world); ``zero``: a zero 3-vector."""
+    acceleration (world); ``zero``: a zero 3-vector; ``work_rot`` (3, 3), ``work_vec`` (3,):
+    scratch."""
     _put_in_base(out, starts[0], rot, base_pos, pos_ref)
     _put_in_base(out, starts[1], rot, base_vel, vel_ref)
-    _put(out, starts[2], log_so3(matmul3(rot_ref.T, rot)))
+    matmul3_into(work_rot, rot_ref.T, rot)
+    log_so3_into(work_vec, work_rot)
+    _put(out, starts[2], work_vec)
     _put(out, starts[3], w)
     _put(out, starts[4], q)
     _put(out, starts[5], target)
@@ -159,27 +190,36 @@ def assemble(out, acting, own_starts, peer_starts, estimate_start, link_parent, 
     (N, P, ...) hold the latest message of each peer slot (wrench in world axes; peer_arm
     (N, P, 4): the sender's arm angles and rates); estimates (N, 20) or (N, 0); qd (N, 2) the
     own arm rates."""
-    zero = np.zeros(3)
-    pos_ref, vel_ref, lever = np.empty(3), np.empty(3), np.empty(3)  # per robot, reused
+    n_links = link_parent.shape[0]
+    # Work arrays, allocated once per call: the arm chain's link poses (grasp_pose_into), the
+    # grasp frame G, the base reference's rotation and a scratch; the vectors likewise.
+    rots = np.empty((n_links + 4, 3, 3))
+    g_rot, rot_ref, scratch = rots[n_links + 1], rots[n_links + 2], rots[n_links + 3]
+    vecs = np.zeros((n_links + 7, 3))
+    poss, zero = vecs[:n_links], vecs[n_links]
+    g_pos, rail, grasp = vecs[n_links + 1], vecs[n_links + 2], vecs[n_links + 3]
+    pos_ref, vel_ref, lever = vecs[n_links + 4], vecs[n_links + 5], vecs[n_links + 6]
     for i in range(out.shape[0]):
         if not acting[i]:
             continue
         a, f = arms[i], nav[i]
-        g_rot, g_pos = grasp_pose(
-            link_parent, a.link_rot, a.link_pos, a.link_axis, a.grasp_link, a.grasp_rot,
-            a.grasp_pos, q[i],
+        grasp_pose_into(
+            g_rot, g_pos, rots[: n_links + 1], poss, link_parent, a.link_rot, a.link_pos,
+            a.link_axis, a.grasp_link, a.grasp_rot, a.grasp_pos, q[i],
         )  # fmt: skip
-        rot_ref = matmul3(matmul3(ref_rot, a.handrail_rot), g_rot.T)
-        rail = matvec3(ref_rot, a.handrail_pos)
-        grasp = matvec3(rot_ref, g_pos)
+        matmul3_into(scratch, ref_rot, a.handrail_rot)
+        matmul3_into(rot_ref, scratch, g_rot.T)
+        matvec3_into(rail, ref_rot, a.handrail_pos)
+        matvec3_into(grasp, rot_ref, g_pos)
         for k in range(3):
             pos_ref[k] = ref_vecs[0, k] + rail[k] - grasp[k]
             lever[k] = pos_ref[k] - ref_vecs[0, k]
-        _add_to(vel_ref, ref_vecs[1], cross3(ref_vecs[3], lever))
+        cross3_into(rail, ref_vecs[3], lever)
+        _add_to(vel_ref, ref_vecs[1], rail)
         row = out[i]
         _own_blocks(
             row, own_starts, f.rot, f.base_pos, f.base_vel, f.w_base, q[i], target[i], rot_ref,
-            pos_ref, vel_ref, ref_vecs, ref_pan, qd[i], zero,
+            pos_ref, vel_ref, ref_vecs, ref_pan, qd[i], zero, scratch, grasp,
         )  # fmt: skip
         for p in range(peer_starts.shape[0]):
             s_wrench, s_age, s_valid = peer_starts[p, 0], peer_starts[p, 1], peer_starts[p, 2]

@@ -47,8 +47,15 @@ def state_finite(qpos, qvel, warnings, unstable, saved_qpos, saved_qvel):
 
 @njit(cache=True)
 def same_state(qpos, qvel, saved_qpos, saved_qvel):
-    """Whether qpos and qvel are still those saved (NaN counts as changed)."""
-    return np.array_equal(qpos, saved_qpos) and np.array_equal(qvel, saved_qvel)
+    """Whether qpos and qvel are still those saved (NaN counts as changed); compared entry by
+    entry (``np.array_equal`` builds temporaries)."""
+    for values, saved in ((qpos, saved_qpos), (qvel, saved_qvel)):
+        if values.shape != saved.shape:
+            return False
+        for k in range(values.shape[0]):
+            if not values[k] == saved[k]:
+                return False
+    return True
 
 
 class PeriodStepper:

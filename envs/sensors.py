@@ -37,13 +37,13 @@ from numba import njit
 
 from astrocargo.envs.world import World
 from astrocargo.estimator.geometry import (
-    cross3,
-    exp_so3,
-    log_so3,
-    matmul3,
-    matvec3,
-    quat_mul,
-    rotvec_to_quat,
+    cross3_into,
+    exp_so3_into,
+    log_so3_into,
+    matmul3_into,
+    matvec3_into,
+    quat_mul_into,
+    rotvec_to_quat_into,
 )
 
 
@@ -161,43 +161,63 @@ class SensorReadings:
         return SensorReadings(self.time_s, *out)
 
 
-@njit(cache=True)
-def imu_site_state(cvel, site_xpos, site_xmat, subtree_com, bodies, roots, sites):
-    """Linear velocity (n, 3), world axes, and rotation (n, 3, 3) of each site: its body's
-    spatial velocity (MuJoCo's ``cvel``: angular, linear at the root's subtree centre of mass c)
-    moved to the site's point p, v_p = v_c - (p - c) x w (as ``mj_objectVelocity`` with world
-    axes); the rotation is MuJoCo's ``site_xmat``."""
-    n = sites.shape[0]
-    vel, rot = np.empty((n, 3)), np.empty((n, 3, 3))
-    lever = np.empty(3)
-    for k in range(n):
+@njit(cache=True, inline="always")
+def imu_site_state_into(vel, rot, cvel, site_xpos, site_xmat, subtree_com, bodies, roots, sites):
+    """Linear velocity ``vel`` (n, 3), world axes, and rotation ``rot`` (n, 3, 3) of each site,
+    written in place: its body's spatial velocity (MuJoCo's ``cvel``: angular, linear at the
+    root's subtree centre of mass c) moved to the site's point p, v_p = v_c - (p - c) x w (as
+    ``mj_objectVelocity`` with world axes); the rotation is MuJoCo's ``site_xmat``."""
+    lever_spin = np.empty((2, 3))
+    lever, spin = lever_spin[0], lever_spin[1]
+    for k in range(sites.shape[0]):
         w, v = cvel[bodies[k], :3], cvel[bodies[k], 3:]
         for j in range(3):
             lever[j] = site_xpos[sites[k], j] - subtree_com[roots[k], j]
-        spin = cross3(lever, w)
+        cross3_into(spin, lever, w)
         for j in range(3):
             vel[k, j] = v[j] - spin[j]
         rot[k] = site_xmat[sites[k]].reshape(3, 3)
+
+
+@njit(cache=True)
+def imu_site_state(cvel, site_xpos, site_xmat, subtree_com, bodies, roots, sites):
+    """``imu_site_state_into`` into new arrays: velocities (n, 3) and rotations (n, 3, 3)."""
+    n = sites.shape[0]
+    vel, rot = np.empty((n, 3)), np.empty((n, 3, 3))
+    imu_site_state_into(vel, rot, cvel, site_xpos, site_xmat, subtree_com, bodies, roots, sites)
     return vel, rot
+
+
+@njit(cache=True, inline="always")
+def imu_period_means_into(accel, gyro, v0, r0, v1, r1, dt_s):
+    """Mean specific force ``accel`` and angular rate ``gyro`` of each IMU over a period of
+    ``dt_s``, IMU frame (n, 3) each, written in place, from its velocity (world axes) and
+    rotation at the period's start and end: phi = log(R0^T R1), gyro = phi / dt,
+    accel = (R0 exp(phi / 2))^T (v1 - v0) / dt (the velocity change in the mid-period frame)."""
+    work_rot, work_vec = np.empty((2, 3, 3)), np.empty((4, 3))
+    r_rel, r_mid = work_rot[0], work_rot[1]
+    rotvec, half, dv, force = work_vec[0], work_vec[1], work_vec[2], work_vec[3]
+    for k in range(v0.shape[0]):
+        matmul3_into(r_rel, r0[k].T, r1[k])
+        log_so3_into(rotvec, r_rel)
+        for j in range(3):
+            half[j] = 0.5 * rotvec[j]
+        exp_so3_into(r_rel, half)
+        matmul3_into(r_mid, r0[k], r_rel)
+        for j in range(3):
+            dv[j] = v1[k, j] - v0[k, j]
+        matvec3_into(force, r_mid.T, dv)
+        for j in range(3):
+            accel[k, j] = force[j] / dt_s
+            gyro[k, j] = rotvec[j] / dt_s
 
 
 @njit(cache=True)
 def imu_period_means(v0, r0, v1, r1, dt_s):
-    """Mean specific force and angular rate of each IMU over a period of ``dt_s``, IMU frame
-    (n, 3) each, from its velocity (world axes) and rotation at the period's start and end:
-    phi = log(R0^T R1), gyro = phi / dt, accel = (R0 exp(phi / 2))^T (v1 - v0) / dt (the
-    velocity change in the mid-period frame)."""
+    """``imu_period_means_into`` into new arrays: accel, gyro (n, 3) each."""
     n = v0.shape[0]
-    accel, gyro, dv = np.empty((n, 3)), np.empty((n, 3)), np.empty(3)
-    for k in range(n):
-        rotvec = log_so3(matmul3(r0[k].T, r1[k]))
-        r_mid = matmul3(r0[k], exp_so3(0.5 * rotvec))
-        for j in range(3):
-            dv[j] = v1[k, j] - v0[k, j]
-        force = matvec3(r_mid.T, dv)
-        for j in range(3):
-            accel[k, j] = force[j] / dt_s
-            gyro[k, j] = rotvec[j] / dt_s
+    accel, gyro = np.empty((n, 3)), np.empty((n, 3))
+    imu_period_means_into(accel, gyro, v0, r0, v1, r1, dt_s)
     return accel, gyro
 
 
@@ -221,13 +241,15 @@ def noisy_readings(v0, r0, dt_s, cvel, site_xpos, site_xmat, subtree_com, bodies
     return accel, gyro, joints, pos, quat
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _readings_into(v0, r0, v1, r1, dt_s, sensordata, joint_adr, pos_adr, quat_adr, noise, fix,
                    rows, accel, gyro, joints, pos, quat):  # fmt: skip
     """``noisy_readings``' values from the IMU states at the period's start and end, robot k's
     written into row ``rows[k]`` of ``accel``, ``gyro``, ``joints`` and, at a ``fix``, ``pos``
     and ``quat`` (left as they are without one)."""
     accel_mean, gyro_mean = imu_period_means(v0, r0, v1, r1, dt_s)
+    quats = np.empty((2, 4))  # the measured quaternion and the noise's
+    measured, perturbation = quats[0], quats[1]
     for k in range(rows.shape[0]):
         i = rows[k]
         for j in range(3):
@@ -238,18 +260,20 @@ def _readings_into(v0, r0, v1, r1, dt_s, sensordata, joint_adr, pos_adr, quat_ad
         if fix:
             for j in range(3):
                 pos[i, j] = sensordata[pos_adr[k, j]] + noise[k, 8 + j]
-            quat[i] = quat_mul(sensordata[quat_adr[k]], rotvec_to_quat(noise[k, 11:14]))
+            for j in range(4):
+                measured[j] = sensordata[quat_adr[k, j]]
+            rotvec_to_quat_into(perturbation, noise[k, 11:14])
+            quat_mul_into(quat[i], measured, perturbation)
 
 
 @njit(cache=True)
 def imu_state_into(v0, r0, cvel, site_xpos, site_xmat, subtree_com, imu_index):
     """``imu_site_state`` of the IMUs ``imu_index`` (3, H: bodies, roots, sites) written into
     ``v0`` (H, 3) and ``r0`` (H, 3, 3): the start of a control period."""
-    vel, rot = imu_site_state(
-        cvel, site_xpos, site_xmat, subtree_com, imu_index[0], imu_index[1], imu_index[2]
-    )
-    v0[:] = vel
-    r0[:] = rot
+    imu_site_state_into(
+        v0, r0, cvel, site_xpos, site_xmat, subtree_com, imu_index[0], imu_index[1],
+        imu_index[2],
+    )  # fmt: skip
 
 
 @njit(cache=True)

@@ -79,12 +79,14 @@ class _Copy:
         obs, rewards, terms, truncs, infos = self.env.step(dict(zip(agents, actions)))  # noqa: B905
         terminated = [bool(terms[a]) for a in agents]
         truncated = [bool(truncs[a]) for a in agents]
-        dones = np.logical_or(terminated, truncated)
-        if dones.any() and not dones.all():
+        # On Python lists: numpy's logical_or, any and all on lists of two cost more.
+        done = [t or u for t, u in zip(terminated, truncated)]  # noqa: B905 (both per agent)
+        if any(done) and not all(done):
             raise RuntimeError(
                 "SharedPolicyVecEnv needs episodes that end for all agents at once; agents "
-                f"{[a for a, d in zip(self.agents, dones, strict=True) if not d]} are still running"
+                f"{[a for a, d in zip(self.agents, done, strict=True) if not d]} are still running"
             )
+        dones = np.array(done)
         obs_array = self._stack(obs)
         infos = [dict(infos[a]) for a in agents]
         reset_infos = [{} for _ in agents]
@@ -319,7 +321,10 @@ def fast_inference(model: Any) -> Any:
     - for an actor-critic policy with a diagonal Gaussian on a Box (PPO's and A2C's
       ``MlpPolicy`` without gSDE or squashing), ``policy.predict`` is ``_gaussian_predict``:
       the same mean, the same draw from torch's generator, without building the distribution
-      object or SB3's observation checks (other policies keep SB3's ``predict``).
+      object or SB3's observation checks (other policies keep SB3's ``predict``); when no
+      module of the policy has forward hooks (checked here, once), the actor's layers run
+      through their ``forward`` directly (``_plain_forward``), which skips torch's per-call
+      hook dispatch and computes the same.
 
     Returns ``model``."""
     import torch
@@ -344,18 +349,32 @@ def fast_inference(model: Any) -> Any:
         and isinstance(policy.action_space, spaces.Box)
         and not is_image_space(policy.observation_space)
     ):
-        policy.predict = functools.partial(_gaussian_predict, policy, policy.predict)
+        plain = not any(m._forward_hooks or m._forward_pre_hooks for m in policy.modules())
+        policy.predict = functools.partial(_gaussian_predict, policy, policy.predict, plain)
     return model
 
 
-def _gaussian_predict(policy, sb3_predict, observation, state=None, episode_start=None,
+def _plain_forward(module: Any, x: Any) -> Any:
+    """``module(x)`` through ``forward`` (a ``Sequential`` layer by layer, as its own
+    ``forward`` runs it): the same operations without torch's hook dispatch at every call."""
+    import torch
+
+    if isinstance(module, torch.nn.Sequential):
+        for layer in module:
+            x = _plain_forward(layer, x)
+        return x
+    return module.forward(x)
+
+
+def _gaussian_predict(policy, sb3_predict, plain, observation, state=None, episode_start=None,
                       deterministic=False):  # fmt: skip
     """SB3's ``ActorCriticPolicy.predict`` for a diagonal Gaussian on a Box, step by step as SB3
     runs it: features of the observation (as float32), the actor's latent and mean action mu;
     deterministic: mu, else mu + eps sigma with eps ~ N(0, 1) drawn by ``Tensor.normal_`` of
     torch's generator (``Normal.rsample``) and sigma = exp(log_std); clipped to the action
-    space. An observation that is not one or a batch of the space's shape goes to
-    ``sb3_predict`` (which says what is wrong)."""
+    space (sigma broadcast over the batch: the same products as SB3's ones_like(mu) sigma).
+    ``plain``: run the actor's layers with ``_plain_forward``. An observation that is not one or
+    a batch of the space's shape goes to ``sb3_predict`` (which says what is wrong)."""
     import torch
     from stable_baselines3.common.policies import BaseModel
 
@@ -368,11 +387,15 @@ def _gaussian_predict(policy, sb3_predict, observation, state=None, episode_star
     with torch.no_grad():
         obs_tensor = torch.as_tensor(obs.reshape((-1, *shape)), device=policy.device)
         features = BaseModel.extract_features(policy, obs_tensor, policy.pi_features_extractor)
-        mean = policy.action_net(policy.mlp_extractor.forward_actor(features))
+        if plain:
+            latent = _plain_forward(policy.mlp_extractor.policy_net, features)
+            mean = _plain_forward(policy.action_net, latent)
+        else:
+            mean = policy.action_net(policy.mlp_extractor.forward_actor(features))
         if deterministic:
             actions = mean
         else:
-            std = torch.ones_like(mean) * policy.log_std.exp()
+            std = policy.log_std.exp()
             actions = (
                 mean + torch.empty(mean.shape, dtype=mean.dtype, device=mean.device).normal_() * std
             )
