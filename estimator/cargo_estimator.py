@@ -370,6 +370,8 @@ class CargoEstimator(EstimatorInputs):
             return
         self._peer_msgs[(message.sender, message.stamp)] = message
         self._oldest_peer_msg = min(self._oldest_peer_msg, message.stamp)
+        if self._relative[message.sender].known is not None:
+            return  # the grasp layout is given: no relative pose to average
         own = self._own_fix.get(message.stamp)
         if message.fix and own is not None:
             self._accumulate_relative(message.sender, message)
