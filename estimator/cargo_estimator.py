@@ -478,7 +478,7 @@ class CargoEstimator(EstimatorInputs):
             return np.zeros((6, 6))
         terms, weights = entry
         params = self.ukf.params_mean()
-        b = np.array([t[12:18] + cargo_regressor_parts(t)[1] @ params for t in terms])
+        b = terms[:, 12:18] + cargo_regressor_parts(terms)[1] @ params
         return self._rate_square_var * (b.T * weights) @ b
 
     def _forget_before(self, horizon: int) -> None:
