@@ -370,6 +370,8 @@ class CargoEstimator(EstimatorInputs):
             return
         self._peer_msgs[(message.sender, message.stamp)] = message
         self._oldest_peer_msg = min(self._oldest_peer_msg, message.stamp)
+        if self._relative[message.sender].known is not None:
+            return  # the grasp layout is given: no relative pose to average
         own = self._own_fix.get(message.stamp)
         if message.fix and own is not None:
             self._accumulate_relative(message.sender, message)
@@ -407,20 +409,8 @@ class CargoEstimator(EstimatorInputs):
                 if stamp <= self._gated_until:
                     self.n_skipped_after_gate += 1
                     continue
-                peers = np.zeros(6)
                 motion_mean, motion_cov = self._motion_noise(inst, msgs)
-                cov = inst.act_cov.copy()
-                peer_noise = np.zeros((6, 6))
-                for p, m in zip(self.peers, msgs, strict=True):
-                    rel = self._relative[p]
-                    t = rel.transform()
-                    wrench = t @ m.wrench_grasp
-                    peers += wrench
-                    cov += t @ m.wrench_cov_grasp @ t.T
-                    if self._peer_noise:
-                        peer_noise += t @ self._peer_noise_cov @ t.T
-                    if rel.known is None:
-                        peer_noise += self._relative_pose_cov(wrench, rel.count)
+                peers, cov, peer_noise = self._peer_terms(inst.act_cov, msgs)
                 meas_cov = self.meas_cov + cov / self.update_every + motion_cov + peer_noise
                 meas_cov = meas_cov + self._rate_square_cov(stamp)
                 offset = inst.links - peers - motion_mean
@@ -441,6 +431,35 @@ class CargoEstimator(EstimatorInputs):
         self._forget_before(self.stamp - self.history_steps)
         return done
 
+    def _peer_terms(
+        self, act_cov: np.ndarray, msgs: list
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The peers' side of an instant's balance, all peers at once (T_j: peer j's wrench
+        transform G_j -> G): their wrenches on the cargo sum_j T_j w_j (6,), the actuation
+        covariance act_cov + sum_j T_j C_j T_j^T (6, 6) (C_j the message's), and the noise the
+        peers add (6, 6): sum_j T_j N T_j^T (N ``peer_noise``) and, for a grasp layout not
+        given, the averaged relative pose's (``_relative_pose_cov``). Sums run in peer order."""
+        zero = np.zeros((1, 6, 6))
+        if not msgs:
+            return np.zeros(6), act_cov.copy(), zero[0]
+        rels = [self._relative[p] for p in self.peers]
+        transforms = np.stack([rel.transform() for rel in rels])
+        turned = transforms.transpose(0, 2, 1)
+        wrenches = (transforms @ np.stack([m.wrench_grasp for m in msgs])[:, :, None])[:, :, 0]
+        carried = transforms @ np.stack([m.wrench_cov_grasp for m in msgs]) @ turned
+        peer_noise = transforms @ self._peer_noise_cov @ turned if self._peer_noise else None
+        noise_terms = [zero]
+        for k, rel in enumerate(rels):
+            if peer_noise is not None:
+                noise_terms.append(peer_noise[k : k + 1])
+            if rel.known is None:
+                noise_terms.append(self._relative_pose_cov(wrenches[k], rel.count)[None])
+        return (
+            np.add.reduce(np.concatenate((zero[0, :1], wrenches)), axis=0),
+            np.add.reduce(np.concatenate((act_cov[None], carried)), axis=0),
+            np.add.reduce(np.concatenate(noise_terms), axis=0),
+        )
+
     def _motion_noise(self, inst: Instant, msgs: list) -> tuple[np.ndarray, np.ndarray]:
         """Mean and covariance of the balance's motion noise at this instant
         (``NoiseModel.motion_noise``)."""
@@ -459,7 +478,7 @@ class CargoEstimator(EstimatorInputs):
             return np.zeros((6, 6))
         terms, weights = entry
         params = self.ukf.params_mean()
-        b = np.array([t[12:18] + cargo_regressor_parts(t)[1] @ params for t in terms])
+        b = terms[:, 12:18] + cargo_regressor_parts(terms)[1] @ params
         return self._rate_square_var * (b.T * weights) @ b
 
     def _forget_before(self, horizon: int) -> None:

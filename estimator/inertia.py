@@ -19,7 +19,8 @@ Conventions, used by every function below:
 
 Every function is batched: it takes arrays of shape (..., 10) (or (..., 4, 4), (..., 3, 3)) and
 returns the same leading shape, without Python loops over the batch (a UKF calls these on all its
-sigma points every update). Only numpy is used.
+sigma points every update). Only numpy is used, and numba for the error metrics of
+`estimate_errors`, which the env evaluates at every estimator update.
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 __all__ = [
     "InertialParams",
@@ -503,13 +505,73 @@ def estimate_errors(
     pi_est: np.ndarray, pi_true: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """`mass_rel_error`, `com_error_m` and `principal_rel_errors` of the same bodies, their
-    inputs checked once: shapes (...), (...) and (..., 3)."""
-    pi_est, pi_true = _checked_pair(pi_est, pi_true)
-    return (
-        _mass_rel_error(pi_est, pi_true),
-        _com_error_m(pi_est, pi_true),
-        _principal_rel_errors(pi_est, pi_true),
+    inputs checked once: shapes (...), (...) and (..., 3). One compiled pass over the bodies."""
+    pi_est = np.asarray(pi_est, dtype=float)
+    pi_true = np.asarray(pi_true, dtype=float)
+    for a, name in ((pi_est, "pi_est"), (pi_true, "pi_true")):
+        if a.ndim < 1 or a.shape[-1] != 10:
+            raise ValueError(f"{name} must have shape (..., 10), got shape {a.shape}")
+    shape = np.broadcast_shapes(pi_est.shape, pi_true.shape)
+    rows_est, rows_true = (
+        (a if a.shape == shape else np.broadcast_to(a, shape)).reshape(-1, 10)
+        for a in (pi_est, pi_true)
     )
+    out = np.empty((rows_est.shape[0], 5))
+    failed = _estimate_errors_kernel(rows_est, rows_true, out)
+    if failed:
+        _raise_invalid_pair(failed, pi_est, pi_true)
+    out = out.reshape(shape[:-1] + (5,))
+    return out[..., 0], out[..., 1], out[..., 2:]
+
+
+def _raise_invalid_pair(failed: int, pi_est: np.ndarray, pi_true: np.ndarray) -> None:
+    """The ValueError of `_checked_pair` (failed 1-4) or of `_principal_rel_errors` (5)."""
+    if failed < 5:
+        _checked_pair(pi_est, pi_true)
+    raise ValueError("pi_true must have positive principal moments about its centre of mass")
+
+
+@njit(cache=True)
+def _estimate_errors_kernel(pi_est, pi_true, out):
+    """Per body b (rows of (n, 10)): out[b] = [|m_e - m_t| / m_t, |c_e - c_t| (m),
+    |I_k,e - I_k,t| / I_k,t for the principal moments about the com, ascending (3)].
+    Returns 0, or the first failed check over all bodies: 1 pi_est not finite, 2 pi_true not
+    finite, 3 a mass of pi_est not positive, 4 one of pi_true, 5 a true principal moment not
+    positive."""
+    n = pi_est.shape[0]
+    checks = (
+        np.isfinite(pi_est).all(),
+        np.isfinite(pi_true).all(),
+        (pi_est[:, 0] > 0.0).all(),
+        (pi_true[:, 0] > 0.0).all(),
+    )
+    for k in range(4):
+        if not checks[k]:
+            return k + 1
+    for b in range(n):
+        m_est, m_true = pi_est[b, 0], pi_true[b, 0]
+        out[b, 0] = np.abs(m_est - m_true) / m_true
+        dc = pi_est[b, 1:4] / m_est - pi_true[b, 1:4] / m_true
+        out[b, 1] = np.sqrt(dc[0] * dc[0] + dc[1] * dc[1] + dc[2] * dc[2])
+        moments_est = np.linalg.eigvalsh(_inertia_about_com(pi_est[b]))
+        moments_true = np.linalg.eigvalsh(_inertia_about_com(pi_true[b]))
+        if (moments_true <= 0.0).any():
+            return 5
+        out[b, 2:] = np.abs(moments_est - moments_true) / moments_true
+    return 0
+
+
+@njit(cache=True)
+def _inertia_about_com(pi):
+    """Parallel axis: I_c = I_o - (|h|^2 1 - h h^T) / m (3, 3), h = m c, of one body pi (10,)."""
+    h = pi[1:4]
+    hh = h[0] * h[0] + h[1] * h[1] + h[2] * h[2]
+    inertia = np.empty((3, 3))
+    for r in range(3):
+        for c in range(3):
+            shift = (hh if r == c else 0.0) - h[r] * h[c]
+            inertia[r, c] = pi[4 + _TENSOR_TO_VEC[3 * r + c]] - shift / pi[0]
+    return inertia
 
 
 def pseudo_inertia_distance(pi_a: np.ndarray, pi_b: np.ndarray) -> np.ndarray:

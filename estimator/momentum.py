@@ -439,9 +439,13 @@ def _rate_square_terms(
 
 
 def cargo_regressor_parts(y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(P_Y, Q_Y) (6, 10) each of a momentum-form vector ``y`` (``SIZE``,) (or of its filtered
-    value or derivative: the maps are linear)."""
-    return (CARGO_P_MAP @ y[CARGO_P]).reshape(6, 10), (CARGO_Q_MAP @ y[CARGO_Q]).reshape(6, 10)
+    """(P_Y, Q_Y) (..., 6, 10) each of momentum-form vectors ``y`` (..., ``SIZE``) (or of
+    their filtered values or derivatives: the maps are linear)."""
+    lead = y.shape[:-1] + (6, 10)
+    return (
+        (y[..., CARGO_P] @ CARGO_P_MAP.T).reshape(lead),
+        (y[..., CARGO_Q] @ CARGO_Q_MAP.T).reshape(lead),
+    )
 
 
 def balance_from_filtered(y: np.ndarray, yd: np.ndarray) -> Balance:

@@ -402,9 +402,11 @@ def lag_weighted_covariance(lag_cov: np.ndarray, rho: np.ndarray) -> np.ndarray:
     return 0.5 * (w + w.T)
 
 
+@njit(cache=True)
 def psd_factor(w: np.ndarray) -> np.ndarray:
-    """F with F F^T = W for a symmetric W, negative eigenvalues (round-off of a weighted sum of
-    lag covariances with an estimated autocorrelation) set to zero."""
+    """F = U diag(sqrt(max(s, 0))) with F F^T = W for a symmetric W = U diag(s) U^T, negative
+    eigenvalues (round-off of a weighted sum of lag covariances with an estimated
+    autocorrelation) set to zero; compiled (numba's eigh is the same LAPACK routine as numpy's)."""
     s, u = np.linalg.eigh(w)
     return u * np.sqrt(np.clip(s, 0.0, None))
 

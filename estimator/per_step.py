@@ -522,7 +522,7 @@ class EstimatorInputs:
             self._own_fix[stamp] = (rot_wg, pos_wg)
             for p in self.peers:
                 msg = self._peer_msgs.get((p, stamp))
-                if msg is not None and msg.fix:
+                if msg is not None and msg.fix and self._relative[p].known is None:
                     self._accumulate_relative(p, msg)
         rot_world = np.zeros((6, 6))
         rot_world[:3, :3] = rot_world[3:, 3:] = rot_wg

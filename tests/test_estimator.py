@@ -445,3 +445,46 @@ def test_peer_slots_follow_every_new_message_and_are_read_only():
     assert len(seen_stamps) > 5  # several messages replaced one another in the slots
     with pytest.raises(ValueError):
         wrench[0, 0, 0] = 1.0
+
+
+def test_peer_terms_sum_each_peer_in_order():
+    """``_peer_terms``: the peers' wrenches T_j w_j, the carried actuation covariances
+    T_j C_j T_j^T and the added noise (channel noise T_j N T_j^T; the averaged relative pose's
+    for a layout not given) summed over the peers in order, exactly as peer by peer."""
+    from types import SimpleNamespace
+
+    world = World(4)
+    rng = np.random.default_rng(7)
+    layout = {j: world.relative_grasp(0, j) for j in (1, 3)}  # peer 2's layout is estimated
+    est = CargoEstimator(
+        world.robot_model(0), 0, [1, 2, 3], DT, relative_grasps=layout,
+        peer_noise_std=(0.01, 0.001),
+    )  # fmt: skip
+    rel = est._relative[2]
+    rot, pos = world.relative_grasp(0, 2)
+    rel.rot_sum, rel.pos_sum, rel.count = 3.0 * np.asarray(rot), 3.0 * np.asarray(pos), 3
+    act_cov = np.diag(rng.uniform(1e-6, 1e-5, 6))
+    msgs = []
+    for _ in est.peers:
+        half = rng.normal(size=(6, 6)) * 1e-3
+        msgs.append(
+            SimpleNamespace(wrench_grasp=rng.normal(size=6), wrench_cov_grasp=half @ half.T)
+        )
+    wrench_sum, cov, noise = est._peer_terms(act_cov, msgs)
+    want_wrench, want_cov, want_noise = np.zeros(6), act_cov.copy(), np.zeros((6, 6))
+    for p, m in zip(est.peers, msgs, strict=True):
+        t = est._relative[p].transform()
+        want_wrench += t @ m.wrench_grasp
+        want_cov += t @ m.wrench_cov_grasp @ t.T
+        want_noise += t @ est.noise.peer_noise_cov @ t.T
+        if p == 2:
+            want_noise += est.noise.relative_pose_cov(t @ m.wrench_grasp, 3)
+    np.testing.assert_array_equal(wrench_sum, want_wrench)
+    np.testing.assert_array_equal(cov, want_cov)
+    np.testing.assert_array_equal(noise, want_noise)
+    assert np.abs(noise).max() > 0.0
+    lone = CargoEstimator(world.robot_model(0), 0, [], DT)
+    got = lone._peer_terms(act_cov, [])
+    np.testing.assert_array_equal(got[0], np.zeros(6))
+    np.testing.assert_array_equal(got[1], act_cov)
+    np.testing.assert_array_equal(got[2], np.zeros((6, 6)))

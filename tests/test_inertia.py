@@ -406,6 +406,20 @@ def test_estimate_errors_equal_the_three_metrics_batched():
     bad[2, 0] = -1.0
     with pytest.raises(ValueError, match="pi_est must have positive mass"):
         estimate_errors(bad, pi_true)
+    # One true body against the batch (broadcast), as the separate metrics do.
+    for got, want in zip(
+        estimate_errors(pi_est, pi_true[1]),
+        (f(pi_est, pi_true[1]) for f in (mass_rel_error, com_error_m, principal_rel_errors)),
+        strict=True,
+    ):
+        np.testing.assert_array_equal(got, want)
+    bad[2, 0] = np.nan
+    with pytest.raises(ValueError, match="pi_est must be finite"):
+        estimate_errors(bad, pi_true)
+    flat = pi_true.copy()
+    flat[1, 4:] = 0.0  # zero inertia about the origin: a moment about the com is negative
+    with pytest.raises(ValueError, match="pi_true must have positive principal moments"):
+        estimate_errors(pi_est, flat)
 
 
 def test_pseudo_inertia_distance_is_frame_free():
