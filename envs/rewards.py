@@ -75,15 +75,13 @@ def all_finite(values):
 
 
 @njit(cache=True)
-def observe_and_reward(obs, own_starts, peer_starts, estimate_start, link_parent, arms, target,
-                       ref, peers, estimates, qd, cargo_pose, effort, info, contacts, weights,
-                       shared, mixed, rewards, acting, nav, q, finite):  # fmt: skip
+def observe_and_reward(obs, acting, own_starts, peer_starts, estimate_start, link_parent, arms,
+                       nav, q, target, ref, peers, estimates, qd, cargo_pose, finite, effort,
+                       info, contacts, weights, shared, mixed, rewards):  # fmt: skip
     """The observations of the ``acting`` robots into ``obs`` (N, obs_dim), zeros elsewhere
     (``assemble``, whose arguments these are: the layout's starts, the arms, the navigation
-    filters ``nav``, the encoder angles ``q`` ...; ``ref`` the reference's arrays, ``peers`` the
-    peer slots' (wrench, age, valid, arm)); a non-finite entry is zeroed and makes the step not
-    ``finite``. The arguments the sensing kernel shares (``acting``, ``nav``, ``q``) and its
-    result (``finite``) come last (``step_kernels.sense_observe_and_reward``).
+    filters ``nav`` ...; ``ref`` the reference's arrays, ``peers`` the peer slots' (wrench, age,
+    valid, arm)); a non-finite entry is zeroed and makes the step not ``finite``.
     Then the weighted, mixed terms ``mixed`` (4, N) and ``rewards`` (N,) of ``mix_rewards``:
     tracking of the cargo pose ``cargo_pose`` (xpos, xmat, cargo body) when finite, else 0;
     effort -``effort``; ``info``; ``contacts`` (per robot (N,), the cargo's). Returns finite."""

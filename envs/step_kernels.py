@@ -1,11 +1,9 @@
-"""The part of a control step after the physics as compiled calls: ``sense_and_navigate``
-(the physics state's check ``physics.state_finite``, every robot's sensor readings
-``sensors.read_into`` with the faults' masks of the step, the robots' navigation filters
-``navigation.navigate``), which runs before the estimators; and, where no estimator runs
-between them, ``sense_observe_and_reward``: the same followed by the observations and rewards
-(``rewards.observe_and_reward``) in one call. Each part is the same kernel the separate calls
-run; one call passes their arrays across the Python boundary once (numba checks and unboxes
-every argument at every call, which costs more than the arithmetic of two robots).
+"""The part of a control step between the physics and the estimators as one compiled call:
+the physics state's check (``physics.state_finite``), every robot's sensor readings
+(``sensors.read_into``) with the faults' masks of the step, and the robots' navigation filters
+(``navigation.navigate``). Each of these is the same kernel the separate calls run; the one call
+passes their arrays across the Python boundary once (numba checks and unboxes every argument at
+every call, which costs more than the arithmetic of two robots).
 """
 
 from __future__ import annotations
@@ -14,7 +12,6 @@ from numba import njit
 
 from astrocargo.envs.navigation import navigate
 from astrocargo.envs.physics import state_finite
-from astrocargo.envs.rewards import observe_and_reward
 from astrocargo.envs.sensors import read_into
 
 
@@ -45,29 +42,3 @@ def sense_and_navigate(
         has_fix[i] = has_fix[i] and fix_ok[i]
     navigate(filters, dt_s, gyro, accel, has_imu, pos, quat, has_fix, acting)
     return finite
-
-
-@njit(cache=True)
-def sense_observe_and_reward(
-    qpos, qvel, warnings, unstable, saved_qpos, saved_qvel,
-    v0, r0, period_s, cvel, site_xpos, site_xmat, subtree_com, imu_index, sensordata, joint_adr,
-    pos_adr, quat_adr, normals, noise_std, fix, rows, accel, gyro, joints, pos, quat, has_imu,
-    has_fix, imu_ok, fix_ok, filters, acting, dt_s,
-    obs, own_starts, peer_starts, estimate_start, link_parent, arms, target, ref, peers,
-    estimates, qd, cargo_pose, effort, info, contacts, weights, shared, mixed, rewards,
-):  # fmt: skip
-    """``sense_and_navigate`` (its arguments first), then ``observe_and_reward`` (its arguments
-    next, those shared with the first call left out: the ``acting`` robots, the navigation
-    ``filters``, the encoder angles ``joints`` and the state's finiteness). For a step without
-    estimators. Returns whether the state and the observations are finite."""
-    finite = sense_and_navigate(
-        qpos, qvel, warnings, unstable, saved_qpos, saved_qvel,
-        v0, r0, period_s, cvel, site_xpos, site_xmat, subtree_com, imu_index, sensordata,
-        joint_adr, pos_adr, quat_adr, normals, noise_std, fix, rows, accel, gyro, joints, pos,
-        quat, has_imu, has_fix, imu_ok, fix_ok, filters, acting, dt_s,
-    )  # fmt: skip
-    return observe_and_reward(
-        obs, own_starts, peer_starts, estimate_start, link_parent, arms, target, ref, peers,
-        estimates, qd, cargo_pose, effort, info, contacts, weights, shared, mixed, rewards,
-        acting, filters, joints, finite,
-    )  # fmt: skip

@@ -51,7 +51,7 @@ from astrocargo.envs.sensors import (
     imu_state_into,
 )
 from astrocargo.envs.sensors import noise_profile as get_noise_profile
-from astrocargo.envs.step_kernels import sense_and_navigate, sense_observe_and_reward
+from astrocargo.envs.step_kernels import sense_and_navigate
 from astrocargo.envs.world import ARM_DEPLOYED_RAD, MAX_TIMESTEP_S, World
 from astrocargo.estimator.cargo_estimator import CargoEstimator
 from astrocargo.estimator.geometry import mat_to_quat, quat_to_mat
@@ -322,30 +322,27 @@ class CargoTransport:
         self._fault_masks(k, fix)
         commands = self._apply_commands(actions, normals)
         self._physics.integrate(self._kinematics_current)
+        finite, readings = self._sense_and_navigate(fix, normals)
+        self._update_estimators(readings, commands, k)
+        self.readings = readings
+
         robot_contacts, cargo_contacts, n_contacts = self._wall_contacts()
-        obs, rewards = np.empty((self.n_robots, self.obs_dim)), np.empty(self.n_robots)
+        # A release due with a non-finite state does not happen: the episode ends (non_finite).
         released = ()
-        if self.estimators or self._release_due(acting, k):
-            finite, readings = self._sense_and_navigate(fix, normals)
-            self._update_estimators(readings, commands, k)
-            self.readings = readings
-            # A release due with a non-finite state does not happen: the episode ends.
-            if self.release_steps and finite:
-                released = tuple(i for i in acting if self.release_steps.get(i) == k)
-            if released:
-                self._release(released)
-            observe = self._observe_arguments(
-                obs, rewards, acting_mask, robot_contacts, cargo_contacts
-            )
-            finite = observe_and_reward(
-                *observe, acting_mask, self.navigator.filters, readings.joint_pos_rad, finite
-            )
-        else:  # nothing runs between the sensing and the observations: one compiled call
-            observe = self._observe_arguments(
-                obs, rewards, acting_mask, robot_contacts, cargo_contacts
-            )
-            finite = sense_observe_and_reward(*self._sense_arguments(fix, normals), *observe)
-            self.readings = self._readings
+        if self.release_steps and finite:
+            released = tuple(i for i in acting if self.release_steps.get(i) == k)
+        if released:
+            self._release(released)
+        obs, rewards = np.empty((self.n_robots, self.obs_dim)), np.empty(self.n_robots)
+        ob = self._observations
+        finite = observe_and_reward(
+            obs, acting_mask, ob.own_starts, ob.peer_starts, ob.estimate_start, ob.link_parent,
+            ob.arms, self.navigator.filters, self.readings.joint_pos_rad, self.arm_targets,
+            self._reference_arrays(), self._peer_observations(acting_mask), self._estimates,
+            self.arm_rates, self._cargo_pose, finite, self._effort, self._info_gain(),
+            (robot_contacts, cargo_contacts), self._weights, self.shared_reward, self._mixed,
+            rewards,
+        )  # fmt: skip
         reason = None
         if not finite:
             reason = "non_finite"
@@ -436,18 +433,10 @@ class CargoTransport:
         (``step_kernels.sense_and_navigate``). Fresh reading arrays while estimators run (they may
         keep a reading), else the same ones every step."""
         r = SensorReadings.empty(self.n_robots) if self.estimators else self._readings
-        return sense_and_navigate(*self._sense_arguments(fix, normals, r)), r
-
-    def _sense_arguments(
-        self, fix: bool, normals: np.ndarray, r: SensorReadings | None = None
-    ) -> tuple:
-        """The arguments of ``step_kernels.sense_and_navigate`` (and the first ones of
-        ``sense_observe_and_reward``): the readings go to ``r`` (default: the reused ones)."""
-        r = self._readings if r is None else r
         r.time_s = time_s = float(self.data.time)
         cvel, site_xpos, site_xmat, subtree_com, sensordata = self._sensor_views
         p, s, nav = self._physics, self.sensors, self.navigator
-        return (
+        finite = sense_and_navigate(
             p.qpos, p.qvel, p.warnings, UNSTABLE_WARNINGS, p.saved_qpos, p.saved_qvel,
             self._imu_v0, self._imu_r0, time_s - self._period_start_s, cvel, site_xpos,
             site_xmat, subtree_com, s.imu_index, sensordata, s.joint_adr, s.pos_adr, s.quat_adr,
@@ -455,30 +444,7 @@ class CargoTransport:
             r.base_pos_world, r.base_quat_world, r.has_imu, r.has_fix, self._imu_ok,
             self._fix_ok, nav.filters, self._acting_mask, nav.dt_s,
         )  # fmt: skip
-
-    def _observe_arguments(
-        self,
-        obs: np.ndarray,
-        rewards: np.ndarray,
-        acting: np.ndarray,
-        robot_contacts: np.ndarray,
-        cargo_contacts: int,
-    ) -> tuple:
-        """The first arguments of ``rewards.observe_and_reward`` (the last ones of
-        ``sense_observe_and_reward``): the observations and rewards go to ``obs``, ``rewards``;
-        the peer slots are those of the ``acting`` robots (bool (N,))."""
-        ob = self._observations
-        return (
-            obs, ob.own_starts, ob.peer_starts, ob.estimate_start, ob.link_parent, ob.arms,
-            self.arm_targets, self._reference_arrays(), self._peer_observations(acting),
-            self._estimates, self.arm_rates, self._cargo_pose, self._effort, self._info_gain(),
-            (robot_contacts, cargo_contacts), self._weights, self.shared_reward, self._mixed,
-            rewards,
-        )  # fmt: skip
-
-    def _release_due(self, acting: tuple[int, ...], k: int) -> bool:
-        """Whether one of the ``acting`` robots is to let go of the cargo at step ``k``."""
-        return bool(self.release_steps) and any(self.release_steps.get(i) == k for i in acting)
+        return finite, r
 
     def _update_estimators(self, readings: SensorReadings, commands: np.ndarray, k: int) -> None:
         """The team's estimation of step ``k`` (``TeamEstimation.step``); the estimates are
