@@ -11,8 +11,10 @@ Sections:
   on a shared machine); the same ratios of this thread's CPU time (`time.thread_time_ns` read
   around the same calls, outside the wall-clock reads: time the thread spends descheduled while
   other processes run does not count) as step_over_physics_cpu and
-  step_over_physics_no_estimator_cpu (means) and ..._cpu_median; reset_ms = mean `env.reset()`
-  time (reset_median_ms: median).
+  step_over_physics_no_estimator_cpu (means) and ..._cpu_median (a thread-time read is a
+  system call, part of whose cost lands inside each interval, step and physics alike: it pulls
+  the CPU ratios slightly towards 1); reset_ms = mean `env.reset()` time (reset_median_ms:
+  median).
 - controller: `ObservationController.predict` beside the `env.step` it drives, in one loop
   (2 and 3 robots); predict_over_step = mean predict / mean step.
 - sb3_loop: environment steps per second per copy through the SB3 adapter of envs/wrappers.py
