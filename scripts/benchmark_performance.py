@@ -8,7 +8,13 @@ Sections:
   `mj_step(nstep=frame_skip)` of the same model from the same state; real-time factor = control
   period / mean step time; step_over_physics = mean step / mean physics step (estimators on, and
   off as step_over_physics_no_estimator; the same of medians as ..._median, robust to other jobs
-  on a shared machine); reset_ms = mean `env.reset()` time (reset_median_ms: median).
+  on a shared machine); the same ratios of this thread's CPU time (`time.thread_time_ns` read
+  around the same calls, outside the wall-clock reads: time the thread spends descheduled while
+  other processes run does not count) as step_over_physics_cpu and
+  step_over_physics_no_estimator_cpu (means) and ..._cpu_median (a thread-time read is a
+  system call, part of whose cost lands inside each interval, step and physics alike: it pulls
+  the CPU ratios slightly towards 1); reset_ms = mean `env.reset()` time (reset_median_ms:
+  median).
 - controller: `ObservationController.predict` beside the `env.step` it drives, in one loop
   (2 and 3 robots); predict_over_step = mean predict / mean step.
 - sb3_loop: environment steps per second per copy through the SB3 adapter of envs/wrappers.py
@@ -186,8 +192,9 @@ def _make_env(n_robots: int, estimators: bool = True, **kwargs):
     )
 
 
-def _env_step_times_ns(n_robots: int, estimators: bool) -> tuple[np.ndarray, object]:
-    """Wall time of each of ENV_STEPS env steps (after ENV_WARMUP_STEPS), and the env."""
+def _env_step_times_ns(n_robots: int, estimators: bool) -> tuple[np.ndarray, np.ndarray, object]:
+    """Wall and thread CPU time of each of ENV_STEPS env steps (after ENV_WARMUP_STEPS), ns,
+    and the env."""
     env = _make_env(
         n_robots,
         estimators=estimators,
@@ -199,24 +206,27 @@ def _env_step_times_ns(n_robots: int, estimators: bool) -> tuple[np.ndarray, obj
     freq = rng.uniform(0.05, 0.3, (n_robots, 8))
     phase = rng.uniform(0.0, 2 * np.pi, (n_robots, 8))
     env.reset(seed=SEED)
-    times = []
+    times, cpu_times = [], []
     gc_was_enabled = gc.isenabled()
     gc.disable()
     try:
         for k in range(ENV_WARMUP_STEPS + ENV_STEPS):
             a = 0.2 * np.sin(2 * np.pi * freq * k * env.sim.dt_s + phase)
             actions = dict(zip(env.possible_agents, a, strict=True))
+            c0 = time.thread_time_ns()
             t0 = time.perf_counter_ns()
             env.step(actions)
             t1 = time.perf_counter_ns()
+            c1 = time.thread_time_ns()
             if k >= ENV_WARMUP_STEPS:
                 times.append(t1 - t0)
+                cpu_times.append(c1 - c0)
             if not env.agents:
                 raise RuntimeError(f"benchmark episode ended early at step {k}")
     finally:
         if gc_was_enabled:
             gc.enable()
-    return np.array(times), env
+    return np.array(times), np.array(cpu_times), env
 
 
 def _frame_skip(sim) -> int:
@@ -226,20 +236,24 @@ def _frame_skip(sim) -> int:
     return int(frame_skip) if frame_skip else max(1, round(sim.dt_s / sim.model.opt.timestep))
 
 
-def _physics_step_times_ns(env) -> np.ndarray:
-    """Bare mj_step(nstep=frame_skip) of the env's own model from its current state."""
+def _physics_step_times_ns(env) -> tuple[np.ndarray, np.ndarray]:
+    """Wall and thread CPU time (ns) of bare mj_step(nstep=frame_skip) of the env's own model
+    from its current state."""
     import mujoco
 
     model, data = env.sim.model, env.sim.data
     nstep = _frame_skip(env.sim)
-    times = []
+    times, cpu_times = [], []
     for k in range(ENV_WARMUP_STEPS + ENV_STEPS):
+        c0 = time.thread_time_ns()
         t0 = time.perf_counter_ns()
         mujoco.mj_step(model, data, nstep=nstep)
         t1 = time.perf_counter_ns()
+        c1 = time.thread_time_ns()
         if k >= ENV_WARMUP_STEPS:
             times.append(t1 - t0)
-    return np.array(times)
+            cpu_times.append(c1 - c0)
+    return np.array(times), np.array(cpu_times)
 
 
 def _reset_times_ms(n_robots: int) -> np.ndarray:
@@ -262,19 +276,20 @@ def bench_env() -> dict[str, dict[str, float]]:
     print(
         f"env: {ENV_STEPS} steps after {ENV_WARMUP_STEPS} warm-up steps, nominal noise, seed "
         f"{SEED}, OPENBLAS_NUM_THREADS={os.environ['OPENBLAS_NUM_THREADS']}; rtf = control "
-        f"period / mean step time; /phys = mean step / mean mj_step; reset: mean of "
+        f"period / mean step time; /phys = mean step / mean mj_step; cpu /phys: the same of "
+        f"thread CPU time; reset: mean of "
         f"{ENV_RESETS}"
     )
     print(
         f"  {'N':>2} {'step us':>9} {'mean us':>9} {'rtf':>7} {'no-est us':>10} {'mean us':>9} "
         f"{'rtf':>7} {'mj_step us':>11} {'rtf':>8} {'/phys':>6} {'no-est/phys':>12} "
-        f"{'median /phys':>13} "
+        f"{'median /phys':>13} {'cpu /phys':>12} "
         f"{'reset ms':>9}"
     )
     for n in ENV_ROBOTS:
-        on, env = _env_step_times_ns(n, estimators=True)
-        off, _ = _env_step_times_ns(n, estimators=False)
-        physics = _physics_step_times_ns(env)
+        on, on_cpu, env = _env_step_times_ns(n, estimators=True)
+        off, off_cpu, _ = _env_step_times_ns(n, estimators=False)
+        physics, physics_cpu = _physics_step_times_ns(env)
         resets = _reset_times_ms(n)
         dt_us = env.sim.dt_s * 1e6
         physics_mean_us = float(np.mean(physics)) / 1e3
@@ -293,6 +308,13 @@ def bench_env() -> dict[str, dict[str, float]]:
             # Medians over medians: the same ratios, robust to other jobs on a shared machine.
             "step_over_physics_median": float(np.median(on) / np.median(physics)),
             "step_over_physics_no_estimator_median": float(np.median(off) / np.median(physics)),
+            # This thread's CPU time: time descheduled while other processes run is left out.
+            "step_over_physics_cpu": float(np.mean(on_cpu) / np.mean(physics_cpu)),
+            "step_over_physics_no_estimator_cpu": float(np.mean(off_cpu) / np.mean(physics_cpu)),
+            "step_over_physics_cpu_median": float(np.median(on_cpu) / np.median(physics_cpu)),
+            "step_over_physics_no_estimator_cpu_median": float(
+                np.median(off_cpu) / np.median(physics_cpu)
+            ),
             "reset_ms": float(np.mean(resets)),
             "reset_median_ms": float(np.median(resets)),
         }
@@ -305,6 +327,8 @@ def bench_env() -> dict[str, dict[str, float]]:
             f"{row['step_over_physics_no_estimator']:12.1f} "
             f"{row['step_over_physics_median']:6.1f} / "
             f"{row['step_over_physics_no_estimator_median']:4.1f} "
+            f"{row['step_over_physics_cpu']:6.2f} / "
+            f"{row['step_over_physics_no_estimator_cpu']:4.2f} "
             f"{row['reset_ms']:9.1f}"
         )
     return results
