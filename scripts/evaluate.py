@@ -96,8 +96,9 @@ POLICY_HELP = (
     "'zero', 'scripted' or a run folder of scripts/train.py (with model.zip and config.json), "
     "or 'feedforward'; 'scripted:MODEL@TRAJECTORY' picks the cargo model (estimate, none, "
     "truth) and trajectory; 'feedforward': the no-model controller plus u_ff of the live "
-    "estimate, held ('feedforward:prior': of the estimator's prior); 'RUN@SAMPLES': the run's "
-    "checkpoint after SAMPLES samples"
+    "estimate, held ('feedforward:prior': of the estimator's prior); 'teacher': the no-model "
+    "controller plus the live-estimate correction, held (the imitation's oracle); "
+    "'RUN@SAMPLES': the run's checkpoint after SAMPLES samples"
 )
 
 
@@ -158,14 +159,38 @@ class FeedForwardPolicy:
         self.feedforward = FeedForwardObservation(env, self.source)
         self.agents, self.steps = list(env.possible_agents), 0
 
+    def decide(self, obs: np.ndarray) -> np.ndarray:
+        u_ff = self.feedforward(dict(zip(self.agents, obs, strict=True)))
+        return np.stack([u_ff[a] for a in self.agents])
+
     def act(self, obs: np.ndarray) -> np.ndarray:
         from astrocargo.envs.decision import residual_actions
 
         if self.steps % self.action_repeat == 0:
-            u_ff = self.feedforward(dict(zip(self.agents, obs, strict=True)))
-            self.held = np.stack([u_ff[a] for a in self.agents])
+            self.held = self.decide(obs)
         self.steps += 1
         return residual_actions(self.base.predict(obs)[0], self.held, 1.0)
+
+
+class TeacherHeldPolicy(FeedForwardPolicy):
+    """The imitation's oracle: the teacher's label as a policy could hold it, i.e. the residual
+    that makes the no-model controller the live-estimate one (``teacher_residual``), computed
+    at each decision's first step, clipped to [-1, 1] and held over the decision (residual scale
+    1, the cargo task's ``action_repeat``)."""
+
+    def __init__(self, action_repeat: int) -> None:
+        super().__init__(action_repeat)
+        self.name = "teacher held (no model + the live-estimate correction, held)"
+
+    def reset(self, env) -> None:
+        super().reset(env)
+        self.teacher = ObservationController.for_env(env, "estimate")
+
+    def decide(self, obs: np.ndarray) -> np.ndarray:
+        from astrocargo.envs.decision import teacher_residual
+
+        label = teacher_residual(self.teacher.predict(obs)[0], self.base.predict(obs)[0], 1.0)
+        return np.clip(label, -1.0, 1.0)
 
 
 class TrainedPolicy:
@@ -262,7 +287,7 @@ def parse_scripted(spec: str) -> tuple[str, str | None] | None:
 
 def check_policy_spec(spec: str) -> None:
     """ValueError unless ``spec`` is 'zero', a scripted spec or a run folder of scripts/train.py."""
-    if spec in ("zero", "feedforward", "feedforward:prior"):
+    if spec in ("zero", "feedforward", "feedforward:prior", "teacher"):
         return
     scripted = parse_scripted(spec)
     if scripted is not None:
@@ -292,6 +317,8 @@ def make_policy(spec: str, cargo_model: str):
     check_policy_spec(spec)
     if spec == "zero":
         return ZeroPolicy()
+    if spec == "teacher":
+        return TeacherHeldPolicy(LEARNING_TASKS[DEFAULT_TASK]["action_repeat"])
     if spec.startswith("feedforward"):
         source = "prior" if spec.endswith(":prior") else "estimate"
         return FeedForwardPolicy(LEARNING_TASKS[DEFAULT_TASK]["action_repeat"], source)
@@ -525,6 +552,10 @@ def arm_key(config: dict) -> str:
     kind = f"{config['algo'].upper()}{f' residual x{residual:g}{on}' if residual else ''}"
     if kwargs.get("feedforward_obs"):
         kind += " + feed-forward input"
+    if "imitation" in config:
+        kind += " imitation of the live-estimate controller"
+    elif "init_from" in config:
+        kind += " from imitation"
     if "checkpoint_samples" in config:  # a checkpoint is an arm of its own training length
         kind += f" (checkpoint at {config['checkpoint_samples']} samples)"
     elif "timesteps" in config:

@@ -69,6 +69,7 @@ from stable_baselines3.common.vec_env import (  # noqa: E402
     VecNormalize,
 )
 
+from astrocargo.agents.imitation import initialise_from  # noqa: E402
 from astrocargo.agents.trajectories import Trajectory  # noqa: E402
 from astrocargo.envs.config import LEARNING_TASKS  # noqa: E402
 from astrocargo.envs.decision import BASE_MODELS, check_decision_args  # noqa: E402
@@ -276,6 +277,8 @@ def train(args: argparse.Namespace) -> tuple[BaseAlgorithm, Path]:
     log_dir = Path(args.log_dir)
     log_dir.mkdir(parents=True, exist_ok=True)
     model, hyper = build_model(args, seed, log_dir)
+    if args.init_from is not None:  # imitation first (scripts/imitate.py), then PPO
+        initialise_from(model, args.init_from)
     config = {
         "algo": args.algo,
         "view": args.view,
@@ -293,6 +296,9 @@ def train(args: argparse.Namespace) -> tuple[BaseAlgorithm, Path]:
         },
         "command": " ".join(sys.argv),
     }
+    if args.init_from is not None:
+        init = json.loads((args.init_from / "config.json").read_text())
+        config["init_from"] = {"run": str(args.init_from), "wall_s": init.get("wall_s")}
     (log_dir / "config.json").write_text(json.dumps(config, indent=2) + "\n")
     start = time.perf_counter()
     callbacks: list[BaseCallback] = [TrackingCostCallback()]
@@ -575,6 +581,14 @@ def build_parser() -> argparse.ArgumentParser:
         default=0,
         help="save the model every N samples (0: no)",
     )
+    parser.add_argument(
+        "--init-from",
+        type=Path,
+        default=None,
+        metavar="RUN",
+        help="start PPO from a scripts/imitate.py run folder (its policy and normalisation; "
+        "the same task and arm)",
+    )
     parser.add_argument("--verbose", type=int, default=0)
     return parser
 
@@ -606,8 +620,19 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
             import_ray("--backend rllib needs Ray and RLlib")
         except ImportError as err:
             parser.error(str(err))
+    if args.init_from is not None:
+        check_init_from(parser, args)
     output_dir(parser, Path(args.log_dir), "--log-dir")
     return args
+
+
+def check_init_from(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """``--init-from``: PPO, an imitation run of the same env arguments (parser error)."""
+    path = args.init_from / "config.json"
+    if args.algo != "ppo" or not path.is_file() or not (args.init_from / "model.zip").is_file():
+        parser.error("--init-from needs --algo ppo and a run folder of scripts/imitate.py")
+    if json.loads(path.read_text())["env_kwargs"] != json.loads(json.dumps(env_kwargs(args))):
+        parser.error(f"--init-from {args.init_from}: trained on other env arguments")
 
 
 def main(argv: list[str] | None = None) -> int:
