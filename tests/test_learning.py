@@ -872,3 +872,23 @@ def test_imitation_run_saves_a_policy_that_evaluates_and_fine_tunes(tmp_path):
         train.parse_args(
             [*common, "--no-estimates", "--init-from", str(run), "--log-dir", str(other)]
         )
+
+
+def test_masked_block_no_longer_reaches_the_policy(trained_runs):
+    evaluate = _load_script("evaluate")
+    plain, masked = (evaluate.TrainedPolicy(trained_runs / "res") for _ in range(2))
+    masked.mask("peer0_wrench")
+    assert "peer0_wrench masked" in evaluate.arm_key(masked.config)
+    kwargs = {k: v for k, v in plain.config["env_kwargs"].items() if k in FAST or k == "n_robots"}
+    env = astrobee_cargo_v0.parallel_env(**kwargs)
+    obs, _ = env.reset(seed=0)
+    obs = np.stack(list(obs.values()))
+    for policy in (plain, masked):
+        policy.reset(env)
+    pushed = obs.copy()
+    pushed[:, env.sim.obs_layout["peer0_wrench"]] += 5.0
+    np.testing.assert_array_equal(masked.decide(obs), masked.decide(pushed))
+    assert np.any(plain.decide(obs) != plain.decide(pushed))  # the block matters unmasked
+    masked.masked = "no_such_block"
+    with pytest.raises(ValueError, match="no observation block"):
+        masked.reset(env)
