@@ -199,7 +199,10 @@ def env_kwargs(args: argparse.Namespace) -> dict[str, Any]:
     # are only cost, so they are switched off (evaluate.py runs them, to score them); a reward
     # with an information term needs them, and so does the "estimate" base controller, which
     # reads them from the env's observation: --no-estimates then hides them from the policy.
-    observed = args.estimates or args.base_model == "estimate"
+    # Without the estimators the peers' messages (peer slots) stay zero, while evaluate.py runs
+    # them: --hidden-estimators keeps them running, hidden, so the policy trains on the peer
+    # slots it is evaluated with.
+    observed = args.estimates or args.base_model == "estimate" or args.hidden_estimators
     kwargs["observe_estimates"] = observed
     kwargs["hide_estimates"] = observed and not args.estimates
     kwargs["estimators"] = observed or bool(kwargs.get("w_info", 0.0))
@@ -517,6 +520,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="observe the estimators' cargo estimates",
     )
     parser.add_argument(
+        "--hidden-estimators",
+        action="store_true",
+        help="with --no-estimates: run the estimators, hidden from the policy (the peers' "
+        "messages in the observation, which stay zero without the estimators, as evaluate.py "
+        "shows them)",
+    )
+    parser.add_argument(
         "--task",
         choices=sorted(LEARNING_TASKS),
         default=None,
@@ -631,8 +641,18 @@ def check_init_from(parser: argparse.ArgumentParser, args: argparse.Namespace) -
     path = args.init_from / "config.json"
     if args.algo != "ppo" or not path.is_file() or not (args.init_from / "model.zip").is_file():
         parser.error("--init-from needs --algo ppo and a run folder of scripts/imitate.py")
-    if json.loads(path.read_text())["env_kwargs"] != json.loads(json.dumps(env_kwargs(args))):
+    theirs = policy_env(json.loads(path.read_text())["env_kwargs"])
+    if theirs != policy_env(json.loads(json.dumps(env_kwargs(args)))):
         parser.error(f"--init-from {args.init_from}: trained on other env arguments")
+
+
+def policy_env(kwargs: dict[str, Any]) -> dict[str, Any]:
+    """Env arguments as the policy sees them: whether the estimators run or are hidden from it
+    (``observe_estimates``, ``hide_estimates``, ``estimators``) reduced to whether it observes
+    them."""
+    out = {k: v for k, v in kwargs.items() if k not in ("hide_estimates", "estimators")}
+    out["observe_estimates"] = kwargs["observe_estimates"] and not kwargs["hide_estimates"]
+    return out
 
 
 def main(argv: list[str] | None = None) -> int:

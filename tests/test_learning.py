@@ -892,3 +892,19 @@ def test_masked_block_no_longer_reaches_the_policy(trained_runs):
     masked.masked = "no_such_block"
     with pytest.raises(ValueError, match="no observation block"):
         masked.reset(env)
+
+
+def test_hidden_estimators_run_them_unseen_and_keep_the_policy_view(tmp_path):
+    """--hidden-estimators: the estimators run (the peers' messages fill the observation, as in
+    evaluation) but the policy does not see them: the same policy view as --no-estimates."""
+    train = _load_script("train")
+    common = ["--residual-scale", "1.0", "--feedforward-obs", "--no-estimates"]
+    common += ["--log-dir", str(tmp_path / "run")]
+    plain = train.env_kwargs(train.parse_args(common))
+    hidden = train.env_kwargs(train.parse_args([*common, "--hidden-estimators"]))
+    assert not plain["estimators"] and not plain["observe_estimates"]
+    assert hidden["estimators"] and hidden["observe_estimates"] and hidden["hide_estimates"]
+    assert hidden["feedforward_obs"] == plain["feedforward_obs"] == "prior"
+    assert train.policy_env(hidden) == train.policy_env(plain)
+    seen = train.env_kwargs(train.parse_args(common[:-3] + common[-2:]))  # estimates observed
+    assert train.policy_env(seen) != train.policy_env(plain)
