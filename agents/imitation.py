@@ -190,7 +190,9 @@ def fit_critic(
 ) -> list[float]:
     """Fit V to the discounted return of the normalised reward, the tail after each track's
     last sample bootstrapped by V there (``rounds`` times: returns, fit, returns, ...); the
-    losses of the last fit."""
+    losses of the last fit. Known bias: each round adds one discounted step to the tail, so a
+    few rounds leave the values of a track's last ~1 / (1 - gamma) samples too small against
+    the infinite-horizon value PPO bootstraps at a time limit (docs/learning.md)."""
     obs, _, reward, track = flights.arrays()
     x = normalizer.normalize_obs(obs)
     r = normalizer.normalize_reward(reward)
