@@ -35,11 +35,13 @@ def cargo_env_fn(
     base_model: str = "none",
     hide_estimates: bool = False,
     feedforward_obs: str | None = None,
+    teacher_model: str | None = None,
     **env_kwargs: Any,
 ) -> Callable[[], ParallelEnv]:
     """A picklable factory of ``astrobee_cargo_v0.parallel_env(**env_kwargs)``, wrapped in
     ``DecisionEnv(env, residual_scale, action_repeat, base_model, hide_estimates,
-    feedforward_obs)`` unless those are the defaults (0, 1, "none", False, None)."""
+    feedforward_obs, teacher_model)`` unless those are the defaults (0, 1, "none", False, None,
+    None)."""
     return functools.partial(
         make_cargo_env,
         residual_scale=residual_scale,
@@ -47,6 +49,7 @@ def cargo_env_fn(
         base_model=base_model,
         hide_estimates=hide_estimates,
         feedforward_obs=feedforward_obs,
+        teacher_model=teacher_model,
         **env_kwargs,
     )
 
@@ -57,6 +60,7 @@ def make_cargo_env(
     base_model: str = "none",
     hide_estimates: bool = False,
     feedforward_obs: str | None = None,
+    teacher_model: str | None = None,
     **env_kwargs: Any,
 ) -> ParallelEnv:
     """What ``cargo_env_fn`` builds, made now: the parallel env, wrapped in ``DecisionEnv`` unless
@@ -64,8 +68,15 @@ def make_cargo_env(
     from astrocargo.envs import astrobee_cargo_v0
 
     env = astrobee_cargo_v0.parallel_env(**env_kwargs)
-    decision = (residual_scale, action_repeat, base_model, hide_estimates, feedforward_obs)
-    if decision != (0.0, 1, "none", False, None):
+    decision = (
+        residual_scale,
+        action_repeat,
+        base_model,
+        hide_estimates,
+        feedforward_obs,
+        teacher_model,
+    )
+    if decision != (0.0, 1, "none", False, None, None):
         return DecisionEnv(env, *decision)
     return env
 
@@ -82,6 +93,15 @@ def residual_actions(base: np.ndarray, residual: np.ndarray, residual_scale: flo
     return out
 
 
+def teacher_residual(teacher: np.ndarray, base: np.ndarray, residual_scale: float) -> np.ndarray:
+    """The residual that makes the base controller's action the teacher's on the thrust entries:
+    r = (clip(a_teacher, -1, 1) - a_base)[..., :6] / residual_scale (``teacher``, ``base``
+    (..., 8), in the action's normalised units; the env clips what it is sent to [-1, 1], so
+    the teacher's action is taken as the env applies it)."""
+    target = np.clip(np.asarray(teacher, dtype=np.float64), -1.0, 1.0)[..., :RESIDUAL_DIM]
+    return (target - np.asarray(base, dtype=np.float64)[..., :RESIDUAL_DIM]) / residual_scale
+
+
 # The cargo models a residual's base controller may use (``ObservationController``'s).
 BASE_MODELS = ("none", "estimate")
 
@@ -91,8 +111,7 @@ def check_decision_args(
 ) -> tuple[float, int]:
     """``residual_scale`` a number >= 0, ``action_repeat`` a positive integer, ``base_model``
     one of ``BASE_MODELS`` (ValueError)."""
-    if base_model not in BASE_MODELS:
-        raise ValueError(f"base_model must be one of {BASE_MODELS}, got {base_model!r}")
+    check_cargo_model("base_model", base_model)
     scale = float(residual_scale)
     if not np.isfinite(scale) or scale < 0.0:
         raise ValueError(f"residual_scale must be a number >= 0, got {residual_scale!r}")
@@ -101,6 +120,12 @@ def check_decision_args(
     if action_repeat < 1:
         raise ValueError(f"action_repeat must be a positive integer, got {action_repeat!r}")
     return scale, int(action_repeat)
+
+
+def check_cargo_model(name: str, model: str) -> None:
+    """``model`` one of ``BASE_MODELS`` (ValueError naming the argument ``name``)."""
+    if model not in BASE_MODELS:
+        raise ValueError(f"{name} must be one of {BASE_MODELS}, got {model!r}")
 
 
 def policy_observation_index(layout: dict[str, slice], hide_estimates: bool) -> np.ndarray:
@@ -158,6 +183,13 @@ class DecisionEnv(ParallelEnv):
     prior ("prior": the same form without the cargo's information), from the decision's
     observation.
 
+    ``teacher_model`` (needs a residual): the scripted controller with that cargo model
+    ("estimate": the live estimate) runs beside the base as a teacher for imitation
+    (``astrocargo.agents.imitation``): each agent's info gets ``teacher_residual``, the mean
+    over the decision's control steps of ``teacher_residual(a_teacher(k), a_base(k))``, the
+    held residual that comes closest (least squares) to making the base the teacher along the
+    flight actually flown; ``teacher_residual_now()`` gives it from the last observation alone.
+
     A decision returns the last step's observations, terminations, truncations and infos and
     the sum of its steps' rewards; it ends early when the episode ends. Each agent's info gets
     ``decision_steps`` (control steps made), ``saturated_mean`` (the mean of ``saturated`` over
@@ -173,11 +205,17 @@ class DecisionEnv(ParallelEnv):
         base_model: str = "none",
         hide_estimates: bool = False,
         feedforward_obs: str | None = None,
+        teacher_model: str | None = None,
     ):
         self.residual_scale, self.action_repeat = check_decision_args(
             residual_scale, action_repeat, base_model
         )
-        self.base_model = base_model
+        if teacher_model is not None:
+            check_cargo_model("teacher_model", teacher_model)
+            if not self.residual_scale:
+                raise ValueError("teacher_model needs a residual (residual_scale > 0)")
+        self.base_model, self.teacher_model = base_model, teacher_model
+        self.teacher: Any = None
         self.feedforward_obs = check_feedforward_obs(feedforward_obs, env.sim.obs_layout)
         self.feedforward: Any = None
         self.env = env
@@ -223,6 +261,8 @@ class DecisionEnv(ParallelEnv):
         obs, infos = self.env.reset(seed=seed, options=options)
         if self.residual_scale:
             self.controller = ObservationController.for_env(self.env, self.base_model)
+        if self.teacher_model:
+            self.teacher = ObservationController.for_env(self.env, self.teacher_model)
         if self.feedforward_obs:
             self.feedforward = FeedForwardObservation(self.env, self.feedforward_obs)
         self._obs = obs
@@ -244,12 +284,26 @@ class DecisionEnv(ParallelEnv):
             return {a: np.zeros(8) for a in live}
         return self.controller.predict(live)[0] if live else {}
 
+    def teacher_residual_now(self, base: dict[str, np.ndarray] | None = None) -> dict:
+        """agent -> ``teacher_residual`` (6,) of every live agent from the last observation
+        (``base``: ``base_actions()`` if already computed)."""
+        live = {a: self._obs[a] for a in self.env.agents}
+        if not live:
+            return {}
+        base = self.base_actions() if base is None else base
+        teacher = self.teacher.predict(live)[0]
+        return {a: teacher_residual(teacher[a], base[a], self.residual_scale) for a in live}
+
     def step(self, actions: dict[str, np.ndarray]) -> tuple:
         total = dict.fromkeys(self.possible_agents, 0.0)
         saturated = dict.fromkeys(self.possible_agents, 0.0)
+        labels = {a: np.zeros(RESIDUAL_DIM) for a in self.possible_agents}
         steps = 0
         while True:
             base = self.base_actions()
+            if self.teacher is not None:
+                for a, r in self.teacher_residual_now(base).items():
+                    labels[a] += r
             if self.residual_scale:
                 sent = {
                     a: residual_actions(base[a], actions[a], self.residual_scale)
@@ -271,6 +325,8 @@ class DecisionEnv(ParallelEnv):
             info["saturated_mean"] = saturated[a] / steps
             if self.residual_scale and a in base:
                 info["base_action"] = base[a]
+            if self.teacher is not None:
+                info["teacher_residual"] = labels[a] / steps
         return self._policy_view(obs), {a: total[a] for a in rewards}, terms, truncs, infos
 
     def render(self) -> Any:

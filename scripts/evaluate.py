@@ -96,8 +96,9 @@ POLICY_HELP = (
     "'zero', 'scripted' or a run folder of scripts/train.py (with model.zip and config.json), "
     "or 'feedforward'; 'scripted:MODEL@TRAJECTORY' picks the cargo model (estimate, none, "
     "truth) and trajectory; 'feedforward': the no-model controller plus u_ff of the live "
-    "estimate, held ('feedforward:prior': of the estimator's prior); 'RUN@SAMPLES': the run's "
-    "checkpoint after SAMPLES samples"
+    "estimate, held ('feedforward:prior': of the estimator's prior); 'teacher': the no-model "
+    "controller plus the live-estimate correction, held (the imitation's oracle); "
+    "'RUN@SAMPLES': the run's checkpoint after SAMPLES samples"
 )
 
 
@@ -158,14 +159,38 @@ class FeedForwardPolicy:
         self.feedforward = FeedForwardObservation(env, self.source)
         self.agents, self.steps = list(env.possible_agents), 0
 
+    def decide(self, obs: np.ndarray) -> np.ndarray:
+        u_ff = self.feedforward(dict(zip(self.agents, obs, strict=True)))
+        return np.stack([u_ff[a] for a in self.agents])
+
     def act(self, obs: np.ndarray) -> np.ndarray:
         from astrocargo.envs.decision import residual_actions
 
         if self.steps % self.action_repeat == 0:
-            u_ff = self.feedforward(dict(zip(self.agents, obs, strict=True)))
-            self.held = np.stack([u_ff[a] for a in self.agents])
+            self.held = self.decide(obs)
         self.steps += 1
         return residual_actions(self.base.predict(obs)[0], self.held, 1.0)
+
+
+class TeacherHeldPolicy(FeedForwardPolicy):
+    """The imitation's oracle: the teacher's label as a policy could hold it, i.e. the residual
+    that makes the no-model controller the live-estimate one (``teacher_residual``), computed
+    at each decision's first step, clipped to [-1, 1] and held over the decision (residual scale
+    1, the cargo task's ``action_repeat``)."""
+
+    def __init__(self, action_repeat: int) -> None:
+        super().__init__(action_repeat)
+        self.name = "teacher held (no model + the live-estimate correction, held)"
+
+    def reset(self, env) -> None:
+        super().reset(env)
+        self.teacher = ObservationController.for_env(env, "estimate")
+
+    def decide(self, obs: np.ndarray) -> np.ndarray:
+        from astrocargo.envs.decision import teacher_residual
+
+        label = teacher_residual(self.teacher.predict(obs)[0], self.base.predict(obs)[0], 1.0)
+        return np.clip(label, -1.0, 1.0)
 
 
 class TrainedPolicy:
@@ -212,10 +237,26 @@ class TrainedPolicy:
         self.held: np.ndarray | None = None
         self.steps = 0
         self.policy_obs = slice(None)
+        self.masked: str | None = None
+        self.mask_cols = np.zeros(0, dtype=np.int64)
+
+    def mask(self, block: str) -> None:
+        """A diagnostic: the observation block ``block`` (``sim.obs_layout``'s name) replaced by
+        the normaliser's mean, i.e. the policy's normalised input there set to zero."""
+        self.masked = block
+        self.config["masked_block"] = block
+        self.name += f" (masked {block})"
 
     def reset(self, env) -> None:
         from astrocargo.envs.decision import policy_observation_index
 
+        if self.masked is not None:
+            layout = env.sim.obs_layout
+            if self.masked not in layout or self.masked == "all":
+                raise ValueError(f"no observation block {self.masked!r}; blocks: {list(layout)}")
+            seen = policy_observation_index(layout, self.hide_estimates)
+            block = np.arange(layout[self.masked].start, layout[self.masked].stop)
+            self.mask_cols = np.flatnonzero(np.isin(seen, block))
         self.steps, self.held = 0, None
         # The observation as it is unless hidden: a copy would change torch's float rounding.
         if self.hide_estimates:
@@ -235,6 +276,7 @@ class TrainedPolicy:
             u_ff = self.feedforward(dict(zip(self.agents, obs, strict=True)))
             rows = [np.concatenate([r, u_ff[a]]) for a, r in zip(self.agents, rows, strict=True)]
         obs = np.stack(rows)
+        obs[:, self.mask_cols] = self.normalizer.obs_rms.mean[self.mask_cols]
         if self.view == "central":
             obs = obs.reshape(1, -1)
         action, _ = self.model.predict(self.normalizer.normalize_obs(obs), deterministic=True)
@@ -262,7 +304,7 @@ def parse_scripted(spec: str) -> tuple[str, str | None] | None:
 
 def check_policy_spec(spec: str) -> None:
     """ValueError unless ``spec`` is 'zero', a scripted spec or a run folder of scripts/train.py."""
-    if spec in ("zero", "feedforward", "feedforward:prior"):
+    if spec in ("zero", "feedforward", "feedforward:prior", "teacher"):
         return
     scripted = parse_scripted(spec)
     if scripted is not None:
@@ -292,6 +334,8 @@ def make_policy(spec: str, cargo_model: str):
     check_policy_spec(spec)
     if spec == "zero":
         return ZeroPolicy()
+    if spec == "teacher":
+        return TeacherHeldPolicy(LEARNING_TASKS[DEFAULT_TASK]["action_repeat"])
     if spec.startswith("feedforward"):
         source = "prior" if spec.endswith(":prior") else "estimate"
         return FeedForwardPolicy(LEARNING_TASKS[DEFAULT_TASK]["action_repeat"], source)
@@ -525,9 +569,15 @@ def arm_key(config: dict) -> str:
     kind = f"{config['algo'].upper()}{f' residual x{residual:g}{on}' if residual else ''}"
     if kwargs.get("feedforward_obs"):
         kind += " + feed-forward input"
+    if "imitation" in config:
+        kind += ", imitation of the live-estimate controller"
+    elif "init_from" in config:
+        kind += ", from imitation"
+    if "masked_block" in config:
+        kind += f", {config['masked_block']} masked"
     if "checkpoint_samples" in config:  # a checkpoint is an arm of its own training length
         kind += f" (checkpoint at {config['checkpoint_samples']} samples)"
-    elif "timesteps" in config:
+    elif config.get("timesteps"):
         kind += f" ({config['timesteps']} samples)"
     obs = "with" if policy_observes_estimates(kwargs) else "without"
     return f"{kind}, {config['view']}, task {config.get('task', '?')}, {obs} estimates"
@@ -734,6 +784,13 @@ def build_parser() -> argparse.ArgumentParser:
         "a_none| (needs the estimates in the env's observation)",
     )
     parser.add_argument(
+        "--mask-block",
+        default=None,
+        metavar="BLOCK",
+        help="diagnostic: trained policies see this observation block (e.g. peer0_wrench) "
+        "replaced by their normaliser's mean",
+    )
+    parser.add_argument(
         "--ablation", action="store_true", help="group run folders into arms over seeds"
     )
     parser.add_argument(
@@ -820,6 +877,9 @@ def earlier_results(paths: list[Path], task: dict, seed: int, episodes: int, bin
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     policies = [make_policy(spec, args.cargo_model) for spec in args.policy]
+    for policy in policies:
+        if args.mask_block and isinstance(policy, TrainedPolicy):
+            policy.mask(args.mask_block)
     trained = [p.config for p in policies if isinstance(p, TrainedPolicy)]
     trained += [json.loads((run / "config.json").read_text()) for run in args.curve]
     if not trained and args.results:  # the task of the first earlier file's first run

@@ -69,6 +69,7 @@ from stable_baselines3.common.vec_env import (  # noqa: E402
     VecNormalize,
 )
 
+from astrocargo.agents.imitation import initialise_from  # noqa: E402
 from astrocargo.agents.trajectories import Trajectory  # noqa: E402
 from astrocargo.envs.config import LEARNING_TASKS  # noqa: E402
 from astrocargo.envs.decision import BASE_MODELS, check_decision_args  # noqa: E402
@@ -198,7 +199,10 @@ def env_kwargs(args: argparse.Namespace) -> dict[str, Any]:
     # are only cost, so they are switched off (evaluate.py runs them, to score them); a reward
     # with an information term needs them, and so does the "estimate" base controller, which
     # reads them from the env's observation: --no-estimates then hides them from the policy.
-    observed = args.estimates or args.base_model == "estimate"
+    # Without the estimators the peers' messages (peer slots) stay zero, while evaluate.py runs
+    # them: --hidden-estimators keeps them running, hidden, so the policy trains on the peer
+    # slots it is evaluated with.
+    observed = args.estimates or args.base_model == "estimate" or args.hidden_estimators
     kwargs["observe_estimates"] = observed
     kwargs["hide_estimates"] = observed and not args.estimates
     kwargs["estimators"] = observed or bool(kwargs.get("w_info", 0.0))
@@ -276,6 +280,8 @@ def train(args: argparse.Namespace) -> tuple[BaseAlgorithm, Path]:
     log_dir = Path(args.log_dir)
     log_dir.mkdir(parents=True, exist_ok=True)
     model, hyper = build_model(args, seed, log_dir)
+    if args.init_from is not None:  # imitation first (scripts/imitate.py), then PPO
+        initialise_from(model, args.init_from)
     config = {
         "algo": args.algo,
         "view": args.view,
@@ -293,6 +299,9 @@ def train(args: argparse.Namespace) -> tuple[BaseAlgorithm, Path]:
         },
         "command": " ".join(sys.argv),
     }
+    if args.init_from is not None:
+        init = json.loads((args.init_from / "config.json").read_text())
+        config["init_from"] = {"run": str(args.init_from), "wall_s": init.get("wall_s")}
     (log_dir / "config.json").write_text(json.dumps(config, indent=2) + "\n")
     start = time.perf_counter()
     callbacks: list[BaseCallback] = [TrackingCostCallback()]
@@ -511,6 +520,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="observe the estimators' cargo estimates",
     )
     parser.add_argument(
+        "--hidden-estimators",
+        action="store_true",
+        help="with --no-estimates: run the estimators, hidden from the policy (the peers' "
+        "messages in the observation, which stay zero without the estimators, as evaluate.py "
+        "shows them)",
+    )
+    parser.add_argument(
         "--task",
         choices=sorted(LEARNING_TASKS),
         default=None,
@@ -575,6 +591,14 @@ def build_parser() -> argparse.ArgumentParser:
         default=0,
         help="save the model every N samples (0: no)",
     )
+    parser.add_argument(
+        "--init-from",
+        type=Path,
+        default=None,
+        metavar="RUN",
+        help="start PPO from a scripts/imitate.py run folder (its policy and normalisation; "
+        "the same task and arm)",
+    )
     parser.add_argument("--verbose", type=int, default=0)
     return parser
 
@@ -606,8 +630,29 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
             import_ray("--backend rllib needs Ray and RLlib")
         except ImportError as err:
             parser.error(str(err))
+    if args.init_from is not None:
+        check_init_from(parser, args)
     output_dir(parser, Path(args.log_dir), "--log-dir")
     return args
+
+
+def check_init_from(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """``--init-from``: PPO, an imitation run of the same env arguments (parser error)."""
+    path = args.init_from / "config.json"
+    if args.algo != "ppo" or not path.is_file() or not (args.init_from / "model.zip").is_file():
+        parser.error("--init-from needs --algo ppo and a run folder of scripts/imitate.py")
+    theirs = policy_env(json.loads(path.read_text())["env_kwargs"])
+    if theirs != policy_env(json.loads(json.dumps(env_kwargs(args)))):
+        parser.error(f"--init-from {args.init_from}: trained on other env arguments")
+
+
+def policy_env(kwargs: dict[str, Any]) -> dict[str, Any]:
+    """Env arguments as the policy sees them: whether the estimators run or are hidden from it
+    (``observe_estimates``, ``hide_estimates``, ``estimators``) reduced to whether it observes
+    them."""
+    out = {k: v for k, v in kwargs.items() if k not in ("hide_estimates", "estimators")}
+    out["observe_estimates"] = kwargs["observe_estimates"] and not kwargs["hide_estimates"]
+    return out
 
 
 def main(argv: list[str] | None = None) -> int:

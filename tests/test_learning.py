@@ -731,3 +731,180 @@ def test_train_parses_tasks_and_the_residual(capsys, tmp_path):
     kwargs = train.env_kwargs(train.parse_args(argv + ["--no-estimates"]))
     assert kwargs["feedforward_obs"] == "prior" and not kwargs["observe_estimates"]
     assert train.env_kwargs(train.parse_args(argv[:2] + argv[3:]))["feedforward_obs"] is None
+
+
+# --------------------------------------------------------------------------- imitation
+
+
+def test_teacher_label_makes_the_base_the_teacher():
+    """With one control step per decision the label, sent as the residual, gives the env the
+    teacher's thrust (clipped as the env clips it); it is zero when the teacher is the base."""
+    from astrocargo.envs.decision import residual_actions
+
+    kwargs = {**FAST, "max_cycles": 8, "observe_estimates": True, "estimators": True}
+    kwargs["cargo_mass_kg"] = (15.0, 15.0)  # heavy: the estimate changes the thrust
+    env = cargo_env_fn(residual_scale=0.5, teacher_model="estimate", **kwargs)()
+    same = cargo_env_fn(residual_scale=0.5, teacher_model="none", **kwargs)()
+    obs, _ = env.reset(seed=2)
+    same.reset(seed=2)
+    teacher = ObservationController.for_env(env, "estimate")
+    zeros = dict.fromkeys(env.possible_agents, np.zeros(6))
+    differs = False
+    while env.agents:
+        wanted = teacher.predict({a: env._obs[a] for a in env.agents})[0]
+        now = env.teacher_residual_now()
+        _, _, _, _, infos = env.step(now)
+        _, _, _, _, same_infos = same.step(zeros)
+        for a, info in infos.items():
+            np.testing.assert_allclose(info["teacher_residual"], now[a], atol=1e-12)
+            sent = residual_actions(info["base_action"], info["teacher_residual"], 0.5)
+            np.testing.assert_allclose(sent[:6], np.clip(wanted[a][:6], -1, 1), atol=1e-12)
+            np.testing.assert_array_equal(same_infos[a]["teacher_residual"], np.zeros(6))
+            differs |= bool(np.any(np.abs(now[a]) > 1e-5))
+    assert differs  # the teacher is not the base: the label is not trivially zero
+
+
+def test_teacher_label_is_the_mean_over_the_decision():
+    kwargs = {**FAST, "max_cycles": 9, "observe_estimates": True, "estimators": True}
+    env = cargo_env_fn(residual_scale=1.0, action_repeat=3, teacher_model="estimate", **kwargs)()
+    env.reset(seed=1)
+    action = dict.fromkeys(env.possible_agents, np.full(6, 0.05))
+    per_step = []
+    env.step(action)  # the estimate moves off the prior
+    original = env.env.step
+
+    def recording_step(sent):
+        per_step.append(env.teacher_residual_now())
+        return original(sent)
+
+    env.env.step = recording_step
+    _, _, _, _, infos = env.step(action)
+    assert len(per_step) == 3
+    for a, info in infos.items():
+        np.testing.assert_allclose(
+            info["teacher_residual"], np.mean([s[a] for s in per_step], axis=0), atol=1e-12
+        )
+
+
+def test_regression_fit_reduces_the_loss_of_the_actor_mean():
+    from stable_baselines3 import PPO
+
+    from astrocargo.agents import imitation
+
+    venv = make_vec_env(1, seed=0, residual_scale=1.0, **FAST)
+    model = PPO("MlpPolicy", venv, policy_kwargs={"net_arch": [64, 64]}, device="cpu", seed=0)
+    rng = np.random.default_rng(0)
+    x = rng.normal(size=(512, venv.observation_space.shape[0]))
+    y = np.tanh(0.3 * x[:, :6] * x[:, 6:12])  # a product of inputs, as the correction is
+    losses = imitation.fit_regression(
+        imitation.actor_mean(model.policy),
+        imitation.actor_params(model.policy),
+        x,
+        y,
+        100,
+        batch_size=64,
+    )
+    assert losses[-1] < 0.2 * losses[0]
+    critic_before = [p.detach().clone() for p in imitation.critic_params(model.policy)]
+    assert all(
+        np.array_equal(a.numpy(), b.detach().numpy())
+        for a, b in zip(critic_before, imitation.critic_params(model.policy), strict=True)
+    )  # the actor's fit leaves the critic alone
+    venv.close()
+
+
+def test_discounted_and_running_returns_restart_per_track():
+    from astrocargo.agents import imitation
+
+    reward, track = np.array([1.0, 2.0, 3.0, 4.0]), np.array([0, 0, 1, 1])
+    np.testing.assert_allclose(
+        imitation.discounted_returns(reward, track, 0.5, tail=np.array([0, 10.0, 0, 2.0])),
+        [1 + 0.5 * (2 + 5), 2 + 5, 3 + 0.5 * (4 + 1), 4 + 1],
+    )
+    np.testing.assert_allclose(imitation.running_returns(reward, track, 0.5), [1, 2.5, 3, 5.5])
+
+
+def test_imitation_run_saves_a_policy_that_evaluates_and_fine_tunes(tmp_path):
+    """scripts/imitate.py: fits the label (loss falls), saves what evaluate.py loads and acts
+    with, and train.py --init-from starts PPO from exactly those weights and statistics."""
+    import torch
+
+    imitate, train, evaluate = (_load_script(n) for n in ("imitate", "train", "evaluate"))
+    common = ["--max-cycles", "30", "--noise", "ideal", "--seed", "3", "--copies", "1"]
+    common += ["--residual-scale", "1.0", "--action-repeat", "3", "--feedforward-obs"]
+    common += ["--env", "cargo_mass_kg=(12.0, 18.0)"]
+    run = tmp_path / "bc"
+    assert (
+        imitate.main(
+            common
+            + ["--episodes", "2", "--dagger-episodes", "1"]
+            + ["--fit-epochs", "30", "--log-dir", str(run)]
+        )
+        == 0
+    )
+    config = json.loads((run / "config.json").read_text())
+    mse = config["imitation"]["actor_mse"]
+    assert len(mse) == 2 and mse[0][1] < 0.5 * mse[0][0]
+    assert config["imitation"]["labelled_samples"] == 3 * 2 * 10
+    assert "imitation" in evaluate.arm_key(config)
+    policy = evaluate.TrainedPolicy(run)
+    assert float(policy.model.policy.log_std.detach().mean()) == pytest.approx(-2.5)
+    decision = ("residual_scale", "action_repeat", "base_model", "hide_estimates")
+    decision += ("feedforward_obs",)
+    kwargs = {k: v for k, v in config["env_kwargs"].items() if k not in decision}
+    env = astrobee_cargo_v0.parallel_env(**kwargs)
+    obs, _ = env.reset(seed=0)
+    policy.reset(env)
+    assert policy.act(np.stack(list(obs.values()))).shape == (2, 8)
+    tuned = tmp_path / "ft"
+    args = train.parse_args(
+        common
+        + ["--timesteps", "32", "--init-from", str(run), "--log-dir", str(tuned)]
+        + ["--no-progress-bar", "--hyperparams", "n_steps=16", "batch_size=16", "n_epochs=1"]
+    )
+    model, _ = train.build_model(args, 3, None)
+    train.initialise_from(model, run)
+    for name, value in model.policy.state_dict().items():
+        torch.testing.assert_close(value, policy.model.policy.state_dict()[name])
+    np.testing.assert_array_equal(model.get_env().obs_rms.mean, policy.normalizer.obs_rms.mean)
+    other = tmp_path / "other"
+    with pytest.raises(SystemExit):  # another arm's env cannot start from this run
+        train.parse_args(
+            [*common, "--no-estimates", "--init-from", str(run), "--log-dir", str(other)]
+        )
+
+
+def test_masked_block_no_longer_reaches_the_policy(trained_runs):
+    evaluate = _load_script("evaluate")
+    plain, masked = (evaluate.TrainedPolicy(trained_runs / "res") for _ in range(2))
+    masked.mask("peer0_wrench")
+    assert "peer0_wrench masked" in evaluate.arm_key(masked.config)
+    kwargs = {k: v for k, v in plain.config["env_kwargs"].items() if k in FAST or k == "n_robots"}
+    env = astrobee_cargo_v0.parallel_env(**kwargs)
+    obs, _ = env.reset(seed=0)
+    obs = np.stack(list(obs.values()))
+    for policy in (plain, masked):
+        policy.reset(env)
+    pushed = obs.copy()
+    pushed[:, env.sim.obs_layout["peer0_wrench"]] += 5.0
+    np.testing.assert_array_equal(masked.decide(obs), masked.decide(pushed))
+    assert np.any(plain.decide(obs) != plain.decide(pushed))  # the block matters unmasked
+    masked.masked = "no_such_block"
+    with pytest.raises(ValueError, match="no observation block"):
+        masked.reset(env)
+
+
+def test_hidden_estimators_run_them_unseen_and_keep_the_policy_view(tmp_path):
+    """--hidden-estimators: the estimators run (the peers' messages fill the observation, as in
+    evaluation) but the policy does not see them: the same policy view as --no-estimates."""
+    train = _load_script("train")
+    common = ["--residual-scale", "1.0", "--feedforward-obs", "--no-estimates"]
+    common += ["--log-dir", str(tmp_path / "run")]
+    plain = train.env_kwargs(train.parse_args(common))
+    hidden = train.env_kwargs(train.parse_args([*common, "--hidden-estimators"]))
+    assert not plain["estimators"] and not plain["observe_estimates"]
+    assert hidden["estimators"] and hidden["observe_estimates"] and hidden["hide_estimates"]
+    assert hidden["feedforward_obs"] == plain["feedforward_obs"] == "prior"
+    assert train.policy_env(hidden) == train.policy_env(plain)
+    seen = train.env_kwargs(train.parse_args(common[:-3] + common[-2:]))  # estimates observed
+    assert train.policy_env(seen) != train.policy_env(plain)
