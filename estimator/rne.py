@@ -222,14 +222,17 @@ def grasp_pose_into(rot_out, pos_out, rot, pos, lever, parent, joint_axis, rot_i
         rot[0, d, d] = 1.0
     for k in range(1, n_links):
         p = parent[k]
-        np.multiply(joint_axis[k], q[k - 1], lever[k])  # the rotation vector e_k q_j, for now
+        for d in range(3):  # the rotation vector e_k q_j, for now
+            lever[k, d] = joint_axis[k, d] * q[k - 1]
         exp_so3_into(rot_out, lever[k])
         matmul3_into(work, rot[p], rot_in_parent[k])
         matmul3_into(rot[k], work, rot_out)
         matvec3_into(lever[k], rot[p], pos_in_parent[k])
-        np.add(pos[p], lever[k], pos[k])
+        for d in range(3):
+            pos[k, d] = pos[p, d] + lever[k, d]
     matvec3_into(lever[n_links], rot[grasp_link], grasp_pos)
-    np.add(pos[grasp_link], lever[n_links], pos_out)
+    for d in range(3):
+        pos_out[d] = pos[grasp_link, d] + lever[n_links, d]
     matmul3_into(rot_out, rot[grasp_link], grasp_rot)
 
 
