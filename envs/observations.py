@@ -7,8 +7,8 @@ a block is in that base frame, R^T x. The base reference is the pose the base wo
 cargo were on its reference with the grasp rigid at the measured arm angles q:
 R_ref = R_c,ref R_ch G(q)^T, p_ref = p_c,ref + R_c,ref p_ch - R_ref g(q),
 v_ref = v_c,ref + w_c,ref x (p_ref - p_c,ref), with (R_ch, p_ch) the handrail in the cargo frame
-and (G(q), g(q)) the grasp frame in the base frame (forward kinematics of the arm chain:
-R_k = R_parent R_k0 exp(a_k q_k), p_k = p_parent + R_parent p_k0).
+and (G(q), g(q)) the grasp frame in the base frame (the estimator's forward kinematics of the
+arm chain, ``rne.grasp_pose_into``).
 """
 
 from __future__ import annotations
@@ -16,14 +16,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from astrocargo.estimator.geometry import (
-    cross3_into,
-    exp_so3_into,
-    log_so3_into,
-    matmul3_into,
-    matvec3_into,
-)
-from astrocargo.estimator.rne import RobotDescription
+from astrocargo.estimator.geometry import cross3_into, log_so3_into, matmul3_into, matvec3_into
+from astrocargo.estimator.rne import RobotDescription, grasp_pose_into
 
 # The robot's own blocks, in order: (name, size). The kernel below fills them by name through
 # the layout's starts (OWN_BLOCKS order is the order of its `values` list).
@@ -72,45 +66,6 @@ def observation_bounds(layout: dict[str, slice]) -> tuple[np.ndarray, np.ndarray
         if name.endswith("_valid"):
             low[sl], high[sl] = 0.0, 1.0
     return low, high
-
-
-@njit(cache=True, inline="always")
-def grasp_pose_into(rot_out, pos_out, rots, poss, link_parent, link_rot, link_pos, link_axis,
-                    grasp_link, grasp_rot, grasp_pos, q):  # fmt: skip
-    """Grasp frame in the base frame at joint angles q (module docstring's chain), written into
-    ``rot_out`` (3, 3) and ``pos_out`` (3,). Links: parents before children, link 0 the base.
-    Work arrays: ``rots`` (n_links + 1, 3, 3) and ``poss`` (n_links, 3), each link's pose, the
-    last rotation a scratch; ``rot_out`` and ``pos_out`` serve as scratch until the end."""
-    n_links = link_parent.shape[0]
-    scratch = rots[n_links]
-    rots[0], poss[0] = 0.0, 0.0  # the base: identity, at the origin
-    for d in range(3):
-        rots[0, d, d] = 1.0
-    for k in range(1, n_links):
-        parent = link_parent[k]
-        for d in range(3):  # the joint's rotation vector a_k q_k
-            pos_out[d] = link_axis[k, d] * q[k - 1]
-        exp_so3_into(rot_out, pos_out)
-        matmul3_into(scratch, rots[parent], link_rot[k])
-        matmul3_into(rots[k], scratch, rot_out)
-        matvec3_into(pos_out, rots[parent], link_pos[k])
-        _add_to(poss[k], poss[parent], pos_out)
-    matvec3_into(pos_out, rots[grasp_link], grasp_pos)
-    _add_to(pos_out, poss[grasp_link], pos_out)
-    matmul3_into(rot_out, rots[grasp_link], grasp_rot)
-
-
-@njit(cache=True)
-def grasp_pose(link_parent, link_rot, link_pos, link_axis, grasp_link, grasp_rot, grasp_pos, q):
-    """``grasp_pose_into`` into new arrays: the grasp frame's rotation (3, 3) and position (3,)
-    in the base frame."""
-    n_links = link_parent.shape[0]
-    rot, pos = np.empty((3, 3)), np.empty(3)
-    grasp_pose_into(
-        rot, pos, np.empty((n_links + 1, 3, 3)), np.empty((n_links, 3)), link_parent, link_rot,
-        link_pos, link_axis, grasp_link, grasp_rot, grasp_pos, q,
-    )  # fmt: skip
-    return rot, pos
 
 
 @njit(cache=True, inline="always")
@@ -191,21 +146,22 @@ def assemble(out, acting, own_starts, peer_starts, estimate_start, link_parent, 
     (N, P, 4): the sender's arm angles and rates); estimates (N, 20) or (N, 0); qd (N, 2) the
     own arm rates."""
     n_links = link_parent.shape[0]
-    # Work arrays, allocated once per call: the arm chain's link poses (grasp_pose_into), the
-    # grasp frame G, the base reference's rotation and a scratch; the vectors likewise.
+    # Work arrays, allocated once per call: the arm chain's link poses and levers
+    # (grasp_pose_into), the grasp frame G, the base reference's rotation and a scratch; the
+    # vectors likewise.
     rots = np.empty((n_links + 4, 3, 3))
     g_rot, rot_ref, scratch = rots[n_links + 1], rots[n_links + 2], rots[n_links + 3]
-    vecs = np.zeros((n_links + 7, 3))
-    poss, zero = vecs[:n_links], vecs[n_links]
-    g_pos, rail, grasp = vecs[n_links + 1], vecs[n_links + 2], vecs[n_links + 3]
-    pos_ref, vel_ref, lever = vecs[n_links + 4], vecs[n_links + 5], vecs[n_links + 6]
+    vecs = np.zeros((2 * n_links + 8, 3))
+    poss, links_lever, zero = vecs[:n_links], vecs[n_links : 2 * n_links + 1], vecs[2 * n_links + 1]
+    g_pos, rail, grasp = vecs[2 * n_links + 2], vecs[2 * n_links + 3], vecs[2 * n_links + 4]
+    pos_ref, vel_ref, lever = vecs[2 * n_links + 5], vecs[2 * n_links + 6], vecs[2 * n_links + 7]
     for i in range(out.shape[0]):
         if not acting[i]:
             continue
         a, f = arms[i], nav[i]
         grasp_pose_into(
-            g_rot, g_pos, rots[: n_links + 1], poss, link_parent, a.link_rot, a.link_pos,
-            a.link_axis, a.grasp_link, a.grasp_rot, a.grasp_pos, q[i],
+            g_rot, g_pos, rots[: n_links + 1], poss, links_lever, link_parent, a.link_axis,
+            a.link_rot, a.link_pos, a.grasp_link, a.grasp_rot, a.grasp_pos, q[i],
         )  # fmt: skip
         matmul3_into(scratch, ref_rot, a.handrail_rot)
         matmul3_into(rot_ref, scratch, g_rot.T)

@@ -22,6 +22,8 @@ The last line is the acceleration of a point r of a rigid body whose origin acce
 
 It gives each link's centre of mass (r = c_k = R_k com_k, eq. 1) and the grasp frame G, rigid
 with link ``grasp_link`` (eq. 2-4; G shares that link's w and wd). The cargo is rigid with G.
+The first line (the poses, the forward kinematics) is ``grasp_pose_into``, written once
+and used by this pass and by the env's observations alike.
 
 Second pass, links -> base: the rate of change of momentum of link k about B's origin,
 
@@ -61,7 +63,7 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit
 
-from .geometry import exp_so3, skew
+from .geometry import exp_so3_into, matmul3_into, matvec3_into, skew
 
 
 @dataclass(frozen=True)
@@ -201,30 +203,64 @@ def point_acceleration(acc: np.ndarray, w: np.ndarray, wd: np.ndarray, r: np.nda
     return acc + np.cross(wd, r) + np.cross(w, np.cross(w, r))
 
 
+@njit(cache=True, inline="always")
+def grasp_pose_into(rot_out, pos_out, rot, pos, lever, parent, joint_axis, rot_in_parent,
+                    pos_in_parent, grasp_link, grasp_rot, grasp_pos, q):  # fmt: skip
+    """Forward kinematics at joint angles q (n_joints,) rad, the positions of the first pass:
+
+        R_k = R_p R_pk0 exp(e_k q_j),   r_k = R_p p_pk,   p_k = p_p + r_k    (links k >= 1)
+        R_G = R_g R_gG,                 r_G = R_g p_gG,   p_G = p_g + r_G    (g = grasp_link)
+
+    into ``rot`` (L + 1, 3, 3) (R_k; the last a scratch), ``pos`` (L, 3) (p_k, m), ``lever``
+    (L + 1, 3) (r_k, m, r_0 = 0; the last r_G), ``rot_out`` (3, 3) R_G and ``pos_out`` (3,) p_G,
+    all in B; the arguments between are ``RobotArrays``' fields. ``rot_out`` serves as scratch
+    until the end. Allocates nothing: the env's observation kernels call it every step."""
+    n_links = parent.shape[0]
+    work = rot[n_links]
+    rot[0], pos[0], lever[0] = 0.0, 0.0, 0.0  # the base: identity, at the origin
+    for d in range(3):
+        rot[0, d, d] = 1.0
+    for k in range(1, n_links):
+        p = parent[k]
+        for d in range(3):  # the rotation vector e_k q_j, for now
+            lever[k, d] = joint_axis[k, d] * q[k - 1]
+        exp_so3_into(rot_out, lever[k])
+        matmul3_into(work, rot[p], rot_in_parent[k])
+        matmul3_into(rot[k], work, rot_out)
+        matvec3_into(lever[k], rot[p], pos_in_parent[k])
+        for d in range(3):
+            pos[k, d] = pos[p, d] + lever[k, d]
+    matvec3_into(lever[n_links], rot[grasp_link], grasp_pos)
+    for d in range(3):
+        pos_out[d] = pos[grasp_link, d] + lever[n_links, d]
+    matmul3_into(rot_out, rot[grasp_link], grasp_rot)
+
+
 @njit(cache=True)
 def _forward_pass(arrays, w_base, wd_base, acc_base, q, qd, qdd):
-    """First pass for one sample: link frames, rates and origin accelerations, and the grasp
-    frame's. Returns (rot, pos, w, wd, acc, grasp_rot, grasp_pos, grasp_acc) of ``Kinematics``."""
+    """First pass for one sample: the poses (``grasp_pose_into``), then the link frames' rates
+    and origin accelerations, and the grasp frame's. Returns (rot, pos, w, wd, acc, grasp_rot,
+    grasp_pos, grasp_acc) of ``Kinematics``."""
     n_links = arrays.parent.shape[0]
-    rot = np.empty((n_links, 3, 3))
+    rot, lever = np.empty((n_links + 1, 3, 3)), np.empty((n_links + 1, 3))
     pos, w, wd, acc = [np.empty((n_links, 3)) for _ in range(4)]
-    rot[0], pos[0], w[0], wd[0], acc[0] = np.eye(3), 0.0, w_base, wd_base, acc_base
+    grasp_rot, grasp_pos = np.empty((3, 3)), np.empty(3)
+    grasp_pose_into(
+        grasp_rot, grasp_pos, rot, pos, lever, arrays.parent, arrays.joint_axis,
+        arrays.rot_in_parent, arrays.pos_in_parent, arrays.grasp_link, arrays.grasp_rot,
+        arrays.grasp_pos, q,
+    )  # fmt: skip
+    w[0], wd[0], acc[0] = w_base, wd_base, acc_base
     for k in range(1, n_links):
         p, j = arrays.parent[k], k - 1
-        axis = arrays.joint_axis[k]
-        rot[k] = rot[p] @ arrays.rot_in_parent[k] @ exp_so3(axis * q[j])
-        r = rot[p] @ arrays.pos_in_parent[k]
-        z = rot[k] @ axis
+        z = rot[k] @ arrays.joint_axis[k]
         w_rel = qd[j] * z
-        pos[k] = pos[p] + r
         w[k] = w[p] + w_rel
         wd[k] = wd[p] + qdd[j] * z + np.cross(w[p], w_rel)
-        acc[k] = point_acceleration(acc[p], w[p], wd[p], r)
+        acc[k] = point_acceleration(acc[p], w[p], wd[p], lever[k])
     g = arrays.grasp_link
-    r_g = rot[g] @ arrays.grasp_pos
-    grasp_rot = rot[g] @ arrays.grasp_rot
-    grasp_acc = point_acceleration(acc[g], w[g], wd[g], r_g)
-    return rot, pos, w, wd, acc, grasp_rot, pos[g] + r_g, grasp_acc
+    grasp_acc = point_acceleration(acc[g], w[g], wd[g], lever[n_links])
+    return rot[:n_links], pos, w, wd, acc, grasp_rot, grasp_pos, grasp_acc
 
 
 @njit(cache=True)
@@ -293,14 +329,15 @@ def _grasp_pose(
     parent, joint_axis, rot_in_parent, pos_in_parent, mass, com, inertia_com, grasp_link,
     grasp_rot, grasp_pos, q,
 ):  # fmt: skip
-    """G's pose in B at joint angles q, the base and the joints at rest."""
-    arrays = RobotArrays(
-        parent, joint_axis, rot_in_parent, pos_in_parent, mass, com, inertia_com, grasp_link,
-        grasp_rot, grasp_pos,
+    """G's pose in B at joint angles q (``grasp_pose_into`` into new arrays)."""
+    n_links = parent.shape[0]
+    rot, pos = np.empty((3, 3)), np.empty(3)
+    grasp_pose_into(
+        rot, pos, np.empty((n_links + 1, 3, 3)), np.empty((n_links, 3)),
+        np.empty((n_links + 1, 3)), parent, joint_axis, rot_in_parent, pos_in_parent,
+        grasp_link, grasp_rot, grasp_pos, q,
     )  # fmt: skip
-    zero3, zero_j = np.zeros(3), np.zeros(q.shape[0])
-    out = _forward_pass(arrays, zero3, zero3, zero3, q, zero_j, zero_j)
-    return out[5], out[6]
+    return rot, pos
 
 
 @njit(cache=True)

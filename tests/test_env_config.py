@@ -8,6 +8,7 @@ import dataclasses
 import pickle
 import re
 
+import mujoco
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -15,11 +16,11 @@ from scipy.spatial.transform import Rotation
 from astrocargo.envs import cargo_transport
 from astrocargo.envs.cargo_transport import AstrobeeCargoEnv, EnvConfig, observation_layout
 from astrocargo.envs.navigation import BaseNavigator
-from astrocargo.envs.observations import OWN_BLOCKS, PEER_BLOCKS, grasp_pose
+from astrocargo.envs.observations import OWN_BLOCKS, PEER_BLOCKS
 from astrocargo.envs.sensors import SensorReadings, noise_profile
 from astrocargo.envs.transport import CargoTransport
 from astrocargo.envs.world import World
-from astrocargo.estimator.rne import link_poses
+from astrocargo.estimator.rne import grasp_pose
 
 SMALL = {"n_robots": 2, "control_hz": 12.5, "max_cycles": 20}
 
@@ -86,24 +87,25 @@ def test_layout_is_built_from_the_block_tables():
     assert layout["peer1_joint_vel"] == slice(own + 2 * peer - 2, own + 2 * peer)
 
 
+KINEMATICS_TOL = 1e-12  # poses composed without approximation, in another order than MuJoCo's
+
+
 @pytest.mark.parametrize("q", [(0.0, 0.0), (-1.2, 0.4), (-np.pi / 2, -0.7)])
-def test_compiled_grasp_pose_matches_the_estimators_kinematics(q):
-    robot = World(1).robot_model(0)
-    rots, poss = link_poses(robot, np.asarray(q))
-    g = robot.grasp_link
-    want_rot, want_pos = rots[g] @ robot.grasp_rot, poss[g] + rots[g] @ robot.grasp_pos
-    rot, pos = grasp_pose(
-        np.array([link.parent for link in robot.links]),
-        np.array([link.rot_in_parent for link in robot.links]),
-        np.array([link.pos_in_parent for link in robot.links]),
-        np.array([np.zeros(3) if k.joint_axis is None else k.joint_axis for k in robot.links]),
-        robot.grasp_link,
-        np.ascontiguousarray(robot.grasp_rot),
-        np.ascontiguousarray(robot.grasp_pos),
-        np.asarray(q, dtype=float),
-    )
-    np.testing.assert_allclose(rot, want_rot, rtol=0, atol=1e-14)
-    np.testing.assert_allclose(pos, want_pos, rtol=0, atol=1e-14)
+def test_grasp_pose_is_mujocos_grasp_site_pose(q):
+    """The one forward kinematics (rne.grasp_pose_into, which the observation kernels call)
+    puts the grasp frame where MuJoCo puts the grasp site, relative to the base body."""
+    world = World(2)
+    data = world.make_data()
+    for h in world.robots:
+        data.qpos[list(h.arm_qpos_adr)] = q
+    mujoco.mj_kinematics(world.model, data)
+    for i, h in enumerate(world.robots):
+        rot, pos = grasp_pose(world.robot_model(i), np.asarray(q, dtype=float))
+        rot_b, pos_b = data.xmat[h.base_body].reshape(3, 3), data.xpos[h.base_body]
+        want_rot = rot_b.T @ data.site_xmat[h.grasp_site].reshape(3, 3)
+        want_pos = rot_b.T @ (data.site_xpos[h.grasp_site] - pos_b)
+        np.testing.assert_allclose(rot, want_rot, rtol=0, atol=KINEMATICS_TOL)
+        np.testing.assert_allclose(pos, want_pos, rtol=0, atol=KINEMATICS_TOL)
 
 
 def _readings(gyro, accel, pos=None, quat=None) -> SensorReadings:
