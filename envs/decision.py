@@ -29,29 +29,11 @@ from astrocargo.agents.feedforward import (
 from astrocargo.envs.observations import ESTIMATE_BLOCKS
 
 
-def cargo_env_fn(
-    residual_scale: float = 0.0,
-    action_repeat: int = 1,
-    base_model: str = "none",
-    hide_estimates: bool = False,
-    feedforward_obs: str | None = None,
-    teacher_model: str | None = None,
-    **env_kwargs: Any,
-) -> Callable[[], ParallelEnv]:
-    """A picklable factory of ``astrobee_cargo_v0.parallel_env(**env_kwargs)``, wrapped in
-    ``DecisionEnv(env, residual_scale, action_repeat, base_model, hide_estimates,
-    feedforward_obs, teacher_model)`` unless those are the defaults (0, 1, "none", False, None,
-    None)."""
-    return functools.partial(
-        make_cargo_env,
-        residual_scale=residual_scale,
-        action_repeat=action_repeat,
-        base_model=base_model,
-        hide_estimates=hide_estimates,
-        feedforward_obs=feedforward_obs,
-        teacher_model=teacher_model,
-        **env_kwargs,
-    )
+def cargo_env_fn(**kwargs: Any) -> Callable[[], ParallelEnv]:
+    """A picklable factory of ``make_cargo_env(**kwargs)``: the decision arguments
+    (``residual_scale``, ``action_repeat``, ``base_model``, ``hide_estimates``,
+    ``feedforward_obs``, ``teacher_model``) and those of ``astrobee_cargo_v0.parallel_env``."""
+    return functools.partial(make_cargo_env, **kwargs)
 
 
 def make_cargo_env(

@@ -81,18 +81,14 @@ class TeamEstimation:
         ``arm_rates``) and delivered through ``channel``; every estimator processes its
         complete instants. Returns whether any estimate changed."""
         for i in holding:
-            # Row i of the readings (``SensorReadings.packet``), read without building a packet.
-            imu = readings.has_imu[i]
-            fix = readings.has_fix[i]
-            joint_pos_rad = readings.joint_pos_rad[i]
+            packet = readings.packet(i)
             msg = self.estimators[i].step(
-                k, readings.accel_imu[i] if imu else None, readings.gyro_imu[i] if imu else None,
-                joint_pos_rad, commands[i], readings.base_pos_world[i] if fix else None,
-                readings.base_quat_world[i] if fix else None, servo_target_rate=arm_rates[i],
+                k, packet.accel_imu, packet.gyro_imu, packet.joint_pos_rad, commands[i],
+                packet.base_pos_world, packet.base_quat_world, servo_target_rate=arm_rates[i],
             )  # fmt: skip
             if msg is not None:
                 sent = self.sent_arm[i]
-                sent[msg.stamp] = np.concatenate((joint_pos_rad, arm_rates[i]))
+                sent[msg.stamp] = np.concatenate((packet.joint_pos_rad, arm_rates[i]))
                 if len(sent) > SENT_ARM_KEPT:
                     del sent[next(iter(sent))]  # the oldest
                 channel.send(msg, k)

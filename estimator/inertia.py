@@ -467,38 +467,19 @@ def mass_rel_error(pi_est: np.ndarray, pi_true: np.ndarray) -> np.ndarray:
     pi_est = _as_array(pi_est, (10,), "pi_est")
     pi_true = _as_array(pi_true, (10,), "pi_true")
     _positive_mass(pi_true, "pi_true")
-    return _mass_rel_error(pi_est, pi_true)
-
-
-def _mass_rel_error(pi_est: np.ndarray, pi_true: np.ndarray) -> np.ndarray:
     return np.abs(pi_est[..., 0] - pi_true[..., 0]) / pi_true[..., 0]
 
 
 def com_error_m(pi_est: np.ndarray, pi_true: np.ndarray) -> np.ndarray:
-    """Distance in metres between the estimated and true centres of mass, shape (...)."""
-    return _com_error_m(*_checked_pair(pi_est, pi_true))
-
-
-def _com_error_m(pi_est: np.ndarray, pi_true: np.ndarray) -> np.ndarray:
-    com_est = pi_est[..., 1:4] / pi_est[..., :1]
-    com_true = pi_true[..., 1:4] / pi_true[..., :1]
-    return np.linalg.norm(com_est - com_true, axis=-1)
+    """Distance in metres between the estimated and true centres of mass, shape (...)
+    (``estimate_errors``)."""
+    return estimate_errors(*_checked_pair(pi_est, pi_true))[1]
 
 
 def principal_rel_errors(pi_est: np.ndarray, pi_true: np.ndarray) -> np.ndarray:
-    """|I_k,est - I_k,true| / I_k,true of the sorted principal moments about the com, (..., 3)."""
-    return _principal_rel_errors(*_checked_pair(pi_est, pi_true))
-
-
-def _principal_rel_errors(pi_est: np.ndarray, pi_true: np.ndarray) -> np.ndarray:
-    # Both bodies in one call of each (per-body results are the same; the env calls this at
-    # every estimator update).
-    moments_est, moments_true = np.linalg.eigvalsh(
-        _mass_com_inertia(np.stack(np.broadcast_arrays(pi_est, pi_true)))[2]
-    )
-    if (moments_true <= 0.0).any():
-        raise ValueError("pi_true must have positive principal moments about its centre of mass")
-    return np.abs(moments_est - moments_true) / moments_true
+    """|I_k,est - I_k,true| / I_k,true of the sorted principal moments about the com, (..., 3)
+    (``estimate_errors``)."""
+    return estimate_errors(*_checked_pair(pi_est, pi_true))[2]
 
 
 def estimate_errors(
@@ -525,7 +506,8 @@ def estimate_errors(
 
 
 def _raise_invalid_pair(failed: int, pi_est: np.ndarray, pi_true: np.ndarray) -> None:
-    """The ValueError of `_checked_pair` (failed 1-4) or of `_principal_rel_errors` (5)."""
+    """The ValueError of `_checked_pair` (failed 1-4) or of a true body whose principal moments
+    about its centre of mass are not all positive (5)."""
     if failed < 5:
         _checked_pair(pi_est, pi_true)
     raise ValueError("pi_true must have positive principal moments about its centre of mass")
