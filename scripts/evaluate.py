@@ -38,7 +38,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import pickle
 import sys
 import time
 from pathlib import Path
@@ -49,7 +48,7 @@ os.environ.setdefault("MUJOCO_GL", "egl")  # only used with --video
 
 import numpy as np  # noqa: E402
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))  # the sibling scripts/cli.py
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # the sibling scripts/cli.py, eval_*.py
 from cli import (  # noqa: E402
     Formatter,
     nonnegative_int,
@@ -58,10 +57,25 @@ from cli import (  # noqa: E402
     positive_float,
     positive_int,
 )
+from eval_policies import (  # noqa: E402
+    DEFAULT_TASK,
+    POLICY_HELP,
+    TrainedPolicy,
+    check_policy_spec,
+    checkpoint_samples,
+    make_policy,
+)
+from eval_report import (  # noqa: E402
+    BOUND_METRICS,
+    CORRECTION_METRICS,
+    METRICS,
+    ablation,
+    plot_curves,
+    print_ablation,
+    print_table,
+)
 
-from astrocargo.agents.controllers import CARGO_MODELS, ObservationController  # noqa: E402
-from astrocargo.agents.excitation import is_trajectory_name, trajectory_choices  # noqa: E402
-from astrocargo.agents.feedforward import FeedForwardObservation  # noqa: E402
+from astrocargo.agents.controllers import CARGO_MODELS  # noqa: E402
 from astrocargo.agents.model_correction import ModelCorrection  # noqa: E402
 from astrocargo.agents.trajectories import Trajectory  # noqa: E402
 from astrocargo.envs import astrobee_cargo_v0  # noqa: E402
@@ -69,280 +83,10 @@ from astrocargo.envs.config import LEARNING_TASKS, REWARD_TERMS  # noqa: E402
 from astrocargo.envs.sensors import NOISE_PROFILES  # noqa: E402
 from astrocargo.envs.world import MAX_ROBOTS  # noqa: E402
 
-DEFAULT_TASK = "cargo"
 # Stable-Baselines3 and torch (astrocargo.envs.wrappers imports them) load after the command line
 # is parsed: --help and argument errors answer at once.
 
-METRICS = (
-    ("return", "return", "{:9.2f}"),
-    ("track_pos_m", "pos err m", "{:9.4f}"),
-    ("track_att_rad", "att err rad", "{:9.4f}"),
-    ("final_pos_m", "end pos m", "{:9.4f}"),
-    ("final_att_rad", "end att rad", "{:9.4f}"),
-    ("mass_rel_err", "mass err", "{:9.4f}"),
-    ("com_err_m", "CoM err m", "{:9.4f}"),
-    ("principal_rel_err", "inertia err", "{:9.4f}"),
-    ("mass_conv_s", "mass 5% s", "{:9.1f}"),
-    ("saturated", "saturated", "{:9.4f}"),
-    ("wall_contact", "wall", "{:9.2f}"),
-)
-BOUND_METRICS = (
-    ("bound_principal_rel", "bound I1/I2/I3"),
-    ("filter_principal_rel", "filter I1/I2/I3"),
-)
 MASS_CONV_TOL = 0.05  # mass_conv_s: the mass error stays within this (relative) from then on
-CORRECTION_METRICS = (("correction_mean", "correction"), ("correction_p95", "correction p95"))
-POLICY_HELP = (
-    "'zero', 'scripted' or a run folder of scripts/train.py (with model.zip and config.json), "
-    "or 'feedforward'; 'scripted:MODEL@TRAJECTORY' picks the cargo model (estimate, none, "
-    "truth) and trajectory; 'feedforward': the no-model controller plus u_ff of the live "
-    "estimate, held ('feedforward:prior': of the estimator's prior); 'teacher': the no-model "
-    "controller plus the live-estimate correction, held (the imitation's oracle); "
-    "'RUN@SAMPLES': the run's checkpoint after SAMPLES samples"
-)
-
-
-# --------------------------------------------------------------------------- policies
-
-
-class ZeroPolicy:
-    """All actions zero: the cargo drifts only with the noise."""
-
-    name = "zero"
-    observe_estimates = True
-    trajectory = None
-    decision = {}
-
-    def reset(self, env) -> None:
-        del env
-
-    def act(self, obs: np.ndarray) -> np.ndarray:
-        return np.zeros((obs.shape[0], 8))
-
-
-class ScriptedPolicy:
-    """``ObservationController`` (rebuilt each episode: the "truth" model needs the new cargo),
-    on the task's trajectory or on ``trajectory``."""
-
-    observe_estimates = True
-    decision = {}
-
-    def __init__(self, cargo_model: str, trajectory: str | None = None) -> None:
-        self.cargo_model = cargo_model
-        self.trajectory = trajectory
-        where = f" on {trajectory}" if trajectory else ""
-        self.name = f"scripted ({cargo_model}){where}"
-
-    def reset(self, env) -> None:
-        self.controller = ObservationController.for_env(env, self.cargo_model)
-
-    def act(self, obs: np.ndarray) -> np.ndarray:
-        return self.controller.predict(obs)[0]
-
-
-class FeedForwardPolicy:
-    """The residual a policy with the feed-forward input could learn first: its input as it
-    is, a = u_ff (of the live estimate, or with ``source`` "prior" of the estimator's prior),
-    decided every ``action_repeat`` steps (the cargo task's) and held, added to the no-model
-    scripted controller's thrust at every step (residual scale 1)."""
-
-    observe_estimates = True
-    trajectory = None
-    decision = {}
-
-    def __init__(self, action_repeat: int, source: str = "estimate") -> None:
-        self.action_repeat, self.source = action_repeat, source
-        self.name = f"feedforward ({source}; no model + u_ff held)"
-
-    def reset(self, env) -> None:
-        self.base = ObservationController.for_env(env, "none")
-        self.feedforward = FeedForwardObservation(env, self.source)
-        self.agents, self.steps = list(env.possible_agents), 0
-
-    def decide(self, obs: np.ndarray) -> np.ndarray:
-        u_ff = self.feedforward(dict(zip(self.agents, obs, strict=True)))
-        return np.stack([u_ff[a] for a in self.agents])
-
-    def act(self, obs: np.ndarray) -> np.ndarray:
-        from astrocargo.envs.decision import residual_actions
-
-        if self.steps % self.action_repeat == 0:
-            self.held = self.decide(obs)
-        self.steps += 1
-        return residual_actions(self.base.predict(obs)[0], self.held, 1.0)
-
-
-class TeacherHeldPolicy(FeedForwardPolicy):
-    """The imitation's oracle: the teacher's label as a policy could hold it, i.e. the residual
-    that makes the no-model controller the live-estimate one (``teacher_residual``), computed
-    at each decision's first step, clipped to [-1, 1] and held over the decision (residual scale
-    1, the cargo task's ``action_repeat``)."""
-
-    def __init__(self, action_repeat: int) -> None:
-        super().__init__(action_repeat)
-        self.name = "teacher held (no model + the live-estimate correction, held)"
-
-    def reset(self, env) -> None:
-        super().reset(env)
-        self.teacher = ObservationController.for_env(env, "estimate")
-
-    def decide(self, obs: np.ndarray) -> np.ndarray:
-        from astrocargo.envs.decision import teacher_residual
-
-        label = teacher_residual(self.teacher.predict(obs)[0], self.base.predict(obs)[0], 1.0)
-        return np.clip(label, -1.0, 1.0)
-
-
-class TrainedPolicy:
-    """A scripts/train.py run: its model, observation normalisation and view, deterministic,
-    acting at the env's control rate as its ``DecisionEnv`` did in training: a new decision every
-    ``action_repeat`` steps from the observation less the estimates if it hid them, held in
-    between, added (times ``residual_scale``) to the action of its scripted base controller
-    (``base_model``) at every step if residual; with ``feedforward_obs`` the decision's
-    observation ends with the cargo model's feed-forward, as in ``DecisionEnv``."""
-
-    trajectory = None
-
-    def __init__(self, run_dir: Path, samples: int | None = None) -> None:
-        """The final model of ``run_dir``, or its checkpoint after ``samples``."""
-        from stable_baselines3 import PPO, SAC, TD3
-
-        self.config = json.loads((run_dir / "config.json").read_text())
-        if samples is not None:
-            self.config["checkpoint_samples"] = samples
-        algo = {"ppo": PPO, "sac": SAC, "td3": TD3}[self.config["algo"]]
-        model_path, stats_path = run_dir / "model.zip", run_dir / "vecnormalize.pkl"
-        if samples is not None:
-            model_path = run_dir / "checkpoints" / f"rl_model_{samples}_steps.zip"
-            stats_path = run_dir / "checkpoints" / f"rl_model_vecnormalize_{samples}_steps.pkl"
-        from astrocargo.envs.wrappers import fast_inference
-
-        self.model = fast_inference(algo.load(model_path, device="cpu"))
-        with open(stats_path, "rb") as f:
-            self.normalizer = pickle.load(f)
-        self.normalizer.training = False
-        self.view = self.config["view"]
-        kwargs = self.config["env_kwargs"]
-        self.observe_estimates = kwargs["observe_estimates"]  # the env's observation
-        self.hide_estimates = bool(kwargs.get("hide_estimates", False))
-        self.base_model = kwargs.get("base_model", "none")
-        self.residual_scale = float(kwargs.get("residual_scale", 0.0))
-        self.action_repeat = int(kwargs.get("action_repeat", 1))
-        self.feedforward_obs = kwargs.get("feedforward_obs")
-        self.feedforward = None
-        self.agents: list[str] = []
-        self.decision = {"residual_scale": self.residual_scale, "action_repeat": self.action_repeat}
-        self.name = str(run_dir) if samples is None else f"{run_dir}@{samples}"
-        self.base = None
-        self.held: np.ndarray | None = None
-        self.steps = 0
-        self.policy_obs = slice(None)
-        self.masked: str | None = None
-        self.mask_cols = np.zeros(0, dtype=np.int64)
-
-    def mask(self, block: str) -> None:
-        """A diagnostic: the observation block ``block`` (``sim.obs_layout``'s name) replaced by
-        the normaliser's mean, i.e. the policy's normalised input there set to zero."""
-        self.masked = block
-        self.config["masked_block"] = block
-        self.name += f" (masked {block})"
-
-    def reset(self, env) -> None:
-        from astrocargo.envs.decision import policy_observation_index
-
-        if self.masked is not None:
-            layout = env.sim.obs_layout
-            if self.masked not in layout or self.masked == "all":
-                raise ValueError(f"no observation block {self.masked!r}; blocks: {list(layout)}")
-            seen = policy_observation_index(layout, self.hide_estimates)
-            block = np.arange(layout[self.masked].start, layout[self.masked].stop)
-            self.mask_cols = np.flatnonzero(np.isin(seen, block))
-        self.steps, self.held = 0, None
-        # The observation as it is unless hidden: a copy would change torch's float rounding.
-        if self.hide_estimates:
-            self.policy_obs = policy_observation_index(env.sim.obs_layout, True)
-        if self.residual_scale:
-            self.base = ObservationController.for_env(env, self.base_model)
-        if self.feedforward_obs:
-            self.feedforward = FeedForwardObservation(env, self.feedforward_obs)
-        self.agents = list(env.possible_agents)
-
-    def decide(self, obs: np.ndarray) -> np.ndarray:
-        """The model's deterministic action (n, 8) from the policy's part of the env's
-        observations (n, obs_dim): after ``reset``, the part it saw in training."""
-        n = obs.shape[0]
-        rows = [row[self.policy_obs] for row in obs]  # rows as DecisionEnv gives them
-        if self.feedforward is not None:
-            u_ff = self.feedforward(dict(zip(self.agents, obs, strict=True)))
-            rows = [np.concatenate([r, u_ff[a]]) for a, r in zip(self.agents, rows, strict=True)]
-        obs = np.stack(rows)
-        obs[:, self.mask_cols] = self.normalizer.obs_rms.mean[self.mask_cols]
-        if self.view == "central":
-            obs = obs.reshape(1, -1)
-        action, _ = self.model.predict(self.normalizer.normalize_obs(obs), deterministic=True)
-        return np.asarray(action, dtype=np.float64).reshape(n, -1)
-
-    def act(self, obs: np.ndarray) -> np.ndarray:
-        from astrocargo.envs.decision import residual_actions
-
-        if self.steps % self.action_repeat == 0:
-            self.held = self.decide(obs)
-        self.steps += 1
-        if not self.residual_scale:
-            return self.held
-        return residual_actions(self.base.predict(obs)[0], self.held, self.residual_scale)
-
-
-def parse_scripted(spec: str) -> tuple[str, str | None] | None:
-    """(cargo model or '', trajectory or None) of 'scripted[:MODEL][@TRAJECTORY]', else None."""
-    head, _, trajectory = spec.partition("@")
-    name, _, model = head.partition(":")
-    if name != "scripted":
-        return None
-    return model, trajectory or None
-
-
-def check_policy_spec(spec: str) -> None:
-    """ValueError unless ``spec`` is 'zero', a scripted spec or a run folder of scripts/train.py."""
-    if spec in ("zero", "feedforward", "feedforward:prior", "teacher"):
-        return
-    scripted = parse_scripted(spec)
-    if scripted is not None:
-        model, trajectory = scripted
-        if model and model not in CARGO_MODELS:
-            raise ValueError(f"cargo model must be one of {CARGO_MODELS}, got {model!r}")
-        if trajectory is not None and not is_trajectory_name(trajectory):
-            raise ValueError(f"unknown trajectory {trajectory!r}; {trajectory_choices()}")
-        return
-    run_dir, samples = run_and_checkpoint(spec)
-    if not (run_dir / "model.zip").is_file() or not (run_dir / "config.json").is_file():
-        raise ValueError(f"policy must be {POLICY_HELP}, got {spec!r}")
-    if samples is not None and samples not in checkpoint_samples(run_dir):
-        raise ValueError(f"{run_dir} has no checkpoint after {samples} samples")
-
-
-def run_and_checkpoint(spec: str) -> tuple[Path, int | None]:
-    """'RUN@SAMPLES' -> (RUN, SAMPLES): the run's checkpoint after SAMPLES; 'RUN' -> (RUN,
-    None): its final model."""
-    head, sep, tail = spec.rpartition("@")
-    if sep and tail.isdigit():
-        return Path(head), int(tail)
-    return Path(spec), None
-
-
-def make_policy(spec: str, cargo_model: str):
-    check_policy_spec(spec)
-    if spec == "zero":
-        return ZeroPolicy()
-    if spec == "teacher":
-        return TeacherHeldPolicy(LEARNING_TASKS[DEFAULT_TASK]["action_repeat"])
-    if spec.startswith("feedforward"):
-        source = "prior" if spec.endswith(":prior") else "estimate"
-        return FeedForwardPolicy(LEARNING_TASKS[DEFAULT_TASK]["action_repeat"], source)
-    scripted = parse_scripted(spec)
-    if scripted is not None:
-        return ScriptedPolicy(scripted[0] or cargo_model, scripted[1])
-    return TrainedPolicy(*run_and_checkpoint(spec))
 
 
 # --------------------------------------------------------------------------- episodes
@@ -521,149 +265,7 @@ def save_gif(frames: list[np.ndarray], path: Path, fps: float) -> None:
     images[0].save(path, save_all=True, append_images=images[1:], duration=int(1000 / fps), loop=0)
 
 
-def _cell(stat: dict, fmt: str) -> str:
-    mean, std = np.atleast_1d(stat["mean"]), np.atleast_1d(stat["std"])
-    if len(mean) > 1:
-        return "/".join(fmt.format(m).strip() for m in mean)
-    return f"{fmt.format(mean[0]).strip()} +- {fmt.format(std[0]).strip()}"
-
-
-def print_table(results: list[dict]) -> None:
-    width = max(len(r["policy"]) for r in results) + 14
-    bound = [(k, label) for k, label in BOUND_METRICS if k in results[0]["summary"]]
-    bound += [(k, label) for k, label in CORRECTION_METRICS if k in results[0]["summary"]]
-    print(
-        f"{'policy':<{width}}"
-        + "".join(f"{label:>20}" for _, label, _ in METRICS)
-        + "".join(f"{label:>22}" for _, label in bound)
-    )
-    for r in results:
-        for name, summary in [("all", r["summary"])] + (
-            list(r["bins"].items()) if len(r["bins"]) > 1 else []
-        ):
-            cells = [_cell(summary[key], fmt) for key, _, fmt in METRICS]
-            cells += [_cell(summary[key], "{:.3f}") if key in summary else "-" for key, _ in bound]
-            print(
-                f"{r['policy'] + ' [' + name + ']':<{width}}"
-                + "".join(f"{c:>20}" for c in cells[: len(METRICS)])
-                + "".join(f"{c:>22}" for c in cells[len(METRICS) :])
-            )
-    for r in results:
-        if r["terminated_episodes"]:
-            print(f"{r['policy']}: {r['terminated_episodes']} episodes ended by termination")
-
-
-# --------------------------------------------------------------------------- ablation
-
-
-ABLATION_METRICS = ("track_pos_m", "track_att_rad", "return")
-
-
-def arm_key(config: dict) -> str:
-    """A run's arm: its configuration without the seed (algorithm, residual scale and base,
-    feed-forward input, training length or checkpoint, view, task, estimates observed)."""
-    kwargs = config["env_kwargs"]
-    residual = kwargs.get("residual_scale", 0.0)
-    base = kwargs.get("base_model", "none")
-    on = f" on {base}" if base != "none" else ""
-    kind = f"{config['algo'].upper()}{f' residual x{residual:g}{on}' if residual else ''}"
-    if kwargs.get("feedforward_obs"):
-        kind += " + feed-forward input"
-    if "imitation" in config:
-        kind += ", imitation of the live-estimate controller"
-    elif "init_from" in config:
-        kind += ", from imitation"
-    if "masked_block" in config:
-        kind += f", {config['masked_block']} masked"
-    if "checkpoint_samples" in config:  # a checkpoint is an arm of its own training length
-        kind += f" (checkpoint at {config['checkpoint_samples']} samples)"
-    elif config.get("timesteps"):
-        kind += f" ({config['timesteps']} samples)"
-    obs = "with" if policy_observes_estimates(kwargs) else "without"
-    return f"{kind}, {config['view']}, task {config.get('task', '?')}, {obs} estimates"
-
-
-def policy_observes_estimates(env_kwargs: dict) -> bool:
-    """Whether a run's policy saw the estimates (the env observed them and did not hide them)."""
-    return bool(env_kwargs["observe_estimates"]) and not env_kwargs.get("hide_estimates", False)
-
-
-def ablation(results: list[dict]) -> dict:
-    """Per arm and mass bin: each seed's mean over the episodes, their mean and standard
-    deviation (ddof 1) over seeds; per pair of arms differing only in observing the estimates:
-    the difference of the means (with - without) and whether it exceeds the larger of the two
-    arms' seed spreads."""
-    arms: dict[str, dict] = {}
-    for r in results:
-        if r["config"] is None:
-            continue
-        arm = arms.setdefault(
-            arm_key(r["config"]), {"seeds": [], "bins": {}, "config": r["config"]}
-        )
-        arm["seeds"].append(r["config"]["seed"])
-        for name, summary in r["bins"].items():
-            per = arm["bins"].setdefault(name, {m: [] for m in ABLATION_METRICS})
-            for m in ABLATION_METRICS:
-                per[m].append(float(np.atleast_1d(summary[m]["mean"])[0]))
-    for arm in arms.values():
-        for per in arm["bins"].values():
-            for m in ABLATION_METRICS:
-                values = np.array(per[m])
-                spread = float(np.std(values, ddof=1)) if len(values) > 1 else float("nan")
-                per[m] = {"per_seed": values.tolist(), "mean": float(values.mean()), "std": spread}
-    pairs = []
-    for key, arm in arms.items():
-        if not policy_observes_estimates(arm["config"]["env_kwargs"]):
-            continue
-        other = key.replace("with estimates", "without estimates")
-        if other not in arms:
-            continue
-        diffs = {}
-        for name, per in arm["bins"].items():
-            if name not in arms[other]["bins"]:
-                continue
-            base = arms[other]["bins"][name]
-            diffs[name] = {}
-            for m in ABLATION_METRICS:
-                diff = per[m]["mean"] - base[m]["mean"]
-                spread = max(per[m]["std"], base[m]["std"])
-                diffs[name][m] = {
-                    "with_minus_without": diff,
-                    "seed_spread": spread,
-                    "exceeds_spread": bool(abs(diff) > spread) if np.isfinite(spread) else None,
-                }
-        pairs.append({"with": key, "without": other, "bins": diffs})
-    for arm in arms.values():
-        del arm["config"]
-    return {"arms": arms, "pairs": pairs}
-
-
-def print_ablation(table: dict) -> None:
-    print("\nablation: per mass bin, mean over seeds (seed std; per seed), pos. error mm")
-    for key, arm in table["arms"].items():
-        print(f"  {key}: seeds {arm['seeds']}")
-        for name, per in arm["bins"].items():
-            s = per["track_pos_m"]
-            seeds = ", ".join(f"{1e3 * v:.1f}" for v in s["per_seed"])
-            print(f"    {name:>12}: {1e3 * s['mean']:.1f} ({1e3 * s['std']:.1f}; {seeds})")
-    for pair in table["pairs"]:
-        print(f"  {pair['with']} minus {pair['without']}:")
-        for name, d in pair["bins"].items():
-            x = d["track_pos_m"]
-            verdict = {True: "exceeds", False: "within", None: "one seed:"}[x["exceeds_spread"]]
-            print(
-                f"    {name:>12}: {1e3 * x['with_minus_without']:+.1f} mm, {verdict} the seed "
-                f"spread {1e3 * x['seed_spread']:.1f} mm"
-            )
-
-
 # --------------------------------------------------------------------------- curves
-
-
-def checkpoint_samples(run_dir: Path) -> list[int]:
-    """Sample counts of a run's checkpoints (train.py --checkpoint-every), ascending."""
-    names = (run_dir / "checkpoints").glob("rl_model_*_steps.zip")
-    return sorted(int(p.stem.split("_")[-2]) for p in names)
 
 
 def learning_curves(
@@ -682,48 +284,6 @@ def learning_curves(
         curves[str(run_dir)] = {"config": final.config, "points": points}
         print(f"  curve of {run_dir}: {len(points)} points")
     return curves
-
-
-def plot_curves(curves: dict, baselines: list[dict], path: Path) -> None:
-    """Return and mean cargo position error against decisions, with baselines."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(1, 2, figsize=(11, 5), layout="constrained")
-    for (key, label), ax in zip(
-        (("return", "return (mean over robots)"), ("track_pos_m", "cargo position error [m]")),
-        axes,
-        strict=True,
-    ):
-        for curve in curves.values():
-            config = curve["config"]
-            robots = config["env_kwargs"]["n_robots"]
-            steps = [p["samples"] / robots for p in curve["points"]]
-            mean = np.array([p[key]["mean"] for p in curve["points"]], dtype=float)
-            std = np.array([p[key]["std"] for p in curve["points"]], dtype=float)
-            minutes = config.get("wall_s", float("nan")) / 60
-            # The training's wall time goes in the legend: notes at the curves' ends overlap.
-            name = f"{arm_key(config)}, seed {config.get('seed', '?')} ({minutes:.0f} min)"
-            line = ax.plot(steps, mean, marker="o", ms=3, label=name)[0]
-            ax.fill_between(steps, mean - std, mean + std, color=line.get_color(), alpha=0.2)
-        for base, style in zip(baselines, ("-.", "--", ":"), strict=False):
-            ax.axhline(
-                base["summary"][key]["mean"], color="k", ls=style, lw=1, label=base["policy"]
-            )
-        ax.set_xlabel("decisions (samples / robots, all copies together)")
-        ax.set_ylabel(label)
-        ax.grid(alpha=0.3)
-    handles, labels = axes[0].get_legend_handles_labels()
-    fig.legend(handles, labels, fontsize=8, loc="outside lower center", ncols=min(2, len(labels)))
-    fig.suptitle(
-        "Deterministic policy on the same seeded episodes (mean +- std over episodes; "
-        "training wall time in brackets)"
-    )
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
 
 
 # --------------------------------------------------------------------------- command line

@@ -545,11 +545,12 @@ def test_evaluation_replays_a_residual_policy_as_in_training(trained_runs, run):
 
 def test_a_checkpoint_is_a_policy_of_its_own_arm(trained_runs):
     evaluate = _load_script("evaluate")
+    report = _load_script("eval_report")
     run = trained_runs / "res"
     assert evaluate.checkpoint_samples(run) == [32, 64]
     final, early = (evaluate.make_policy(spec, "estimate") for spec in (str(run), f"{run}@32"))
     assert early.name == f"{run}@32" and early.config["checkpoint_samples"] == 32
-    assert evaluate.arm_key(early.config) == evaluate.arm_key(final.config).replace(
+    assert report.arm_key(early.config) == report.arm_key(final.config).replace(
         "(64 samples)", "(checkpoint at 32 samples)"
     )
     with pytest.raises(ValueError, match="no checkpoint"):
@@ -586,7 +587,7 @@ def test_fast_inference_keeps_the_actions(trained_runs):
 
 
 def test_ablation_compares_arms_with_the_seed_spread():
-    evaluate = _load_script("evaluate")
+    report = _load_script("eval_report")
 
     def result(observe, seed, light, heavy):
         config = {
@@ -597,14 +598,14 @@ def test_ablation_compares_arms_with_the_seed_spread():
             "env_kwargs": {"observe_estimates": observe, "residual_scale": 0.3},
         }
         bins = {
-            name: {m: {"mean": value, "std": 0.0} for m in evaluate.ABLATION_METRICS}
+            name: {m: {"mean": value, "std": 0.0} for m in report.ABLATION_METRICS}
             for name, value in (("light", light), ("heavy", heavy))
         }
         return {"config": config, "bins": bins}
 
     results = [result(True, s, 0.010 + 0.001 * s, 0.004 + 0.0001 * s) for s in (1, 2, 3)]
     results += [result(False, s, 0.011 + 0.001 * s, 0.020 + 0.0001 * s) for s in (1, 2, 3)]
-    table = evaluate.ablation(results)
+    table = report.ablation(results)
     assert len(table["arms"]) == 2 and len(table["pairs"]) == 1
     arm = table["arms"][table["pairs"][0]["with"]]
     assert arm["seeds"] == [1, 2, 3]
@@ -617,12 +618,12 @@ def test_ablation_compares_arms_with_the_seed_spread():
 
 
 def test_ablation_pairs_hidden_estimates_on_the_estimate_base():
-    evaluate = _load_script("evaluate")
+    report = _load_script("eval_report")
 
     def result(base, hide, seed):
         kwargs = {"observe_estimates": True, "residual_scale": 0.3, "base_model": base}
         config = {"algo": "ppo", "view": "shared", "task": "cargo", "seed": seed}
-        bins = {"all": {m: {"mean": 0.01 * seed, "std": 0.0} for m in evaluate.ABLATION_METRICS}}
+        bins = {"all": {m: {"mean": 0.01 * seed, "std": 0.0} for m in report.ABLATION_METRICS}}
         return {
             "config": {**config, "env_kwargs": {**kwargs, "hide_estimates": hide}},
             "bins": bins,
@@ -630,7 +631,7 @@ def test_ablation_pairs_hidden_estimates_on_the_estimate_base():
 
     results = [result("estimate", hide, s) for hide in (False, True) for s in (1, 2)]
     results += [result("none", False, s) for s in (1, 2)]
-    table = evaluate.ablation(results)
+    table = report.ablation(results)
     assert len(table["arms"]) == 3 and len(table["pairs"]) == 1  # the none arm has no partner
     pair = table["pairs"][0]
     assert "on estimate" in pair["with"] and pair["with"].endswith("with estimates")
@@ -638,18 +639,18 @@ def test_ablation_pairs_hidden_estimates_on_the_estimate_base():
 
 
 def test_ablation_pairs_the_feedforward_arms_apart_from_the_plain_ones():
-    evaluate = _load_script("evaluate")
+    report = _load_script("eval_report")
 
     def result(observe, feedforward, seed):
         kwargs = {"observe_estimates": observe, "residual_scale": 1.0}
         if feedforward:
             kwargs["feedforward_obs"] = "estimate" if observe else "prior"
         config = {"algo": "ppo", "view": "shared", "task": "cargo", "seed": seed}
-        bins = {"all": {m: {"mean": 0.01 * seed, "std": 0.0} for m in evaluate.ABLATION_METRICS}}
+        bins = {"all": {m: {"mean": 0.01 * seed, "std": 0.0} for m in report.ABLATION_METRICS}}
         return {"config": {**config, "env_kwargs": kwargs}, "bins": bins}
 
     results = [result(o, f, s) for o in (True, False) for f in (True, False) for s in (1, 2)]
-    table = evaluate.ablation(results)
+    table = report.ablation(results)
     assert len(table["arms"]) == 4 and len(table["pairs"]) == 2
     for pair in table["pairs"]:
         assert ("feed-forward" in pair["with"]) == ("feed-forward" in pair["without"])
@@ -846,7 +847,7 @@ def test_imitation_run_saves_a_policy_that_evaluates_and_fine_tunes(tmp_path):
     mse = config["imitation"]["actor_mse"]
     assert len(mse) == 2 and mse[0][1] < 0.5 * mse[0][0]
     assert config["imitation"]["labelled_samples"] == 3 * 2 * 10
-    assert "imitation" in evaluate.arm_key(config)
+    assert "imitation" in _load_script("eval_report").arm_key(config)
     policy = evaluate.TrainedPolicy(run)
     assert float(policy.model.policy.log_std.detach().mean()) == pytest.approx(-2.5)
     decision = ("residual_scale", "action_repeat", "base_model", "hide_estimates")
@@ -878,7 +879,7 @@ def test_masked_block_no_longer_reaches_the_policy(trained_runs):
     evaluate = _load_script("evaluate")
     plain, masked = (evaluate.TrainedPolicy(trained_runs / "res") for _ in range(2))
     masked.mask("peer0_wrench")
-    assert "peer0_wrench masked" in evaluate.arm_key(masked.config)
+    assert "peer0_wrench masked" in _load_script("eval_report").arm_key(masked.config)
     kwargs = {k: v for k, v in plain.config["env_kwargs"].items() if k in FAST or k == "n_robots"}
     env = astrobee_cargo_v0.parallel_env(**kwargs)
     obs, _ = env.reset(seed=0)
