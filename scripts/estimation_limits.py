@@ -93,6 +93,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--only", nargs="+", default=None, help="fly only these variants (names as in the code)"
     )
+    parser.add_argument(
+        "--over-time-window", type=int, default=None,
+        help="CargoEstimator's over_time_window (updates; 0 off; default: the estimator's)",
+    )  # fmt: skip
     return parser
 
 
@@ -102,9 +106,12 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 def _run(job: tuple[str, int, argparse.Namespace]) -> tuple[str, int, dict]:
     name, seed, args = job
+    kwargs = {}
+    if args.over_time_window is not None:
+        kwargs["over_time_window"] = args.over_time_window
     case = bench.Case(
         name, robots=args.robots, trajectory=args.trajectory, seed=seed,
-        duration=args.duration, noise=f"limits_{name}",
+        duration=args.duration, noise=f"limits_{name}", extra={"estimator_kwargs": kwargs},
     )  # fmt: skip
     return name, seed, bench.run_case(case)
 
