@@ -129,14 +129,18 @@ class UpdateWindow:
         if imu_map is None:
             return (z, regressor, offset, cov), None
         index = stamp // self.update_every
+        if any(e.imu_map.shape != imu_map.shape for e in self.entries):
+            self.entries.clear()  # another team: its channels are not these
         n_lags = self.mode_lag_cov.shape[0] - 1
         cross = {}
         for e in self.entries:
             lag = index - e.index
-            if e.imu_map.shape == imu_map.shape and 0 < lag <= n_lags:
+            if lag <= n_lags:
                 cross[e.stamp] = cross_covariance(e.imu_map, imu_map, self.mode_lag_cov[lag])
+            else:  # beyond the chain's memory: correlated only through the updates between
+                cross[e.stamp] = np.zeros((6, 6))
         entry = WindowEntry(index, stamp, z, regressor, offset, cov, imu_map, cross)
-        past = [e for e in self.entries if e.stamp in cross]
+        past = list(self.entries)
         if not past:
             return (z, regressor, offset, cov), entry
         gain, s_kp = self._gain(past, cross)
@@ -154,10 +158,9 @@ class UpdateWindow:
         for i, a in enumerate(past):
             s_pp[6 * i : 6 * i + 6, 6 * i : 6 * i + 6] = a.cov
             for j in range(i + 1, m):
-                block = past[j].cross.get(a.stamp)
-                if block is not None:
-                    s_pp[6 * i : 6 * i + 6, 6 * j : 6 * j + 6] = block
-                    s_pp[6 * j : 6 * j + 6, 6 * i : 6 * i + 6] = block.T
+                block = past[j].cross[a.stamp]  # held since j joined (a was in the window)
+                s_pp[6 * i : 6 * i + 6, 6 * j : 6 * j + 6] = block
+                s_pp[6 * j : 6 * j + 6, 6 * i : 6 * i + 6] = block.T
         # Sigma_kp's block i is Cov(e_k, e_i) = Sigma_ik^T.
         s_kp = np.hstack([cross[a.stamp].T for a in past])
         chol = np.linalg.cholesky(s_pp)

@@ -1,66 +1,42 @@
-"""How close fusing localization with the IMUs can bring the `nominal` bound to perfect sensors.
+"""How close the IMU's noise weighed over time, and localization, bring the bound to the ideal.
 
 Flies one scenario (default: 2 robots, ``figure8_tumble``, 90 s, seed 0, the benchmark's cargo)
-under ``nominal`` and under ``actuation_only`` (perfect sensors), keeps robot 0's recorded
-measurements (z_k, A_k, b_k, R_k) and, per update, how the motion's sensor noise entered R_k, and
-recomputes robot 0's Cramer-Rao bound with that noise modelled in time instead of per update.
+three times: under ``nominal`` with the estimators' ``over_time_window`` 0 (each update alone,
+the IMU's channels at the lag-weighted covariance W: the benchmark's bound before the window)
+and L (``--window``: each update conditioned on the last L used ones, ``estimator.over_time``),
+and under ``actuation_only`` (perfect sensors). From robot 0 it keeps what its filter recorded
+(z_k, A_k, b_k, R_k) and, with the window, every used update's own measurement before the
+conditioning with its team IMU map J_k (6, c, 4) (``NoiseModel.over_time_noise``: the
+conditioned map of the c = 6 per robot IMU channels' modes, 4 per channel), and recomputes
+robot 0's Cramer-Rao bound (``baselines.crlb``'s derived quantities) under these models of the
+measurement noise:
 
-The measurement of update k is z_k = A_k pi + b_k + e_k (``baselines``). Its motion part is
-J_k xi_k: xi_k the filtered noise of every motion coordinate of the team (per robot: base
-acceleration a_B (3), angular acceleration wd_B (3), joint accelerations qdd (2), base axes) and
-J_k = N_k - K_k D_k the balance's map after the conditioning on the team's mismatch
-(``motion.condition_maps``, recorded). The estimator enters it per update at its white-equivalent
-level L (``motion.band_factors``): R_k = R_rest,k + J_k diag(L) J_k^T. Here the same noise enters
-with its exact covariance over the run instead (Gaussian, all K updates at once):
+- each update alone, as recorded with window 0 and with window L (white across updates: the
+  filter's own bound);
+- over the whole run (generalised least squares on all K used updates at once): the
+  covariance Sigma (6K, 6K) with the updates' own R_k on the diagonal and
+  J_k,c Gm_c(l - k) J_l,c^T between updates, Gm the modes' covariance L updates apart
+  (``over_time.mode_lag_covariances``, from the estimator's own chain kernels, the momentum
+  chain of ``noise_model``); the floors, the actuation, the peers' channel noise, the encoders
+  (errors in variables) and the squared rates stay white per update, as in the estimator;
+- the accelerometers fused with localization: their modes' Gm for the input PSD of the best
+  linear estimate of each base's acceleration from both (the non-causal Wiener smoother, and
+  the fixed lags of ``--lags``, ``estimator.smoother``),
 
-    Sigma = blockdiag(R_rest,k) + J C J^T,   F = A^T Sigma^-1 A,   bound = ``baselines.crlb``'s
-    derived quantities from F^-1,
+      S_fused(f) = S_a S_l(f) / (S_a + S_l(f)),  S_a = sigma_a^2 dt,  S_l = sigma_p^2 T (2 pi f)^4,
 
-C[k, l] the covariance of xi at updates k and l: per source c of one robot (two-sided PSD S_c(f),
-white per sample of std s over the control period dt: S = s^2 dt),
+  white above the crossover f_x = (S_a / (sigma_p^2 T))^(1/4) / (2 pi) and rising as f^4 below
+  it; Gm(L) = F^+ G(L) F^+T with G(L)[a, b] = sum_m K_a[m] K_b[m + L u] taken through the
+  kernels' FFT with that spectrum (checked against the direct sums for a white input), F the
+  estimator's modes (its white G(0)'s factor); their part of each diagonal block J Gm(0) J^T;
+- with noiseless gyros as well, and with noiseless accelerometers.
 
-    C_c(tau) = int S_c(f) (2 pi f)^(2 n_c) |H(f)|^2 cos(2 pi f tau) df,
+"GLS NEES" checks a model the nominal data hold (the first three rows): generalised least
+squares on robot 0's data under it, ~10 when the model is true to them, far above when it is
+optimistic. Localization's crossovers with the accelerometer and the integrated gyro are
+printed: the attitude fixes cannot reach the angular acceleration.
 
-n_c = 0, 1, 2 differentiations (accelerometer, gyro, encoders), H the estimator's chain (the 1 Hz
-pre-filter and the slow filter, (w / (s + w))^3 each). The accelerometer's noise is white in world
-axes too (a rotated white isotropic noise); between two updates its covariance in base axes is
-R_BW(t_k) C(t_k - t_l) R_WB(t_l) (true base attitudes, the filters' short memory taken as one
-attitude).
-
-Localization: each robot's base position fix (std sigma_p per axis, every T s) is a second
-measurement of its base's acceleration, with the PSD sigma_p^2 T (2 pi f)^4 once
-differentiated twice. The best linear estimate of the base acceleration from both (the
-non-causal Wiener / fixed-lag smoother: ``estimator.smoother``) has the error PSD
-
-    S_fused(f) = S_a S_l(f) / (S_a + S_l(f)),   S_a = sigma_a^2 dt,   S_l = sigma_p^2 T (2 pi f)^4,
-
-white above the crossover f_x = (S_a / (sigma_p^2 T))^(1/4) / (2 pi) and rising as f^4 below
-it. Attitude: the gyro's angle random walk crosses the fixes' attitude noise at
-f = sqrt(S_g / S_theta) / (2 pi), and the fixes cannot reach the angular acceleration (their PSD
-(2 pi f)^4 S_theta against the gyro's (2 pi f)^2 S_g); both crossovers are printed.
-
-The table's rows, each robot 0's 1-sigma bound on the principal moments over the perfect-sensor
-one: "as recorded" (the benchmark's bound), "over time, the IMUs alone" (the same noise, its
-covariance over the run), "accelerometers fused with localization" (their noise replaced by the
-smoother's: the Wiener limit, then the fixed lags of ``--lags``), the same with noiseless gyros
-(what any better attitude or angular-acceleration estimate could add) and "accelerometers
-noiseless" (what no fusion of the accelerometers can beat). "GLS NEES" checks a model the
-nominal data hold (the first two rows): generalised least squares on robot 0's data under it,
-~10 when the model is true to them, far above when it is optimistic.
-
-What the rows assume: the floors, the actuation and the peers' noise stay per update as the
-benchmark models them (R_rest), also in the perfect-sensor bound; the conditioning's gain K_k is
-the recorded one. The rows "over time" are bounds of an estimator that weighs the whole run's
-balances with their correlated noise (generalised least squares, or a filter whose state carries
-the noise's colour). The UKF, which treats updates as independent at the white-equivalent level,
-keeps the "as recorded" bound whatever motion it is fed: the fused accelerometer's
-white-equivalent level (its highest in the band, at the slow filter's cutoff) is the raw one.
-
-Measured (5 seeds, 0..4; every seed within 0.01 of these): as recorded 1.26 / 1.37 / 1.21; over
-time, the IMUs alone 1.16 / 1.31 / 1.12 (GLS NEES mean 13.5, as recorded 12.5; 95 % band of a
-5-seed mean 6.5-14.3); accelerometers fused (Wiener) 1.13 / 1.22 / 1.11, by a fixed lag of 16 s
-the same, of 8 s 1.14 / 1.25 / 1.11, of 4 s 1.16 / 1.29 / 1.12; gyros noiseless as well: no
-change; accelerometers noiseless 1.02 / 1.01 / 1.02.
+Measured (5 seeds, 0..4, see docs/estimation_limits.md): MEASURED
 
     .venv/bin/python scripts/motion_fusion_limits.py                 # seed 0
     .venv/bin/python scripts/motion_fusion_limits.py --seeds 0 1 2 3 4 --cache /tmp/flights
