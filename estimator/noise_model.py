@@ -36,7 +36,9 @@ the grasp's velocity and angular velocity carry almost all of it), where that we
 the gain multiplies the regressor's noise by the noise itself (errors in variables), a bias of
 relative size var(dY) / var(Y) that W, far below C(0) for noise read out of a derivative, leaves
 uncovered (one robot, encoders alone: NEES 66 at W, 6 at C(0)). Their modes carry the per-update
-covariance C(0).
+covariance C(0). With ``over_time`` (``CargoEstimator(over_time_window=L)``, off by default) the
+IMU's channels carry C(0) too, and the estimator weighs them over time instead
+(``over_time``, ``over_time_noise``).
 """
 
 from __future__ import annotations
@@ -222,6 +224,10 @@ class NoiseModel:
         localization_noise: (position m, attitude rad) of one fix.
         mismatch_model_std: rms per update and axis (m/s^2) of the team mismatch's model error
             (what it holds with perfect sensors), weighted like the floors.
+        over_time: the IMU's channels at their per-update covariance G(0) (not the lag-weighted
+            W), their modes' covariance between updates in ``mode_lag_cov``
+            (``over_time.mode_lag_covariances``) and ``message_modes`` sending them whole: for an
+            estimator that conditions each update on the previous ones (``over_time``).
 
     The defaults' measured values (``CargoEstimator``; 90 s figure8_tumble, 2 robots, ``ideal``
     sensors, seed 0, the residual at the true parameters, momentum form): white-equivalent per
@@ -408,7 +414,10 @@ class NoiseModel:
         A = d Y[:, :3, 0]^T (3, n) (the force rows' mass column, ``motion.grasp_acc_map`` at the
         grasp point), so their joint covariance M diag(v) M^T, M = [L; A], is all it uses, and F
         (9, 9) with F F^T = M diag(v) M^T carries it exactly (v = ``momentum_motion.var``).
-        Returns (F's links rows (6, 9), its grasp rows (3, 9), ones (9,): variances and bands)."""
+        Returns (F's links rows (6, 9), its grasp rows (3, 9), ones (9,): variances and bands).
+        With ``over_time``: the 24 IMU modes as they are (scaled to unit variance), then 9 that
+        carry the rest's (6, 33), (3, 33), ones (33,): the receiver weighs the IMU's over time
+        (``over_time_noise``)."""
         stacked = np.vstack((d_links, d_y[:, :3, 0].T)) * self._mode_std
         if not self.over_time:
             factor = psd_factor(stacked @ stacked.T)

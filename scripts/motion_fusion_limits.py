@@ -36,7 +36,12 @@ squares on robot 0's data under it, ~10 when the model is true to them, far abov
 optimistic. Localization's crossovers with the accelerometer and the integrated gyro are
 printed: the attitude fixes cannot reach the angular acceleration.
 
-Measured (5 seeds, 0..4, see docs/estimation_limits.md): MEASURED
+Measured (5 seeds, 0..4; ranges over the seeds, docs/estimation_limits.md): window 0
+1.24 / 1.35-1.36 / 1.19-1.20 (GLS NEES mean 13.4); window 24 and the whole run alike
+1.34-1.35 / 1.40 / 1.29-1.30 (14.4; 95 % band of a 5-seed mean 6.5-14.3); accelerometers fused
+(Wiener, and a 16 s lag) 1.30 / 1.27-1.28 / 1.27, an 8 s lag 1.32 / 1.32-1.33 / 1.28-1.29, 4 s
+1.34 / 1.38 / 1.29-1.30; gyros noiseless as well: no change; accelerometers noiseless
+1.01 / 1.01 / 1.01-1.02.
 
     .venv/bin/python scripts/motion_fusion_limits.py                 # seed 0
     .venv/bin/python scripts/motion_fusion_limits.py --seeds 0 1 2 3 4 --cache /tmp/flights
