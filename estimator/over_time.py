@@ -120,14 +120,25 @@ class UpdateWindow:
         self.mode_lag_cov = mode_lag_cov
         self.update_every = int(update_every)
         self.entries: deque[WindowEntry] = deque(maxlen=int(length))
+        # Sigma_pp (6 m, 6 m) of the entries, kept as they come and go; the stacked z, Y, b.
+        self._sigma = np.zeros((0, 0))
+        self._stacked = (np.zeros(0), np.zeros((0, 10)), np.zeros(0))
 
     def clear(self) -> None:
         self.entries.clear()
+        self._keep(0, 0)
 
     def drop_from(self, stamp: int) -> None:
         """Forget the entries of ``stamp`` and later (rolled back)."""
         while self.entries and self.entries[-1].stamp >= stamp:
             self.entries.pop()
+        self._keep(0, len(self.entries))
+
+    def _keep(self, first: int, stop: int) -> None:
+        """Keep the rows of entries first..stop-1 of Sigma_pp and the stacked measurements."""
+        rows = slice(6 * first, 6 * stop)
+        self._sigma = self._sigma[rows, rows]
+        self._stacked = tuple(x[rows] for x in self._stacked)
 
     def condition(self, stamp, z, regressor, offset, cov, imu_map):
         """(z', Y', b', R') of update ``stamp`` conditioned on the window, and its entry (to
@@ -137,7 +148,7 @@ class UpdateWindow:
             return (z, regressor, offset, cov), None
         index = stamp // self.update_every
         if any(e.imu_map.shape != imu_map.shape for e in self.entries):
-            self.entries.clear()  # another team: its channels are not these
+            self.clear()  # another team: its channels are not these
         n_lags = self.mode_lag_cov.shape[0] - 1
         cross = {}
         for e in self.entries:
@@ -147,36 +158,30 @@ class UpdateWindow:
             else:  # beyond the chain's memory: correlated only through the updates between
                 cross[e.stamp] = np.zeros((6, 6))
         entry = WindowEntry(index, stamp, z, regressor, offset, cov, imu_map, cross)
-        past = list(self.entries)
-        if not past:
+        if not self.entries:
             return (z, regressor, offset, cov), entry
-        gain, s_kp = self._gain(past, cross)
-        z_p = np.concatenate([e.z for e in past])
-        y_p = np.concatenate([e.regressor for e in past])
-        b_p = np.concatenate([e.offset for e in past])
+        # Sigma_kp's block i is Cov(e_k, e_i) = Sigma_ik^T.
+        s_kp = np.hstack([cross[e.stamp].T for e in self.entries])
+        chol = np.linalg.cholesky(self._sigma)
+        gain = np.linalg.solve(chol.T, np.linalg.solve(chol, s_kp.T)).T
+        z_p, y_p, b_p = self._stacked
         cond = cov - gain @ s_kp.T
         return (z - gain @ z_p, regressor - gain @ y_p, offset - gain @ b_p,
                 0.5 * (cond + cond.T)), entry  # fmt: skip
 
-    def _gain(self, past: list[WindowEntry], cross: dict) -> tuple[np.ndarray, np.ndarray]:
-        """A = Sigma_kp Sigma_pp^-1 (6, 6 m) and Sigma_kp (6, 6 m) over the ``past`` entries."""
-        m = len(past)
-        s_pp = np.zeros((6 * m, 6 * m))
-        for i, a in enumerate(past):
-            s_pp[6 * i : 6 * i + 6, 6 * i : 6 * i + 6] = a.cov
-            for j in range(i + 1, m):
-                block = past[j].cross[a.stamp]  # held since j joined (a was in the window)
-                s_pp[6 * i : 6 * i + 6, 6 * j : 6 * j + 6] = block
-                s_pp[6 * j : 6 * j + 6, 6 * i : 6 * i + 6] = block.T
-        # Sigma_kp's block i is Cov(e_k, e_i) = Sigma_ik^T.
-        s_kp = np.hstack([cross[a.stamp].T for a in past])
-        chol = np.linalg.cholesky(s_pp)
-        gain = np.linalg.solve(chol.T, np.linalg.solve(chol, s_kp.T)).T
-        return gain, s_kp
-
     def add(self, entry: WindowEntry | None) -> None:
-        """Keep a used update's entry (None: restart the window)."""
+        """Keep a used update's entry (None: restart the window): Sigma_pp grows by its row and
+        column (its covariances with the entries, held in the entry) and loses the oldest's."""
         if entry is None:
-            self.entries.clear()
-        else:
-            self.entries.append(entry)
+            self.clear()
+            return
+        col = np.vstack([entry.cross[e.stamp] for e in self.entries] or [np.zeros((0, 6))])
+        self._sigma = np.block([[self._sigma, col], [col.T, entry.cov]])
+        self._stacked = tuple(
+            np.concatenate((x, y))
+            for x, y in zip(self._stacked, (entry.z, entry.regressor, entry.offset), strict=True)
+        )
+        full = len(self.entries) == self.entries.maxlen
+        self.entries.append(entry)
+        if full:
+            self._keep(1, len(self.entries) + 1)
