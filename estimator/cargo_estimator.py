@@ -77,6 +77,7 @@ from .messages import Instant, RelativeGrasp, WrenchMessage  # noqa: F401 (re-ex
 from .momentum import SIZE as MOMENTUM_SIZE
 from .momentum import cargo_regressor_parts
 from .noise_model import MOTION_FUSION, NoiseModel, rate_square_var
+from .over_time import UpdateWindow
 from .per_step import EstimatorInputs
 from .preprocess import Preprocessor, StateVariableFilter
 from .prior import (  # noqa: F401 (re-exported)
@@ -180,6 +181,10 @@ class CargoEstimator(EstimatorInputs):
             in truth for a rigid cargo).
         mismatch_model_std: m/s^2 per axis, rms per update of the mismatch's model error (what it
             holds with perfect sensors), weighted like the floors (``noise_model``).
+        over_time_window: 0, each update on its own, the IMU's channels at the lag-weighted
+            covariance (``noise_model``); L > 0, each update conditioned on the last L used
+            updates (``over_time``: the IMU's noise weighed with its covariance over time, its
+            channels at their per-update covariance; the peers must run it too).
     """
 
     def __init__(
@@ -212,11 +217,15 @@ class CargoEstimator(EstimatorInputs):
         motion_fusion: str = "team",
         mismatch_model_std: float = 5.3e-7,
         rate_cutoff_hz: float | None = None,
+        over_time_window: int = 0,
     ) -> None:
         _check_arguments(
             index, peers, update_every, regressor_every, warmup_s, history_s, gate_prob,
             min_excitation_snr, process_std_rel, min_relative_fixes, motion_fusion,
         )  # fmt: skip
+        if over_time_window < 0:
+            raise ValueError(f"over_time_window must be >= 0 updates, got {over_time_window}")
+        self.over_time_window = int(over_time_window)
         self.motion_fusion = motion_fusion
         self._mismatch_model_std = float(mismatch_model_std)
         self._init_schedule(
@@ -297,6 +306,7 @@ class CargoEstimator(EstimatorInputs):
             actuation_noise=actuation_noise, sensor_noise=sensor_noise,
             peer_noise_std=peer_noise_std, localization_noise=localization_noise,
             mismatch_model_std=self._mismatch_model_std, rate_cutoff_hz=self.pre.rate_cutoff_hz,
+            over_time=self.over_time_window > 0,
         )  # fmt: skip
         n = self.noise
         self.meas_cov = n.floor_cov
@@ -332,6 +342,11 @@ class CargoEstimator(EstimatorInputs):
                 raise ValueError(f"relative_grasps names robot {p}, which is not a peer")
             self._relative[p].known = wrench_transform(np.asarray(rot), np.asarray(pos))
         self.stamp = -1
+        self._window = None
+        if self.over_time_window:
+            self._window = UpdateWindow(
+                self.noise.mode_lag_cov, self.over_time_window, self.update_every
+            )
         self.record = bool(record)
         self.log: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
         self.n_bad_readings = 0
@@ -409,19 +424,17 @@ class CargoEstimator(EstimatorInputs):
                 if stamp <= self._gated_until:
                     self.n_skipped_after_gate += 1
                     continue
-                motion_mean, motion_cov = self._motion_noise(inst, msgs)
-                peers, cov, peer_noise = self._peer_terms(inst.act_cov, msgs)
-                meas_cov = self.meas_cov + cov / self.update_every + motion_cov + peer_noise
-                meas_cov = meas_cov + self._rate_square_cov(stamp)
-                offset = inst.links - peers - motion_mean
+                measurement, entry = self._measurement(stamp, inst, msgs)
                 snapshot = (stamp, self.ukf.x.copy(), self.ukf.P.copy(), len(self.log))
                 self.ukf.predict()
-                result = self.ukf.update_linear(inst.thrust, inst.regressor, offset, meas_cov)
+                result = self.ukf.update_linear(*measurement)
                 if result.accepted:
                     done += 1
                     self._snapshots.append(snapshot)
+                    if self._window is not None:
+                        self._window.add(entry)
                     if self.record:
-                        self.log.append((inst.thrust, inst.regressor, offset, meas_cov))
+                        self.log.append(measurement)
                 elif result.reason == "gated":
                     done += self._roll_back(stamp)
                     self._gated_until = stamp + self.taint_steps
@@ -430,6 +443,24 @@ class CargoEstimator(EstimatorInputs):
                 self.n_skipped_missing += 1
         self._forget_before(self.stamp - self.history_steps)
         return done
+
+    def _measurement(self, stamp: int, inst: Instant, msgs: list):
+        """The update's (z, Y, b, R): thrust_G = links_G + Y pi - sum_j T_ij W_j with
+        z = thrust, b = links - peers' wrenches - the motion noise's mean, R its covariance
+        (floors, actuation, motion, peers' noise, squared rates); with ``over_time_window``
+        conditioned on the window's updates (``over_time``), and the window's entry for it."""
+        peers, cov, peer_noise = self._peer_terms(inst.act_cov, msgs)
+        imu_map = None
+        if self._window is None:
+            motion_mean, motion_cov = self._motion_noise(inst, msgs)
+        else:
+            motion_mean, motion_cov, imu_map = self._over_time_noise(inst, msgs)
+        meas_cov = self.meas_cov + cov / self.update_every + motion_cov + peer_noise
+        meas_cov = meas_cov + self._rate_square_cov(stamp)
+        measurement = (inst.thrust, inst.regressor, inst.links - peers - motion_mean, meas_cov)
+        if self._window is None:
+            return measurement, None
+        return self._window.condition(stamp, *measurement, imu_map)
 
     def _peer_terms(
         self, act_cov: np.ndarray, msgs: list
@@ -469,6 +500,14 @@ class CargoEstimator(EstimatorInputs):
             self._grasp_lever, own=self.noise.momentum_motion, params_cov=self.ukf.P,
         )  # fmt: skip
 
+    def _over_time_noise(self, inst: Instant, msgs: list):
+        """``_motion_noise`` and the team's IMU map (``NoiseModel.over_time_noise``)."""
+        peers = [(self._relative[p].transform(), m) for p, m in zip(self.peers, msgs, strict=True)]
+        return self.noise.over_time_noise(
+            self.motion_fusion, self.ukf.params_mean(), inst.motion_jac, inst.regressor, peers,
+            self._grasp_lever, params_cov=self.ukf.P,
+        )  # fmt: skip
+
     def _rate_square_cov(self, stamp: int) -> np.ndarray:
         """Covariance (6, 6) of the encoders' squared rate noise in this instant's own balance
         (links and regressor at the current estimate): var sum_k w_k b_k b_k^T,
@@ -499,7 +538,9 @@ class CargoEstimator(EstimatorInputs):
         undo = [s for s in self._snapshots if s[0] >= gated_stamp - self.rollback_steps]
         if not undo:
             return 0
-        _, x, cov, log_len = undo[0]
+        first, x, cov, log_len = undo[0]
+        if self._window is not None:
+            self._window.drop_from(first)
         # The predictions of the undone instants and of the gated one stay: P grows as if the
         # instants had been skipped.
         self.ukf.x = x
@@ -539,6 +580,8 @@ class CargoEstimator(EstimatorInputs):
         self._relative = {p: self._relative.get(p, RelativeGrasp()) for p in self.peers}
         self.n_skipped_missing += len(self._pending)
         self._pending.clear()
+        if self._window is not None:
+            self._window.clear()  # the team's IMU channels change
         self._tainted_until = max(self._tainted_until, self.stamp + self.taint_steps)
 
     # ------------------------------------------------------------------ outputs

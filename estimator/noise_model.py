@@ -36,7 +36,9 @@ the grasp's velocity and angular velocity carry almost all of it), where that we
 the gain multiplies the regressor's noise by the noise itself (errors in variables), a bias of
 relative size var(dY) / var(Y) that W, far below C(0) for noise read out of a derivative, leaves
 uncovered (one robot, encoders alone: NEES 66 at W, 6 at C(0)). Their modes carry the per-update
-covariance C(0).
+covariance C(0). With ``over_time`` (``CargoEstimator(over_time_window=L)``, off by default) the
+IMU's channels carry C(0) too, and the estimator weighs them over time instead
+(``over_time``, ``over_time_noise``).
 """
 
 from __future__ import annotations
@@ -68,6 +70,7 @@ from .motion import (
     psd_factor,
     time_weighted_kernels,
 )
+from .over_time import IMU_MODES, MODES_PER_CHANNEL, conditioning_gain, mode_lag_covariances
 from .preprocess import DEFAULT_RATE_CUTOFF_HZ, StateVariableFilter
 from .rne import RobotDescription
 
@@ -154,6 +157,17 @@ def _nonnegative(value, size: int, name: str) -> np.ndarray:
 
 
 @functools.lru_cache(maxsize=16)
+def momentum_chain_kernels(dt_s, rate_hz, product_hz, cutoff_hz, every):
+    """The momentum chain's kernels with their time-weighted twins (12, span)
+    (``motion.chain_kernels``, ``time_weighted_kernels`` about the Jacobians' instant) and the
+    chain's delays (rate, product, slow filter; s). Cached, read-only."""
+    kernels = chain_kernels(dt_s, rate_hz, product_hz, cutoff_hz, every)
+    delays = [StateVariableFilter(1, dt_s, f).delay_s for f in (rate_hz, product_hz)]
+    delays.append(StateVariableFilter(1, dt_s * every, cutoff_hz).delay_s)
+    return time_weighted_kernels(kernels, dt_s, sum(delays)), tuple(delays)
+
+
+@functools.lru_cache(maxsize=16)
 def _momentum_chain(dt_s, rate_hz, product_hz, cutoff_hz, every, update_every):
     """What ``NoiseModel`` needs of the momentum chain, a pure function of its six numbers
     (cached: computed once per set-up, not per estimator and reset): the Jacobians' lag (control
@@ -163,10 +177,7 @@ def _momentum_chain(dt_s, rate_hz, product_hz, cutoff_hz, every, update_every):
     The balance at an update sums the samples of about one chain delay before it: the Jacobians
     are taken there, from the pre-filter (which already lags by the product filter's delay) one
     slow-filter and one rate-filter delay back, with their rate."""
-    kernels = chain_kernels(dt_s, rate_hz, product_hz, cutoff_hz, every)
-    delays = [StateVariableFilter(1, dt_s, f).delay_s for f in (rate_hz, product_hz)]
-    delays.append(StateVariableFilter(1, dt_s * every, cutoff_hz).delay_s)
-    kernels = time_weighted_kernels(kernels, dt_s, sum(delays))
+    kernels, delays = momentum_chain_kernels(dt_s, rate_hz, product_hz, cutoff_hz, every)
     n_lags = int(np.ceil(kernels.shape[1] / update_every))
     lag_cov = kernel_lag_covariances(kernels, update_every, n_lags)
     point = psd_factor(lag_cov[0][np.ix_(POINT_EXTENDED, POINT_EXTENDED)])
@@ -213,6 +224,10 @@ class NoiseModel:
         localization_noise: (position m, attitude rad) of one fix.
         mismatch_model_std: rms per update and axis (m/s^2) of the team mismatch's model error
             (what it holds with perfect sensors), weighted like the floors.
+        over_time: the IMU's channels at their per-update covariance G(0) (not the lag-weighted
+            W), their modes' covariance between updates in ``mode_lag_cov``
+            (``over_time.mode_lag_covariances``) and ``message_modes`` sending them whole: for an
+            estimator that conditions each update on the previous ones (``over_time``).
 
     The defaults' measured values (``CargoEstimator``; 90 s figure8_tumble, 2 robots, ``ideal``
     sensors, seed 0, the residual at the true parameters, momentum form): white-equivalent per
@@ -242,6 +257,7 @@ class NoiseModel:
         localization_noise=(0.0, 0.0),
         mismatch_model_std: float = 0.0,
         rate_cutoff_hz: float = DEFAULT_RATE_CUTOFF_HZ,
+        over_time: bool = False,
     ) -> None:
         if not (force_std_n > 0 and torque_std_nm > 0):
             raise ValueError("force_std_n and torque_std_nm must be positive")
@@ -263,6 +279,7 @@ class NoiseModel:
         loc = _nonnegative(localization_noise, 2, "localization_noise")
         self.loc_pos_std, self.loc_att_std = (float(x) for x in loc)
         self.mismatch_model_var = self.correlated * float(mismatch_model_std) ** 2
+        self.over_time = bool(over_time)
         self._init_scalar_model(robot, dt_s, cutoff_hz, sensor)
         self._init_acceleration_form(robot, dt_s, kinematics_cutoff_hz, cutoff_hz,
                                      regressor_every, sensor)  # fmt: skip
@@ -299,11 +316,19 @@ class NoiseModel:
         """The momentum chain's kernels and their lag covariances (``motion.chain_kernels``),
         the regressor's autocorrelation, the per-mode variances (``momentum_motion``) and what
         ``momentum_jacobians`` needs of the robot."""
-        chain = _momentum_chain(dt_s, rate_hz, product_hz, cutoff_hz, every, self.update_every)
+        # ``momentum_chain_kernels``' arguments (the kernels of ``motion_fusion_limits``).
+        self.chain_args = (dt_s, rate_hz, product_hz, cutoff_hz, every)
+        chain = _momentum_chain(*self.chain_args, self.update_every)
         self._jacobian_lag_steps, self._jacobian_rate_step_s, self._lag_cov = chain[:3]
         n_lags = self._lag_cov.shape[0] - 1
         self.autocorrelation = RegressorAutocorrelation(n_lags)
         self._held_factor = None  # refreshed every FACTOR_REFRESH_UPDATES updates
+        # Over time (``over_time``): the IMU's channels at their per-update covariance G(0),
+        # and their modes' covariance between updates L apart (``over_time.mode_lag_covariances``).
+        held_lags = self._lag_cov[:, HELD_EXTENDED][:, :, HELD_EXTENDED]
+        self.mode_lag_cov = None
+        if self.over_time:
+            self._held_factor, self.mode_lag_cov = mode_lag_covariances(held_lags)
         # The encoders (the regressor's own noise): the per-update covariance G(0), see
         # ``momentum_jacobians``.
         self._point_factor = chain[3]
@@ -355,12 +380,15 @@ class NoiseModel:
         None (or no encoder noise): zero columns, so that the count stays that of
         ``momentum_motion.var``, n = 24 + 8 nj + nj (nj + 1) / 2 with encoder noise."""
         index = stamp // self.update_every
-        self.autocorrelation.add(index, regressor)
         x = self._delayed_motion(stamp, pre_state)
         jac, jac_rate = drifting_sample_jacobian(
             self._robot_arrays, self._imu_pos, x, self._n_joints, self._jacobian_rate_step_s
         )
-        if self._held_factor is None or index % FACTOR_REFRESH_UPDATES == 0:
+        if not self.over_time:
+            self.autocorrelation.add(index, regressor)
+        if not self.over_time and (
+            self._held_factor is None or index % FACTOR_REFRESH_UPDATES == 0
+        ):
             w = lag_weighted_covariance(self._lag_cov, self.autocorrelation.rho())
             self._held_factor = psd_factor(w[np.ix_(HELD_EXTENDED, HELD_EXTENDED)])
         d_links, d_y = momentum_noise_modes(
@@ -386,10 +414,19 @@ class NoiseModel:
         A = d Y[:, :3, 0]^T (3, n) (the force rows' mass column, ``motion.grasp_acc_map`` at the
         grasp point), so their joint covariance M diag(v) M^T, M = [L; A], is all it uses, and F
         (9, 9) with F F^T = M diag(v) M^T carries it exactly (v = ``momentum_motion.var``).
-        Returns (F's links rows (6, 9), its grasp rows (3, 9), ones (9,): variances and bands)."""
+        Returns (F's links rows (6, 9), its grasp rows (3, 9), ones (9,): variances and bands).
+        With ``over_time``: the 24 IMU modes as they are (scaled to unit variance), then 9 that
+        carry the rest's (6, 33), (3, 33), ones (33,): the receiver weighs the IMU's over time
+        (``over_time_noise``)."""
         stacked = np.vstack((d_links, d_y[:, :3, 0].T)) * self._mode_std
-        factor = psd_factor(stacked @ stacked.T)
-        return factor[:6], factor[6:], np.ones(9)
+        if not self.over_time:
+            factor = psd_factor(stacked @ stacked.T)
+            return factor[:6], factor[6:], np.ones(9)
+        # Over time: the IMU's modes as they are (the receiver weighs them across updates),
+        # the rest (encoders, squared rates: white across updates) in 9.
+        rest = stacked[:, IMU_MODES:]
+        modes = np.hstack((stacked[:, :IMU_MODES], psd_factor(rest @ rest.T)))
+        return modes[:6], modes[6:], np.ones(modes.shape[1])
 
     def _delayed_motion(self, stamp: int, pre_state: np.ndarray) -> np.ndarray:
         """The pre-filter's (value, derivative, second derivative) (3, 12 + nj) about
@@ -492,8 +529,63 @@ class NoiseModel:
             or any(m.motion_links_jac is None for _, m in peers)
         ):
             return np.zeros(6), self.sensor_cov_at(params, lever_m)
-        d_links, d_y = motion_jac
         own = self.motion if own is None else own
+        team = self._team(own, params, motion_jac, regressor, peers)
+        return self._conditioned(fusion == "team" and bool(peers), team, motion_jac, params_cov)
+
+    def _conditioned(self, condition, team, motion_jac, params_cov):
+        """Mean and covariance of the motion noise from ``_team``'s maps, conditioned on the
+        mismatch or not, with the posterior's spread (``motion_noise``)."""
+        n_map, d_map, mismatch, level = team
+        if condition:
+            mean, cov = condition_maps(n_map, d_map, level, mismatch, self.mismatch_model_var)
+        else:
+            mean, cov = np.zeros(6), noise_cov(n_map, level)
+        if params_cov is not None:
+            cov = cov + _posterior_spread(motion_jac[1], level, params_cov)
+        return mean, cov
+
+    def over_time_noise(
+        self,
+        fusion: str,
+        params: np.ndarray,
+        motion_jac: tuple[np.ndarray, np.ndarray] | None,
+        regressor: np.ndarray,
+        peers: list[tuple[np.ndarray, PeerMotion]],
+        lever_m: float = 0.0,
+        params_cov: np.ndarray | None = None,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """``motion_noise`` of the estimator's modes (``momentum_motion``; ``over_time`` on) and
+        the conditioned map of the team's IMU modes, J = (N - K D)[:, imu] diag(level)^1/2
+        (6, c, 4), c = 6 channels per robot (this robot's, then the peers' in order; K the
+        mismatch's gain, zero for "own"): their part of the covariance is J J^T and, between
+        updates, ``over_time.UpdateWindow``'s J_k Gm J_l^T. J None where a peer sends no IMU
+        modes (its message is not ``over_time``'s) or without motion fusion."""
+        own = self.momentum_motion
+        sizes = [
+            np.shape(m.motion_links_jac)[1] for _, m in peers if m.motion_links_jac is not None
+        ]
+        if fusion == "none" or motion_jac is None or sizes != [IMU_MODES + 9] * len(peers):
+            mean, cov = self.motion_noise(
+                fusion, params, motion_jac, regressor, peers, lever_m, own, params_cov
+            )
+            return mean, cov, None
+        team = self._team(own, params, motion_jac, regressor, peers)
+        condition = fusion == "team" and bool(peers)
+        mean, cov = self._conditioned(condition, team, motion_jac, params_cov)
+        n_map, d_map, _, level = team
+        if condition:
+            n_map = n_map - conditioning_gain(n_map, d_map, level, self.mismatch_model_var) @ d_map
+        n_own = self.momentum_motion.var.size
+        starts = [0] + [n_own + k * (IMU_MODES + 9) for k in range(len(peers))]
+        cols = np.concatenate([np.arange(s, s + IMU_MODES) for s in starts])
+        imu = n_map[:, cols] * np.sqrt(level[cols])
+        return mean, cov, imu.reshape(6, -1, MODES_PER_CHANNEL)
+
+    def _team(self, own, params, motion_jac, regressor, peers):
+        """The team's noise map N, mismatch map D, mismatch d (``_team_maps``) and the
+        per-mode levels var * band."""
+        d_links, d_y = motion_jac
         var, band, stacked, offsets = self._stacked_motion(
             own, params, d_links, d_y, regressor, peers
         )
@@ -505,14 +597,7 @@ class NoiseModel:
             *stacked,
             offsets,
         )
-        level = var * band
-        if fusion == "own" or not peers:
-            mean, cov = np.zeros(6), noise_cov(n_map, level)
-        else:
-            mean, cov = condition_maps(n_map, d_map, level, mismatch, self.mismatch_model_var)
-        if params_cov is not None:
-            cov = cov + _posterior_spread(d_y, level, params_cov)
-        return mean, cov
+        return n_map, d_map, mismatch, var * band
 
     def _stacked_motion(self, own, params, d_links, d_y, regressor, peers):
         """This robot's and the peers' motion noise stacked for ``_team_maps``: per-coordinate

@@ -109,7 +109,7 @@ class Case:
     cargo_inertia: tuple | None = CARGO_INERTIA  # None: the uniform bag of that mass
     cargo_model: str = "estimate"
     analyse: bool = True  # False: control comparison only
-    extra: dict = field(default_factory=dict)
+    extra: dict = field(default_factory=dict)  # "estimator_kwargs": more CargoEstimator args
 
     @property
     def key(self) -> str:
@@ -315,7 +315,7 @@ def run_case(case: Case) -> dict:
         comm_latency=case.comm_latency,
         comm_drop=case.comm_drop,
         max_cycles=int(round(case.duration * CONTROL_HZ)),
-        estimator_kwargs={"record": case.analyse},
+        estimator_kwargs={"record": case.analyse, **case.extra.get("estimator_kwargs", {})},
     )
     if not case.pan:
         sim = env.sim

@@ -11,7 +11,9 @@ docs/estimation_limits.md:
     .venv/bin/python scripts/estimation_limits.py --trajectory excite --seeds 0 1 2
 
 ``--alone`` flies each noise source alone instead (the noise model's consistency: NEES with one
-source at a time) and prints the seeds' mean NEES per source against its 95 % band.
+source at a time) and prints the seeds' mean NEES per source against its 95 % band; ``--pairs``
+the same with two sources together. ``--over-time-window`` sets the estimators' window
+(``estimator.over_time``).
 """
 
 from __future__ import annotations
@@ -80,19 +82,35 @@ ALONE = (
     ("actuation_only", "actuation alone", replace(NOMINAL, **_NO_SENSORS)),
     ("nominal", "every source", NOMINAL),
 )
+# Two sources together (``--pairs``): which pair moves the NEES.
+PAIRS = (
+    ("accel_encoders", "accelerometer and encoders",
+     replace(_SILENT, accel_std=NOMINAL.accel_std, encoder_std_rad=NOMINAL.encoder_std_rad)),
+    ("accel_actuation", "accelerometer and actuation",
+     replace(NOMINAL, **{**_NO_SENSORS, "accel_std": NOMINAL.accel_std})),
+    ("encoders_actuation", "encoders and actuation",
+     replace(NOMINAL, **{**_NO_SENSORS, "encoder_std_rad": NOMINAL.encoder_std_rad})),
+)  # fmt: skip
 # The nominal bound's target against the perfect-sensor bound, on every principal moment.
 TARGET_RATIO = 1.3
 SENSOR_VARIANTS = ("no_accelerometer", "no_encoders", "no_gyro", "no_localization")
 # Registered under these names in this process and in the workers it forks.
-sensors.NOISE_PROFILES.update({f"limits_{name}": profile for name, _, profile in VARIANTS + ALONE})
+sensors.NOISE_PROFILES.update(
+    {f"limits_{name}": profile for name, _, profile in VARIANTS + ALONE + PAIRS}
+)
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = cli.limits_parser(__doc__, 1)
     parser.add_argument("--alone", action="store_true", help="each noise source alone: NEES")
+    parser.add_argument("--pairs", action="store_true", help="two sources together: NEES")
     parser.add_argument(
         "--only", nargs="+", default=None, help="fly only these variants (names as in the code)"
     )
+    parser.add_argument(
+        "--over-time-window", type=int, default=None,
+        help="CargoEstimator's over_time_window (updates; 0 off; default: the estimator's)",
+    )  # fmt: skip
     return parser
 
 
@@ -102,16 +120,19 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 def _run(job: tuple[str, int, argparse.Namespace]) -> tuple[str, int, dict]:
     name, seed, args = job
+    kwargs = {}
+    if args.over_time_window is not None:
+        kwargs["over_time_window"] = args.over_time_window
     case = bench.Case(
         name, robots=args.robots, trajectory=args.trajectory, seed=seed,
-        duration=args.duration, noise=f"limits_{name}",
+        duration=args.duration, noise=f"limits_{name}", extra={"estimator_kwargs": kwargs},
     )  # fmt: skip
     return name, seed, bench.run_case(case)
 
 
 def main(argv: list[str] | None = None) -> None:
     args = parse_args(argv)
-    variants = ALONE if args.alone else VARIANTS
+    variants = PAIRS if args.pairs else ALONE if args.alone else VARIANTS
     if args.only is not None:
         unknown = set(args.only) - {name for name, _, _ in variants}
         if unknown:
@@ -120,8 +141,8 @@ def main(argv: list[str] | None = None) -> None:
     jobs = [(name, seed, args) for name, _, _ in variants for seed in args.seeds]
     with ProcessPoolExecutor(args.workers) as pool:
         results = list(pool.map(_run, jobs))
-    if args.alone:
-        _print_nees(results, args)
+    if args.alone or args.pairs:
+        _print_nees(results, args, variants)
         return
     perfect = {seed: r["crlb"] for name, seed, r in results if name == "actuation_only"}
     print(
@@ -165,7 +186,7 @@ def main(argv: list[str] | None = None) -> None:
         )
 
 
-def _print_nees(results: list[tuple[str, int, dict]], args: argparse.Namespace) -> None:
+def _print_nees(results: list[tuple[str, int, dict]], args: argparse.Namespace, variants) -> None:
     """Per source alone: each seed's NEES (robot by robot) and the mean over seeds and robots
     against the 95 % band of that mean (chi-square, 10 dof per robot and seed; the robots of one
     seed share the noise, so the band counts the seeds only)."""
@@ -173,12 +194,12 @@ def _print_nees(results: list[tuple[str, int, dict]], args: argparse.Namespace) 
     low, high = (chi2.ppf(p, 10 * n) / n for p in (0.025, 0.975))
     print(
         f"{args.robots} robots, {args.trajectory}, {args.duration:g} s, seeds {args.seeds}: NEES "
-        f"(10 parameters) with each noise source alone; 95 % band of the mean [{low:.1f}, "
+        f"(10 parameters) per noise source; 95 % band of the mean [{low:.1f}, "
         f"{high:.1f}]"
     )
     print("| noise | NEES per seed (robots) | mean | in band |")
     print("|---|---|---|---|")
-    for name, label, _ in ALONE:
+    for name, label, _ in variants:
         runs = [r for v, _, r in results if v == name]
         if not runs:
             continue

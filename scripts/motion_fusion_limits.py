@@ -1,66 +1,47 @@
-"""How close fusing localization with the IMUs can bring the `nominal` bound to perfect sensors.
+"""How close the IMU's noise weighed over time, and localization, bring the bound to the ideal.
 
 Flies one scenario (default: 2 robots, ``figure8_tumble``, 90 s, seed 0, the benchmark's cargo)
-under ``nominal`` and under ``actuation_only`` (perfect sensors), keeps robot 0's recorded
-measurements (z_k, A_k, b_k, R_k) and, per update, how the motion's sensor noise entered R_k, and
-recomputes robot 0's Cramer-Rao bound with that noise modelled in time instead of per update.
+three times: under ``nominal`` with the estimators' ``over_time_window`` 0 (each update alone,
+the IMU's channels at the lag-weighted covariance W: the benchmark's bound before the window)
+and L (``--window``: each update conditioned on the last L used ones, ``estimator.over_time``),
+and under ``actuation_only`` (perfect sensors). From robot 0 it keeps what its filter recorded
+(z_k, A_k, b_k, R_k) and, with the window, every used update's own measurement before the
+conditioning with its team IMU map J_k (6, c, 4) (``NoiseModel.over_time_noise``: the
+conditioned map of the c = 6 per robot IMU channels' modes, 4 per channel), and recomputes
+robot 0's Cramer-Rao bound (``baselines.crlb``'s derived quantities) under these models of the
+measurement noise:
 
-The measurement of update k is z_k = A_k pi + b_k + e_k (``baselines``). Its motion part is
-J_k xi_k: xi_k the filtered noise of every motion coordinate of the team (per robot: base
-acceleration a_B (3), angular acceleration wd_B (3), joint accelerations qdd (2), base axes) and
-J_k = N_k - K_k D_k the balance's map after the conditioning on the team's mismatch
-(``motion.condition_maps``, recorded). The estimator enters it per update at its white-equivalent
-level L (``motion.band_factors``): R_k = R_rest,k + J_k diag(L) J_k^T. Here the same noise enters
-with its exact covariance over the run instead (Gaussian, all K updates at once):
+- each update alone, as recorded with window 0 and with window L (white across updates: the
+  filter's own bound);
+- over the whole run (generalised least squares on all K used updates at once): the
+  covariance Sigma (6K, 6K) with the updates' own R_k on the diagonal and
+  J_k,c Gm_c(l - k) J_l,c^T between updates, Gm the modes' covariance L updates apart
+  (``over_time.mode_lag_covariances``, from the estimator's own chain kernels, the momentum
+  chain of ``noise_model``); the floors, the actuation, the peers' channel noise, the encoders
+  (errors in variables) and the squared rates stay white per update, as in the estimator;
+- the accelerometers fused with localization: their modes' Gm for the input PSD of the best
+  linear estimate of each base's acceleration from both (the non-causal Wiener smoother, and
+  the fixed lags of ``--lags``, ``estimator.smoother``),
 
-    Sigma = blockdiag(R_rest,k) + J C J^T,   F = A^T Sigma^-1 A,   bound = ``baselines.crlb``'s
-    derived quantities from F^-1,
+      S_fused(f) = S_a S_l(f) / (S_a + S_l(f)),  S_a = sigma_a^2 dt,  S_l = sigma_p^2 T (2 pi f)^4,
 
-C[k, l] the covariance of xi at updates k and l: per source c of one robot (two-sided PSD S_c(f),
-white per sample of std s over the control period dt: S = s^2 dt),
+  white above the crossover f_x = (S_a / (sigma_p^2 T))^(1/4) / (2 pi) and rising as f^4 below
+  it; Gm(L) = F^+ G(L) F^+T with G(L)[a, b] = sum_m K_a[m] K_b[m + L u] taken through the
+  kernels' FFT with that spectrum (checked against the direct sums for a white input), F the
+  estimator's modes (its white G(0)'s factor); their part of each diagonal block J Gm(0) J^T;
+- with noiseless gyros as well, and with noiseless accelerometers.
 
-    C_c(tau) = int S_c(f) (2 pi f)^(2 n_c) |H(f)|^2 cos(2 pi f tau) df,
+"GLS NEES" checks a model the nominal data hold (the first three rows): generalised least
+squares on robot 0's data under it, ~10 when the model is true to them, far above when it is
+optimistic. Localization's crossovers with the accelerometer and the integrated gyro are
+printed: the attitude fixes cannot reach the angular acceleration.
 
-n_c = 0, 1, 2 differentiations (accelerometer, gyro, encoders), H the estimator's chain (the 1 Hz
-pre-filter and the slow filter, (w / (s + w))^3 each). The accelerometer's noise is white in world
-axes too (a rotated white isotropic noise); between two updates its covariance in base axes is
-R_BW(t_k) C(t_k - t_l) R_WB(t_l) (true base attitudes, the filters' short memory taken as one
-attitude).
-
-Localization: each robot's base position fix (std sigma_p per axis, every T s) is a second
-measurement of its base's acceleration, with the PSD sigma_p^2 T (2 pi f)^4 once
-differentiated twice. The best linear estimate of the base acceleration from both (the
-non-causal Wiener / fixed-lag smoother: ``estimator.smoother``) has the error PSD
-
-    S_fused(f) = S_a S_l(f) / (S_a + S_l(f)),   S_a = sigma_a^2 dt,   S_l = sigma_p^2 T (2 pi f)^4,
-
-white above the crossover f_x = (S_a / (sigma_p^2 T))^(1/4) / (2 pi) and rising as f^4 below
-it. Attitude: the gyro's angle random walk crosses the fixes' attitude noise at
-f = sqrt(S_g / S_theta) / (2 pi), and the fixes cannot reach the angular acceleration (their PSD
-(2 pi f)^4 S_theta against the gyro's (2 pi f)^2 S_g); both crossovers are printed.
-
-The table's rows, each robot 0's 1-sigma bound on the principal moments over the perfect-sensor
-one: "as recorded" (the benchmark's bound), "over time, the IMUs alone" (the same noise, its
-covariance over the run), "accelerometers fused with localization" (their noise replaced by the
-smoother's: the Wiener limit, then the fixed lags of ``--lags``), the same with noiseless gyros
-(what any better attitude or angular-acceleration estimate could add) and "accelerometers
-noiseless" (what no fusion of the accelerometers can beat). "GLS NEES" checks a model the
-nominal data hold (the first two rows): generalised least squares on robot 0's data under it,
-~10 when the model is true to them, far above when it is optimistic.
-
-What the rows assume: the floors, the actuation and the peers' noise stay per update as the
-benchmark models them (R_rest), also in the perfect-sensor bound; the conditioning's gain K_k is
-the recorded one. The rows "over time" are bounds of an estimator that weighs the whole run's
-balances with their correlated noise (generalised least squares, or a filter whose state carries
-the noise's colour). The UKF, which treats updates as independent at the white-equivalent level,
-keeps the "as recorded" bound whatever motion it is fed: the fused accelerometer's
-white-equivalent level (its highest in the band, at the slow filter's cutoff) is the raw one.
-
-Measured (5 seeds, 0..4; every seed within 0.01 of these): as recorded 1.26 / 1.37 / 1.21; over
-time, the IMUs alone 1.16 / 1.31 / 1.12 (GLS NEES mean 13.5, as recorded 12.5; 95 % band of a
-5-seed mean 6.5-14.3); accelerometers fused (Wiener) 1.13 / 1.22 / 1.11, by a fixed lag of 16 s
-the same, of 8 s 1.14 / 1.25 / 1.11, of 4 s 1.16 / 1.29 / 1.12; gyros noiseless as well: no
-change; accelerometers noiseless 1.02 / 1.01 / 1.02.
+Measured (5 seeds, 0..4; ranges over the seeds, docs/estimation_limits.md): window 0
+1.24 / 1.35-1.36 / 1.19-1.20 (GLS NEES mean 13.4); window 24 and the whole run alike
+1.34-1.35 / 1.40 / 1.29-1.30 (14.4; 95 % band of a 5-seed mean 6.5-14.3); accelerometers fused
+(Wiener, and a 16 s lag) 1.30 / 1.27-1.28 / 1.27, an 8 s lag 1.32 / 1.32-1.33 / 1.28-1.29, 4 s
+1.34 / 1.38 / 1.29-1.30; gyros noiseless as well: no change; accelerometers noiseless
+1.01 / 1.01 / 1.01-1.02.
 
     .venv/bin/python scripts/motion_fusion_limits.py                 # seed 0
     .venv/bin/python scripts/motion_fusion_limits.py --seeds 0 1 2 3 4 --cache /tmp/flights
@@ -83,6 +64,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import benchmark_estimation as bench  # noqa: E402
 import cli  # noqa: E402
 
+from astrocargo.estimator.cargo_estimator import CargoEstimator  # noqa: E402
+from astrocargo.estimator.motion import HELD_EXTENDED, kernel_lag_covariances  # noqa: E402
+from astrocargo.estimator.noise_model import NoiseModel, momentum_chain_kernels  # noqa: E402
+from astrocargo.estimator.over_time import DEFAULT_WINDOW, cross_covariance  # noqa: E402
 from astrocargo.estimator.smoother import (  # noqa: E402
     crossover_hz,
     fused_psd_ratio,
@@ -99,13 +84,18 @@ def build_parser() -> argparse.ArgumentParser:
         "--lags", type=cli.positive_float, nargs="*", default=[4.0, 8.0, 16.0],
         help="s, fixed lags of the smoother to evaluate",
     )  # fmt: skip
+    parser.add_argument(
+        "--window", type=cli.positive_int, default=DEFAULT_WINDOW,
+        help="updates, the estimator's over_time_window of the conditioned flight",
+    )  # fmt: skip
     return parser
 
 
-def fly(robots: int, trajectory: str, duration: float, seed: int, noise: str) -> dict:
-    """One flight as the benchmark flies it; robot 0's recorded updates with, per update, the
-    motion noise's conditioned map J (6, n), per-coordinate levels L (n,) and the true base
-    attitudes R_WB of every robot (n_robots, 3, 3)."""
+def fly(robots: int, trajectory: str, duration: float, seed: int, noise: str, window: int) -> dict:
+    """One flight as the benchmark flies it, the estimators' ``over_time_window`` = ``window``:
+    robot 0's recorded updates (z, A, b, R: what its filter measured) and, with a window, every
+    used update's own measurement before the conditioning (raw_*), its update count and its
+    team IMU map J (6, c, 4) (``over_time.UpdateWindow``'s entries)."""
     from astrocargo.agents.controllers import ObservationController
     from astrocargo.envs import astrobee_cargo_v0
 
@@ -113,99 +103,77 @@ def fly(robots: int, trajectory: str, duration: float, seed: int, noise: str) ->
         n_robots=robots, trajectory=trajectory, noise=noise,
         cargo_mass_kg=bench.CARGO_MASS, cargo_com_m=bench.CARGO_COM,
         cargo_inertia=bench.CARGO_INERTIA, max_cycles=int(round(duration * CONTROL_HZ)),
-        estimator_kwargs={"record": True},
+        estimator_kwargs={"record": True, "over_time_window": window},
     )  # fmt: skip
     obs, _ = env.reset(seed=seed)
     sim = env.sim
     est = sim.estimators[0]
-    taps = _tap_motion_noise(est)
+    entries = _tap_window(est) if window else []
     controller = ObservationController.for_env(env, "estimate")
-    bases = [h.base_body for h in sim.world.robots]
-    attitudes = []
     while env.agents:
         actions, _ = controller.predict(obs)
         obs, *_ = env.step(actions)
-        attitudes.append(sim.data.xmat[bases].reshape(-1, 3, 3).copy())
     z, a, b, r = (np.stack(x) for x in zip(*est.log, strict=True))
-    stamps = np.array([t[0] for t in taps.kept])
-    out = {
-        "z": z, "A": a, "b": b, "R": r, "stamps": stamps,
-        "J": np.stack([t[1] for t in taps.kept]), "L": np.stack([t[2] for t in taps.kept]),
-        # Control step k >= 1 (the reset's readings are stamp 0) is env.step number k.
-        "R_wb": np.stack(attitudes)[stamps - 1],
-        "truth": sim.true_params_grasp[0], "dt": sim.dt_s, "n_joints": sim.robots[0].n_joints,
-        "update_every": est.update_every, "regressor_every": est.regressor_every,
-        "cutoff_hz": est.cutoff_hz,
-        # The pre-filter's delay is 3 / w with its -3 dB point at w sqrt(2^(1/3) - 1).
-        "kinematics_cutoff_hz": 3.0 / est.pre.delay_s * np.sqrt(2 ** (1 / 3) - 1) / (2 * np.pi),
-    }  # fmt: skip
+    out = {"z": z, "A": a, "b": b, "R": r, "truth": sim.true_params_grasp[0]}
+    if entries:
+        out.update(
+            raw_z=np.stack([e.z for e in entries]), raw_A=np.stack([e.regressor for e in entries]),
+            raw_b=np.stack([e.offset for e in entries]), raw_R=np.stack([e.cov for e in entries]),
+            index=np.array([e.index for e in entries]),
+            J=np.stack([e.imu_map for e in entries]),
+        )  # fmt: skip
     env.close()
     return out
 
 
-class _LogTap(list):
-    """``est.log`` that keeps, beside every appended update, the motion noise's pieces of the
-    instant it was built from (rolled-back updates are deleted from both)."""
+def _tap_window(est) -> list:
+    """The used updates' window entries, in order (rolled-back ones removed): ``est._window``'s
+    ``add`` and ``drop_from`` wrapped."""
+    window, kept = est._window, []
+    add, drop_from = window.add, window.drop_from
 
-    def __init__(self, owner) -> None:
-        super().__init__()
-        self.owner = owner
-        self.kept: list = []
+    def tapped_add(entry) -> None:
+        if entry is None:
+            raise RuntimeError("an update without the team's IMU map: not a full-run model")
+        add(entry)
+        kept.append(entry)
 
-    def append(self, item) -> None:
-        super().append(item)
-        self.kept.append(self.owner._smoother_last)
+    def tapped_drop(stamp: int) -> None:
+        drop_from(stamp)
+        kept[:] = [e for e in kept if e.stamp < stamp]
 
-    def __delitem__(self, key) -> None:
-        super().__delitem__(key)
-        del self.kept[key]
-
-
-def _tap_motion_noise(est) -> _LogTap:
-    """Wrap ``est._motion_noise`` so that each instant's (stamp, J, L) is kept for the log."""
-    from astrocargo.estimator.motion import pinv_symmetric
-    from astrocargo.estimator.noise_model import _team_maps
-
-    noise, inner = est.noise, est._motion_noise
-
-    def motion_noise(inst, msgs):
-        mean, cov = inner(inst, msgs)
-        peers = [(est._relative[p].transform(), m) for p, m in zip(est.peers, msgs, strict=True)]
-        params = est.ukf.params_mean()
-        d_links, d_y = inst.motion_jac
-        var, band, stacked, offsets = noise._stacked_motion(
-            params, d_links, d_y, inst.regressor, peers
-        )
-        n_map, d_map, _ = _team_maps(params, d_links, d_y, inst.regressor, *stacked, offsets)
-        level = var * band
-        s_nd = (n_map * level) @ d_map.T
-        s_dd = (d_map * level) @ d_map.T + noise.mismatch_model_var * np.eye(d_map.shape[0])
-        jac = n_map - s_nd @ pinv_symmetric(s_dd) @ d_map
-        est._smoother_last = (msgs[0].stamp, jac, level)
-        return mean, cov
-
-    est._motion_noise = motion_noise
-    tap = _LogTap(est)
-    est.log = tap
-    return tap
+    window.add, window.drop_from = tapped_add, tapped_drop
+    return kept
 
 
-def chain_power(freq_hz: np.ndarray, cutoffs_hz: tuple[float, ...]) -> np.ndarray:
-    """|H(f)|^2 of the cascade of (w / (s + w))^3 filters with their -3 dB points at
-    ``cutoffs_hz`` (``preprocess.StateVariableFilter``)."""
-    w = 2 * np.pi * np.asarray(freq_hz, dtype=float)
-    out = np.ones_like(w)
-    for fc in cutoffs_hz:
-        wc = 2 * np.pi * fc / np.sqrt(2 ** (1 / 3) - 1)
-        out = out * (wc**2 / (wc**2 + w**2)) ** 3
-    return out
+def chain_model(robots: int) -> NoiseModel:
+    """The default estimator's noise model with ``over_time`` on (its kernels and modes)."""
+    from astrocargo.envs.world import World
+
+    world = World(robots)
+    est = CargoEstimator(world.robot_model(0), 0, tuple(range(1, robots)), 1.0 / CONTROL_HZ,
+                         over_time_window=DEFAULT_WINDOW)  # fmt: skip
+    return est.noise
 
 
-def autocovariance(lags_s: np.ndarray, psd, cutoffs_hz, f_max_hz: float, df_hz: float):
-    """C(tau) = int_-fmax^fmax psd(f) |H(f)|^2 cos(2 pi f tau) df (two-sided PSD) at ``lags_s``."""
-    freq = np.arange(0.5, int(f_max_hz / df_hz)) * df_hz  # midpoints, f > 0
-    weight = 2 * df_hz * psd(freq) * chain_power(freq, cutoffs_hz)
-    return np.cos(2 * np.pi * np.outer(lags_s, freq)) @ weight
+def mode_lags(model: NoiseModel, ratio=None) -> np.ndarray:
+    """Gm (n_lags + 1, 4, 4) of a held channel's modes (``over_time.mode_lag_covariances``) for
+    an input whose PSD is the white one's times ``ratio(f)`` (None: white): the kernels' lag
+    covariances G(L)[a, b] = sum_m K_a[m] K_b[m + L u], through the FFT with the input's
+    spectrum, in the white modes F^+ (what the estimator's maps J carry)."""
+    kernels = momentum_chain_kernels(*model.chain_args)[0][HELD_EXTENDED]
+    dt, n_lags = model.chain_args[0], model.mode_lag_cov.shape[0] - 1
+    shift = np.arange(n_lags + 1) * model.update_every
+    n_fft = 1 << int(np.ceil(np.log2(2 * kernels.shape[1] + shift[-1])))
+    spec = np.fft.rfft(kernels, n_fft)
+    weight = 1.0 if ratio is None else ratio(np.maximum(np.fft.rfftfreq(n_fft, dt), 1e-9))
+    cross = np.fft.irfft(np.conj(spec)[:, None] * spec[None] * weight, n_fft)[:, :, shift]
+    white = kernel_lag_covariances(kernels, model.update_every, n_lags)
+    if ratio is None and not np.allclose(cross.transpose(2, 0, 1), white, atol=1e-12):
+        raise AssertionError("the FFT's lag covariances differ from the kernels'")
+    s, u = np.linalg.eigh(white[0])
+    inv = (u / np.sqrt(s)).T
+    return inv @ cross.transpose(2, 0, 1) @ inv.T
 
 
 def crossovers(profile, dt_s: float) -> dict:
@@ -247,26 +215,6 @@ def whitened(rec: dict, cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return rows[:, :10], rows[:, 10]
 
 
-def full_covariance(rest: np.ndarray, motion_cov: np.ndarray) -> np.ndarray:
-    """Sigma = blockdiag(rest) + motion_cov (6K, 6K)."""
-    sigma = motion_cov.copy()
-    for i in range(rest.shape[0]):
-        sigma[6 * i : 6 * i + 6, 6 * i : 6 * i + 6] += rest[i]
-    return sigma
-
-
-def recorded_bound(rec: dict, cov: np.ndarray | None = None) -> np.ndarray:
-    """The benchmark's bound: updates independent, covariance ``cov`` (default the recorded R)."""
-    rows, _ = whitened(rec, rec["R"] if cov is None else cov)
-    return principal_bound(rows, rec["truth"])
-
-
-def time_bound(rec: dict, rest: np.ndarray, motion_cov: np.ndarray) -> np.ndarray:
-    """Bound with Sigma = blockdiag(rest) + motion_cov (6K, 6K): F = A^T Sigma^-1 A."""
-    rows, _ = whitened(rec, full_covariance(rest, motion_cov))
-    return principal_bound(rows, rec["truth"])
-
-
 def gls_nees(rows: np.ndarray, resid: np.ndarray, truth: np.ndarray) -> float:
     """(pi - pi_true)^T F (pi - pi_true) of generalised least squares on whitened data
     (F = rows^T rows, pi = F^-1 rows^T resid): chi-square with 10 degrees of freedom when the
@@ -276,71 +224,61 @@ def gls_nees(rows: np.ndarray, resid: np.ndarray, truth: np.ndarray) -> float:
     return float(err @ fisher @ err)
 
 
-ACCEL_MODELS = ("raw", "fused", "off")
+def run_covariance(rec: dict, gyro_lags, accel_lags) -> np.ndarray:
+    """Sigma (6K, 6K) of the K used updates' own measurements over the whole run: R_k on the
+    diagonal, with the accelerometers' part J_a J_a^T replaced by J_a Gm_acc(0) J_a^T, and
+    J_k,c Gm_c(l - k) J_l,c^T between updates (``over_time``) per channel kind c (gyro,
+    accelerometer; ``gyro_lags``, ``accel_lags`` a kind's Gm, None: that kind noiseless)."""
+    jac, index, cov = rec["J"], rec["index"], rec["raw_R"]
+    k, n_ch = jac.shape[0], jac.shape[2]
+    kinds = [(np.flatnonzero(np.arange(n_ch) % 6 < 3), gyro_lags),
+             (np.flatnonzero(np.arange(n_ch) % 6 >= 3), accel_lags)]  # fmt: skip
+    n_lags = max(g.shape[0] for _, g in kinds if g is not None) - 1
+    sigma = np.zeros((6 * k, 6 * k))
+    for i in range(k):
+        block = cov[i].copy()
+        for cols, lags in kinds:
+            j = np.ascontiguousarray(jac[i][:, cols])
+            block -= cross_covariance(j, j, np.eye(4))
+            if lags is not None:
+                block += cross_covariance(j, j, lags[0])
+        sigma[6 * i : 6 * i + 6, 6 * i : 6 * i + 6] = block
+        for m in range(i + 1, k):
+            lag = index[m] - index[i]
+            if lag > n_lags:
+                break
+            cross = np.zeros((6, 6))
+            for cols, lags in kinds:
+                if lags is not None:
+                    a, b = (np.ascontiguousarray(jac[x][:, cols]) for x in (i, m))
+                    cross += cross_covariance(a, b, lags[lag])
+            sigma[6 * i : 6 * i + 6, 6 * m : 6 * m + 6] = cross
+            sigma[6 * m : 6 * m + 6, 6 * i : 6 * i + 6] = cross.T
+    return sigma
 
 
-def motion_covariance(rec: dict, profile, accel="raw", gyro: bool = True) -> np.ndarray:
-    """J C J^T (6K, 6K) of the module docstring: every robot's accelerometer (``accel``: "raw",
-    "fused" with its localization (the Wiener smoother), "off", or a function f -> its error
-    PSD over the raw one, such as a fixed-lag smoother's), gyro (left out unless ``gyro``) and
-    encoders over the run."""
-    if not callable(accel) and accel not in ACCEL_MODELS:
-        raise ValueError(f"accel must be one of {ACCEL_MODELS} or a function, got {accel!r}")
-    dt = float(rec["dt"])
-    stamps, jac, r_wb = rec["stamps"], rec["J"], rec["R_wb"]
-    k, n_robots = len(stamps), r_wb.shape[1]
-    per_robot = jac.shape[2] // n_robots
-    lags = np.abs(stamps[:, None] - stamps[None, :]) * dt
-    unique, inverse = np.unique(lags, return_inverse=True)
-    cutoffs = (rec["kinematics_cutoff_hz"], rec["cutoff_hz"])
-    f_x = crossovers(profile, dt)["accel_hz"]
-
-    def cov_of(std, order, ratio=None):
-        def psd(f):
-            out = std**2 * dt * (2 * np.pi * f) ** (2 * order)
-            return out if ratio is None else out * ratio(f)
-
-        return autocovariance(unique, psd, cutoffs, 8.0, 2e-4)[inverse].reshape(k, k)
-
-    fuse = (lambda f: fused_psd_ratio(f, f_x)) if accel == "fused" else None
-    fuse = accel if callable(accel) else fuse
-    sources = [(slice(6, per_robot), cov_of(profile.encoder_std_rad, 2), False)]
-    if gyro:
-        sources.append((slice(3, 6), cov_of(profile.gyro_std, 1), False))
-    if accel != "off":
-        sources.append((slice(0, 3), cov_of(profile.accel_std, 0, fuse), True))
-    out = np.zeros((k, 6, k, 6))
-    for r in range(n_robots):
-        for cols, c_lag, rotate in sources:
-            g = jac[:, :, r * per_robot + cols.start : r * per_robot + cols.stop]
-            if rotate:  # base axes <- world axes at each update
-                g = np.einsum("kia,kba->kib", g, r_wb[:, r])
-            out += np.einsum("kl,kia,lja->kilj", c_lag, g, g)
-    return out.reshape(6 * k, 6 * k)
-
-
-def rest_covariance(rec: dict) -> np.ndarray:
-    """R_k minus the motion noise the estimator put in per update, J diag(L) J^T (K, 6, 6)."""
-    return rec["R"] - np.einsum("kia,ka,kja->kij", rec["J"], rec["L"], rec["J"])
+def raw(rec: dict) -> dict:
+    """The used updates' own measurements (before the conditioning) as a record."""
+    return {"z": rec["raw_z"], "A": rec["raw_A"], "b": rec["raw_b"], "truth": rec["truth"]}
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     return cli.parse_limits_args(build_parser(), argv, 2)
 
 
-def _fly_cached(job: tuple[str, int, argparse.Namespace]) -> tuple[str, int, dict]:
-    noise, seed, args = job
+def _fly_cached(job: tuple[str, int, int, argparse.Namespace]) -> tuple[tuple, dict]:
+    noise, seed, window, args = job
     path = None
     if args.cache is not None:
-        name = f"{args.trajectory}_{args.robots}r_{args.duration:g}s_{noise}_{seed}.npz"
+        name = f"{args.trajectory}_{args.robots}r_{args.duration:g}s_{noise}_{seed}_w{window}.npz"
         path = args.cache / name
         if path.exists():
-            return noise, seed, dict(np.load(path))
-    rec = fly(args.robots, args.trajectory, args.duration, seed, noise)
+            return (noise, seed, window), dict(np.load(path))
+    rec = fly(args.robots, args.trajectory, args.duration, seed, noise, window)
     if path is not None:
         path.parent.mkdir(parents=True, exist_ok=True)
         np.savez(path, **rec)
-    return noise, seed, rec
+    return (noise, seed, window), rec
 
 
 def lagged_ratio(lag_s: float, dt_s: float, profile):
@@ -355,33 +293,35 @@ def lagged_ratio(lag_s: float, dt_s: float, profile):
     return lambda f: np.interp(np.log(f), np.log(grid), ratio, left=ratio[0], right=1.0)
 
 
-def bounds(nominal: dict, perfect: dict, profile, lags: dict) -> dict[str, tuple]:
+def bounds(per_update: dict, windowed: dict, perfect: dict, lags: dict) -> dict[str, tuple]:
     """Per model (the rows of ``main``'s table): robot 0's principal-moment bound over the
-    perfect-sensor one, and generalised least squares' NEES on the nominal flight's data under
-    that model (None where the model is not the data's: fused or noiseless sensors). ``lags``:
-    {lag s: ``lagged_ratio``}, a row each."""
-    base = recorded_bound(perfect)
-    rest = rest_covariance(nominal)
-    rows, resid = whitened(nominal, nominal["R"])
-    out = {
-        "as recorded (the benchmark)": (
-            principal_bound(rows, nominal["truth"]) / base,
-            gls_nees(rows, resid, nominal["truth"]),
-        )
-    }
+    perfect-sensor one, and generalised least squares' NEES on the nominal data under that model
+    (None where the model is not the data's: fused or noiseless sensors). ``per_update``,
+    ``windowed``: the nominal flights with ``over_time_window`` 0 and L; ``lags``: {row label:
+    the accelerometers' Gm}, with "raw" the white one."""
+    rows, _ = whitened(perfect, perfect["R"])
+    base = principal_bound(rows, perfect["truth"])
+    out = {}
+    for label, rec in (
+        ("each update alone, IMU at the lag-weighted W (window 0, the benchmark's before)",
+         per_update),
+        ("each update conditioned on the window (what the filter records)", windowed),
+    ):  # fmt: skip
+        rows, resid = whitened(rec, rec["R"])
+        nees = gls_nees(rows, resid, rec["truth"])
+        out[label] = (principal_bound(rows, rec["truth"]) / base, nees)
+    data, white = raw(windowed), lags["raw"]
     models = [
-        ("over time, the IMUs alone", "raw", True),
-        ("over time, accelerometers fused with localization", "fused", True),
-        *((f"over time, fused by a {lag:g} s fixed lag", lags[lag], True) for lag in lags),
-        ("over time, accelerometers fused, gyros noiseless", "fused", False),
-        ("over time, accelerometers noiseless", "off", True),
+        ("over the whole run, the IMUs alone", white, white),
+        *((f"over the run, accelerometers {k}", white, g) for k, g in lags.items() if k != "raw"),
+        ("over the run, accelerometers fused (Wiener), gyros noiseless", None, lags["fused"]),
+        ("over the run, accelerometers noiseless", white, None),
     ]
-    for label, accel, gyro in models:
-        rows, resid = whitened(nominal, full_covariance(rest, motion_covariance(
-            nominal, profile, accel, gyro)))  # fmt: skip
+    for label, gyro, accel in models:
+        rows, resid = whitened(data, run_covariance(windowed, gyro, accel))
         # The data hold the raw IMUs' noise: only their model can be checked on them.
-        nees = gls_nees(rows, resid, nominal["truth"]) if label == models[0][0] else None
-        out[label] = (principal_bound(rows, nominal["truth"]) / base, nees)
+        nees = gls_nees(rows, resid, data["truth"]) if label == models[0][0] else None
+        out[label] = (principal_bound(rows, data["truth"]) / base, nees)
     return out
 
 
@@ -390,13 +330,20 @@ def main(argv: list[str] | None = None) -> None:
 
     args = parse_args(argv)
     profile = NOISE_PROFILES["nominal"]
-    jobs = [(noise, seed, args) for seed in args.seeds for noise in ("nominal", "actuation_only")]
+    cases = [("nominal", 0), ("nominal", args.window), ("actuation_only", 0)]
+    jobs = [(noise, seed, w, args) for seed in args.seeds for noise, w in cases]
     with ProcessPoolExecutor(args.workers) as pool:
-        flights = {(noise, seed): rec for noise, seed, rec in pool.map(_fly_cached, jobs)}
-    dt = float(flights[jobs[0][:2]]["dt"])
-    lags = {lag: lagged_ratio(lag, dt, profile) for lag in args.lags}
+        flights = dict(pool.map(_fly_cached, jobs))
+    dt = 1.0 / CONTROL_HZ
+    model = chain_model(args.robots)
     cross = crossovers(profile, dt)
-    cutoff = float(flights[jobs[0][:2]]["cutoff_hz"])
+    lags = {
+        "raw": mode_lags(model),
+        "fused": mode_lags(model, lambda f: fused_psd_ratio(f, cross["accel_hz"])),
+        **{f"fused by a {lag:g} s fixed lag": mode_lags(model, lagged_ratio(lag, dt, profile))
+           for lag in args.lags},
+    }  # fmt: skip
+    cutoff = model.chain_args[3]
     print(
         f"{args.robots} robots, {args.trajectory}, {args.duration:g} s: robot 0's Cramer-Rao "
         "bound on the principal moments (I1 / I2 / I3) over the perfect-sensor bound"
@@ -410,7 +357,8 @@ def main(argv: list[str] | None = None) -> None:
     print("| seed | model of the motion noise | / perfect sensors | within 1.3x | GLS NEES |")
     print("|---|---|---|---|---|")
     for seed in args.seeds:
-        rows = bounds(flights[("nominal", seed)], flights[("actuation_only", seed)], profile, lags)
+        rows = bounds(flights[("nominal", seed, 0)], flights[("nominal", seed, args.window)],
+                      flights[("actuation_only", seed, 0)], lags)  # fmt: skip
         for label, (ratio, nees) in rows.items():
             cells = " / ".join(f"{x:.2f}" for x in ratio)
             within = "yes" if ratio.max() <= 1.3 else "no"

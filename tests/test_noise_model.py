@@ -286,17 +286,22 @@ def test_noise_modes_carry_each_channel_s_factor():
     np.testing.assert_allclose(y, np.einsum("kab,km->mab", cols_y, factor), atol=1e-12)
 
 
-def test_message_modes_condition_the_team_exactly():
-    """A peer's modes sent as the 9 of ``NoiseModel.message_modes`` give the receiver the same
-    conditioned mean and covariance (``motion_noise``, "team") as all of them: the receiver sees
-    them only through their links' and grasp acceleration's joint covariance."""
+@pytest.mark.parametrize("window", [0, 24])
+def test_message_modes_condition_the_team_exactly(window):
+    """A peer's modes sent as the 9 of ``NoiseModel.message_modes`` (with ``over_time``: its 24
+    IMU modes whole and 9 for the rest) give the receiver the same conditioned mean and
+    covariance (``motion_noise``, "team") as all of them: the receiver sees them only through
+    their links' and grasp acceleration's joint covariance. With ``over_time`` the team's IMU map
+    (``over_time_noise``) is part of that covariance: what remains is positive semi-definite."""
     from types import SimpleNamespace
 
     from astrocargo.estimator.geometry import skew
     from astrocargo.estimator.motion import grasp_acc_map
 
     robot = _robot()
-    model = CargoEstimator(robot, 0, [1], DT, sensor_noise=(1e-3, 2e-4, 1e-3)).noise
+    model = CargoEstimator(
+        robot, 0, [1], DT, sensor_noise=(1e-3, 2e-4, 1e-3), over_time_window=window
+    ).noise
     n = model.momentum_motion.var.size
     rng = np.random.default_rng(4)
     own = (rng.normal(size=(6, n)), rng.normal(size=(n, 6, 10)))
@@ -320,3 +325,17 @@ def test_message_modes_condition_the_team_exactly():
     mean_sent, cov_sent = model.motion_noise(*args, [(transform, sent)], **kwargs)
     np.testing.assert_allclose(mean_sent, mean_full, rtol=1e-9, atol=1e-12)
     np.testing.assert_allclose(cov_sent, cov_full, rtol=1e-9, atol=1e-12 * np.abs(cov_full).max())
+    if window:
+        assert links9.shape == (6, 33)
+        _, cov_t, imu = model.over_time_noise(*args, [(transform, sent)])
+        np.testing.assert_allclose(cov_t, cov_sent, rtol=1e-12)
+        assert imu.shape == (6, 12, 4)
+        imu_cov = np.einsum("icx,jcx->ij", imu, imu)
+        assert np.linalg.eigvalsh(cov_t - imu_cov).min() > -1e-9 * np.abs(cov_t).max()
+        # Alone ("own", no peers) the map is this robot's 24 IMU modes at their levels.
+        from astrocargo.estimator.motion import balance_noise_map, noise_cov
+
+        _, _, alone = model.over_time_noise("own", params, own, regressor, [])
+        level = model.momentum_motion.var[:24]
+        expected = noise_cov(balance_noise_map(*own, params)[:, :24], level)
+        np.testing.assert_allclose(np.einsum("icx,jcx->ij", alone, alone), expected, rtol=1e-9)
