@@ -16,6 +16,8 @@ slots read them (``peer_slot_values``).
 
 from __future__ import annotations
 
+import copy
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -49,6 +51,32 @@ def make_estimators(
         except TypeError as err:
             raise ValueError(f"bad estimator_kwargs {estimator_kwargs!r}: {err}") from err
     return out
+
+
+class FreshEstimators:
+    """``make_estimators`` for every episode, cheaper: the estimators are built once per grasp
+    layout and kept unstepped; each call returns a copy of them (``copy.deepcopy``, sharing the
+    ``robots`` descriptions as built ones do), which starts in the same state as newly built
+    ones. Building (the filters' and the noise model's set-up) is about half of a reset; the
+    copy costs about 40 % of it."""
+
+    def __init__(
+        self, robots: list[RobotDescription], dt_s: float, estimator_kwargs: dict[str, Any]
+    ) -> None:
+        self.robots, self.dt_s, self.estimator_kwargs = robots, dt_s, estimator_kwargs
+        self._built: tuple[bytes, list[CargoEstimator]] | None = None
+
+    def __call__(self, relative_grasp: Callable) -> list[CargoEstimator]:
+        """Fresh estimators for the grasp layout ``relative_grasp(i, j)`` (``make_estimators``)."""
+        n = len(self.robots)
+        grasps = {(i, j): relative_grasp(i, j) for i in range(n) for j in range(n) if i != j}
+        layout = b"".join(np.asarray(a, dtype=float).tobytes() for g in grasps.values() for a in g)
+        if self._built is None or self._built[0] != layout:
+            built = make_estimators(
+                self.robots, self.dt_s, self.estimator_kwargs, lambda i, j: grasps[i, j]
+            )
+            self._built = (layout, built)
+        return copy.deepcopy(self._built[1], {id(r): r for r in self.robots})
 
 
 class TeamEstimation:

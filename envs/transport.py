@@ -31,6 +31,7 @@ from astrocargo.envs.config import (
 from astrocargo.envs.estimation import (  # noqa: F401 (re-exported)
     LOG_STD_FLOOR,
     SENT_ARM_KEPT,
+    FreshEstimators,
     TeamEstimation,
     make_estimators,
 )
@@ -131,6 +132,7 @@ class CargoTransport:
         self._bind_world(self._full_world, self._full_data)
         self._init_layouts()
         self._init_step_arrays()
+        self._fresh_estimators = FreshEstimators(self.robots, self.dt_s, self.estimator_kwargs)
         if self.use_estimators:  # fail early on bad estimator settings
             self._make_estimators()
         self.step_count = 0
@@ -183,9 +185,7 @@ class CargoTransport:
         )  # fmt: skip
 
     def _make_estimators(self) -> list[CargoEstimator]:
-        return make_estimators(
-            self.robots, self.dt_s, self.estimator_kwargs, self.world.relative_grasp
-        )
+        return self._fresh_estimators(self.world.relative_grasp)
 
     def _bind_world(self, world: World, data: mujoco.MjData) -> None:
         """Simulate ``world`` (with its state in ``data``): the robots it holds act, and the

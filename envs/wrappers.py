@@ -324,7 +324,8 @@ def fast_inference(model: Any) -> Any:
       object or SB3's observation checks (other policies keep SB3's ``predict``); when no
       module of the policy has forward hooks (checked here, once), the actor's layers run
       through their ``forward`` directly (``_plain_forward``), which skips torch's per-call
-      hook dispatch and computes the same.
+      hook dispatch and computes the same (SB3's ``FlattenExtractor`` as its two operations,
+      float32 and flatten).
 
     Returns ``model``."""
     import torch
@@ -377,6 +378,7 @@ def _gaussian_predict(policy, sb3_predict, plain, observation, state=None, episo
     a batch of the space's shape goes to ``sb3_predict`` (which says what is wrong)."""
     import torch
     from stable_baselines3.common.policies import BaseModel
+    from stable_baselines3.common.torch_layers import FlattenExtractor
 
     obs = np.asarray(observation)
     shape = policy.observation_space.shape
@@ -385,8 +387,13 @@ def _gaussian_predict(policy, sb3_predict, plain, observation, state=None, episo
         return sb3_predict(observation, state, episode_start, deterministic)
     policy.set_training_mode(False)
     with torch.no_grad():
-        obs_tensor = torch.as_tensor(obs.reshape((-1, *shape)), device=policy.device)
-        features = BaseModel.extract_features(policy, obs_tensor, policy.pi_features_extractor)
+        # The device of the policy's parameters (``policy.device`` walks them to find the first).
+        obs_tensor = torch.as_tensor(obs.reshape((-1, *shape)), device=policy.log_std.device)
+        if plain and type(policy.pi_features_extractor) is FlattenExtractor:
+            # SB3's preprocessing of a non-image Box (float32) and its Flatten layer.
+            features = obs_tensor.float().flatten(1)
+        else:
+            features = BaseModel.extract_features(policy, obs_tensor, policy.pi_features_extractor)
         if plain:
             latent = _plain_forward(policy.mlp_extractor.policy_net, features)
             mean = _plain_forward(policy.action_net, latent)

@@ -24,7 +24,9 @@ it calls; the Python path calls the same compiled sample (``momentum``).
 ``EstimatorInputs`` is the input side of ``CargoEstimator`` (its ``step``): it takes this call
 when it can and the Python path otherwise, and records the instants of the updates. Before
 either, given the rate of the robot's servo targets, it takes the change of the servos' ripple
-off the accelerometer's period mean (``momentum`` module docstring, Servo ripple).
+off the accelerometer's period mean (``momentum`` module docstring, Servo ripple): inside
+``estimator_step`` (``servo_ripple_step``) on the steps whose ripple map is kept, in Python on
+those that refresh it (update instants) and on the Python path.
 """
 
 from __future__ import annotations
@@ -47,6 +49,8 @@ from .rne import RobotArrays, grasp_from_base_kernel
 NOT_USABLE, NO_FIX, FIX, BAD_FIX = range(4)
 # What the compiled step reads as the fix when there is none (it is not used).
 _NO_POS, _NO_QUAT = np.zeros(3), np.zeros(4)
+# What it reads as the servo ripple's map, rate and last ripple without one (not used).
+_NO_MAP, _NO_RATE, _UNUSED_ACCEL = np.zeros((3, 0)), np.zeros(0), np.zeros(3)
 
 
 @njit(cache=True)
@@ -201,6 +205,11 @@ _STEP_SIGNATURE = types.Tuple((int64, float64))(
     _V,
     boolean,
     boolean,  # readings, flags
+    _M,
+    _V,
+    _V,
+    _V,
+    boolean,  # servo ripple: map, targets' rate, last ripple, corrected accelerometer, flag
 )
 
 
@@ -213,14 +222,32 @@ def estimator_step(
     thrust_to_base, act_abs, act_rel, dt_s, pre_state, pre_u_prev, rate_state, rate_u_prev,
     prod_state, prod_u_prev, bal_state, bal_u_prev, act_cov_sum, rot_world_base,
     pos_world_base, accel, gyro, q, thrust, fix_pos, fix_quat, has_fix, do_balance,
+    ripple_map, target_rate, ripple_prev, accel_out, with_ripple,
 ):  # fmt: skip
     """One common-path step (module docstring), in place on the filters' states and previous
     inputs, the actuation covariance sum and the attitude. Every filter must be started and the
-    attitude known. Returns (outcome, lever |p_BG| m or NaN when no balance was filtered);
+    attitude known. With ``with_ripple``, the accelerometer's reading is first taken less the
+    servos' ripple (``servo_ripple_step`` with ``ripple_map`` and ``target_rate``, from
+    ``ripple_prev``, which then holds this step's ripple), as
+    ``EstimatorInputs._without_servo_ripple`` does; the reading used is written to
+    ``accel_out``. Returns (outcome, lever |p_BG| m or NaN when no balance was filtered);
     outcome NOT_USABLE leaves everything unchanged."""
     nj = parent.shape[0] - 1
     if not _usable(nj, accel, gyro, q, thrust, fix_pos, fix_quat, has_fix):
         return NOT_USABLE, np.nan
+    moving = (
+        with_ripple
+        and target_rate.shape[0] == nj
+        and _ripple_case(target_rate, ripple_prev, q) == RIPPLE_MOVING
+    )
+    if moving:
+        ripple, accel = servo_ripple_step(
+            ripple_map, target_rate, ripple_prev, imu_rot, dt_s, accel
+        )
+        if not _all_finite(accel):
+            return NOT_USABLE, np.nan
+        ripple_prev[:] = ripple
+    accel_out[:] = accel
     arrays = RobotArrays(
         parent, joint_axis, rot_in_parent, pos_in_parent, mass, com, inertia_com, grasp_link,
         grasp_rot, grasp_pos,
@@ -288,7 +315,9 @@ class EstimatorInputs:
         """
         if (accel_imu is None) != (gyro_imu is None):
             raise ValueError("accel_imu and gyro_imu are one IMU frame: both None or neither")
-        if servo_target_rate is not None:
+        # The ripple goes into the compiled call when its map needs no refresh now.
+        ripple_rate = servo_target_rate if self._ripple_map_current(stamp) else None
+        if servo_target_rate is not None and ripple_rate is None:
             accel_imu = self._without_servo_ripple(
                 stamp, accel_imu, joint_pos_rad, servo_target_rate
             )
@@ -296,12 +325,14 @@ class EstimatorInputs:
             fix_given = base_pos_world is not None and base_quat_world is not None
             outcome = self._compiled_step(
                 stamp, accel_imu, gyro_imu, joint_pos_rad, thrust_command, base_pos_world,
-                base_quat_world, fix_given,
+                base_quat_world, fix_given, ripple_rate,
             )  # fmt: skip
             if outcome != NOT_USABLE:
                 if stamp % self.update_every or stamp < self.warmup_steps:
                     return None
                 return self._record_instant(stamp, joint_pos_rad, outcome == FIX)
+        if ripple_rate is not None:  # the compiled call changed nothing: the ripple here
+            accel_imu = self._without_servo_ripple(stamp, accel_imu, joint_pos_rad, ripple_rate)
         return self._python_step(
             stamp, accel_imu, gyro_imu, joint_pos_rad, thrust_command, base_pos_world,
             base_quat_world,
@@ -342,6 +373,11 @@ class EstimatorInputs:
         )  # fmt: skip
         return corrected
 
+    def _ripple_map_current(self, stamp: int) -> bool:
+        """Whether ``_without_servo_ripple`` at ``stamp`` would keep its map (known, and not an
+        update instant), so that the compiled call may take the ripple off instead."""
+        return self._servo_ripple_map is not None and stamp % self.update_every != 0
+
     def _compiled_path_ready(self, stamp: int, accel_imu: np.ndarray | None) -> bool:
         """Can this step take ``estimator_step``: an IMU frame, an increasing stamp,
         the filters started (the balance filter if this step feeds it) and an attitude?"""
@@ -353,10 +389,15 @@ class EstimatorInputs:
             and (self.balance_filter.started or stamp % self.regressor_every != 0)
         )
 
-    def _compiled_step(self, stamp, accel, gyro, q, thrust, pos, quat, fix_given) -> int:
-        """The common path in one compiled call (``per_step``); NOT_USABLE (nothing changed)
-        for a non-finite or wrongly shaped reading, or readings not float64 vectors."""
+    def _compiled_step(self, stamp, accel, gyro, q, thrust, pos, quat, fix_given,
+                       ripple_rate=None) -> int:  # fmt: skip
+        """The common path in one compiled call (``per_step``), with the servos' ripple taken
+        off the accelerometer first when ``ripple_rate`` (the targets' rate) is given; NOT_USABLE
+        (nothing changed) for a non-finite or wrongly shaped reading, or readings not float64
+        vectors."""
         do_balance = stamp % self.regressor_every == 0
+        with_ripple = ripple_rate is not None
+        accel_used = np.empty(3) if with_ripple else _UNUSED_ACCEL
         try:
             pre, rate, prod = self.pre.filter, self.pre.rate_filter, self.pre.product_filter
             outcome, lever = estimator_step(
@@ -365,14 +406,16 @@ class EstimatorInputs:
                 self._act_cov_sum,
                 self._rot_world_base, self._pos_world_base, accel, gyro, q, thrust,
                 pos if fix_given else _NO_POS, quat if fix_given else _NO_QUAT, fix_given,
-                do_balance,
+                do_balance, self._servo_ripple_map if with_ripple else _NO_MAP,
+                ripple_rate if with_ripple else _NO_RATE,
+                self._servo_ripple_prev if with_ripple else _NO_RATE, accel_used, with_ripple,
             )  # fmt: skip
         except TypeError:  # not float64 vectors: the Python path converts them
             return NOT_USABLE
         if outcome == NOT_USABLE:
             return outcome
         self.stamp = int(stamp)
-        self._last_input = (accel, gyro, q, thrust)
+        self._last_input = (accel_used if with_ripple else accel, gyro, q, thrust)
         self.n_fixes += outcome == FIX
         self.n_bad_readings += outcome == BAD_FIX
         if do_balance:

@@ -111,19 +111,21 @@ def filter_arrays(state: np.ndarray, n: int, m: int):
     """Views of a filter's flat buffer, in this order: x (n,), P (n, n), Q (n, n), the last sigma
     points (2n + 1, n) and their images (2n + 1, m), the last innovation y (m,), its covariance
     S (m, m) and cross-covariance P_xz (n, m), the weights Wm and Wc (2n + 1,), and the scalars
-    [sqrt(n + lambda), NIS gate, last NIS, last log-likelihood] (4,)."""
+    [sqrt(n + lambda), NIS gate, last NIS, last log-likelihood] (4,).
+
+    The arrays n wide (x to the sigma points) and those m wide (the images to P_xz) follow each
+    other, so each group is one matrix whose rows are sliced (one reshape per group: numba's
+    reshape is a call into its runtime, a slice of leading rows is not).
+    """
     k = 2 * n + 1
-    x, start = state[:n], n
-    P, start = state[start : start + n * n].reshape(n, n), start + n * n
-    Q, start = state[start : start + n * n].reshape(n, n), start + n * n
-    sigmas, start = state[start : start + k * n].reshape(k, n), start + k * n
-    sigmas_h, start = state[start : start + k * m].reshape(k, m), start + k * m
-    y, start = state[start : start + m], start + m
-    S, start = state[start : start + m * m].reshape(m, m), start + m * m
-    P_xz, start = state[start : start + n * m].reshape(n, m), start + n * m
-    Wm, start = state[start : start + k], start + k
-    Wc, start = state[start : start + k], start + k
-    scalars = state[start : start + 4]
+    rows_n, rows_m = 4 * n + 2, k + 1 + m + n
+    by_n = state[: rows_n * n].reshape(rows_n, n)
+    x, P, Q, sigmas = by_n[0], by_n[1 : 1 + n], by_n[1 + n : 1 + 2 * n], by_n[1 + 2 * n :]
+    start = rows_n * n
+    by_m = state[start : start + rows_m * m].reshape(rows_m, m)
+    sigmas_h, y, S, P_xz = by_m[:k], by_m[k], by_m[k + 1 : k + 1 + m], by_m[k + 1 + m :]
+    start += rows_m * m
+    Wm, Wc, scalars = state[start : start + k], state[start + k : start + 2 * k], state[-4:]
     return x, P, Q, sigmas, sigmas_h, y, S, P_xz, Wm, Wc, scalars
 
 

@@ -167,6 +167,27 @@ def test_multi_step_determinism():
     assert np.any(obs_e[0] != obs_d[0])
 
 
+def test_later_episodes_estimate_as_a_fresh_env_does():
+    """Each reset's estimators are copies of ones built once (``FreshEstimators``): an env's
+    third episode (past the estimators' warm-up, with updates) equals a fresh env's episode of
+    the same seed bit for bit, and the built estimators are never stepped."""
+    kwargs = dict(n_robots=2, noise="nominal", max_cycles=400)
+    actions = _action_sequence(400, 2)
+    used = astrobee_cargo_v0.parallel_env(**kwargs)
+    for seed in (5, 6):
+        _rollout(used, seed, actions[:300])
+    obs_used, rew_used = _rollout(used, 7, actions)
+    obs_fresh, rew_fresh = _rollout(astrobee_cargo_v0.parallel_env(**kwargs), 7, actions)
+    np.testing.assert_array_equal(obs_used, obs_fresh)
+    np.testing.assert_array_equal(rew_used, rew_fresh)
+    estimates = obs_used[:, :, observation_layout(2)["estimate_mean"]]
+    assert np.any(estimates[-1] != estimates[0])  # the estimates changed: updates were compared
+    built = used.sim._fresh_estimators._built[1]
+    assert all(est.ukf.n_updates == 0 and est.stamp < 0 for est in built)
+    assert all(a is not b for a, b in zip(built, used.sim.estimators, strict=True))
+    assert all(est.robot is r for est, r in zip(used.sim.estimators, used.sim.robots, strict=True))
+
+
 def test_reset_observation_does_not_depend_on_the_cargo():
     """Observations come from sensors, never from the truth: same seed, different cargo, same
     observations at reset, while state() (which holds the truth) differs."""

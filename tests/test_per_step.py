@@ -90,6 +90,45 @@ def test_compiled_step_equals_python_path():
     _assert_rounding_equal(compiled._rot_world_base, python._rot_world_base)
 
 
+def test_compiled_step_takes_the_servo_ripple_off_like_python():
+    """With the servo targets' rate given, the compiled call takes the ripple off between the
+    map's refreshes (``estimator_step``'s ``with_ripple``); the Python path (readings as lists,
+    which the compiled call refuses) takes it off in ``_without_servo_ripple``: the same steps."""
+    robot = World(1).robot_model(0)
+    readings = _readings(200)
+    t = np.arange(len(readings))[:, None] * DT
+    rates = 0.1 * np.sin(0.9 * t + [0.0, 2.0])
+    rates[60:90] = 0.0  # at rest for a while: no ripple change, then it starts again
+    compiled = CargoEstimator(robot, 0, [], DT, warmup_s=0.5)
+    python = CargoEstimator(robot, 0, [], DT, warmup_s=0.5)
+    with_ripple = []
+    original = per_step.estimator_step
+
+    def counted(*args):
+        result = original(*args)  # a TypeError (the lists) propagates: not counted
+        with_ripple.append(args[-1] and result[0] != per_step.NOT_USABLE)
+        return result
+
+    per_step.estimator_step = counted
+    try:
+        got, expected = [], []
+        for (k, accel, gyro, q, thrust, pos, quat), rate in zip(readings, rates, strict=True):
+            got.append(compiled.step(k, accel, gyro, q, thrust, pos, quat, servo_target_rate=rate))
+            lists = [None if a is None else a.tolist() for a in (accel, gyro, q, thrust, pos, quat)]
+            expected.append(python.step(k, *lists, servo_target_rate=rate.tolist()))
+    finally:
+        per_step.estimator_step = original
+    assert sum(with_ripple) > 100  # the compiled call took the ripple off on most steps
+    assert compiled.counters == python.counters
+    np.testing.assert_array_equal(compiled._servo_ripple_prev, python._servo_ripple_prev)
+    sent = [(a, b) for a, b in zip(got, expected, strict=True) if a is not None]
+    assert len(sent) > 10
+    for a, b in sent:
+        _assert_rounding_equal(a.wrench_grasp, b.wrench_grasp)
+    _assert_rounding_equal(compiled.pre.filter.state, python.pre.filter.state)
+    _assert_rounding_equal(compiled.balance_filter.state, python.balance_filter.state)
+
+
 def test_compiled_step_raises_on_bad_shape_like_python():
     est = CargoEstimator(World(1).robot_model(0), 0, [], DT)
     readings = _readings(50)
