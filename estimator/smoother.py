@@ -217,6 +217,17 @@ class FixedLagSmoother:
         self._x_pred[k], self._x_filt[k], self._gain[k] = x_pred, x_filt, gain
         self.periods += 1
 
+    def window_accelerations(self) -> np.ndarray | None:
+        """The smoothed accelerations (m, 3) of the window's periods, newest last, every one
+        smoothed on all the data so far (fixed-interval smoothing of the tail: m = lag_steps + 1,
+        fewer while the window fills), or None before two periods."""
+        n = min(self.periods, self._x_pred.shape[0])
+        if n < 2:
+            return None
+        order = (self._last + 1 + np.arange(n) - n) % self._x_pred.shape[0]  # oldest first
+        x_s = rts_states(self._x_pred[order], self._x_filt[order], self._gain[order])
+        return np.diff(x_s[:, 1], axis=0) / self.dt_s
+
     def lagged_acceleration(self) -> np.ndarray | None:
         """The smoothed acceleration (3,) of the period ``lag_steps`` back, or None."""
         n = self._x_pred.shape[0]
