@@ -74,10 +74,10 @@ from collections.abc import Iterator
 import numpy as np
 from scipy.stats import chi2
 
+from .fused_motion import FusedMotion, Reading, fused_error_ratio
 from .messages import Instant, RelativeGrasp, WrenchMessage  # noqa: F401 (re-exported)
 from .momentum import SIZE as MOMENTUM_SIZE
 from .momentum import cargo_regressor_parts
-from .fused_motion import FusedMotion, Reading, fused_error_ratio
 from .noise_model import MOTION_FUSION, NoiseModel, rate_square_var
 from .over_time import UpdateWindow
 from .per_step import EstimatorInputs

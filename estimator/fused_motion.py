@@ -141,8 +141,7 @@ class FusedMotion:
         # Entry k is len(out) - 1 - k periods before the newest, the window's last.
         start = -len(out) if window is None else len(window) - len(out)
         return [
-            _corrected(b, window[start + k] if start + k >= 0 else None)
-            for k, b in enumerate(out)
+            _corrected(b, window[start + k] if start + k >= 0 else None) for k, b in enumerate(out)
         ]
 
     def _to_world(self, r: Reading):

@@ -51,6 +51,7 @@ from typing import Protocol
 import numpy as np
 from numba import njit
 
+from .fused_motion import coloured_lag_covariances
 from .momentum import CARGO_Q, CARGO_Q_MAP, LINKS_Q
 from .motion import (
     HELD_EXTENDED,
@@ -71,7 +72,6 @@ from .motion import (
     time_weighted_kernels,
 )
 from .over_time import IMU_MODES, MODES_PER_CHANNEL, conditioning_gain, mode_lag_covariances
-from .fused_motion import coloured_lag_covariances
 from .preprocess import DEFAULT_RATE_CUTOFF_HZ, StateVariableFilter
 from .rne import RobotDescription
 

@@ -116,7 +116,14 @@ def rts_states(x_pred, x_filt, gains):
     x_s = np.empty_like(x_filt)
     x_s[n - 1] = x_filt[n - 1]
     for k in range(n - 1, 0, -1):
-        x_s[k - 1] = x_filt[k - 1] + gains[k] @ (x_s[k] - x_pred[k])
+        # x_k-1|N = x_k-1|k-1 + C_k (x_k|N - x_k|k-1), the product in loops (no temporaries:
+        # the pass runs once per control step over the whole lag).
+        for i in range(2):
+            for j in range(3):
+                acc = x_filt[k - 1, i, j]
+                for m in range(2):
+                    acc += gains[k, i, m] * (x_s[k, m, j] - x_pred[k, m, j])
+                x_s[k - 1, i, j] = acc
     return x_s
 
 
