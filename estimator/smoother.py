@@ -283,10 +283,11 @@ def lagged_error_psd_ratio(
 def _impulse_response(lag_steps, dt_s, accel_std, position_std_m, fix_every, settle_steps,
                       phase, in_fix) -> np.ndarray:  # fmt: skip
     """The lagged accelerations' response (x axis) to a unit error in the reading of period
-    m = 2 settle_steps + phase (``in_fix`` False) or in the fix of period m (True, a fix
-    period), for periods m - settle_steps .. m + settle_steps."""
+    m = phase + the first multiple of ``fix_every`` from 2 settle_steps (``in_fix`` False) or
+    in the fix of period m (True, a fix period), for periods m - settle_steps .. m +
+    settle_steps."""
     smoother = FixedLagSmoother(dt_s, accel_std, position_std_m, lag_steps)
-    impulse = 2 * settle_steps + phase
+    impulse = fix_every * -(-2 * settle_steps // fix_every) + phase  # phase 0 holds a fix
     out = []
     for k in range(impulse + settle_steps + lag_steps + 1):
         u, fix = np.zeros(3), np.zeros(3) if k % fix_every == 0 else None
