@@ -38,7 +38,9 @@ relative size var(dY) / var(Y) that W, far below C(0) for noise read out of a de
 uncovered (one robot, encoders alone: NEES 66 at W, 6 at C(0)). Their modes carry the per-update
 covariance C(0). With ``over_time`` (``CargoEstimator(over_time_window=L)``, off by default) the
 IMU's channels carry C(0) too, and the estimator weighs them over time instead
-(``over_time``, ``over_time_noise``).
+(``over_time``, ``over_time_noise``). With the accelerometer fused with localization
+(``CargoEstimator(motion_lag_s=...)``, ``fused_motion``) its noise is no longer white: its
+channels' G(L) are those of the fused error's spectrum (``_init_fused_accelerometer``).
 """
 
 from __future__ import annotations
@@ -229,6 +231,9 @@ class NoiseModel:
             W), their modes' covariance between updates in ``mode_lag_cov``
             (``over_time.mode_lag_covariances``) and ``message_modes`` sending them whole: for an
             estimator that conditions each update on the previous ones (``over_time``).
+        accel_psd_ratio: None, the accelerometer white; f (Hz) -> r(f), its noise the fused
+            acceleration's of ``fused_motion`` (PSD sigma_a^2 dt r(f)): its channels' kernels
+            take that spectrum (``_init_fused_accelerometer``).
 
     The defaults' measured values (``CargoEstimator``; 90 s figure8_tumble, 2 robots, ``ideal``
     sensors, seed 0, the residual at the true parameters, momentum form): white-equivalent per
