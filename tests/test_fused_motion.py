@@ -192,3 +192,33 @@ def test_over_time_window_takes_the_fused_accelerometer_per_channel():
     factor = est.noise._accel_factor
     held = est.noise._held_factor
     assert np.trace(factor @ factor.T) < np.trace(held @ held.T)
+
+
+def test_missing_and_non_finite_readings_leave_unchanged_and_late():
+    """A missing IMU frame and a NaN accelerometer reading leave the buffer as they came (the
+    estimator holds and taints them), the smoother holding the last usable reading; the
+    readings around them are still corrected (changed by the smoother, finite)."""
+    lag = 10
+    fused = FusedMotion(DT, lag, 1e-3, 5e-3, 0.0, np.eye(3), np.zeros(3))
+    rng = np.random.default_rng(2)
+    quat = np.array([1.0, 0.0, 0.0, 0.0])
+    raw, outs = {}, {}
+    for k in range(120):
+        accel, gyro = 1e-3 * rng.normal(size=3), np.zeros(3)
+        if k == 60:
+            accel, gyro = None, None
+        if k == 70:
+            accel = np.array([np.nan, 0.0, 0.0])
+        raw[k] = accel
+        fix = k % 5 == 0
+        reading = Reading(k, accel, gyro, np.zeros(2), np.zeros(6),
+                          np.zeros(3) if fix else None, quat if fix else None, None)  # fmt: skip
+        out = fused.push(reading)
+        if out is not None:
+            outs[out.stamp] = out
+    assert sorted(outs) == list(range(120 - lag))
+    assert outs[60].accel is None and outs[60].gyro is None
+    assert np.isnan(outs[70].accel[0])
+    for k in (50, 65, 80):
+        assert np.all(np.isfinite(outs[k].accel))
+        assert not np.array_equal(outs[k].accel, raw[k])
