@@ -74,7 +74,7 @@ from collections.abc import Iterator
 import numpy as np
 from scipy.stats import chi2
 
-from .fused_motion import FusedMotion, Reading, fused_error_ratio
+from .fused_motion import FusedMotion, Reading
 from .messages import Instant, RelativeGrasp, WrenchMessage  # noqa: F401 (re-exported)
 from .momentum import SIZE as MOMENTUM_SIZE
 from .momentum import cargo_regressor_parts
@@ -258,6 +258,12 @@ class CargoEstimator(EstimatorInputs):
             robot, index, peers, dt_s, update_every, regressor_every, warmup_s, history_s
         )
         self._init_signal_filters(sensor_noise, kinematics_cutoff_hz, cutoff_hz, rate_cutoff_hz)
+        self._fused = None  # the fused motion's buffer and smoother (``fused_motion``)
+        if self.motion_lag_steps:
+            self._fused = FusedMotion(
+                self.dt_s, self.motion_lag_steps, float(sensor_noise[0]), *localization_noise,
+                self._imu_rot, robot.imu_pos,
+            )  # fmt: skip
         self._init_ukf(prior_params, prior_std, process_std_rel, gate_prob)
         self._init_noise_model(
             force_std_n, torque_std_nm, actuation_noise, sensor_noise, peer_noise_std,
@@ -267,12 +273,6 @@ class CargoEstimator(EstimatorInputs):
         self.min_relative_fixes = int(min_relative_fixes)
         self._init_bookkeeping(relative_grasps, record)
         self._step_constants = self._compiled_step_constants()
-        self._fused = None
-        if self.motion_lag_steps:
-            self._fused = FusedMotion(
-                self.dt_s, self.motion_lag_steps, float(sensor_noise[0]),
-                *localization_noise, self._imu_rot, self.robot.imu_pos,
-            )  # fmt: skip
 
     def _init_schedule(
         self, robot, index, peers, dt_s, update_every, regressor_every, warmup_s, history_s
@@ -338,8 +338,9 @@ class CargoEstimator(EstimatorInputs):
             actuation_noise=actuation_noise, sensor_noise=sensor_noise,
             peer_noise_std=peer_noise_std, localization_noise=localization_noise,
             mismatch_model_std=self._mismatch_model_std, rate_cutoff_hz=self.pre.rate_cutoff_hz,
-            over_time=self.over_time_window > 0, accel_psd_ratio=self._fused_error_ratio(
-                sensor_noise, localization_noise),
+            over_time=self.over_time_window > 0,
+            accel_psd_ratio=None if self._fused is None else self._fused.error_ratio(
+                self._localization_every),
         )  # fmt: skip
         n = self.noise
         self.meas_cov = n.floor_cov
@@ -356,16 +357,6 @@ class CargoEstimator(EstimatorInputs):
             self.dt_s, self.pre.rate_cutoff_hz, float(sensor_noise[2]), self.update_every
         )
         self._rate_terms: dict[int, tuple[np.ndarray, np.ndarray]] = {}
-
-    def _fused_error_ratio(self, sensor_noise, localization_noise):
-        """f -> the fused accelerometer's error PSD over the raw one (``fused_motion``), or
-        None without a lag or with nothing to fuse."""
-        if not self.motion_lag_steps or not (sensor_noise[0] > 0 and localization_noise[0] > 0):
-            return None
-        fix_std = np.hypot(localization_noise[0],
-                           np.linalg.norm(self.robot.imu_pos) * localization_noise[1])  # fmt: skip
-        return fused_error_ratio(self.motion_lag_steps, self.dt_s, float(sensor_noise[0]),
-                                 float(fix_std), self._localization_every)  # fmt: skip
 
     def _init_bookkeeping(self, relative_grasps, record: bool) -> None:
         """Counters, histories and the peers' relative grasps, at the start of a run."""
@@ -428,7 +419,12 @@ class CargoEstimator(EstimatorInputs):
         late = self._fused.push(Reading(stamp, accel_imu, gyro_imu, joint_pos_rad,
                                         thrust_command, base_pos_world, base_quat_world,
                                         servo_target_rate))  # fmt: skip
-        return None if late is None else super().step(*late[:-1], servo_target_rate=late[-1])
+        return None if late is None else self._feed(late)
+
+    def _feed(self, r: Reading) -> WrenchMessage | None:
+        """The pipeline's step (``EstimatorInputs.step``) on a reading out of the buffer."""
+        return super().step(r.stamp, r.accel, r.gyro, r.q, r.thrust, r.pos, r.quat,
+                            servo_target_rate=r.servo_rate)  # fmt: skip
 
     def flush(self) -> list[WrenchMessage]:
         """With ``motion_lag_s``: feed the buffered readings, smoothed on all the data
@@ -440,7 +436,7 @@ class CargoEstimator(EstimatorInputs):
         """``flush`` one buffered reading at a time: yields each one's message or None."""
         readings = [] if self._fused is None else self._fused.flush()
         for r in readings:
-            yield super().step(*r[:-1], servo_target_rate=r[-1])
+            yield self._feed(r)
 
     def robot_grasp_pose(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Grasp frame in the base frame at joint angles ``q``."""

@@ -102,6 +102,14 @@ class FusedMotion:
         self._last_u = np.zeros(3)
         self.last_stamp = -1
 
+    def error_ratio(self, fix_every: int):
+        """f -> the fused acceleration's error PSD over the raw one (``fused_error_ratio``)
+        with fixes every ``fix_every`` control steps, or None with nothing to fuse."""
+        dt, accel_std, fix_std, lag = self._smoother_args
+        if self.smoother is None:
+            return None
+        return fused_error_ratio(lag, dt, accel_std, fix_std, fix_every)
+
     def _new_smoother(self) -> FixedLagSmoother | None:
         """None where there is nothing to fuse (no accelerometer noise) or no fix noise."""
         dt, accel_std, fix_std, lag = self._smoother_args
