@@ -126,8 +126,8 @@ class FusedMotion:
                 f"motion_lag_s needs every control step: got stamp {reading.stamp} after "
                 f"{self.last_stamp} (flush() first to end a flight)"
             )
-        self.last_stamp = int(reading.stamp)
         rot_wi, u_world, fix = self._to_world(reading)
+        self.last_stamp = int(reading.stamp)
         if self.smoother is not None:
             if u_world is not None:
                 self._last_u = u_world
@@ -160,13 +160,15 @@ class FusedMotion:
         pos = np.asarray(r.pos, dtype=float) if fix_given else np.zeros(3)
         quat = np.asarray(r.quat, dtype=float) if fix_given else np.zeros(4)
         if fix_given and (pos.shape != (3,) or quat.shape != (4,)):
-            fix_given = False
+            raise ValueError("base_pos_world must be (3,) and base_quat_world (4,)")
         gyro = np.asarray(r.gyro, dtype=float) if usable else np.zeros(3)
         if not (self._has_attitude or fix_given):
             return None, None, None
         outcome = update_attitude(self._rot, self._pos, self.imu_rot, gyro, self.dt_s, pos,
                                   quat, fix_given)  # fmt: skip
-        self._has_attitude = True
+        self._has_attitude |= outcome == FIX  # a bad first fix gives no attitude
+        if not self._has_attitude:
+            return None, None, None
         fix = self._pos + self._rot @ self.imu_pos if outcome == FIX else None
         if not usable:
             return None, None, fix

@@ -222,3 +222,14 @@ def test_missing_and_non_finite_readings_leave_unchanged_and_late():
     for k in (50, 65, 80):
         assert np.all(np.isfinite(outs[k].accel))
         assert not np.array_equal(outs[k].accel, raw[k])
+
+
+def test_wrong_shapes_raise_at_once_with_a_lag():
+    """With a lag a wrongly shaped reading raises when it comes, not a lag later."""
+    est = CargoEstimator(World(2).robot_model(0), 0, [1], DT, motion_lag_s=0.5)
+    args = [np.zeros(3), np.zeros(3), np.zeros(2), np.zeros(6)]
+    est.step(0, *args)
+    with pytest.raises(ValueError, match="thrust_command"):
+        est.step(1, *args[:3], np.zeros(5))
+    with pytest.raises(ValueError, match="base_pos_world"):
+        est.step(1, *args, np.zeros(2), np.array([1.0, 0.0, 0.0, 0.0]))
