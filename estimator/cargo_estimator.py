@@ -69,10 +69,12 @@ from __future__ import annotations
 import functools
 import math
 from collections import deque
+from collections.abc import Iterator
 
 import numpy as np
 from scipy.stats import chi2
 
+from .fused_motion import FusedMotion, Reading
 from .messages import Instant, RelativeGrasp, WrenchMessage  # noqa: F401 (re-exported)
 from .momentum import SIZE as MOMENTUM_SIZE
 from .momentum import cargo_regressor_parts
@@ -131,6 +133,19 @@ def _check_arguments(
         raise ValueError(f"min_relative_fixes must be >= 1, got {min_relative_fixes}")
 
 
+def _motion_lag_steps(motion_lag_s, dt_s, localization_every) -> int:
+    """``motion_lag_s`` in control steps (0: off); ValueError unless finite, >= 0 and, when
+    positive, at least one control step; ``localization_every`` must be >= 1."""
+    if not (np.isfinite(motion_lag_s) and motion_lag_s >= 0):
+        raise ValueError(f"motion_lag_s must be a finite number >= 0 s, got {motion_lag_s!r}")
+    if localization_every < 1:
+        raise ValueError(f"localization_every must be >= 1, got {localization_every}")
+    steps = int(round(motion_lag_s / dt_s))
+    if motion_lag_s > 0 and steps < 1:
+        raise ValueError(f"motion_lag_s must be 0 or at least one control step ({dt_s} s)")
+    return steps
+
+
 class CargoEstimator(EstimatorInputs):
     """Constrained UKF on the cargo's inertial parameters for robot ``index``.
 
@@ -185,6 +200,13 @@ class CargoEstimator(EstimatorInputs):
             covariance (``noise_model``); L > 0, each update conditioned on the last L used
             updates (``over_time``: the IMU's noise weighed with its covariance over time, its
             channels at their per-update covariance; the peers must run it too).
+        motion_lag_s: 0 (default), the readings as they come; > 0, the accelerometer fused
+            with the localization fixes by a fixed-lag smoother of this lag (s, rounded to
+            control steps), the pipeline fed every reading ``motion_lag_s`` late
+            (``fused_motion``: the estimates and messages are that late; every robot of the
+            team must run the same lag; ``flush`` at the end of a flight); its noise model
+            follows the smoother's error spectrum. ``localization_every``: control steps
+            between fixes (the spectrum's schedule; used only with a lag).
     """
 
     def __init__(
@@ -218,6 +240,8 @@ class CargoEstimator(EstimatorInputs):
         mismatch_model_std: float = 5.3e-7,
         rate_cutoff_hz: float | None = None,
         over_time_window: int = 0,
+        motion_lag_s: float = 0.0,
+        localization_every: int = 20,
     ) -> None:
         _check_arguments(
             index, peers, update_every, regressor_every, warmup_s, history_s, gate_prob,
@@ -226,12 +250,20 @@ class CargoEstimator(EstimatorInputs):
         if over_time_window < 0:
             raise ValueError(f"over_time_window must be >= 0 updates, got {over_time_window}")
         self.over_time_window = int(over_time_window)
+        self.motion_lag_steps = _motion_lag_steps(motion_lag_s, dt_s, localization_every)
+        self._localization_every = int(localization_every)
         self.motion_fusion = motion_fusion
         self._mismatch_model_std = float(mismatch_model_std)
         self._init_schedule(
             robot, index, peers, dt_s, update_every, regressor_every, warmup_s, history_s
         )
         self._init_signal_filters(sensor_noise, kinematics_cutoff_hz, cutoff_hz, rate_cutoff_hz)
+        self._fused = None  # the fused motion's buffer and smoother (``fused_motion``)
+        if self.motion_lag_steps:
+            self._fused = FusedMotion(
+                self.dt_s, self.motion_lag_steps, float(sensor_noise[0]), *localization_noise,
+                self._imu_rot, robot.imu_pos,
+            )  # fmt: skip
         self._init_ukf(prior_params, prior_std, process_std_rel, gate_prob)
         self._init_noise_model(
             force_std_n, torque_std_nm, actuation_noise, sensor_noise, peer_noise_std,
@@ -307,6 +339,8 @@ class CargoEstimator(EstimatorInputs):
             peer_noise_std=peer_noise_std, localization_noise=localization_noise,
             mismatch_model_std=self._mismatch_model_std, rate_cutoff_hz=self.pre.rate_cutoff_hz,
             over_time=self.over_time_window > 0,
+            accel_psd_ratio=None if self._fused is None else self._fused.error_ratio(
+                self._localization_every),
         )  # fmt: skip
         n = self.noise
         self.meas_cov = n.floor_cov
@@ -371,6 +405,43 @@ class CargoEstimator(EstimatorInputs):
         return StateVariableFilter(Balance.SIZE, self.dt_s * self.regressor_every, self.cutoff_hz)
 
     # ------------------------------------------------------------------ inputs
+    def step(self, stamp, accel_imu, gyro_imu, joint_pos_rad, thrust_command,
+             base_pos_world=None, base_quat_world=None, *, servo_target_rate=None):  # fmt: skip
+        """``EstimatorInputs.step``; with ``motion_lag_s`` the readings of ``motion_lag_s``
+        earlier with the fused accelerometer (``fused_motion``), their message."""
+        if self._fused is None:
+            return super().step(
+                stamp, accel_imu, gyro_imu, joint_pos_rad, thrust_command, base_pos_world,
+                base_quat_world, servo_target_rate=servo_target_rate,
+            )  # fmt: skip
+        if (accel_imu is None) != (gyro_imu is None):
+            raise ValueError("accel_imu and gyro_imu are one IMU frame: both None or neither")
+        readings = (accel_imu, gyro_imu, joint_pos_rad, thrust_command)
+        for (name, shape), x in zip(self._reading_shapes, readings, strict=True):
+            if x is not None and np.shape(x) != shape:  # now, not a lag later
+                raise ValueError(f"{name} must have shape {shape}, got {np.shape(x)}")
+        late = self._fused.push(Reading(stamp, accel_imu, gyro_imu, joint_pos_rad,
+                                        thrust_command, base_pos_world, base_quat_world,
+                                        servo_target_rate))  # fmt: skip
+        return None if late is None else self._feed(late)
+
+    def _feed(self, r: Reading) -> WrenchMessage | None:
+        """The pipeline's step (``EstimatorInputs.step``) on a reading out of the buffer."""
+        return super().step(r.stamp, r.accel, r.gyro, r.q, r.thrust, r.pos, r.quat,
+                            servo_target_rate=r.servo_rate)  # fmt: skip
+
+    def flush(self) -> list[WrenchMessage]:
+        """With ``motion_lag_s``: feed the buffered readings, smoothed on all the data
+        (``FusedMotion.flush``), and return their messages (deliver them, then ``process``;
+        ``fused_motion.flush_team`` interleaves this step by step for a team). Without: []."""
+        return [m for m in self.flush_steps() if m is not None]
+
+    def flush_steps(self) -> Iterator[WrenchMessage | None]:
+        """``flush`` one buffered reading at a time: yields each one's message or None."""
+        readings = [] if self._fused is None else self._fused.flush()
+        for r in readings:
+            yield self._feed(r)
+
     def robot_grasp_pose(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Grasp frame in the base frame at joint angles ``q``."""
         return grasp_pose(self.robot, q)

@@ -38,7 +38,9 @@ relative size var(dY) / var(Y) that W, far below C(0) for noise read out of a de
 uncovered (one robot, encoders alone: NEES 66 at W, 6 at C(0)). Their modes carry the per-update
 covariance C(0). With ``over_time`` (``CargoEstimator(over_time_window=L)``, off by default) the
 IMU's channels carry C(0) too, and the estimator weighs them over time instead
-(``over_time``, ``over_time_noise``).
+(``over_time``, ``over_time_noise``). With the accelerometer fused with localization
+(``CargoEstimator(motion_lag_s=...)``, ``fused_motion``) its noise is no longer white: its
+channels' G(L) are those of the fused error's spectrum (``_init_fused_accelerometer``).
 """
 
 from __future__ import annotations
@@ -51,6 +53,7 @@ from typing import Protocol
 import numpy as np
 from numba import njit
 
+from .fused_motion import coloured_lag_covariances
 from .momentum import CARGO_Q, CARGO_Q_MAP, LINKS_Q
 from .motion import (
     HELD_EXTENDED,
@@ -228,6 +231,9 @@ class NoiseModel:
             W), their modes' covariance between updates in ``mode_lag_cov``
             (``over_time.mode_lag_covariances``) and ``message_modes`` sending them whole: for an
             estimator that conditions each update on the previous ones (``over_time``).
+        accel_psd_ratio: None, the accelerometer white; f (Hz) -> r(f), its noise the fused
+            acceleration's of ``fused_motion`` (PSD sigma_a^2 dt r(f)): its channels' kernels
+            take that spectrum (``_init_fused_accelerometer``).
 
     The defaults' measured values (``CargoEstimator``; 90 s figure8_tumble, 2 robots, ``ideal``
     sensors, seed 0, the residual at the true parameters, momentum form): white-equivalent per
@@ -258,6 +264,7 @@ class NoiseModel:
         mismatch_model_std: float = 0.0,
         rate_cutoff_hz: float = DEFAULT_RATE_CUTOFF_HZ,
         over_time: bool = False,
+        accel_psd_ratio=None,
     ) -> None:
         if not (force_std_n > 0 and torque_std_nm > 0):
             raise ValueError("force_std_n and torque_std_nm must be positive")
@@ -280,6 +287,7 @@ class NoiseModel:
         self.loc_pos_std, self.loc_att_std = (float(x) for x in loc)
         self.mismatch_model_var = self.correlated * float(mismatch_model_std) ** 2
         self.over_time = bool(over_time)
+        self.accel_psd_ratio = accel_psd_ratio
         self._init_scalar_model(robot, dt_s, cutoff_hz, sensor)
         self._init_acceleration_form(robot, dt_s, kinematics_cutoff_hz, cutoff_hz,
                                      regressor_every, sensor)  # fmt: skip
@@ -329,6 +337,7 @@ class NoiseModel:
         self.mode_lag_cov = None
         if self.over_time:
             self._held_factor, self.mode_lag_cov = mode_lag_covariances(held_lags)
+        self._init_fused_accelerometer(n_lags)
         # The encoders (the regressor's own noise): the per-update covariance G(0), see
         # ``momentum_jacobians``.
         self._point_factor = chain[3]
@@ -344,6 +353,46 @@ class NoiseModel:
         self._n_joints = nj
         self._dt_s = dt_s
         self._states: list[tuple[int, np.ndarray]] = []
+
+    def _init_fused_accelerometer(self, n_lags: int) -> None:
+        """The accelerometer fused with localization (``accel_psd_ratio`` r(f), None: raw):
+        its error is the white reading's times a PSD ratio r(f) (``fused_motion``), so its
+        kernels' lag covariances are G_a(L) = IFFT[conj(K) K r] (``coloured_lag_covariances``)
+        in place of the white G(L); the gyro keeps the white ones. Window 0: the accelerometer's
+        modes carry the lag-weighted W_a of G_a (``momentum_jacobians``); over time: its
+        per-update G_a(0) and its modes' Gm_a(L), so that ``mode_lag_cov`` becomes one Gm per
+        robot channel (n_lags + 1, 6, 4, 4): gyro x, y, z, then accelerometer x, y, z."""
+        self._accel_lag_cov = self._accel_factor = None
+        if self.accel_psd_ratio is None:
+            return
+        kernels = momentum_chain_kernels(*self.chain_args)[0][HELD_EXTENDED]
+        self._accel_lag_cov = coloured_lag_covariances(
+            kernels, self.chain_args[0], self.update_every, n_lags, self.accel_psd_ratio
+        )
+        if self.over_time:
+            self._accel_factor, accel_modes = mode_lag_covariances(self._accel_lag_cov)
+            per_channel = [self.mode_lag_cov] * 3 + [accel_modes] * 3
+            self.mode_lag_cov = np.ascontiguousarray(np.stack(per_channel, axis=1))
+            self.mode_lag_cov.setflags(write=False)
+
+    def _imu_modes(self, jac, jac_rate):
+        """``momentum_noise_modes`` with the held factor, or with the fused accelerometer its
+        own (``_init_fused_accelerometer``): the held channels' columns (4 per channel, gyro
+        then accelerometer) times their kind's factor F, d links C F and d Y F^T C."""
+        if self._accel_factor is None:
+            return momentum_noise_modes(
+                jac, jac_rate, self._n_joints, self._held_factor, self._point_factor
+            )
+        d_links, d_y = momentum_noise_modes(
+            jac, jac_rate, self._n_joints, np.eye(MODES_PER_CHANNEL), self._point_factor
+        )
+        m = MODES_PER_CHANNEL
+        for start, factor in ((0, self._held_factor), (3 * m, self._accel_factor)):
+            cols = slice(start, start + 3 * m)
+            d_links[:, cols] = (d_links[:, cols].reshape(6, 3, m) @ factor).reshape(6, 3 * m)
+            y = d_y[cols].reshape(3, m, 60)
+            d_y[cols] = np.einsum("ab,cad->cbd", factor, y).reshape(3 * m, 6, 10)
+        return d_links, d_y
 
     def momentum_jacobians(
         self,
@@ -389,11 +438,12 @@ class NoiseModel:
         if not self.over_time and (
             self._held_factor is None or index % FACTOR_REFRESH_UPDATES == 0
         ):
-            w = lag_weighted_covariance(self._lag_cov, self.autocorrelation.rho())
+            rho = self.autocorrelation.rho()
+            w = lag_weighted_covariance(self._lag_cov, rho)
             self._held_factor = psd_factor(w[np.ix_(HELD_EXTENDED, HELD_EXTENDED)])
-        d_links, d_y = momentum_noise_modes(
-            jac, jac_rate, self._n_joints, self._held_factor, self._point_factor
-        )
+            if self._accel_lag_cov is not None:
+                self._accel_factor = psd_factor(lag_weighted_covariance(self._accel_lag_cov, rho))
+        d_links, d_y = self._imu_modes(jac, jac_rate)
         if not self._n_rate_modes:
             return d_links, d_y
         n_rate = self._n_rate_modes

@@ -85,6 +85,17 @@ def conditioning_gain(n_map, d_map, level, mismatch_model_var):
 
 
 @njit(cache=True)
+def cross_covariance_channels(earlier, later, mode_covs):
+    """``cross_covariance`` with one Gm(l - k) per robot channel: ``mode_covs`` (6, 4, 4),
+    channel c's ``mode_covs[c % 6]`` (the fused accelerometer's, ``noise_model``)."""
+    out = np.zeros((6, 6))
+    for c in range(earlier.shape[1]):
+        gm = np.ascontiguousarray(mode_covs[c % 6])
+        out += np.ascontiguousarray(earlier[:, c]) @ gm @ np.ascontiguousarray(later[:, c]).T
+    return out
+
+
+@njit(cache=True)
 def cross_covariance(earlier, later, mode_cov):
     """Sigma_kl = sum_c J_k,c Gm J_l,c^T (6, 6): ``earlier`` J_k and ``later`` J_l (6, c, 4),
     ``mode_cov`` Gm(l - k) (4, 4)."""
@@ -111,13 +122,15 @@ class WindowEntry(NamedTuple):
 
 class UpdateWindow:
     """The last ``length`` used updates and the conditioning of a new one on them (module
-    docstring). ``mode_lag_cov`` Gm (n_lags + 1, 4, 4); ``update_every`` control steps per
+    docstring). ``mode_lag_cov`` Gm (n_lags + 1, 4, 4), or one per robot channel
+    (n_lags + 1, 6, 4, 4) (``cross_covariance_channels``); ``update_every`` control steps per
     update (stamps are control steps)."""
 
     def __init__(self, mode_lag_cov: np.ndarray, length: int, update_every: int) -> None:
         if length < 1:
             raise ValueError(f"the window must hold at least 1 update, got {length}")
         self.mode_lag_cov = mode_lag_cov
+        self._cross = cross_covariance_channels if mode_lag_cov.ndim == 4 else cross_covariance
         self.update_every = int(update_every)
         self.entries: deque[WindowEntry] = deque(maxlen=int(length))
         # Sigma_pp (6 m, 6 m) of the entries, kept as they come and go; the stacked z, Y, b.
@@ -154,7 +167,7 @@ class UpdateWindow:
         for e in self.entries:
             lag = index - e.index
             if lag <= n_lags:
-                cross[e.stamp] = cross_covariance(e.imu_map, imu_map, self.mode_lag_cov[lag])
+                cross[e.stamp] = self._cross(e.imu_map, imu_map, self.mode_lag_cov[lag])
             else:  # beyond the chain's memory: correlated only through the updates between
                 cross[e.stamp] = np.zeros((6, 6))
         entry = WindowEntry(index, stamp, z, regressor, offset, cov, imu_map, cross)

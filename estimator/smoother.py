@@ -116,7 +116,14 @@ def rts_states(x_pred, x_filt, gains):
     x_s = np.empty_like(x_filt)
     x_s[n - 1] = x_filt[n - 1]
     for k in range(n - 1, 0, -1):
-        x_s[k - 1] = x_filt[k - 1] + gains[k] @ (x_s[k] - x_pred[k])
+        # x_k-1|N = x_k-1|k-1 + C_k (x_k|N - x_k|k-1), the product in loops (no temporaries:
+        # the pass runs once per control step over the whole lag).
+        for i in range(2):
+            for j in range(3):
+                acc = x_filt[k - 1, i, j]
+                for m in range(2):
+                    acc += gains[k, i, m] * (x_s[k, m, j] - x_pred[k, m, j])
+                x_s[k - 1, i, j] = acc
     return x_s
 
 
@@ -217,6 +224,17 @@ class FixedLagSmoother:
         self._x_pred[k], self._x_filt[k], self._gain[k] = x_pred, x_filt, gain
         self.periods += 1
 
+    def window_accelerations(self) -> np.ndarray | None:
+        """The smoothed accelerations (m, 3) of the window's periods, newest last, every one
+        smoothed on all the data so far (fixed-interval smoothing of the tail: m = lag_steps + 1,
+        fewer while the window fills), or None before two periods."""
+        n = min(self.periods, self._x_pred.shape[0])
+        if n < 2:
+            return None
+        order = (self._last + 1 + np.arange(n) - n) % self._x_pred.shape[0]  # oldest first
+        x_s = rts_states(self._x_pred[order], self._x_filt[order], self._gain[order])
+        return np.diff(x_s[:, 1], axis=0) / self.dt_s
+
     def lagged_acceleration(self) -> np.ndarray | None:
         """The smoothed acceleration (3,) of the period ``lag_steps`` back, or None."""
         n = self._x_pred.shape[0]
@@ -265,10 +283,11 @@ def lagged_error_psd_ratio(
 def _impulse_response(lag_steps, dt_s, accel_std, position_std_m, fix_every, settle_steps,
                       phase, in_fix) -> np.ndarray:  # fmt: skip
     """The lagged accelerations' response (x axis) to a unit error in the reading of period
-    m = 2 settle_steps + phase (``in_fix`` False) or in the fix of period m (True, a fix
-    period), for periods m - settle_steps .. m + settle_steps."""
+    m = phase + the first multiple of ``fix_every`` from 2 settle_steps (``in_fix`` False) or
+    in the fix of period m (True, a fix period), for periods m - settle_steps .. m +
+    settle_steps."""
     smoother = FixedLagSmoother(dt_s, accel_std, position_std_m, lag_steps)
-    impulse = 2 * settle_steps + phase
+    impulse = fix_every * -(-2 * settle_steps // fix_every) + phase  # phase 0 holds a fix
     out = []
     for k in range(impulse + settle_steps + lag_steps + 1):
         u, fix = np.zeros(3), np.zeros(3) if k % fix_every == 0 else None

@@ -109,7 +109,9 @@ class Case:
     cargo_inertia: tuple | None = CARGO_INERTIA  # None: the uniform bag of that mass
     cargo_model: str = "estimate"
     analyse: bool = True  # False: control comparison only
-    extra: dict = field(default_factory=dict)  # "estimator_kwargs": more CargoEstimator args
+    # "estimator_kwargs": more CargoEstimator args; "flush": False leaves a lagged estimator's
+    # buffered tail unfed (``motion_lag_s``; default True)
+    extra: dict = field(default_factory=dict)
 
     @property
     def key(self) -> str:
@@ -285,6 +287,7 @@ def run_case(case: Case) -> dict:
         fisher_information,
         unrevealed_directions,
     )
+    from astrocargo.estimator.fused_motion import flush_team
     from astrocargo.estimator.inertia import (
         com_error_m,
         mass_com_inertia_from_params,
@@ -343,6 +346,10 @@ def run_case(case: Case) -> dict:
             sample_t.append(times[-1])
             sample_rows.append(len(est0.log))
             filter_spreads.append(group_spreads(est0.params_mean(), est0.params_cov(), truth0))
+    if case.extra.get("flush", True) and any(e.motion_lag_steps for e in sim.estimators):
+        # Estimators fed a lag late (``motion_lag_s``): the buffered tail, smoothed on all the
+        # data, so that the estimate holds the whole flight (``fused_motion.flush_team``).
+        flush_team(sim.estimators)
     times, mass_est, track = np.asarray(times), np.asarray(mass_est), np.asarray(track)
     skip = len(track) // 6  # tracking statistics after the start-up
     result = {

@@ -65,13 +65,16 @@ import benchmark_estimation as bench  # noqa: E402
 import cli  # noqa: E402
 
 from astrocargo.estimator.cargo_estimator import CargoEstimator  # noqa: E402
+from astrocargo.estimator.fused_motion import (  # noqa: E402
+    coloured_lag_covariances,
+    fused_error_ratio,
+)
 from astrocargo.estimator.motion import HELD_EXTENDED, kernel_lag_covariances  # noqa: E402
 from astrocargo.estimator.noise_model import NoiseModel, momentum_chain_kernels  # noqa: E402
 from astrocargo.estimator.over_time import DEFAULT_WINDOW, cross_covariance  # noqa: E402
 from astrocargo.estimator.smoother import (  # noqa: E402
     crossover_hz,
     fused_psd_ratio,
-    lagged_error_psd_ratio,
 )
 
 CONTROL_HZ = bench.CONTROL_HZ
@@ -163,17 +166,13 @@ def mode_lags(model: NoiseModel, ratio=None) -> np.ndarray:
     spectrum, in the white modes F^+ (what the estimator's maps J carry)."""
     kernels = momentum_chain_kernels(*model.chain_args)[0][HELD_EXTENDED]
     dt, n_lags = model.chain_args[0], model.mode_lag_cov.shape[0] - 1
-    shift = np.arange(n_lags + 1) * model.update_every
-    n_fft = 1 << int(np.ceil(np.log2(2 * kernels.shape[1] + shift[-1])))
-    spec = np.fft.rfft(kernels, n_fft)
-    weight = 1.0 if ratio is None else ratio(np.maximum(np.fft.rfftfreq(n_fft, dt), 1e-9))
-    cross = np.fft.irfft(np.conj(spec)[:, None] * spec[None] * weight, n_fft)[:, :, shift]
+    cross = coloured_lag_covariances(kernels, dt, model.update_every, n_lags, ratio)
     white = kernel_lag_covariances(kernels, model.update_every, n_lags)
-    if ratio is None and not np.allclose(cross.transpose(2, 0, 1), white, atol=1e-12):
+    if ratio is None and not np.allclose(cross, white, atol=1e-12):
         raise AssertionError("the FFT's lag covariances differ from the kernels'")
     s, u = np.linalg.eigh(white[0])
     inv = (u / np.sqrt(s)).T
-    return inv @ cross.transpose(2, 0, 1) @ inv.T
+    return inv @ cross @ inv.T
 
 
 def crossovers(profile, dt_s: float) -> dict:
@@ -283,14 +282,12 @@ def _fly_cached(job: tuple[str, int, int, argparse.Namespace]) -> tuple[tuple, d
 
 def lagged_ratio(lag_s: float, dt_s: float, profile):
     """f -> the fixed-lag smoother's error PSD over the accelerometer's at a lag of ``lag_s``
-    (``smoother.lagged_error_psd_ratio`` on a log grid to 2 Hz, interpolated in log f; 1 above,
-    where it is 1 within 1e-3 at any lag)."""
-    grid = np.geomspace(1e-4, 2.0, 120)
-    ratio = lagged_error_psd_ratio(
-        grid, int(round(lag_s / dt_s)), dt_s, profile.accel_std, profile.position_std_m,
+    (``fused_motion.fused_error_ratio``: the estimator's own, the fixes' attitude error left
+    out here as in the bound's model)."""
+    return fused_error_ratio(
+        int(round(lag_s / dt_s)), dt_s, profile.accel_std, profile.position_std_m,
         profile.localization_every,
     )  # fmt: skip
-    return lambda f: np.interp(np.log(f), np.log(grid), ratio, left=ratio[0], right=1.0)
 
 
 def bounds(per_update: dict, windowed: dict, perfect: dict, lags: dict) -> dict[str, tuple]:
