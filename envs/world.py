@@ -214,9 +214,7 @@ class World:
         cargo_bag: str | None = None,
     ) -> None:
         if isinstance(n_robots, bool) or not isinstance(n_robots, int | np.integer):
-            raise ValueError(
-                f"n_robots must be an integer in 1..{MAX_ROBOTS}, got {n_robots!r}"
-            )
+            raise ValueError(f"n_robots must be an integer in 1..{MAX_ROBOTS}, got {n_robots!r}")
         if not 1 <= n_robots <= MAX_ROBOTS:
             raise ValueError(f"n_robots must be in 1..{MAX_ROBOTS}, got {n_robots}")
         self.cargo_bag = _choose_bag(int(n_robots), cargo_bag)
@@ -589,9 +587,7 @@ def _robot_links(
         njnt, parent = m.body_jntnum[b], m.body_parentid[b]
         if b == base_body or njnt == 1:
             links.append(
-                base
-                if b == base_body
-                else _hinge_link(m, b, link_of[parent], pose_in_link[parent])
+                base if b == base_body else _hinge_link(m, b, link_of[parent], pose_in_link[parent])
             )
             link_of[b] = len(links) - 1
             pose_in_link[b] = (np.eye(3), np.zeros(3))
