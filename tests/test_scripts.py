@@ -30,7 +30,8 @@ def load(name: str):
 @pytest.fixture(scope="module")
 def scripts():
     names = ("demo", "benchmark_estimation", "benchmark_performance", "soak", "train")
-    return {name: load(name) for name in names + ("evaluate", "render_scene", "estimation_limits")}
+    more = ("evaluate", "render_scene", "estimation_limits", "window_bias")
+    return {name: load(name) for name in names + more}
 
 
 def parser_error(parse, argv: list[str], capsys) -> str:
@@ -258,6 +259,7 @@ def test_estimation_limits_rejects(scripts, capsys, argv, message):
         "train",
         "evaluate",
         "estimation_limits",
+        "window_bias",
     ],
 )
 def test_help_shows_every_default(scripts, capsys, name):
@@ -271,6 +273,27 @@ def test_help_shows_every_default(scripts, capsys, name):
         if action.option_strings and action.default is not argparse.SUPPRESS:
             shown = " ".join(out.split())  # help lines are wrapped
             assert f"(default: {action.default})" in shown, (name, action.dest)
+
+
+def test_window_bias_innovation_stats_tell_white_from_correlated(scripts):
+    """The whitened residual's mean square and lag-1 correlation: 1 and 0 for residuals drawn
+    from their R, 1 and phi for an AR(1) residual with its stationary covariance."""
+    stats = scripts["window_bias"].innovation_stats
+    rng = np.random.default_rng(0)
+    pi, regressor = rng.standard_normal(10), rng.standard_normal((6, 10))
+    root = rng.standard_normal((6, 6)) + 3 * np.eye(6)
+    cov = root @ root.T
+    for phi in (0.0, 0.8):
+        white = rng.standard_normal((4000, 6))
+        ar = np.empty_like(white)
+        ar[0] = white[0]
+        for k in range(1, len(white)):
+            ar[k] = phi * ar[k - 1] + np.sqrt(1 - phi**2) * white[k]
+        offset = rng.standard_normal(6)
+        log = [(regressor @ pi + offset + root @ w, regressor, offset, cov) for w in ar]
+        square, lag1 = stats(log, pi)
+        assert square == pytest.approx(1.0, abs=0.05)
+        assert lag1 == pytest.approx(phi, abs=0.03)
 
 
 def test_render_scene_help_shows_defaults(scripts, capsys):
