@@ -16,7 +16,10 @@ dimension (1 for a consistent R) and its lag-1 correlation over updates (0 for w
 
 An unbiased error grows as the noise's std, as does the filter's std; a bias from errors in
 variables (the regressor's noise times the balance's own) grows as its square. The mass error's
-ratio to its std staying put over the scales says noise; growing with them, bias.
+ratio to its std staying put over the scales says noise; growing with them, bias. With a window
+the last columns predict that bias from the model's own IMU modes (``score_bias``: the expected
+score of each conditioned update at the truth, through least squares on the log; the encoders'
+modes are not in it): a measured error that matches it is that bias.
 """
 
 from __future__ import annotations
@@ -31,6 +34,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # before numpy: one thread p
 import numpy as np  # noqa: E402
 
 from astrocargo.envs import sensors  # noqa: E402
+from astrocargo.estimator.over_time import IMU_MODES  # noqa: E402
 
 NOMINAL = sensors.NOISE_PROFILES["nominal"]
 _SILENT = replace(
@@ -61,8 +65,86 @@ def innovation_stats(log: list, pi: np.ndarray) -> tuple[float, float]:
     return square, float(np.mean(np.sum(w[:-1] * w[1:], axis=1)) / 6 / square)
 
 
+def score_bias(coefs, d_y, imu_map, mode_lag_cov, indices, cov) -> np.ndarray:
+    """E[Y'^T R'^-1 r'] (10,): the expected score of one conditioned update at the truth, for
+    Y' = sum_j C_j Y_j and r' = sum_j C_j r_j over the window's updates and this one (S of them,
+    C_j = ``coefs`` (S, 6, 6): -A's blocks, then I), where the IMU's modes u_j (of this robot's c
+    channels, 4 each) move the regressor by sum d_Y u and the residual r = z - Y pi - b by
+    -sum J u: ``d_y`` (S, c, 4, 6, 10), ``imu_map`` J (S, c, 4, 6), Cov(u_j, u_l) = Gm(l - j)
+    (``mode_lag_cov`` (n_lags + 1, 4, 4)), ``indices`` (S,) the update counts, ``cov`` R'.
+    Nonzero: errors in variables (the regressor's noise times the residual's own)."""
+    n_lags = mode_lag_cov.shape[0] - 1
+    lag = indices[None, :] - indices[:, None]
+    gm = np.zeros((len(indices), len(indices), 4, 4))
+    ahead, behind = (lag >= 0) & (lag <= n_lags), (lag < 0) & (lag >= -n_lags)
+    gm[ahead] = mode_lag_cov[lag[ahead]]
+    gm[behind] = mode_lag_cov[-lag[behind]].transpose(0, 2, 1)
+    moved_y = np.einsum("sxy,scayp->scaxp", coefs, d_y)
+    moved_r = np.einsum("xy,syz,scaz->scax", np.linalg.inv(cov), coefs, imu_map)
+    return -np.einsum("scaxp,stab,tcbx->p", moved_y, gm, moved_r)
+
+
+class BiasRecorder:
+    """Wraps one estimator (``over_time_window`` > 0; raw accelerometer) to keep, per used
+    update, what ``score_bias`` needs (its own IMU modes and the window's gain, estimator
+    internals: a diagnostic), and predicts the bias of least squares on its log,
+    F^-1 sum_k E[score_k], F = sum_k Y'^T R'^-1 Y'."""
+
+    def __init__(self, est) -> None:
+        self.est, self.modes, self.terms, self.used = est, {}, {}, []
+        measure, noise, condition, update = (
+            est._measurement, est._over_time_noise, est._window.condition, est.ukf.update_linear
+        )  # fmt: skip
+        imu = slice(0, IMU_MODES)
+        std = np.sqrt(est.noise.momentum_motion.var[imu])[:, None, None]
+
+        def over_time_noise(inst, msgs):
+            mean, cov, imu_map = noise(inst, msgs)
+            own = None if imu_map is None else imu_map[:, :6].transpose(1, 2, 0)
+            self.modes[self._stamp] = ((inst.motion_jac[1][imu] * std).reshape(6, 4, 6, 10), own)
+            return mean, cov, imu_map
+
+        def conditioned(stamp, *args):
+            entries = list(est._window.entries)
+            out = condition(stamp, *args)
+            if out[1] is not None and entries:
+                s_kp = np.hstack([out[1].cross[e.stamp].T for e in entries])
+                gain = np.linalg.solve(est._window._sigma, s_kp.T).T
+                self.terms[stamp] = (gain, [e.stamp for e in entries])
+            return out
+
+        def measurement(stamp, *args):
+            self._stamp = stamp
+            return measure(stamp, *args)
+
+        def update_linear(*args):
+            result = update(*args)
+            if result.accepted:
+                self.used.append(self._stamp)
+            return result
+
+        est._measurement, est._over_time_noise = measurement, over_time_noise
+        est._window.condition, est.ukf.update_linear = conditioned, update_linear
+
+    def predicted_bias(self) -> np.ndarray:
+        info, score = np.zeros((10, 10)), np.zeros(10)
+        every = self.est.update_every
+        for (_, y, _, r), stamp in zip(self.est.log, self.used, strict=True):
+            gain, stamps = self.terms.get(stamp, (np.zeros((6, 0)), []))
+            coefs = [-gain[:, 6 * i : 6 * i + 6] for i in range(len(stamps))] + [np.eye(6)]
+            stamps = [*stamps, stamp]
+            d_y, imu_map = (np.stack(x) for x in zip(*(self.modes[s] for s in stamps), strict=True))
+            indices = np.array(stamps) // every
+            score += score_bias(
+                np.stack(coefs), d_y, imu_map, self.est.noise.mode_lag_cov, indices, r
+            )
+            info += y.T @ np.linalg.solve(r, y)
+        return np.linalg.solve(info, score)
+
+
 def fly(job: tuple[str, int, int, float]) -> list[dict]:
-    """One flight; per robot its mass error and std, z first-moment error, NEES, residual."""
+    """One flight; per robot its mass error and std, z first-moment error, NEES, residual, and
+    with a window the IMU's errors-in-variables bias predicted from its modes."""
     from astrocargo.agents.controllers import ObservationController
     from astrocargo.envs import astrobee_cargo_v0
 
@@ -73,16 +155,20 @@ def fly(job: tuple[str, int, int, float]) -> list[dict]:
         estimator_kwargs={"record": True, "over_time_window": window},
     )  # fmt: skip
     obs, _ = env.reset(seed=seed)
+    recorders = [BiasRecorder(est) if window else None for est in env.sim.estimators]
     controller = ObservationController.for_env(env)
     while env.agents:
         obs, *_ = env.step(controller.predict(obs)[0])
     rows = []
-    for est, truth in zip(env.sim.estimators, env.sim.true_params_grasp, strict=True):
+    for est, truth, rec in zip(
+        env.sim.estimators, env.sim.true_params_grasp, recorders, strict=True
+    ):
         err, cov = est.params_mean() - truth, est.params_cov()
         rows.append({
             "mass_err": err[0], "mass_std": np.sqrt(cov[0, 0]), "hz_err": err[3],
             "nees": float(err @ np.linalg.solve(cov, err)),
             "innovation": innovation_stats(est.log, truth),
+            "predicted": np.full(10, np.nan) if rec is None else rec.predicted_bias(),
         })  # fmt: skip
     env.close()
     return rows
@@ -126,9 +212,10 @@ def main(argv: list[str] | None = None) -> None:
     print(f"2 robots, figure8_tumble, {args.duration:g} s; noise x nominal; per robot (0 / 1)")
     print(
         f"| {source} x | encoders x | window | seed | mass error (g) | mass std (g) | error / std "
-        "| h_z error (g m) | NEES | nu mean square | nu lag-1 corr |"
+        "| h_z error (g m) | NEES | nu mean square | nu lag-1 corr | predicted mass bias (g) "
+        "| predicted h_z bias (g m) |"
     )
-    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for (noise, seed, window, _), rows in zip(jobs, results, strict=True):
         profile = sensors.NOISE_PROFILES[noise]
         if args.gyro:
@@ -148,7 +235,9 @@ def main(argv: list[str] | None = None) -> None:
             f"| {cells('{:+.1f}', lambda r: 1e3 * r['hz_err'])} "
             f"| {cells('{:.1f}', lambda r: r['nees'])} "
             f"| {cells('{:.2f}', lambda r: r['innovation'][0])} "
-            f"| {cells('{:+.2f}', lambda r: r['innovation'][1])} |"
+            f"| {cells('{:+.2f}', lambda r: r['innovation'][1])} "
+            f"| {cells('{:+.1f}', lambda r: 1e3 * r['predicted'][0]) if window else '-'} "
+            f"| {cells('{:+.1f}', lambda r: 1e3 * r['predicted'][3]) if window else '-'} |"
         )
 
 

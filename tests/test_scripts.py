@@ -296,6 +296,36 @@ def test_window_bias_innovation_stats_tell_white_from_correlated(scripts):
         assert lag1 == pytest.approx(phi, abs=0.03)
 
 
+def test_window_bias_score_bias_matches_monte_carlo(scripts):
+    """``score_bias`` against the mean score of conditioned updates whose modes follow
+    u_t = B u_t-1 + w_t (stationary covariance I, Gm(L) = (B^L)^T, not symmetric), over
+    updates at counts 0, 1 and 3, two channels."""
+    rng = np.random.default_rng(1)
+    n_draws, channels, counts = 100_000, 2, np.array([0, 1, 3])
+    rotation = np.linalg.qr(rng.standard_normal((4, 4)))[0]
+    step = 0.7 * rotation
+    gm = np.stack([np.linalg.matrix_power(step, lag).T for lag in range(4)])
+    coefs = rng.standard_normal((3, 6, 6)) * 0.5
+    coefs[-1] = np.eye(6)
+    d_y = rng.standard_normal((3, channels, 4, 6, 10))
+    imu_map = rng.standard_normal((3, channels, 4, 6))
+    root = rng.standard_normal((6, 6)) + 3 * np.eye(6)
+    cov = root @ root.T
+    u = np.empty((4, n_draws, channels, 4))
+    u[0] = rng.standard_normal((n_draws, channels, 4))
+    for t in range(1, 4):
+        fresh = np.sqrt(1 - 0.7**2) * rng.standard_normal((n_draws, channels, 4))
+        u[t] = u[t - 1] @ step.T + fresh
+    u = u[counts]  # (3, n, c, 4)
+    y = np.einsum("sxy,scayp,snca->nxp", coefs, d_y, u)
+    r = -np.einsum("sxy,scay,snca->nx", coefs, imu_map, u)
+    scores = np.einsum("nxp,xy,ny->np", y, np.linalg.inv(cov), r)
+    expected = scripts["window_bias"].score_bias(coefs, d_y, imu_map, gm, counts, cov)
+    error = scores.std(axis=0) / np.sqrt(n_draws)
+    assert np.all(np.abs(scores.mean(axis=0) - expected) < 4 * error)
+    assert np.max(np.abs(expected) / error) > 20  # the bias is far from zero
+
+
 def test_render_scene_help_shows_defaults(scripts, capsys):
     with pytest.raises(SystemExit):
         scripts["render_scene"].main(["--help"])
