@@ -17,9 +17,10 @@ dimension (1 for a consistent R) and its lag-1 correlation over updates (0 for w
 An unbiased error grows as the noise's std, as does the filter's std; a bias from errors in
 variables (the regressor's noise times the balance's own) grows as its square. The mass error's
 ratio to its std staying put over the scales says noise; growing with them, bias. With a window
-the last columns predict that bias from the model's own IMU modes (``score_bias``: the expected
-score of each conditioned update at the truth, through least squares on the log; the encoders'
-modes are not in it): a measured error that matches it is that bias.
+the last columns predict that bias from the model's own modes (``score_bias``: the expected
+score of each conditioned update at the truth, through least squares on the log, over the IMU's,
+the encoders' and the squared rates' modes with their covariance over time): a measured error
+that matches it is that bias.
 """
 
 from __future__ import annotations
@@ -34,7 +35,8 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # before numpy: one thread p
 import numpy as np  # noqa: E402
 
 from astrocargo.envs import sensors  # noqa: E402
-from astrocargo.estimator.over_time import IMU_MODES  # noqa: E402
+from astrocargo.estimator.motion import POINT_EXTENDED  # noqa: E402
+from astrocargo.estimator.over_time import IMU_MODES, conditioning_gain  # noqa: E402
 
 NOMINAL = sensors.NOISE_PROFILES["nominal"]
 _SILENT = replace(
@@ -65,44 +67,72 @@ def innovation_stats(log: list, pi: np.ndarray) -> tuple[float, float]:
     return square, float(np.mean(np.sum(w[:-1] * w[1:], axis=1)) / 6 / square)
 
 
-def score_bias(coefs, d_y, imu_map, mode_lag_cov, indices, cov) -> np.ndarray:
+def score_bias(coefs, d_y, balance_map, mode_lag_cov, indices, cov) -> np.ndarray:
     """E[Y'^T R'^-1 r'] (10,): the expected score of one conditioned update at the truth, for
     Y' = sum_j C_j Y_j and r' = sum_j C_j r_j over the window's updates and this one (S of them,
-    C_j = ``coefs`` (S, 6, 6): -A's blocks, then I), where the IMU's modes u_j (of this robot's c
-    channels, 4 each) move the regressor by sum d_Y u and the residual r = z - Y pi - b by
-    -sum J u: ``d_y`` (S, c, 4, 6, 10), ``imu_map`` J (S, c, 4, 6), Cov(u_j, u_l) = Gm(l - j)
-    (``mode_lag_cov`` (n_lags + 1, 4, 4)), ``indices`` (S,) the update counts, ``cov`` R'.
+    C_j = ``coefs`` (S, 6, 6): -A's blocks, then I), where modes u_j (c channels, m each) move
+    the regressor by sum d_Y u and the residual r = z - Y pi - b by -sum J u: ``d_y``
+    (S, c, m, 6, 10), ``balance_map`` J (S, c, m, 6), Cov(u_j, u_l) = Gm(l - j) per channel
+    (``mode_lag_cov`` (n_lags + 1, m, m)), ``indices`` (S,) the update counts, ``cov`` R'.
     Nonzero: errors in variables (the regressor's noise times the residual's own)."""
     n_lags = mode_lag_cov.shape[0] - 1
     lag = indices[None, :] - indices[:, None]
-    gm = np.zeros((len(indices), len(indices), 4, 4))
+    gm = np.zeros((len(indices), len(indices), *mode_lag_cov.shape[1:]))
     ahead, behind = (lag >= 0) & (lag <= n_lags), (lag < 0) & (lag >= -n_lags)
     gm[ahead] = mode_lag_cov[lag[ahead]]
     gm[behind] = mode_lag_cov[-lag[behind]].transpose(0, 2, 1)
     moved_y = np.einsum("sxy,scayp->scaxp", coefs, d_y)
-    moved_r = np.einsum("xy,syz,scaz->scax", np.linalg.inv(cov), coefs, imu_map)
+    moved_r = np.einsum("xy,syz,scaz->scax", np.linalg.inv(cov), coefs, balance_map)
     return -np.einsum("scaxp,stab,tcbx->p", moved_y, gm, moved_r)
+
+
+def _own_modes(est, inst, msgs) -> tuple[np.ndarray, np.ndarray]:
+    """This robot's modes at one update, at their per-update level: the conditioned balance map
+    (N - K D) (6, n) (``NoiseModel.over_time_noise``, every own column) and d Y (n, 6, 10)."""
+    noise = est.noise
+    peers = [(est._relative[p].transform(), m) for p, m in zip(est.peers, msgs, strict=True)]
+    own = noise.momentum_motion
+    n_map, d_map, _, level = noise._team(
+        own, est.ukf.params_mean(), inst.motion_jac, inst.regressor, peers
+    )
+    if peers:
+        n_map = n_map - conditioning_gain(n_map, d_map, level, noise.mismatch_model_var) @ d_map
+    scale = np.sqrt(level[: own.var.size])
+    return n_map[:, : own.var.size] * scale, inst.motion_jac[1] * scale[:, None, None]
+
+
+def mode_groups(noise) -> list[tuple[slice, int, int, np.ndarray]]:
+    """(columns, channels, modes per channel, Gm (n_lags + 1, m, m)) of a robot's own modes:
+    the IMU's (``mode_lag_cov``), the encoders' (their kernels' lag covariances in the modes of
+    their per-update factor F: F^+ G(L) F^+T; white in the window's model, correlated in truth)
+    and the squared rates' (white)."""
+    nj, n_rate = noise._n_joints, noise._n_rate_modes
+    point = noise._lag_cov[:, POINT_EXTENDED][:, :, POINT_EXTENDED]
+    inverse = np.linalg.pinv(noise._point_factor)
+    encoders = slice(IMU_MODES, IMU_MODES + 8 * nj)
+    return [
+        (slice(0, IMU_MODES), 6, 4, noise.mode_lag_cov),
+        (encoders, nj, 8, inverse @ point @ inverse.T),
+        (slice(encoders.stop, encoders.stop + n_rate), n_rate, 1, np.ones((1, 1, 1))),
+    ]
 
 
 class BiasRecorder:
     """Wraps one estimator (``over_time_window`` > 0; raw accelerometer) to keep, per used
-    update, what ``score_bias`` needs (its own IMU modes and the window's gain, estimator
-    internals: a diagnostic), and predicts the bias of least squares on its log,
-    F^-1 sum_k E[score_k], F = sum_k Y'^T R'^-1 Y'."""
+    update, what ``score_bias`` needs (its own modes, ``_own_modes``, and the window's gain;
+    estimator internals: a diagnostic), and predicts the bias of least squares on its log,
+    F^-1 sum_k E[score_k], F = sum_k Y'^T R'^-1 Y', over the IMU's, the encoders' and the
+    squared rates' modes (``mode_groups``)."""
 
     def __init__(self, est) -> None:
         self.est, self.modes, self.terms, self.used = est, {}, {}, []
         measure, noise, condition, update = (
             est._measurement, est._over_time_noise, est._window.condition, est.ukf.update_linear
         )  # fmt: skip
-        imu = slice(0, IMU_MODES)
-        std = np.sqrt(est.noise.momentum_motion.var[imu])[:, None, None]
 
         def over_time_noise(inst, msgs):
-            mean, cov, imu_map = noise(inst, msgs)
-            own = None if imu_map is None else imu_map[:, :6].transpose(1, 2, 0)
-            self.modes[self._stamp] = ((inst.motion_jac[1][imu] * std).reshape(6, 4, 6, 10), own)
-            return mean, cov, imu_map
+            self.modes[self._stamp] = _own_modes(est, inst, msgs)
+            return noise(inst, msgs)
 
         def conditioned(stamp, *args):
             entries = list(est._window.entries)
@@ -128,23 +158,26 @@ class BiasRecorder:
 
     def predicted_bias(self) -> np.ndarray:
         info, score = np.zeros((10, 10)), np.zeros(10)
-        every = self.est.update_every
+        groups = mode_groups(self.est.noise)
         for (_, y, _, r), stamp in zip(self.est.log, self.used, strict=True):
             gain, stamps = self.terms.get(stamp, (np.zeros((6, 0)), []))
             coefs = [-gain[:, 6 * i : 6 * i + 6] for i in range(len(stamps))] + [np.eye(6)]
             stamps = [*stamps, stamp]
-            d_y, imu_map = (np.stack(x) for x in zip(*(self.modes[s] for s in stamps), strict=True))
-            indices = np.array(stamps) // every
-            score += score_bias(
-                np.stack(coefs), d_y, imu_map, self.est.noise.mode_lag_cov, indices, r
-            )
+            balance, d_y = (np.stack(x) for x in zip(*(self.modes[s] for s in stamps), strict=True))
+            indices = np.array(stamps) // self.est.update_every
+            for cols, channels, m, mode_cov in groups:
+                if channels:
+                    shape = (len(stamps), channels, m)
+                    d_yg = d_y[:, cols].reshape(*shape, 6, 10)
+                    balance_g = balance[:, :, cols].transpose(0, 2, 1).reshape(*shape, 6)
+                    score += score_bias(np.stack(coefs), d_yg, balance_g, mode_cov, indices, r)
             info += y.T @ np.linalg.solve(r, y)
         return np.linalg.solve(info, score)
 
 
 def fly(job: tuple[str, int, int, float]) -> list[dict]:
     """One flight; per robot its mass error and std, z first-moment error, NEES, residual, and
-    with a window the IMU's errors-in-variables bias predicted from its modes."""
+    with a window the errors-in-variables bias predicted from its modes."""
     from astrocargo.agents.controllers import ObservationController
     from astrocargo.envs import astrobee_cargo_v0
 
