@@ -2,8 +2,8 @@
 
 Flies the limits' scenario (2 robots, `figure8_tumble`, 90 s) with the accelerometer alone at
 ``--scales`` times its `nominal` noise (``--gyro``: the gyro instead; ``--encoders S``: with the
-encoders' noise at S times `nominal` too),
-with the estimators' ``over_time_window`` 0 and ``--window``, and prints per robot the signed
+encoders' noise at S times `nominal` too), with the estimators' ``over_time_window`` 0 and
+``--window``, and prints per robot the signed
 mass error against the filter's own mass std, the first moment's z error, the NEES, and two
 statistics of the recorded updates at the true parameters pi: nu_k = z_k - Y_k pi - b_k whitened
 by its R_k (per update, the conditioned z', Y', b', R' with a window), its mean square per
