@@ -33,7 +33,11 @@ on the used subset is as exact). Cost per update: one (6 L, 6 L) Cholesky solve.
 
 Off by default (``CargoEstimator(over_time_window=0)``): measured (docs/estimation_limits.md), it
 gives the whole run's bound, above the lag-weighted one, and with every noise source its NEES
-leaves the band.
+leaves the band. The cause is a bias, not this covariance: the regressor holds the accelerometer's
+and the encoders' noise (errors in variables, biased as the noise's square); conditioning whitens
+the regressor's noise with the balance's while the slow excitation is scaled down with the noise's
+low frequencies, so the bias grows several times against the std. A covariance cannot cover it;
+a bias-compensated update would.
 """
 
 from __future__ import annotations

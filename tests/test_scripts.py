@@ -30,7 +30,8 @@ def load(name: str):
 @pytest.fixture(scope="module")
 def scripts():
     names = ("demo", "benchmark_estimation", "benchmark_performance", "soak", "train")
-    return {name: load(name) for name in names + ("evaluate", "render_scene", "estimation_limits")}
+    more = ("evaluate", "render_scene", "estimation_limits", "window_bias")
+    return {name: load(name) for name in names + more}
 
 
 def parser_error(parse, argv: list[str], capsys) -> str:
@@ -258,6 +259,7 @@ def test_estimation_limits_rejects(scripts, capsys, argv, message):
         "train",
         "evaluate",
         "estimation_limits",
+        "window_bias",
     ],
 )
 def test_help_shows_every_default(scripts, capsys, name):
@@ -271,6 +273,57 @@ def test_help_shows_every_default(scripts, capsys, name):
         if action.option_strings and action.default is not argparse.SUPPRESS:
             shown = " ".join(out.split())  # help lines are wrapped
             assert f"(default: {action.default})" in shown, (name, action.dest)
+
+
+def test_window_bias_innovation_stats_tell_white_from_correlated(scripts):
+    """The whitened residual's mean square and lag-1 correlation: 1 and 0 for residuals drawn
+    from their R, 1 and phi for an AR(1) residual with its stationary covariance."""
+    stats = scripts["window_bias"].innovation_stats
+    rng = np.random.default_rng(0)
+    pi, regressor = rng.standard_normal(10), rng.standard_normal((6, 10))
+    root = rng.standard_normal((6, 6)) + 3 * np.eye(6)
+    cov = root @ root.T
+    for phi in (0.0, 0.8):
+        white = rng.standard_normal((4000, 6))
+        ar = np.empty_like(white)
+        ar[0] = white[0]
+        for k in range(1, len(white)):
+            ar[k] = phi * ar[k - 1] + np.sqrt(1 - phi**2) * white[k]
+        offset = rng.standard_normal(6)
+        log = [(regressor @ pi + offset + root @ w, regressor, offset, cov) for w in ar]
+        square, lag1 = stats(log, pi)
+        assert square == pytest.approx(1.0, abs=0.05)
+        assert lag1 == pytest.approx(phi, abs=0.03)
+
+
+def test_window_bias_score_bias_matches_monte_carlo(scripts):
+    """``score_bias`` against the mean score of conditioned updates whose modes follow
+    u_t = B u_t-1 + w_t (stationary covariance I, Gm(L) = (B^L)^T, not symmetric), over
+    updates at counts 0, 1 and 3, two channels."""
+    rng = np.random.default_rng(1)
+    n_draws, channels, counts = 100_000, 2, np.array([0, 1, 3])
+    rotation = np.linalg.qr(rng.standard_normal((4, 4)))[0]
+    step = 0.7 * rotation
+    gm = np.stack([np.linalg.matrix_power(step, lag).T for lag in range(4)])
+    coefs = rng.standard_normal((3, 6, 6)) * 0.5
+    coefs[-1] = np.eye(6)
+    d_y = rng.standard_normal((3, channels, 4, 6, 10))
+    imu_map = rng.standard_normal((3, channels, 4, 6))
+    root = rng.standard_normal((6, 6)) + 3 * np.eye(6)
+    cov = root @ root.T
+    u = np.empty((4, n_draws, channels, 4))
+    u[0] = rng.standard_normal((n_draws, channels, 4))
+    for t in range(1, 4):
+        fresh = np.sqrt(1 - 0.7**2) * rng.standard_normal((n_draws, channels, 4))
+        u[t] = u[t - 1] @ step.T + fresh
+    u = u[counts]  # (3, n, c, 4)
+    y = np.einsum("sxy,scayp,snca->nxp", coefs, d_y, u)
+    r = -np.einsum("sxy,scay,snca->nx", coefs, imu_map, u)
+    scores = np.einsum("nxp,xy,ny->np", y, np.linalg.inv(cov), r)
+    expected = scripts["window_bias"].score_bias(coefs, d_y, imu_map, gm, counts, cov)
+    error = scores.std(axis=0) / np.sqrt(n_draws)
+    assert np.all(np.abs(scores.mean(axis=0) - expected) < 4 * error)
+    assert np.max(np.abs(expected) / error) > 20  # the bias is far from zero
 
 
 def test_render_scene_help_shows_defaults(scripts, capsys):
