@@ -247,23 +247,14 @@ class CargoEstimator(EstimatorInputs):
             index, peers, update_every, regressor_every, warmup_s, history_s, gate_prob,
             min_excitation_snr, process_std_rel, min_relative_fixes, motion_fusion,
         )  # fmt: skip
-        if over_time_window < 0:
-            raise ValueError(f"over_time_window must be >= 0 updates, got {over_time_window}")
-        self.over_time_window = int(over_time_window)
-        self.motion_lag_steps = _motion_lag_steps(motion_lag_s, dt_s, localization_every)
-        self._localization_every = int(localization_every)
+        self._init_options(over_time_window, motion_lag_s, dt_s, localization_every)
         self.motion_fusion = motion_fusion
         self._mismatch_model_std = float(mismatch_model_std)
         self._init_schedule(
             robot, index, peers, dt_s, update_every, regressor_every, warmup_s, history_s
         )
         self._init_signal_filters(sensor_noise, kinematics_cutoff_hz, cutoff_hz, rate_cutoff_hz)
-        self._fused = None  # the fused motion's buffer and smoother (``fused_motion``)
-        if self.motion_lag_steps:
-            self._fused = FusedMotion(
-                self.dt_s, self.motion_lag_steps, float(sensor_noise[0]), *localization_noise,
-                self._imu_rot, robot.imu_pos,
-            )  # fmt: skip
+        self._init_fused_motion(robot, sensor_noise, localization_noise)
         self._init_ukf(prior_params, prior_std, process_std_rel, gate_prob)
         self._init_noise_model(
             force_std_n, torque_std_nm, actuation_noise, sensor_noise, peer_noise_std,
@@ -273,6 +264,23 @@ class CargoEstimator(EstimatorInputs):
         self.min_relative_fixes = int(min_relative_fixes)
         self._init_bookkeeping(relative_grasps, record)
         self._step_constants = self._compiled_step_constants()
+
+    def _init_options(self, over_time_window, motion_lag_s, dt_s, localization_every) -> None:
+        """Check and keep the over-time window (updates) and the fused motion's lag (steps)."""
+        if over_time_window < 0:
+            raise ValueError(f"over_time_window must be >= 0 updates, got {over_time_window}")
+        self.over_time_window = int(over_time_window)
+        self.motion_lag_steps = _motion_lag_steps(motion_lag_s, dt_s, localization_every)
+        self._localization_every = int(localization_every)
+
+    def _init_fused_motion(self, robot, sensor_noise, localization_noise) -> None:
+        """The fused motion's buffer and smoother (``fused_motion``), with a lag; else None."""
+        self._fused = None
+        if self.motion_lag_steps:
+            self._fused = FusedMotion(
+                self.dt_s, self.motion_lag_steps, float(sensor_noise[0]), *localization_noise,
+                self._imu_rot, robot.imu_pos,
+            )  # fmt: skip
 
     def _init_schedule(
         self, robot, index, peers, dt_s, update_every, regressor_every, warmup_s, history_s
@@ -540,7 +548,8 @@ class CargoEstimator(EstimatorInputs):
         transform G_j -> G): their wrenches on the cargo sum_j T_j w_j (6,), the actuation
         covariance act_cov + sum_j T_j C_j T_j^T (6, 6) (C_j the message's), and the noise the
         peers add (6, 6): sum_j T_j N T_j^T (N ``peer_noise``) and, for a grasp layout not
-        given, the averaged relative pose's (``_relative_pose_cov``). Sums run in peer order."""
+        given, the averaged relative pose's (``NoiseModel.relative_pose_cov``). Sums run in
+        peer order."""
         zero = np.zeros((1, 6, 6))
         if not msgs:
             return np.zeros(6), act_cov.copy(), zero[0]
@@ -555,7 +564,7 @@ class CargoEstimator(EstimatorInputs):
             if peer_noise is not None:
                 noise_terms.append(peer_noise[k : k + 1])
             if rel.known is None:
-                noise_terms.append(self._relative_pose_cov(wrenches[k], rel.count)[None])
+                noise_terms.append(self.noise.relative_pose_cov(wrenches[k], rel.count)[None])
         return (
             np.add.reduce(np.concatenate((zero[0, :1], wrenches)), axis=0),
             np.add.reduce(np.concatenate((act_cov[None], carried)), axis=0),
@@ -625,14 +634,6 @@ class CargoEstimator(EstimatorInputs):
     def _excited(self, regressor: np.ndarray) -> bool:
         """Does the filtered motion of this instant stand above the noise of its measurement?"""
         return self.noise.excitation_snr(regressor, self._grasp_lever) >= self.min_excitation_snr
-
-    def _relative_pose_cov(self, wrench: np.ndarray, n_fixes: int) -> np.ndarray:
-        """Covariance a peer's wrench gains from the error of the averaged relative grasp pose."""
-        return self.noise.relative_pose_cov(wrench, n_fixes)
-
-    def _sensor_cov(self) -> np.ndarray:
-        """``sensor_cov_at`` the current estimate and this robot's base-to-grasp lever."""
-        return self.sensor_cov_at(self.ukf.params_mean(), self._grasp_lever)
 
     def sensor_cov_at(self, params: np.ndarray, lever_m: float | np.ndarray) -> np.ndarray:
         """Measurement covariance (..., 6, 6) of the sensors' noise, scalar per block, at the cargo
