@@ -422,12 +422,9 @@ class CargoEstimator(EstimatorInputs):
                 stamp, accel_imu, gyro_imu, joint_pos_rad, thrust_command, base_pos_world,
                 base_quat_world, servo_target_rate=servo_target_rate,
             )  # fmt: skip
-        if (accel_imu is None) != (gyro_imu is None):
-            raise ValueError("accel_imu and gyro_imu are one IMU frame: both None or neither")
-        readings = (accel_imu, gyro_imu, joint_pos_rad, thrust_command)
-        for (name, shape), x in zip(self._reading_shapes, readings, strict=True):
-            if x is not None and np.shape(x) != shape:  # now, not a lag later
-                raise ValueError(f"{name} must have shape {shape}, got {np.shape(x)}")
+        # Checked now, not a lag later.
+        self._check_imu_frame(accel_imu, gyro_imu)
+        self._check_shapes((accel_imu, gyro_imu, joint_pos_rad, thrust_command))
         late = self._fused.push(Reading(stamp, accel_imu, gyro_imu, joint_pos_rad,
                                         thrust_command, base_pos_world, base_quat_world,
                                         servo_target_rate))  # fmt: skip

@@ -313,8 +313,7 @@ class EstimatorInputs:
         moved over the period that ends now; given, the accelerometer's period mean is read less
         the servos' ripple it holds (``_without_servo_ripple``).
         """
-        if (accel_imu is None) != (gyro_imu is None):
-            raise ValueError("accel_imu and gyro_imu are one IMU frame: both None or neither")
+        self._check_imu_frame(accel_imu, gyro_imu)
         # The ripple goes into the compiled call when its map needs no refresh now.
         ripple_rate = servo_target_rate if self._ripple_map_current(stamp) else None
         if servo_target_rate is not None and ripple_rate is None:
@@ -423,6 +422,18 @@ class EstimatorInputs:
             self._grasp_lever = lever
         return outcome
 
+    @staticmethod
+    def _check_imu_frame(accel_imu, gyro_imu) -> None:
+        """ValueError unless the accelerometer and the gyro are both given or both None."""
+        if (accel_imu is None) != (gyro_imu is None):
+            raise ValueError("accel_imu and gyro_imu are one IMU frame: both None or neither")
+
+    def _check_shapes(self, readings) -> None:
+        """ValueError unless each of (accel, gyro, q, thrust) is None or of its shape."""
+        for (name, shape), x in zip(self._reading_shapes, readings, strict=True):
+            if x is not None and np.shape(x) != shape:
+                raise ValueError(f"{name} must have shape {shape}, got {np.shape(x)}")
+
     def _python_step(
         self, stamp, accel_imu, gyro_imu, joint_pos_rad, thrust_command, base_pos_world,
         base_quat_world,
@@ -433,9 +444,7 @@ class EstimatorInputs:
             None if x is None else np.asarray(x, dtype=float)
             for x in (accel_imu, gyro_imu, joint_pos_rad, thrust_command)
         ]
-        for (name, shape), x in zip(self._reading_shapes, readings, strict=True):
-            if x is not None and x.shape != shape:
-                raise ValueError(f"{name} must have shape {shape}, got {x.shape}")
+        self._check_shapes(readings)
         if stamp <= self.stamp:
             raise ValueError(f"stamps must increase: got {stamp} after {self.stamp}")
         self.stamp = int(stamp)
