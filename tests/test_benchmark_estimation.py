@@ -23,6 +23,13 @@ def _run(out_dir: Path) -> subprocess.Popen:
     )
 
 
+def _finish(proc: subprocess.Popen) -> None:
+    """Wait for a run reading its stderr as it goes (a full pipe would block ``wait``), and
+    close the pipe."""
+    _, err = proc.communicate(timeout=600)
+    assert proc.returncode == 0, err
+
+
 def _analysis(out_dir: Path) -> list[dict]:
     """Results without the fields that legitimately differ between runs (wall time)."""
     cases = json.loads((out_dir / "results.json").read_text())["cases"]
@@ -33,8 +40,7 @@ def _analysis(out_dir: Path) -> list[dict]:
 
 def test_killed_run_resumes_to_the_same_results(tmp_path):
     clean, killed = tmp_path / "clean", tmp_path / "killed"
-    proc = _run(clean)
-    assert proc.wait(timeout=600) == 0, proc.stderr.read()
+    _finish(_run(clean))
 
     proc = _run(killed)
     cases_dir = killed / "cases"
@@ -42,15 +48,14 @@ def test_killed_run_resumes_to_the_same_results(tmp_path):
     while time.time() < deadline and not (cases_dir.exists() and any(cases_dir.glob("*.json"))):
         time.sleep(0.2)
     proc.send_signal(signal.SIGKILL)
-    proc.wait()
+    proc.communicate()  # reaps it and closes its stderr pipe
     finished = list(cases_dir.glob("*.json"))
     assert 1 <= len(finished) < 3, "the kill should land between the first and the last case"
     for f in finished:
         json.loads(f.read_text())  # readable: written atomically
     assert not (killed / "results.json").exists()
 
-    proc = _run(killed)
-    assert proc.wait(timeout=600) == 0, proc.stderr.read()
+    _finish(_run(killed))
     assert _analysis(killed) == _analysis(clean)
 
 
