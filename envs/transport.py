@@ -548,7 +548,7 @@ class CargoTransport:
         log_std = self._estimate_log_std_sums()
         gain = self._log_std_sum - log_std
         self._log_std_sum = log_std
-        return gain if np.isfinite(gain).all() else np.zeros(self.n_robots)
+        return gain if all_finite(gain) else np.zeros(self.n_robots)
 
     def _get_infos(
         self,

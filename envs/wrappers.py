@@ -272,6 +272,9 @@ class SharedPolicyVecEnv(VecEnv):
             raise RuntimeError("step_wait() without step_async()")
         results = self._call_all("step", list(self._actions))
         self._actions = None
+        if len(results) == 1:  # one copy: its arrays are the slots' (fresh at every step)
+            obs, rewards, dones, infos, self.reset_infos = results[0]
+            return obs, rewards, dones, infos
         obs, rewards, dones, infos, reset_infos = zip(*results, strict=True)
         self.reset_infos = [info for per_copy in reset_infos for info in per_copy]
         infos = [info for per_copy in infos for info in per_copy]
