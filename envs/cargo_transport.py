@@ -408,6 +408,8 @@ class AstrobeeCargoEnv(ParallelEnv):
         self.possible_agents = [f"astrobee_{i}" for i in range(self.sim.n_robots)]
         self.agents: list[str] = []
         self._index = {agent: i for i, agent in enumerate(self.possible_agents)}
+        self._all_live = np.ones(self.sim.n_robots, dtype=bool)
+        self._all_live.flags.writeable = False
         self.state_space = spaces.Box(-np.inf, np.inf, (self.sim.state_dim,), np.float64)
         low, high = observation_bounds(self.sim.obs_layout)
         self.observation_spaces = {
@@ -499,7 +501,7 @@ class AstrobeeCargoEnv(ParallelEnv):
     def _live_mask(self) -> np.ndarray:
         """Whether each robot (index order) is a live agent, bool (n_robots,)."""
         if len(self.agents) == len(self.possible_agents):
-            return np.ones(len(self.possible_agents), dtype=bool)
+            return self._all_live  # read-only: the callers combine it into new arrays
         mask = np.zeros(len(self.possible_agents), dtype=bool)
         mask[[self._index[a] for a in self.agents]] = True
         return mask
