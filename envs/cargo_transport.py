@@ -22,7 +22,9 @@ The physics and estimation live in the plain class `CargoTransport` (`envs.trans
 PettingZoo); `AstrobeeCargoEnv` is the thin `pettingzoo.ParallelEnv` on top (agents `astrobee_0`
 ...). Both take one validated configuration, `EnvConfig` (`envs.config`), whose fields are the
 Arguments below; the navigation filter is `envs.navigation`, the faults `envs.faults`, the
-observation layout `envs.observations`.
+observation layout `envs.observations`. Beside the dict API, `step_arrays(actions)` takes the
+actions as one (n_robots, 8) array and returns the same step as arrays in robot index order
+(`ArrayStep`), without building dicts; the SB3 adapter (`envs.wrappers`) steps through it.
 
 ## Action Space
 
@@ -289,7 +291,7 @@ its qpos, qvel, body and arm-target entries are zeros (its quaternions too: neve
   above); the env deep-copies and pickles (a live renderer is not copied); `render_mode="human"`
   without a display raises `RuntimeError`; importing `astrocargo.envs` registers the Gymnasium
   form `astrocargo/AstrobeeCargo-v0`; `trajectory="excite"` (the team's designed excitation)
-  or the path of a design JSON file; `infos["saturated"]`. Changed: the observation carries the
+  or the path of a design JSON file; `infos["saturated"]`; `step_arrays`. Changed: the observation carries the
   robot's arm joint rates (33-34) and each peer slot the sender's arm angles and rates (its
   last four entries): 35 + 12 P + E entries instead of 33 + 8 P + E. Changed: each estimator
   models the noise its motion brings into the balance, conditioned on the team's IMUs

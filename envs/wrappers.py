@@ -7,7 +7,9 @@
   the copy then resets itself and each of its slots reports ``terminal_observation`` and
   ``TimeLimit.truncated`` (True at ``max_cycles``, False on termination), so SB3 bootstraps
   the value at the time limit only. ``seed(s)`` gives copy ``c`` the seed ``s + c`` at the next
-  reset; later episodes continue each copy's own generator, so a run is reproducible.
+  reset; later episodes continue each copy's own generator, so a run is reproducible. A copy
+  that is the bare cargo env steps through ``AstrobeeCargoEnv.step_arrays`` (no dicts); any
+  other parallel env (``DecisionEnv`` ...) through its ``step``.
 - ``SlotController``: runs a controller that acts on one copy's observations (n_robots, obs_dim)
   (e.g. ``ObservationController``) on all the slots of a ``SharedPolicyVecEnv``.
 - ``DecisionEnv`` and ``cargo_env_fn`` (the env as a learned policy sees it, and the picklable
