@@ -291,12 +291,13 @@ its qpos, qvel, body and arm-target entries are zeros (its quaternions too: neve
   above); the env deep-copies and pickles (a live renderer is not copied); `render_mode="human"`
   without a display raises `RuntimeError`; importing `astrocargo.envs` registers the Gymnasium
   form `astrocargo/AstrobeeCargo-v0`; `trajectory="excite"` (the team's designed excitation)
-  or the path of a design JSON file; `infos["saturated"]`; `step_arrays`. Changed: the observation carries the
-  robot's arm joint rates (33-34) and each peer slot the sender's arm angles and rates (its
-  last four entries): 35 + 12 P + E entries instead of 33 + 8 P + E. Changed: each estimator
-  models the noise its motion brings into the balance, conditioned on the team's IMUs
-  (`motion_fusion="team"`), and the IMU's period means enter its pre-filter with a zero-order
-  hold (no dt/2 lag behind the encoders): estimates differ from earlier versions.
+  or the path of a design JSON file; `infos["saturated"]`; `step_arrays`. Changed: the
+  observation carries the robot's arm joint rates (33-34) and each peer slot the sender's arm
+  angles and rates (its last four entries): 35 + 12 P + E entries instead of 33 + 8 P + E.
+  Changed: each estimator models the noise its motion brings into the balance, conditioned on
+  the team's IMUs (`motion_fusion="team"`), and the IMU's period means enter its pre-filter
+  with a zero-order hold (no dt/2 lag behind the encoders): estimates differ from earlier
+  versions.
 """
 
 from __future__ import annotations
