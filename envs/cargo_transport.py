@@ -22,7 +22,9 @@ The physics and estimation live in the plain class `CargoTransport` (`envs.trans
 PettingZoo); `AstrobeeCargoEnv` is the thin `pettingzoo.ParallelEnv` on top (agents `astrobee_0`
 ...). Both take one validated configuration, `EnvConfig` (`envs.config`), whose fields are the
 Arguments below; the navigation filter is `envs.navigation`, the faults `envs.faults`, the
-observation layout `envs.observations`.
+observation layout `envs.observations`. Beside the dict API, `step_arrays(actions)` takes the
+actions as one (n_robots, 8) array and returns the same step as arrays in robot index order
+(`ArrayStep`), without building dicts; the SB3 adapter (`envs.wrappers`) steps through it.
 
 ## Action Space
 
@@ -289,18 +291,20 @@ its qpos, qvel, body and arm-target entries are zeros (its quaternions too: neve
   above); the env deep-copies and pickles (a live renderer is not copied); `render_mode="human"`
   without a display raises `RuntimeError`; importing `astrocargo.envs` registers the Gymnasium
   form `astrocargo/AstrobeeCargo-v0`; `trajectory="excite"` (the team's designed excitation)
-  or the path of a design JSON file; `infos["saturated"]`. Changed: the observation carries the
-  robot's arm joint rates (33-34) and each peer slot the sender's arm angles and rates (its
-  last four entries): 35 + 12 P + E entries instead of 33 + 8 P + E. Changed: each estimator
-  models the noise its motion brings into the balance, conditioned on the team's IMUs
-  (`motion_fusion="team"`), and the IMU's period means enter its pre-filter with a zero-order
-  hold (no dt/2 lag behind the encoders): estimates differ from earlier versions.
+  or the path of a design JSON file; `infos["saturated"]`; `step_arrays`. Changed: the
+  observation carries the robot's arm joint rates (33-34) and each peer slot the sender's arm
+  angles and rates (its last four entries): 35 + 12 P + E entries instead of 33 + 8 P + E.
+  Changed: each estimator models the noise its motion brings into the balance, conditioned on
+  the team's IMUs (`motion_fusion="team"`), and the IMU's period means enter its pre-filter
+  with a zero-order hold (no dt/2 lag behind the encoders): estimates differ from earlier
+  versions.
 """
 
 from __future__ import annotations
 
 import os
 import sys
+from dataclasses import dataclass
 from typing import Any
 
 import mujoco
@@ -360,6 +364,18 @@ def _require_display() -> None:
         )
 
 
+@dataclass(slots=True)
+class ArrayStep:
+    """``AstrobeeCargoEnv.step_arrays``' result: what ``step`` returns as dicts over the live
+    agents, as arrays and a list in robot index order (``CargoTransport.step`` builds them)."""
+
+    observations: np.ndarray  # (n_robots, obs_dim) float64
+    rewards: np.ndarray  # (n_robots,) float64
+    terminated: np.ndarray  # (n_robots,) bool
+    truncated: np.ndarray  # (n_robots,) bool
+    infos: list[dict[str, Any] | None]
+
+
 class AstrobeeCargoEnv(ParallelEnv):
     """PettingZoo ParallelEnv of ``CargoTransport``; see the module docstring."""
 
@@ -395,6 +411,8 @@ class AstrobeeCargoEnv(ParallelEnv):
         self.possible_agents = [f"astrobee_{i}" for i in range(self.sim.n_robots)]
         self.agents: list[str] = []
         self._index = {agent: i for i, agent in enumerate(self.possible_agents)}
+        self._all_live = np.ones(self.sim.n_robots, dtype=bool)
+        self._all_live.flags.writeable = False
         self.state_space = spaces.Box(-np.inf, np.inf, (self.sim.state_dim,), np.float64)
         low, high = observation_bounds(self.sim.obs_layout)
         self.observation_spaces = {
@@ -448,13 +466,9 @@ class AstrobeeCargoEnv(ParallelEnv):
         dict[str, bool],
         dict[str, dict[str, Any]],
     ]:
-        if self._episode_over:
-            raise RuntimeError(
-                "the episode has ended (or reset() was never called): call reset() before step()"
-            )
-        live = self.agents  # replaced below, never changed in place
-        result = self.sim.step_checked(self._action_array(actions))
-        truncated = self.sim.step_count >= self.max_cycles
+        self._check_running()
+        live = self.agents  # replaced by _advance, never changed in place
+        result, truncated = self._advance(self._action_array(actions))
         rewards, obs, infos = self._by_live(
             live, (result.rewards.tolist(), result.observations, result.infos)
         )
@@ -464,13 +478,52 @@ class AstrobeeCargoEnv(ParallelEnv):
         else:
             terminations = dict.fromkeys(live, result.terminated)
         truncations = dict.fromkeys(live, truncated)
+        return obs, rewards, terminations, truncations, infos
+
+    def step_arrays(self, actions: np.ndarray) -> ArrayStep:
+        """``step`` with arrays in robot index order, no dicts: ``actions`` (n_robots, 8), the
+        rows of agents no longer live ignored (``ValueError`` as ``step``'s). What it returns is
+        ``ArrayStep``; the rows of robots that were not live at this step's start are zeros,
+        False and None."""
+        self._check_running()
+        live_mask = self._live_mask()
+        result, truncated = self._advance(self.sim.checked_actions(actions))
+        terminated = live_mask & result.terminated
+        if result.released:
+            terminated[list(result.released)] = True
+        return ArrayStep(
+            result.observations, result.rewards, terminated, live_mask & truncated, result.infos
+        )
+
+    def _check_running(self) -> None:
+        if self._episode_over:
+            raise RuntimeError(
+                "the episode has ended (or reset() was never called): call reset() before step()"
+            )
+
+    def _live_mask(self) -> np.ndarray:
+        """Whether each robot (index order) is a live agent, bool (n_robots,)."""
+        if len(self.agents) == len(self.possible_agents):
+            return self._all_live  # read-only: the callers combine it into new arrays
+        mask = np.zeros(len(self.possible_agents), dtype=bool)
+        mask[[self._index[a] for a in self.agents]] = True
+        return mask
+
+    def _advance(self, actions: np.ndarray) -> tuple[StepResult, bool]:
+        """One control step of the checked ``actions`` (n_robots, 8): the core's result and
+        whether the episode is truncated (``max_cycles``); the agents that are done leave."""
+        result = self.sim.step_checked(actions)
+        truncated = self.sim.step_count >= self.max_cycles
         if result.terminated or truncated or result.released:
-            self.agents = [a for a in live if not (terminations[a] or truncations[a])]
+            done = {self.possible_agents[i] for i in result.released}
+            if result.terminated or truncated:
+                done = set(self.agents)
+            self.agents = [a for a in self.agents if a not in done]
             if not self.agents:
                 self._episode_over = True
         if self.render_mode == "human":
             self.render()
-        return obs, rewards, terminations, truncations, infos
+        return result, truncated
 
     def _by_live(self, live: list[str], columns: tuple) -> list[dict[str, Any]]:
         """Each of ``columns`` (indexed by robot) as a dict over the ``live`` agents."""

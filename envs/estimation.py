@@ -21,6 +21,7 @@ from collections.abc import Callable
 from typing import Any
 
 import numpy as np
+from numba import njit
 
 from astrocargo.envs.sensors import SensorReadings
 from astrocargo.estimator.cargo_estimator import CargoEstimator
@@ -77,6 +78,18 @@ class FreshEstimators:
             )
             self._built = (layout, built)
         return copy.deepcopy(self._built[1], {id(r): r for r in self.robots})
+
+
+@njit(cache=True)
+def message_ages(stamp, valid, step_count, dt_s):
+    """The age of each slot's latest message, s: (k - stamp) dt where ``valid``, else 0, for
+    stamps (int, control steps) and ``valid`` (bool) of one shape, at control step k =
+    ``step_count`` of period ``dt_s``; a new array."""
+    age = np.zeros(stamp.shape)
+    for idx in np.ndindex(stamp.shape):
+        if valid[idx]:
+            age[idx] = (step_count - stamp[idx]) * dt_s
+    return age
 
 
 class TeamEstimation:
@@ -173,8 +186,7 @@ class TeamEstimation:
         if self._slot_cache is None or self._slot_cache[0] != acting_key:
             self._slot_cache = (acting_key, self._slot_arrays(acting))
         stamp, valid, wrench, arrived, arm = self._slot_cache[1]
-        age = np.where(valid, (step_count - stamp) * self.dt_s, 0.0)
-        return wrench, age, arrived, arm
+        return wrench, message_ages(stamp, valid, step_count, self.dt_s), arrived, arm
 
     def _slot_arrays(self, acting: np.ndarray) -> tuple[np.ndarray, ...]:
         """`peer_slot_values`' stamps, validity, wrenches, arrivals and arm states (read-only)."""

@@ -298,6 +298,11 @@ class CargoTransport:
         rows of robots that have let go of the cargo are ignored."""
         if not self._ready:
             raise RuntimeError("call reset() before step(), and again after the episode ended")
+        return self.step_checked(self.checked_actions(actions))
+
+    def checked_actions(self, actions: np.ndarray) -> np.ndarray:
+        """``actions`` as float64 (n_robots, 8); ``ValueError`` on another shape or on a
+        non-finite entry in the row of a robot holding the cargo."""
         actions = np.asarray(actions, dtype=float)
         if actions.shape != (self.n_robots, ACTION_DIM):
             raise ValueError(
@@ -306,7 +311,7 @@ class CargoTransport:
         bad = first_non_finite(actions, self._acting_mask)
         if bad >= 0:
             raise ValueError(f"actions of robot {bad} are not all finite")
-        return self.step_checked(actions)
+        return actions
 
     def step_checked(self, actions: np.ndarray) -> StepResult:
         """``step`` of actions already checked: float64 (n_robots, 8), every acting row finite
@@ -543,7 +548,7 @@ class CargoTransport:
         log_std = self._estimate_log_std_sums()
         gain = self._log_std_sum - log_std
         self._log_std_sum = log_std
-        return gain if np.isfinite(gain).all() else np.zeros(self.n_robots)
+        return gain if all_finite(gain) else np.zeros(self.n_robots)
 
     def _get_infos(
         self,
@@ -566,6 +571,7 @@ class CargoTransport:
         saturated = [0.0] * self.n_robots if saturated is None else saturated.tolist()
         faults = self.fault_schedule.infos(self.step_count, self.channel.fault_stats)
         time_s, releases, holding = float(self.data.time), len(self.released_at_s), self.holding
+        estimators = self.estimators
         for i in robots:
             r = per_robot[i]
             info: dict[str, Any] = {
@@ -586,13 +592,11 @@ class CargoTransport:
             }
             if i in released:
                 info["released_momentum"] = self.released_momentum[i].copy()
-            if self.estimators:
-                info.update(
-                    estimate=self.est_mean[i].copy(),
-                    estimate_std=self.est_std[i].copy(),
-                    estimator=self.estimators[i].counters,
-                    **self.est_errors[i],
-                )
+            if estimators:
+                info["estimate"] = self.est_mean[i].copy()
+                info["estimate_std"] = self.est_std[i].copy()
+                info["estimator"] = estimators[i].counters
+                info |= self.est_errors[i]
             infos[i] = info
         return infos
 

@@ -7,7 +7,9 @@
   the copy then resets itself and each of its slots reports ``terminal_observation`` and
   ``TimeLimit.truncated`` (True at ``max_cycles``, False on termination), so SB3 bootstraps
   the value at the time limit only. ``seed(s)`` gives copy ``c`` the seed ``s + c`` at the next
-  reset; later episodes continue each copy's own generator, so a run is reproducible.
+  reset; later episodes continue each copy's own generator, so a run is reproducible. A copy
+  that is the bare cargo env steps through ``AstrobeeCargoEnv.step_arrays`` (no dicts); any
+  other parallel env (``DecisionEnv`` ...) through its ``step``.
 - ``SlotController``: runs a controller that acts on one copy's observations (n_robots, obs_dim)
   (e.g. ``ObservationController``) on all the slots of a ``SharedPolicyVecEnv``.
 - ``DecisionEnv`` and ``cargo_env_fn`` (the env as a learned policy sees it, and the picklable
@@ -50,6 +52,7 @@ from stable_baselines3.common.vec_env.base_vec_env import (
 )
 
 from astrocargo.envs import ENV_ID  # noqa: F401  (registered by astrocargo/envs/__init__.py)
+from astrocargo.envs.cargo_transport import AstrobeeCargoEnv
 from astrocargo.envs.config import LEARNING_TASKS
 from astrocargo.envs.decision import cargo_env_fn, make_cargo_env
 
@@ -66,19 +69,23 @@ class _Copy:
     def __init__(self, env: ParallelEnv) -> None:
         self.env = env
         self.agents = list(env.possible_agents)
+        # The cargo env's array step (``AstrobeeCargoEnv.step_arrays``): no dicts on the way. Not
+        # through a wrapper (``DecisionEnv`` passes attributes through: its own step must run).
+        self._step_arrays = env.step_arrays if isinstance(env, AstrobeeCargoEnv) else None
 
     def reset(self, seed: int | None, options: dict | None) -> tuple[np.ndarray, list[dict]]:
         obs, infos = self.env.reset(seed=seed, options=options or None)
         return self._stack(obs), [dict(infos.get(a, {})) for a in self.agents]
 
     def step(self, actions: np.ndarray) -> tuple:
-        """Returns obs (n, d), rewards (n,), dones (n,), infos and the reset infos."""
-        agents = self.agents
-        # One action row per agent (SharedPolicyVecEnv splits them so): zip's strict check
-        # would cost more than the dict.
-        obs, rewards, terms, truncs, infos = self.env.step(dict(zip(agents, actions)))  # noqa: B905
-        terminated = [bool(terms[a]) for a in agents]
-        truncated = [bool(truncs[a]) for a in agents]
+        """Returns obs (n, d), rewards (n,) float32, dones (n,), infos and the reset infos."""
+        if self._step_arrays is not None:
+            # Its infos are built anew at every step: they are ours to extend.
+            r = self._step_arrays(actions)
+            obs_array, rewards, infos = r.observations, r.rewards, r.infos
+            terminated, truncated = r.terminated.tolist(), r.truncated.tolist()
+        else:
+            obs_array, rewards, terminated, truncated, infos = self._step_dicts(actions)
         # On Python lists: numpy's logical_or, any and all on lists of two cost more.
         done = [t or u for t, u in zip(terminated, truncated)]  # noqa: B905 (both per agent)
         if any(done) and not all(done):
@@ -87,16 +94,26 @@ class _Copy:
                 f"{[a for a, d in zip(self.agents, done, strict=True) if not d]} are still running"
             )
         dones = np.array(done)
-        obs_array = self._stack(obs)
-        infos = [dict(infos[a]) for a in agents]
-        reset_infos = [{} for _ in agents]
-        if dones[0]:
+        reset_infos = [{} for _ in self.agents]
+        if done[0]:
             for i, info in enumerate(infos):
                 info["terminal_observation"] = obs_array[i]
                 info["TimeLimit.truncated"] = bool(truncated[i] and not terminated[i])
             obs_array, reset_infos = self.reset(None, None)
-        reward_array = np.array([rewards[a] for a in agents], dtype=np.float32)
-        return obs_array, reward_array, dones, infos, reset_infos
+        return obs_array, rewards.astype(np.float32), dones, infos, reset_infos
+
+    def _step_dicts(self, actions: np.ndarray) -> tuple:
+        """A step of any parallel env: obs (n, d), rewards (n,), terminated and truncated (lists
+        of n) and copies of the infos, in agent order."""
+        agents = self.agents
+        # One action row per agent (SharedPolicyVecEnv splits them so): zip's strict check
+        # would cost more than the dict.
+        obs, rewards, terms, truncs, infos = self.env.step(dict(zip(agents, actions)))  # noqa: B905
+        return (
+            self._stack(obs), np.array([rewards[a] for a in agents]),
+            [bool(terms[a]) for a in agents], [bool(truncs[a]) for a in agents],
+            [dict(infos[a]) for a in agents],
+        )  # fmt: skip
 
     def _stack(self, obs: dict[str, np.ndarray]) -> np.ndarray:
         """The agents' observations as rows (n, d), in agent order."""
@@ -257,6 +274,9 @@ class SharedPolicyVecEnv(VecEnv):
             raise RuntimeError("step_wait() without step_async()")
         results = self._call_all("step", list(self._actions))
         self._actions = None
+        if len(results) == 1:  # one copy: its arrays are the slots' (fresh at every step)
+            obs, rewards, dones, infos, self.reset_infos = results[0]
+            return obs, rewards, dones, infos
         obs, rewards, dones, infos, reset_infos = zip(*results, strict=True)
         self.reset_infos = [info for per_copy in reset_infos for info in per_copy]
         infos = [info for per_copy in infos for info in per_copy]

@@ -20,7 +20,8 @@ Sections:
 - sb3_loop: environment steps per second per copy through the SB3 adapter of envs/wrappers.py
   (`SharedPolicyVecEnv`, set up as scripts/train.py does on its task figure8_10s, one copy): a
   plain loop of PPO's `predict` and `VecEnv.step`, and the same loop with zero actions (the
-  adapter and env alone).
+  adapter and env alone); per second of wall time and per second of the process's CPU time
+  (steps_per_cpu_s, adapter_steps_per_cpu_s: time lost to other jobs left out).
 - training: environment steps per second inside SB3's loop (PPO rollouts and updates, set up
   as scripts/train.py does) for 1 and 2 environment copies (2 copies: in-process, and one
   subprocess per copy as subprocess_steps_per_s).
@@ -407,26 +408,36 @@ def bench_sb3_loop() -> dict[str, float]:
     venv = model.get_env()
     zeros = np.zeros((venv.num_envs, *venv.action_space.shape), dtype=venv.action_space.dtype)
 
-    def loop(act) -> float:
+    def loop(act) -> tuple[float, float]:
+        """Steps per second of wall time and of the process's CPU time."""
         obs = venv.reset()
         for _ in range(SB3_LOOP_WARMUP_STEPS):
             obs, *_ = venv.step(act(obs))
-        start = time.perf_counter()
+        start, cpu_start = time.perf_counter(), time.process_time()
         for _ in range(SB3_LOOP_STEPS):
             obs, *_ = venv.step(act(obs))
-        return SB3_LOOP_STEPS / (time.perf_counter() - start)
+        cpu = time.process_time() - cpu_start
+        return SB3_LOOP_STEPS / (time.perf_counter() - start), SB3_LOOP_STEPS / cpu
 
-    policy = loop(lambda obs: model.predict(obs, deterministic=False)[0])
-    adapter = loop(lambda obs: zeros)
+    policy, policy_cpu = loop(lambda obs: model.predict(obs, deterministic=False)[0])
+    adapter, adapter_cpu = loop(lambda obs: zeros)
     venv.close()
     print(
         f"sb3_loop: one copy of scripts/train.py's set-up ({args.robots} robots, "
         f"{'with' if args.estimates else 'without'} estimates, VecNormalize, task {BENCH_TASK}), "
-        f"{SB3_LOOP_STEPS} steps after {SB3_LOOP_WARMUP_STEPS}; env steps/s per copy"
+        f"{SB3_LOOP_STEPS} steps after {SB3_LOOP_WARMUP_STEPS}; env steps/s per copy, of wall "
+        f"time and of the process's CPU time (robust to other jobs on a shared machine)"
     )
-    print(f"  PPO predict + step   {policy:9.0f}")
-    print(f"  zero actions + step  {adapter:9.0f}")
-    return {"steps_per_s": policy, "adapter_steps_per_s": adapter, "robots": args.robots}
+    print(f"  {'':20} {'wall':>9} {'cpu':>9}")
+    print(f"  PPO predict + step   {policy:9.0f} {policy_cpu:9.0f}")
+    print(f"  zero actions + step  {adapter:9.0f} {adapter_cpu:9.0f}")
+    return {
+        "steps_per_s": policy,
+        "adapter_steps_per_s": adapter,
+        "steps_per_cpu_s": policy_cpu,
+        "adapter_steps_per_cpu_s": adapter_cpu,
+        "robots": args.robots,
+    }
 
 
 NUMBA_PROBE = """
