@@ -378,6 +378,9 @@ class CargoEstimator(EstimatorInputs):
         self._own_fix: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self._peer_msgs: dict[tuple[int, int], WrenchMessage] = {}
         self._oldest_peer_msg = math.inf  # a lower bound of the stamps in _peer_msgs
+        # Set when an instant or a message arrives or the peers change: ``process`` has work
+        # beyond giving up what is too old (``_expiring``).
+        self._changed = False
         self._relative: dict[int, RelativeGrasp] = {p: RelativeGrasp() for p in self.peers}
         for p, (rot, pos) in (relative_grasps or {}).items():
             if p not in self._relative:
@@ -461,6 +464,7 @@ class CargoEstimator(EstimatorInputs):
             return
         self._peer_msgs[(message.sender, message.stamp)] = message
         self._oldest_peer_msg = min(self._oldest_peer_msg, message.stamp)
+        self._changed = True
         if self._relative[message.sender].known is not None:
             return  # the grasp layout is given: no relative pose to average
         own = self._own_fix.get(message.stamp)
@@ -478,6 +482,9 @@ class CargoEstimator(EstimatorInputs):
     def process(self) -> int:
         """Update with every complete instant; skip the ones too old to wait. Returns the number
         of updates made plus the number rolled back (0: the estimate did not change)."""
+        if not self._changed and not self._expiring():
+            return 0  # what waits is still incomplete and nothing falls out of the history
+        self._changed = False
         done = 0
         for stamp in sorted(self._pending):
             inst = self._pending[stamp]
@@ -597,6 +604,17 @@ class CargoEstimator(EstimatorInputs):
         b = terms[:, 12:18] + cargo_regressor_parts(terms)[1] @ params
         return self._rate_square_var * (b.T * weights) @ b
 
+    def _expiring(self) -> bool:
+        """Does anything held (pending instants, squared-rate terms, peers' messages, own fixes)
+        fall before the history's horizon, so that ``process`` has to give it up?"""
+        horizon = self.stamp - self.history_steps
+        return (
+            self._oldest_peer_msg < horizon
+            or any(s < horizon for s in self._pending)
+            or any(s < horizon for s in self._rate_terms)
+            or any(s < horizon for s in self._own_fix)
+        )
+
     def _forget_before(self, horizon: int) -> None:
         """Drop the peers' messages and own fixes of stamps before ``horizon``."""
         for key in [k for k in self._rate_terms if k < horizon]:
@@ -649,6 +667,7 @@ class CargoEstimator(EstimatorInputs):
         self._relative = {p: self._relative.get(p, RelativeGrasp()) for p in self.peers}
         self.n_skipped_missing += len(self._pending)
         self._pending.clear()
+        self._changed = True
         if self._window is not None:
             self._window.clear()  # the team's IMU channels change
         self._tainted_until = max(self._tainted_until, self.stamp + self.taint_steps)

@@ -83,6 +83,7 @@ MOTION_FUSION = ("none", "own", "team")
 FACTOR_REFRESH_UPDATES = 8
 # ``momentum_jacobians`` without the squared rate noise's terms.
 _NO_RATE_TERMS = (np.zeros((0, SIZE)), np.zeros(0))
+_NO_COV = np.zeros((10, 10))  # ``_conditioned`` without the posterior's spread
 
 
 class PeerMotion(Protocol):
@@ -201,15 +202,33 @@ class MotionNoiseSpec:
     band: np.ndarray
 
 
-def _posterior_spread(d_y: np.ndarray, level: np.ndarray, params_cov: np.ndarray) -> np.ndarray:
+@njit(cache=True)
+def _posterior_spread(d_y, level, params_cov):
     """sum_k level_k dY_k P dY_k^T (6, 6): the regressor noise's spread over the posterior P
     (10, 10), for the (n, 6, 10) d Y and the first n entries of ``level``, as one product over
     the stacked (6, 10 n) rows."""
-    d_y = np.asarray(d_y, dtype=float)
-    scaled = np.sqrt(level[: d_y.shape[0], None, None]) * d_y
-    rows = scaled.transpose(1, 0, 2).reshape(6, -1)
-    spread = (scaled @ params_cov).transpose(1, 0, 2).reshape(6, -1)
-    return spread @ rows.T
+    n = d_y.shape[0]
+    scaled = np.sqrt(level[:n]).reshape(n, 1, 1) * d_y
+    spread = (scaled.reshape(6 * n, 10) @ params_cov).reshape(n, 6, 10)
+    rows = np.ascontiguousarray(scaled.transpose(1, 0, 2)).reshape(6, 10 * n)
+    spread_rows = np.ascontiguousarray(spread.transpose(1, 0, 2)).reshape(6, 10 * n)
+    return spread_rows @ np.ascontiguousarray(rows.T)
+
+
+@njit(cache=True)
+def _conditioned_noise(n_map, d_map, mismatch, level, condition, mismatch_model_var, d_y,
+                       params_cov, with_spread):  # fmt: skip
+    """Mean (6,) and covariance (6, 6) of the motion noise from the team's maps
+    (``_team_maps``): conditioned on the mismatch (``motion.condition_maps``) or not
+    (``motion.noise_cov``), plus the posterior's spread (``_posterior_spread``) when
+    ``with_spread``."""
+    if condition:
+        mean, cov = condition_maps(n_map, d_map, level, mismatch, mismatch_model_var)
+    else:
+        mean, cov = np.zeros(6), noise_cov(n_map, level)
+    if with_spread:
+        cov = cov + _posterior_spread(d_y, level, params_cov)
+    return mean, cov
 
 
 class NoiseModel:
@@ -572,13 +591,12 @@ class NoiseModel:
         """Mean and covariance of the motion noise from ``_team``'s maps, conditioned on the
         mismatch or not, with the posterior's spread (``motion_noise``)."""
         n_map, d_map, mismatch, level = team
-        if condition:
-            mean, cov = condition_maps(n_map, d_map, level, mismatch, self.mismatch_model_var)
-        else:
-            mean, cov = np.zeros(6), noise_cov(n_map, level)
-        if params_cov is not None:
-            cov = cov + _posterior_spread(motion_jac[1], level, params_cov)
-        return mean, cov
+        spread = params_cov is not None
+        return _conditioned_noise(
+            n_map, d_map, mismatch, level, condition, self.mismatch_model_var,
+            np.ascontiguousarray(motion_jac[1], dtype=float),
+            np.ascontiguousarray(params_cov, dtype=float) if spread else _NO_COV, spread,
+        )  # fmt: skip
 
     def over_time_noise(
         self,

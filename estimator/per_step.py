@@ -554,6 +554,7 @@ class EstimatorInputs:
         tainted = stamp <= self._tainted_until
         jac, motion = self._motion_fields(b, stamp)
         sent_cov = act_cov + rate_links_cov if jac is None else act_cov
+        self._changed = True
         self._pending[stamp] = Instant(
             thrust=b.thrust.copy(),
             links=b.links.copy(),
