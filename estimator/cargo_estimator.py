@@ -606,13 +606,12 @@ class CargoEstimator(EstimatorInputs):
 
     def _expiring(self) -> bool:
         """Does anything held (pending instants, squared-rate terms, peers' messages, own fixes)
-        fall before the history's horizon, so that ``process`` has to give it up?"""
+        fall before the history's horizon, so that ``process`` has to give it up? (The dicts
+        keyed by own stamps hold them in increasing order: the first is the oldest.)"""
         horizon = self.stamp - self.history_steps
-        return (
-            self._oldest_peer_msg < horizon
-            or any(s < horizon for s in self._pending)
-            or any(s < horizon for s in self._rate_terms)
-            or any(s < horizon for s in self._own_fix)
+        return self._oldest_peer_msg < horizon or any(
+            next(iter(held), horizon) < horizon
+            for held in (self._pending, self._rate_terms, self._own_fix)
         )
 
     def _forget_before(self, horizon: int) -> None:
