@@ -533,10 +533,13 @@ class CargoEstimator(EstimatorInputs):
         (floors, actuation, motion, peers' noise, squared rates); with ``over_time_window``
         conditioned on the window's updates (``over_time``), and the window's entry for it."""
         peers, cov, peer_noise = self._peer_terms(inst.act_cov, msgs)
-        params = self.ukf.params_mean()
-        motion_mean, motion_cov, imu_map = self._motion_noise(inst, msgs, params)
+        imu_map = None
+        if self._window is None:
+            motion_mean, motion_cov = self._motion_noise(inst, msgs)
+        else:
+            motion_mean, motion_cov, imu_map = self._over_time_noise(inst, msgs)
         meas_cov = self.meas_cov + cov / self.update_every + motion_cov + peer_noise
-        meas_cov = meas_cov + self._rate_square_cov(stamp, params)
+        meas_cov = meas_cov + self._rate_square_cov(stamp)
         measurement = (inst.thrust, inst.regressor, inst.links - peers - motion_mean, meas_cov)
         if self._window is None:
             return measurement, None
@@ -572,30 +575,32 @@ class CargoEstimator(EstimatorInputs):
             np.add.reduce(np.concatenate(noise_terms), axis=0),
         )
 
-    def _motion_noise(self, inst: Instant, msgs: list, params: np.ndarray):
-        """Mean and covariance of the balance's motion noise at this instant at the estimate
-        ``params`` (``NoiseModel.motion_noise``), and with ``over_time_window`` the team's IMU
-        map (``NoiseModel.over_time_noise``; None without)."""
+    def _motion_noise(self, inst: Instant, msgs: list) -> tuple[np.ndarray, np.ndarray]:
+        """Mean and covariance of the balance's motion noise at this instant
+        (``NoiseModel.motion_noise``)."""
         peers = [(self._relative[p].transform(), m) for p, m in zip(self.peers, msgs, strict=True)]
-        if self._window is not None:
-            return self.noise.over_time_noise(
-                self.motion_fusion, params, inst.motion_jac, inst.regressor, peers,
-                self._grasp_lever, params_cov=self.ukf.P,
-            )  # fmt: skip
-        mean, cov = self.noise.motion_noise(
-            self.motion_fusion, params, inst.motion_jac, inst.regressor, peers,
+        return self.noise.motion_noise(
+            self.motion_fusion, self.ukf.params_mean(), inst.motion_jac, inst.regressor, peers,
             self._grasp_lever, own=self.noise.momentum_motion, params_cov=self.ukf.P,
         )  # fmt: skip
-        return mean, cov, None
 
-    def _rate_square_cov(self, stamp: int, params: np.ndarray) -> np.ndarray:
+    def _over_time_noise(self, inst: Instant, msgs: list):
+        """``_motion_noise`` and the team's IMU map (``NoiseModel.over_time_noise``)."""
+        peers = [(self._relative[p].transform(), m) for p, m in zip(self.peers, msgs, strict=True)]
+        return self.noise.over_time_noise(
+            self.motion_fusion, self.ukf.params_mean(), inst.motion_jac, inst.regressor, peers,
+            self._grasp_lever, params_cov=self.ukf.P,
+        )  # fmt: skip
+
+    def _rate_square_cov(self, stamp: int) -> np.ndarray:
         """Covariance (6, 6) of the encoders' squared rate noise in this instant's own balance
-        (links and regressor at the estimate ``params``): var sum_k w_k b_k b_k^T,
+        (links and regressor at the current estimate): var sum_k w_k b_k b_k^T,
         b_k = Q_links + Q_Y pi of ``momentum.rate_square_terms``."""
         entry = self._rate_terms.pop(stamp, None)
         if entry is None:
             return np.zeros((6, 6))
         terms, weights = entry
+        params = self.ukf.params_mean()
         b = terms[:, 12:18] + cargo_regressor_parts(terms)[1] @ params
         return self._rate_square_var * (b.T * weights) @ b
 
