@@ -378,9 +378,7 @@ class CargoEstimator(EstimatorInputs):
         self._own_fix: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self._peer_msgs: dict[tuple[int, int], WrenchMessage] = {}
         self._oldest_peer_msg = math.inf  # a lower bound of the stamps in _peer_msgs
-        # Set when an instant or a message arrives or the peers change: ``process`` has work
-        # beyond giving up what is too old (``_expiring``).
-        self._changed = False
+        self._changed = False  # an instant or a message arrived, or the peers changed
         self._relative: dict[int, RelativeGrasp] = {p: RelativeGrasp() for p in self.peers}
         for p, (rot, pos) in (relative_grasps or {}).items():
             if p not in self._relative:
@@ -603,16 +601,6 @@ class CargoEstimator(EstimatorInputs):
         params = self.ukf.params_mean()
         b = terms[:, 12:18] + cargo_regressor_parts(terms)[1] @ params
         return self._rate_square_var * (b.T * weights) @ b
-
-    def _expiring(self) -> bool:
-        """Does anything held (pending instants, squared-rate terms, peers' messages, own fixes)
-        fall before the history's horizon, so that ``process`` has to give it up? (The dicts
-        keyed by own stamps hold them in increasing order: the first is the oldest.)"""
-        horizon = self.stamp - self.history_steps
-        return self._oldest_peer_msg < horizon or any(
-            next(iter(held), horizon) < horizon
-            for held in (self._pending, self._rate_terms, self._own_fix)
-        )
 
     def _forget_before(self, horizon: int) -> None:
         """Drop the peers' messages and own fixes of stamps before ``horizon``."""
