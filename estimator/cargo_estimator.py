@@ -556,10 +556,10 @@ class CargoEstimator(EstimatorInputs):
         if not msgs:
             return np.zeros(6), act_cov.copy(), zero[0]
         rels = [self._relative[p] for p in self.peers]
-        transforms = np.stack([rel.transform() for rel in rels])
+        transforms = np.array([rel.transform() for rel in rels])
         turned = transforms.transpose(0, 2, 1)
-        wrenches = (transforms @ np.stack([m.wrench_grasp for m in msgs])[:, :, None])[:, :, 0]
-        carried = transforms @ np.stack([m.wrench_cov_grasp for m in msgs]) @ turned
+        wrenches = (transforms @ np.array([m.wrench_grasp for m in msgs])[:, :, None])[:, :, 0]
+        carried = transforms @ np.array([m.wrench_cov_grasp for m in msgs]) @ turned
         peer_noise = transforms @ self._peer_noise_cov @ turned if self._peer_noise else None
         noise_terms = [zero]
         for k, rel in enumerate(rels):

@@ -472,7 +472,7 @@ class NoiseModel:
         With ``over_time``: the 24 IMU modes as they are (scaled to unit variance), then 9 that
         carry the rest's (6, 33), (3, 33), ones (33,): the receiver weighs the IMU's over time
         (``over_time_noise``)."""
-        stacked = np.vstack((d_links, d_y[:, :3, 0].T)) * self._mode_std
+        stacked = np.concatenate((d_links, d_y[:, :3, 0].T)) * self._mode_std
         if not self.over_time:
             factor = psd_factor(stacked @ stacked.T)
             return factor[:6], factor[6:], np.ones(9)
@@ -665,10 +665,11 @@ class NoiseModel:
                 f"Jacobians' {np.shape(d_y)[0]} + {sizes} coordinates"
             )
         if peers:
-            transforms = np.stack([t for t, _ in peers], dtype=float)
-            peer_links = np.hstack([m.motion_links_jac for _, m in peers], dtype=float)
-            peer_grasp = np.hstack([m.motion_grasp_jac for _, m in peers], dtype=float)
-            peer_acc = np.stack([m.grasp_acc for _, m in peers], dtype=float)
+            # np.array and np.concatenate: the stacks without numpy's Python-level wrappers.
+            transforms = np.array([t for t, _ in peers], dtype=float)
+            peer_links = np.concatenate([m.motion_links_jac for _, m in peers], axis=1, dtype=float)
+            peer_grasp = np.concatenate([m.motion_grasp_jac for _, m in peers], axis=1, dtype=float)
+            peer_acc = np.array([m.grasp_acc for _, m in peers], dtype=float)
         else:
             transforms, peer_links = np.zeros((0, 6, 6)), np.zeros((6, 0))
             peer_grasp, peer_acc = np.zeros((3, 0)), np.zeros((0, 3))
