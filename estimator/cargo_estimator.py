@@ -378,6 +378,7 @@ class CargoEstimator(EstimatorInputs):
         self._own_fix: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self._peer_msgs: dict[tuple[int, int], WrenchMessage] = {}
         self._oldest_peer_msg = math.inf  # a lower bound of the stamps in _peer_msgs
+        self._changed = False  # an instant or a message arrived, or the peers changed
         self._relative: dict[int, RelativeGrasp] = {p: RelativeGrasp() for p in self.peers}
         for p, (rot, pos) in (relative_grasps or {}).items():
             if p not in self._relative:
@@ -461,6 +462,7 @@ class CargoEstimator(EstimatorInputs):
             return
         self._peer_msgs[(message.sender, message.stamp)] = message
         self._oldest_peer_msg = min(self._oldest_peer_msg, message.stamp)
+        self._changed = True
         if self._relative[message.sender].known is not None:
             return  # the grasp layout is given: no relative pose to average
         own = self._own_fix.get(message.stamp)
@@ -478,6 +480,9 @@ class CargoEstimator(EstimatorInputs):
     def process(self) -> int:
         """Update with every complete instant; skip the ones too old to wait. Returns the number
         of updates made plus the number rolled back (0: the estimate did not change)."""
+        if not self._changed and not self._expiring():
+            return 0  # what waits is still incomplete and nothing falls out of the history
+        self._changed = False
         done = 0
         for stamp in sorted(self._pending):
             inst = self._pending[stamp]
@@ -551,10 +556,10 @@ class CargoEstimator(EstimatorInputs):
         if not msgs:
             return np.zeros(6), act_cov.copy(), zero[0]
         rels = [self._relative[p] for p in self.peers]
-        transforms = np.stack([rel.transform() for rel in rels])
+        transforms = np.array([rel.transform() for rel in rels])
         turned = transforms.transpose(0, 2, 1)
-        wrenches = (transforms @ np.stack([m.wrench_grasp for m in msgs])[:, :, None])[:, :, 0]
-        carried = transforms @ np.stack([m.wrench_cov_grasp for m in msgs]) @ turned
+        wrenches = (transforms @ np.array([m.wrench_grasp for m in msgs])[:, :, None])[:, :, 0]
+        carried = transforms @ np.array([m.wrench_cov_grasp for m in msgs]) @ turned
         peer_noise = transforms @ self._peer_noise_cov @ turned if self._peer_noise else None
         noise_terms = [zero]
         for k, rel in enumerate(rels):
@@ -649,6 +654,7 @@ class CargoEstimator(EstimatorInputs):
         self._relative = {p: self._relative.get(p, RelativeGrasp()) for p in self.peers}
         self.n_skipped_missing += len(self._pending)
         self._pending.clear()
+        self._changed = True
         if self._window is not None:
             self._window.clear()  # the team's IMU channels change
         self._tainted_until = max(self._tainted_until, self.stamp + self.taint_steps)

@@ -64,9 +64,18 @@ class RelativeGrasp:
     pos_sum: np.ndarray = field(default_factory=lambda: np.zeros(3))
     count: int = 0
     known: np.ndarray | None = None  # the wrench transform, when the grasp layout is given
+    # The averaged transform and the fix count it was made from (``transform``).
+    _averaged: tuple[int, np.ndarray] | None = field(default=None, repr=False, compare=False)
 
     def transform(self) -> np.ndarray:
+        """The wrench transform (6, 6) from the peer's grasp frame to this robot's: the known
+        one, or that of the fixes' average (the nearest rotation to the rotations' mean, the
+        mean offset), made again only when a fix has been added. Read-only."""
         if self.known is not None:
             return self.known
-        rot = _project_rotation(self.rot_sum)
-        return wrench_transform(rot, self.pos_sum / self.count)
+        if self._averaged is None or self._averaged[0] != self.count:
+            rot = _project_rotation(self.rot_sum)
+            averaged = wrench_transform(rot, self.pos_sum / self.count)
+            averaged.setflags(write=False)
+            self._averaged = (self.count, averaged)
+        return self._averaged[1]

@@ -544,22 +544,22 @@ def _readout_columns(jacs, p_map, q_map):
 
 
 @njit(cache=True)
-def _factored(links, y, factor):
-    """Each channel's columns links (6, k, m) and y (k, m, 60) times the factor F (m, m): d links
-    (6, k m) and d Y (k m, 6, 10), channel-major."""
+def _factored(links, y, factors):
+    """Each channel's columns links (6, k, m) and y (k, m, 60) times its factor F_c
+    (``factors`` (k, m, m)): d links (6, k m) and d Y (k m, 6, 10), channel-major."""
     k, m = y.shape[0], y.shape[1]
     out_links = np.empty((6, k, m))
     out_y = np.empty((k, m, 60))
-    for r in range(6):
-        out_links[r] = np.ascontiguousarray(links[r]) @ factor
     for c in range(k):
-        out_y[c] = (np.ascontiguousarray(y[c].T) @ factor).T
+        out_links[:, c] = np.ascontiguousarray(links[:, c]) @ factors[c]
+        out_y[c] = (np.ascontiguousarray(y[c].T) @ factors[c]).T
     return out_links.reshape(6, k * m), out_y.reshape(k * m, 6, 10)
 
 
 @njit(cache=True)
-def _noise_modes(jacs, n_joints, held_factor, point_factor, p_map, q_map):
-    """``momentum_noise_modes`` with both factors given."""
+def _noise_modes(jacs, n_joints, held_factors, point_factor, p_map, q_map):
+    """``momentum_noise_modes`` with the factors given: one per held channel (6, 4, 4), gyro
+    x, y, z then accelerometer x, y, z, and one for every encoder (8, 8)."""
     nj = n_joints
     links, y = _readout_columns(jacs, p_map, q_map)
     q, qd = slice(6, 6 + nj), slice(6 + nj, 6 + 2 * nj)
@@ -568,9 +568,42 @@ def _noise_modes(jacs, n_joints, held_factor, point_factor, p_map, q_map):
     for k, (x, m) in enumerate(((q, 0), (qd, 0), (q, 2), (qd, 2))):
         links_point[:, :, 2 * k : 2 * k + 2] = links[:, x, m : m + 2]
         y_point[:, 2 * k : 2 * k + 2] = y[x, m : m + 2]
-    held_links, held_y = _factored(links[:, :6], y[:6], held_factor)
-    point_links, point_y = _factored(links_point, y_point, point_factor)
+    point_factors = np.empty((nj, 8, 8))
+    point_factors[:] = point_factor
+    held_links, held_y = _factored(links[:, :6], y[:6], held_factors)
+    point_links, point_y = _factored(links_point, y_point, point_factors)
     return np.hstack((held_links, point_links)), np.concatenate((held_y, point_y))
+
+
+@njit(cache=True)
+def instant_noise_modes(arrays, imu_pos, state, n_joints, step_s, held_factors, point_factor,
+                        rate_terms, rate_var, n_rate):  # fmt: skip
+    """An update instant's sensor-noise modes (``NoiseModel.momentum_jacobians``) in one
+    compiled call: d links - d thrust (6, n) and d Y (n, 6, 10) with n = 24 + 8 nj + ``n_rate``.
+
+    The sample's Jacobian J and its drift dJ/dt at the pre-filter's ``state``
+    (``drifting_sample_jacobian``, step ``step_s`` s) give the IMU's and the encoders' modes
+    (``_noise_modes``: the chain's read-out columns times each channel's factor); then one mode
+    per squared-rate term k of ``rate_terms`` (k, ``SIZE``) with variance v_k (``rate_var``):
+    sqrt(v_k) (Q_links, M_Q Q_Y) (``momentum.CARGO_Q_MAP``). ``n_rate`` such modes always
+    (zero columns without terms: k = 0), so that the count stays that of the variances."""
+    jac, jac_rate = drifting_sample_jacobian(arrays, imu_pos, state, n_joints, step_s)
+    jacs = np.empty((2, jac.shape[0], jac.shape[1]))
+    jacs[0], jacs[1] = jac, jac_rate
+    d_links, d_y = _noise_modes(jacs, n_joints, held_factors, point_factor, CARGO_P_MAP,
+                                CARGO_Q_MAP)  # fmt: skip
+    n_modes = d_y.shape[0]
+    if rate_terms.shape[0] != 0 and rate_terms.shape[0] != n_rate:
+        raise ValueError("rate_terms must have 0 or n_rate rows")
+    links = np.zeros((6, n_modes + n_rate))
+    y = np.zeros((n_modes + n_rate, 6, 10))
+    links[:, :n_modes], y[:n_modes] = d_links, d_y
+    if rate_terms.shape[0]:
+        scaled = rate_terms * np.sqrt(rate_var).reshape(-1, 1)
+        links[:, n_modes:] = np.ascontiguousarray(scaled[:, LINKS_Q]).T
+        cargo = np.ascontiguousarray(scaled[:, CARGO_Q]) @ np.ascontiguousarray(CARGO_Q_MAP.T)
+        y[n_modes:] = cargo.reshape(n_rate, 6, 10)
+    return links, y
 
 
 def momentum_noise_modes(
@@ -592,4 +625,5 @@ def momentum_noise_modes(
     held = np.eye(4) if held_factor is None else _float(held_factor)
     point = np.eye(8) if point_factor is None else _float(point_factor)
     jacs = np.stack((_float(jac), _float(jac_rate)))
-    return _noise_modes(jacs, int(n_joints), held, point, CARGO_P_MAP, CARGO_Q_MAP)
+    held_factors = np.ascontiguousarray(np.broadcast_to(held, (6, 4, 4)))
+    return _noise_modes(jacs, int(n_joints), held_factors, point, CARGO_P_MAP, CARGO_Q_MAP)

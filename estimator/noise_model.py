@@ -54,7 +54,7 @@ import numpy as np
 from numba import njit
 
 from .fused_motion import coloured_lag_covariances
-from .momentum import CARGO_Q, CARGO_Q_MAP, LINKS_Q
+from .momentum import SIZE
 from .motion import (
     HELD_EXTENDED,
     POINT_EXTENDED,
@@ -63,12 +63,11 @@ from .motion import (
     band_factors,
     chain_kernels,
     condition_maps,
-    drifting_sample_jacobian,
     filtered_motion_gains,
     grasp_acc_map_kernel,
+    instant_noise_modes,
     kernel_lag_covariances,
     lag_weighted_covariance,
-    momentum_noise_modes,
     noise_cov,
     psd_factor,
     time_weighted_kernels,
@@ -82,6 +81,9 @@ MOTION_FUSION = ("none", "own", "team")
 # Updates between refreshes of the IMU channels' lag-weighted factor (the regressor's
 # autocorrelation changes slowly; ``NoiseModel.momentum_jacobians``).
 FACTOR_REFRESH_UPDATES = 8
+# ``momentum_jacobians`` without the squared rate noise's terms.
+_NO_RATE_TERMS = (np.zeros((0, SIZE)), np.zeros(0))
+_NO_COV = np.zeros((10, 10))  # ``_conditioned`` without the posterior's spread
 
 
 class PeerMotion(Protocol):
@@ -200,15 +202,33 @@ class MotionNoiseSpec:
     band: np.ndarray
 
 
-def _posterior_spread(d_y: np.ndarray, level: np.ndarray, params_cov: np.ndarray) -> np.ndarray:
+@njit(cache=True)
+def _posterior_spread(d_y, level, params_cov):
     """sum_k level_k dY_k P dY_k^T (6, 6): the regressor noise's spread over the posterior P
     (10, 10), for the (n, 6, 10) d Y and the first n entries of ``level``, as one product over
     the stacked (6, 10 n) rows."""
-    d_y = np.asarray(d_y, dtype=float)
-    scaled = np.sqrt(level[: d_y.shape[0], None, None]) * d_y
-    rows = scaled.transpose(1, 0, 2).reshape(6, -1)
-    spread = (scaled @ params_cov).transpose(1, 0, 2).reshape(6, -1)
-    return spread @ rows.T
+    n = d_y.shape[0]
+    scaled = np.sqrt(level[:n]).reshape(n, 1, 1) * d_y
+    spread = (scaled.reshape(6 * n, 10) @ params_cov).reshape(n, 6, 10)
+    rows = np.ascontiguousarray(scaled.transpose(1, 0, 2)).reshape(6, 10 * n)
+    spread_rows = np.ascontiguousarray(spread.transpose(1, 0, 2)).reshape(6, 10 * n)
+    return spread_rows @ np.ascontiguousarray(rows.T)
+
+
+@njit(cache=True)
+def _conditioned_noise(n_map, d_map, mismatch, level, condition, mismatch_model_var, d_y,
+                       params_cov, with_spread):  # fmt: skip
+    """Mean (6,) and covariance (6, 6) of the motion noise from the team's maps
+    (``_team_maps``): conditioned on the mismatch (``motion.condition_maps``) or not
+    (``motion.noise_cov``), plus the posterior's spread (``_posterior_spread``) when
+    ``with_spread``."""
+    if condition:
+        mean, cov = condition_maps(n_map, d_map, level, mismatch, mismatch_model_var)
+    else:
+        mean, cov = np.zeros(6), noise_cov(n_map, level)
+    if with_spread:
+        cov = cov + _posterior_spread(d_y, level, params_cov)
+    return mean, cov
 
 
 class NoiseModel:
@@ -331,6 +351,7 @@ class NoiseModel:
         n_lags = self._lag_cov.shape[0] - 1
         self.autocorrelation = RegressorAutocorrelation(n_lags)
         self._held_factor = None  # refreshed every FACTOR_REFRESH_UPDATES updates
+        self._factors = None  # ``_channel_factors``
         # Over time (``over_time``): the IMU's channels at their per-update covariance G(0),
         # and their modes' covariance between updates L apart (``over_time.mode_lag_covariances``).
         held_lags = self._lag_cov[:, HELD_EXTENDED][:, :, HELD_EXTENDED]
@@ -375,24 +396,14 @@ class NoiseModel:
             self.mode_lag_cov = np.ascontiguousarray(np.stack(per_channel, axis=1))
             self.mode_lag_cov.setflags(write=False)
 
-    def _imu_modes(self, jac, jac_rate):
-        """``momentum_noise_modes`` with the held factor, or with the fused accelerometer its
-        own (``_init_fused_accelerometer``): the held channels' columns (4 per channel, gyro
-        then accelerometer) times their kind's factor F, d links C F and d Y F^T C."""
-        if self._accel_factor is None:
-            return momentum_noise_modes(
-                jac, jac_rate, self._n_joints, self._held_factor, self._point_factor
-            )
-        d_links, d_y = momentum_noise_modes(
-            jac, jac_rate, self._n_joints, np.eye(MODES_PER_CHANNEL), self._point_factor
-        )
-        m = MODES_PER_CHANNEL
-        for start, factor in ((0, self._held_factor), (3 * m, self._accel_factor)):
-            cols = slice(start, start + 3 * m)
-            d_links[:, cols] = (d_links[:, cols].reshape(6, 3, m) @ factor).reshape(6, 3 * m)
-            y = d_y[cols].reshape(3, m, 60)
-            d_y[cols] = np.einsum("ab,cad->cbd", factor, y).reshape(3 * m, 6, 10)
-        return d_links, d_y
+    def _channel_factors(self) -> np.ndarray:
+        """Each held channel's factor F (6, 4, 4), gyro x, y, z then accelerometer x, y, z: the
+        held factor, or with the fused accelerometer its own for the accelerometer's
+        (``_init_fused_accelerometer``); cached until a factor changes."""
+        if self._factors is None:
+            accel = self._held_factor if self._accel_factor is None else self._accel_factor
+            self._factors = np.ascontiguousarray(np.stack([self._held_factor] * 3 + [accel] * 3))
+        return self._factors
 
     def momentum_jacobians(
         self,
@@ -430,9 +441,6 @@ class NoiseModel:
         ``momentum_motion.var``, n = 24 + 8 nj + nj (nj + 1) / 2 with encoder noise."""
         index = stamp // self.update_every
         x = self._delayed_motion(stamp, pre_state)
-        jac, jac_rate = drifting_sample_jacobian(
-            self._robot_arrays, self._imu_pos, x, self._n_joints, self._jacobian_rate_step_s
-        )
         if not self.over_time:
             self.autocorrelation.add(index, regressor)
         if not self.over_time and (
@@ -443,17 +451,13 @@ class NoiseModel:
             self._held_factor = psd_factor(w[np.ix_(HELD_EXTENDED, HELD_EXTENDED)])
             if self._accel_lag_cov is not None:
                 self._accel_factor = psd_factor(lag_weighted_covariance(self._accel_lag_cov, rho))
-        d_links, d_y = self._imu_modes(jac, jac_rate)
-        if not self._n_rate_modes:
-            return d_links, d_y
-        n_rate = self._n_rate_modes
-        rate_links, rate_y = np.zeros((6, n_rate)), np.zeros((n_rate, 6, 10))
-        if rate_terms is not None:
-            terms, variances = rate_terms
-            scale = np.sqrt(variances)
-            rate_links[:] = (terms[:, LINKS_Q] * scale[:, None]).T
-            rate_y[:] = ((terms[:, CARGO_Q] * scale[:, None]) @ CARGO_Q_MAP.T).reshape(-1, 6, 10)
-        return np.hstack((d_links, rate_links)), np.concatenate((d_y, rate_y))
+            self._factors = None
+        none = rate_terms is None or not self._n_rate_modes
+        terms, variances = _NO_RATE_TERMS if none else rate_terms
+        return instant_noise_modes(
+            self._robot_arrays, self._imu_pos, x, self._n_joints, self._jacobian_rate_step_s,
+            self._channel_factors(), self._point_factor, terms, variances, self._n_rate_modes,
+        )  # fmt: skip
 
     def message_modes(
         self, d_links: np.ndarray, d_y: np.ndarray
@@ -468,7 +472,7 @@ class NoiseModel:
         With ``over_time``: the 24 IMU modes as they are (scaled to unit variance), then 9 that
         carry the rest's (6, 33), (3, 33), ones (33,): the receiver weighs the IMU's over time
         (``over_time_noise``)."""
-        stacked = np.vstack((d_links, d_y[:, :3, 0].T)) * self._mode_std
+        stacked = np.concatenate((d_links, d_y[:, :3, 0].T)) * self._mode_std
         if not self.over_time:
             factor = psd_factor(stacked @ stacked.T)
             return factor[:6], factor[6:], np.ones(9)
@@ -587,13 +591,12 @@ class NoiseModel:
         """Mean and covariance of the motion noise from ``_team``'s maps, conditioned on the
         mismatch or not, with the posterior's spread (``motion_noise``)."""
         n_map, d_map, mismatch, level = team
-        if condition:
-            mean, cov = condition_maps(n_map, d_map, level, mismatch, self.mismatch_model_var)
-        else:
-            mean, cov = np.zeros(6), noise_cov(n_map, level)
-        if params_cov is not None:
-            cov = cov + _posterior_spread(motion_jac[1], level, params_cov)
-        return mean, cov
+        spread = params_cov is not None
+        return _conditioned_noise(
+            n_map, d_map, mismatch, level, condition, self.mismatch_model_var,
+            np.ascontiguousarray(motion_jac[1], dtype=float),
+            np.ascontiguousarray(params_cov, dtype=float) if spread else _NO_COV, spread,
+        )  # fmt: skip
 
     def over_time_noise(
         self,
@@ -662,10 +665,11 @@ class NoiseModel:
                 f"Jacobians' {np.shape(d_y)[0]} + {sizes} coordinates"
             )
         if peers:
-            transforms = np.stack([t for t, _ in peers], dtype=float)
-            peer_links = np.hstack([m.motion_links_jac for _, m in peers], dtype=float)
-            peer_grasp = np.hstack([m.motion_grasp_jac for _, m in peers], dtype=float)
-            peer_acc = np.stack([m.grasp_acc for _, m in peers], dtype=float)
+            # np.array and np.concatenate: the stacks without numpy's Python-level wrappers.
+            transforms = np.array([t for t, _ in peers], dtype=float)
+            peer_links = np.concatenate([m.motion_links_jac for _, m in peers], axis=1, dtype=float)
+            peer_grasp = np.concatenate([m.motion_grasp_jac for _, m in peers], axis=1, dtype=float)
+            peer_acc = np.array([m.grasp_acc for _, m in peers], dtype=float)
         else:
             transforms, peer_links = np.zeros((0, 6, 6)), np.zeros((6, 0))
             peer_grasp, peer_acc = np.zeros((3, 0)), np.zeros((0, 3))

@@ -542,6 +542,16 @@ class EstimatorInputs:
         }
         return jac, motion
 
+    def _expiring(self) -> bool:
+        """Does anything held (pending instants, squared-rate terms, peers' messages, own fixes)
+        fall before the history's horizon, so that ``process`` has to give it up? (The dicts
+        keyed by own stamps hold them in increasing order: the first is the oldest.)"""
+        horizon = self.stamp - self.history_steps
+        return self._oldest_peer_msg < horizon or any(
+            next(iter(held), horizon) < horizon
+            for held in (self._pending, self._rate_terms, self._own_fix)
+        )
+
     def _record_instant(self, stamp: int, q_raw: np.ndarray, fix: bool) -> WrenchMessage | None:
         # H[Z] = H'[P] + H[Q] from the slow filter's value and derivative (``momentum``).
         b = balance_from_filtered(self.balance_filter.state[0], self.balance_filter.state[1])
@@ -554,6 +564,7 @@ class EstimatorInputs:
         tainted = stamp <= self._tainted_until
         jac, motion = self._motion_fields(b, stamp)
         sent_cov = act_cov + rate_links_cov if jac is None else act_cov
+        self._changed = True
         self._pending[stamp] = Instant(
             thrust=b.thrust.copy(),
             links=b.links.copy(),

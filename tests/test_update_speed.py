@@ -1,5 +1,6 @@
-"""The compiled per-update kernels (rne._balance_jacobians, motion's conditioning,
-noise_model._team_maps) against the plain forms they replace."""
+"""The compiled per-update kernels (rne._balance_jacobians, motion's conditioning and
+noise modes, noise_model._team_maps and _posterior_spread) against the plain forms they
+replace, and the update path's caches (the relative grasp, process's early return)."""
 
 from types import SimpleNamespace
 
@@ -129,3 +130,102 @@ def test_motion_noise_equals_the_list_assembly(n_peers, fusion):
         bad = SimpleNamespace(**{**vars(peers[0][1]), "grasp_acc": np.ones(2)})
         with pytest.raises(ValueError, match="shapes"):
             model.motion_noise(fusion, params, jac, regressor, [(peers[0][0], bad)], 0.3)
+
+
+def test_instant_noise_modes_are_the_modes_of_their_parts():
+    """``motion.instant_noise_modes`` (one compiled call per update instant) equals its parts:
+    the drifting Jacobian's modes (``momentum_noise_modes``) with the gyro's and the
+    accelerometer's own factors, then one mode per squared-rate term, sqrt(v_k) (Q_links,
+    M_Q Q_Y), or as many zero columns without terms."""
+    import scipy.linalg
+
+    from astrocargo.estimator.momentum import CARGO_Q, CARGO_Q_MAP, LINKS_Q, SIZE
+    from astrocargo.estimator.motion import (
+        drifting_sample_jacobian,
+        instant_noise_modes,
+        momentum_noise_modes,
+    )
+
+    robot = _robot()
+    nj = robot.n_joints
+    rng = np.random.default_rng(5)
+    state = rng.normal(size=(3, 12 + nj)) * 0.3
+    arrays, imu_pos = robot.arrays, np.ascontiguousarray(robot.imu_pos, dtype=float)
+    gyro, accel, point = rng.normal(size=(4, 4)), rng.normal(size=(4, 4)), rng.normal(size=(8, 8))
+    factors = np.ascontiguousarray(np.stack([gyro] * 3 + [accel] * 3))
+    n_rate = nj * (nj + 1) // 2
+    terms, var = rng.normal(size=(n_rate, SIZE)), rng.uniform(0.5, 2.0, n_rate)
+    links, y = instant_noise_modes(arrays, imu_pos, state, nj, 0.05, factors, point, terms, var,
+                                   n_rate)  # fmt: skip
+    jac, jac_rate = drifting_sample_jacobian(arrays, imu_pos, state, nj, 0.05)
+    cols_links, cols_y = momentum_noise_modes(jac, jac_rate, nj)
+    factor = scipy.linalg.block_diag(*([gyro] * 3 + [accel] * 3 + [point] * nj))
+    n = factor.shape[0]
+    scale = np.abs(cols_links).max() * np.abs(factor).max()
+    np.testing.assert_allclose(links[:, :n], cols_links @ factor, rtol=0, atol=1e-12 * scale)
+    ref_y = np.einsum("kab,km->mab", cols_y, factor)
+    np.testing.assert_allclose(y[:n], ref_y, rtol=0, atol=1e-12 * np.abs(ref_y).max())
+    scaled = terms * np.sqrt(var)[:, None]
+    np.testing.assert_array_equal(links[:, n:], scaled[:, LINKS_Q].T)
+    np.testing.assert_allclose(y[n:], (scaled[:, CARGO_Q] @ CARGO_Q_MAP.T).reshape(-1, 6, 10),
+                               rtol=1e-12, atol=0)  # fmt: skip
+    links0, y0 = instant_noise_modes(arrays, imu_pos, state, nj, 0.05, factors, point,
+                                     np.zeros((0, SIZE)), np.zeros(0), n_rate)  # fmt: skip
+    np.testing.assert_array_equal(links0[:, :n], links[:, :n])
+    assert links0.shape == links.shape and not links0[:, n:].any() and not y0[n:].any()
+
+
+def test_posterior_spread_is_the_sum_over_modes():
+    """``noise_model._posterior_spread`` (one product over the stacked rows, compiled) is
+    sum_k level_k dY_k P dY_k^T over the first n levels."""
+    from astrocargo.estimator.noise_model import _posterior_spread
+
+    rng = np.random.default_rng(6)
+    d_y, level = rng.normal(size=(7, 6, 10)), rng.uniform(0.1, 2.0, 9)
+    root = rng.normal(size=(10, 10))
+    cov = root @ root.T
+    ref = sum(level[k] * d_y[k] @ cov @ d_y[k].T for k in range(7))
+    np.testing.assert_allclose(_posterior_spread(d_y, level, cov), ref, rtol=1e-12,
+                               atol=1e-12 * np.abs(ref).max())  # fmt: skip
+
+
+def test_relative_grasp_transform_follows_each_new_fix():
+    """``RelativeGrasp.transform`` is made again when a fix is added (its average moves), is the
+    same object between fixes, and cannot be written."""
+    from astrocargo.estimator.messages import RelativeGrasp
+
+    rng = np.random.default_rng(7)
+    rel = RelativeGrasp()
+    for count in range(1, 4):
+        rel.rot_sum += exp_so3(rng.normal(size=3) * 0.05)
+        rel.pos_sum += np.array([0.5, 0.0, 0.0]) + rng.normal(size=3) * 0.01
+        rel.count = count
+        first = rel.transform()
+        u, _, vt = np.linalg.svd(rel.rot_sum)
+        rot = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
+        np.testing.assert_allclose(first, wrench_transform(rot, rel.pos_sum / count), atol=1e-12)
+        assert rel.transform() is first and not first.flags.writeable
+
+
+def test_process_returns_early_only_when_nothing_can_change(monkeypatch):
+    """``CargoEstimator.process`` returns at once when no instant or message arrived and nothing
+    leaves the history: a flight where it runs in full at every step ends at the same estimates
+    and counters, bit for bit."""
+    from astrocargo.envs import astrobee_cargo_v0
+    from astrocargo.estimator.per_step import EstimatorInputs
+
+    def fly():
+        env = astrobee_cargo_v0.parallel_env(n_robots=2, noise="nominal", max_cycles=100000)
+        env.reset(seed=3)
+        for k in range(400):
+            env.step({a: 0.3 * np.sin(0.05 * k + np.arange(8)) for a in env.agents})
+        return [(e.ukf.x.copy(), e.ukf.P.copy(), e.counters) for e in env.sim.estimators]
+
+    gated = fly()
+    monkeypatch.setattr(EstimatorInputs, "_expiring", lambda self: True)
+    full = fly()
+    assert sum(c["updates"] for _, _, c in gated) > 0
+    for (x, cov, counters), (x_ref, cov_ref, counters_ref) in zip(gated, full, strict=True):
+        np.testing.assert_array_equal(x, x_ref)
+        np.testing.assert_array_equal(cov, cov_ref)
+        assert counters == counters_ref
