@@ -22,8 +22,10 @@ This script tests it, and the other candidate, the parameters' random walk (``pr
 3. The filter with each source alone (``estimation_limits.py --alone``'s profiles) as it is, with
    its floors replaced by W_m (robot k's C_m(L), at the filter's running rho, every update:
    ``weigh_floors``), without the random walk (``process_std_rel=0``), and both: NEES per seed
-   and robot and the mean against its 95 % band; with every source and with perfect sensors,
-   robot 0's Cramer-Rao bound on the principal moments, and their ratio (the 1.3x target):
+   and robot and the mean against its 95 % band; the filter's variance with the random walk over
+   that without it along each direction (the pair's generalised eigenvalues); with every source
+   and with perfect sensors, robot 0's Cramer-Rao bound on the principal moments, and their
+   ratio (the 1.3x target):
 
     .venv/bin/python scripts/floors_consistency.py --seeds 0 1 2
 """
@@ -42,6 +44,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import benchmark_estimation as bench  # noqa: E402
 import estimation_limits as limits  # noqa: E402  (registers the limits_* profiles)
 import numpy as np  # noqa: E402
+from scipy.linalg import eigh  # noqa: E402
 from scipy.stats import chi2  # noqa: E402
 
 from astrocargo.estimator.motion import lag_weighted_covariance  # noqa: E402
@@ -116,6 +119,7 @@ def fly(job) -> list[dict]:
         err = est.params_mean() - truth
         rows.append({
             "nees": float(err @ np.linalg.solve(est.params_cov(), err)), "log": est.log,
+            "cov": est.params_cov(),
             "counts": np.array(st) // est.update_every, "truth": truth,
             "rho": est.noise.autocorrelation.rho(), "floors": est.noise.floor_cov,
         })  # fmt: skip
@@ -205,6 +209,7 @@ def print_filters(jobs: list, results: list, seeds: list[int]) -> None:
     print("| noise | filter | NEES per seed (robots) | mean | in band |")
     print("|---|---|---|---|---|")
     by_key = {(j[0], j[1], j[2], j[3]): rows for j, rows in zip(jobs, results, strict=True)}
+    spread = {}
     for name, label, _ in limits.ALONE:
         for filt, weighed, walk in FILTERS:
             per_seed = [[r["nees"] for r in by_key[(f"limits_{name}", s, weighed, walk)]]
@@ -213,6 +218,17 @@ def print_filters(jobs: list, results: list, seeds: list[int]) -> None:
             cells = "; ".join(" / ".join(f"{x:.1f}" for x in seed) for seed in per_seed)
             inside = "yes" if low <= mean <= high else "no"
             print(f"| {label} | {filt} | {cells} | {mean:.1f} | {inside} |")
+        walk = [by_key[(f"limits_{name}", s, False, True)] for s in seeds]
+        still = [by_key[(f"limits_{name}", s, False, False)] for s in seeds]
+        pairs = [pair for w, n in zip(walk, still, strict=True) for pair in zip(w, n, strict=True)]
+        ratio = [eigh(a["cov"], b["cov"], eigvals_only=True) for a, b in pairs]
+        spread[label] = (np.min(ratio), np.median(ratio), np.max(ratio))
+    print(
+        "\nthe random walk's share: the filter's variance with it over without it along each "
+        "direction (generalised eigenvalues; min, median, max over seeds and robots)"
+    )
+    for label, (low_r, mid_r, high_r) in spread.items():
+        print(f"{label}: {low_r:.2f}, {mid_r:.2f}, {high_r:.2f}")
     print("\nrobot 0's bound, nominal / perfect sensors (I1 / I2 / I3)")
     for filt, weighed, walk in FILTERS:
         ratios = [
