@@ -170,13 +170,15 @@ def bound_ratio(nominal: dict, perfect: dict) -> np.ndarray:
     return bounds[0]["std_principal"] / bounds[1]["std_principal"]  # the same truth
 
 
-def print_model_error(rows: list[dict]) -> list[np.ndarray]:
-    """Item 1 and 2 of the module docstring for the noiseless flight; returns C_m per robot."""
+def print_model_error(rows: list[dict], tail_lags: list[int]) -> list[np.ndarray]:
+    """Item 1 and 2 of the module docstring for the noiseless flight, the expected NEES also with
+    C_m(L) summed out to each of ``tail_lags`` (the error's correlation beyond the tracked lags,
+    which W_m cannot weigh: rho is not known there); returns C_m per robot."""
     covs = []
     print("noiseless flight (ideal, seed 0): the model error per update, robot by robot")
     for k, row in enumerate(rows):
         n_lags = row["rho"].size - 1
-        c_all = model_error_autocovariance(row, max(n_lags, BARTLETT_LAGS))
+        c_all = model_error_autocovariance(row, max(n_lags, BARTLETT_LAGS, *tail_lags))
         c_m = c_all[: n_lags + 1]
         covs.append(c_m)
         var = np.diag(c_m[0])
@@ -196,7 +198,13 @@ def print_model_error(rows: list[dict]) -> list[np.ndarray]:
             print(f"  {name} / floors: {np.array2string(ratio, precision=2)}")
         for name, cov in (("floors", None), ("W_m", weighted)):
             real, expected = least_squares_nees(row["log"], row["counts"], row["truth"], c_m, cov)
-            print(f"  least squares with R = {name}: NEES {real:.1f}, expected {expected:.1f}")
+            longer = [
+                least_squares_nees(row["log"], row["counts"], row["truth"], c_all[: n + 1], cov)[1]
+                for n in tail_lags
+            ]
+            tails = ", ".join(f"{x:.1f} to {n}" for x, n in zip(longer, tail_lags, strict=True))
+            print(f"  least squares with R = {name}: NEES {real:.1f}, expected {expected:.1f} "
+                  f"(C_m summed to lag {n_lags}; {tails})")  # fmt: skip
     return covs
 
 
@@ -248,6 +256,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--seeds", type=int, nargs="+", default=[0], help="env seeds")
     parser.add_argument("--duration", type=float, default=90.0, help="seconds per flight")
     parser.add_argument("--workers", type=int, default=2, help="processes")
+    parser.add_argument(
+        "--tail-lags", type=int, nargs="*", default=[120, 200, 300],
+        help="the expected NEES also with the error's autocovariance summed to these lags",
+    )  # fmt: skip
     return parser
 
 
@@ -258,7 +270,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 def main(argv: list[str] | None = None) -> None:
     args = parse_args(argv)
     noiseless = fly(("ideal", 0, False, True, args.duration, None))
-    model_covs = print_model_error(noiseless)
+    model_covs = print_model_error(noiseless, args.tail_lags)
     jobs = [
         (f"limits_{name}", seed, weighed, walk, args.duration, model_covs)
         for name, _, _ in limits.ALONE for _, weighed, walk in FILTERS for seed in args.seeds
