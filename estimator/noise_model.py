@@ -11,7 +11,9 @@ grasp frame G (moments about the grasp point) and summed:
   noise in it (in the momentum form, the rate filter's departure from a pure delay under the
   products of the motion), as the variance of an independent residual per update:
   c diag(f^2 I, t^2 I), c the number of updates per decorrelation time of the slow filter
-  (``decorrelation_updates``);
+  (``decorrelation_updates``): its long-run variance, not weighted by the regressor's
+  autocorrelation as the IMU's channels are (measured, that weighting leaves least squares on the
+  noiseless flight 2.4-2.8 times overconfident: ``scripts/floors_consistency.py``);
 - R_act: the actuation's white per-step noise (std abs + rel |command| per thruster axis, the
   robot's own, and the peers' sent with their messages), averaged over the update's window;
 - R_motion: the sensors' white noise (gyro, accelerometer, encoders) carried through the momentum
