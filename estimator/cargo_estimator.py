@@ -54,8 +54,9 @@ Bad or missing input, and what is counted (``counters``):
   does not know, or a peer's) enters the filtered balance gradually, over the filters' memory
   (``rollback_steps``, 1.2 s at the defaults), and leaves it as gradually: so a gated instant
   also undoes the updates of the instants within that memory before it (``rolled_back``: the
-  state returns to the one before them, its covariance grown by the random walk of the skipped
-  predictions) and skips the instants up to ``taint_steps`` after it (``skipped_after_gate``).
+  state returns to the one before them, its covariance grown by the random walk, if any, of
+  the skipped predictions) and skips the instants up to ``taint_steps`` after it
+  (``skipped_after_gate``).
   Without this, the instants at the start and the end of a fault, inconsistent but still inside
   the gate, biased the estimate (measured when it was added, two robots, nominal noise: one
   thruster at half its command from 20 to 25 s left 3.6 % mass and 3.6 cm centre-of-mass error
@@ -156,7 +157,8 @@ class CargoEstimator(EstimatorInputs):
         prior_params: prior mean pi (10,) in this robot's grasp frame (``default_prior``).
         prior_std: (mass kg, centre of mass m, moments kg m^2, products kg m^2) standard
             deviations of the prior (`prior_covariance`); ``process_std_rel``: random walk of the
-            parameters per update, as a fraction of the prior's standard deviations.
+            parameters per update, as a fraction of the prior's standard deviations (0 by
+            default: a rigid cargo's parameters are constant).
         force_std_n, torque_std_nm: the floors, the balance's model error (what remains of the
             filtered balance with no noise in it), rms per update (``noise_model``).
         actuation_noise: (force_abs_n, force_rel, torque_abs_nm, torque_rel): the robot's known

@@ -6,9 +6,10 @@ centre of mass, I the inertia about the origin of the body frame the measurement
 in: the grasp frame, for the cargo estimator). The measurement, the wrench balance z = A pi + b
 (``estimator.rne``; z and b in N and N m), is linear in pi.
 
-Model. The state is constant with a random walk, x_(k+1) = x_k + w, w ~ N(0, Q), and a
-measurement is z = h(x) + v, v ~ N(0, R). One step is filterpy's: sigma points -> unscented
-transform -> gain (``estimator.unscented`` holds the compiled pieces).
+Model. The state is constant up to a random walk, x_(k+1) = x_k + w, w ~ N(0, Q) (Q = 0 for a
+rigid cargo, the cargo estimator's default), and a measurement is z = h(x) + v, v ~ N(0, R).
+One step is filterpy's: sigma points -> unscented transform -> gain (``estimator.unscented``
+holds the compiled pieces).
 
 Merwe scaled sigma points (filterpy's `MerweScaledSigmaPoints`; its weights are used as they are)
 for n states and parameters alpha, beta, kappa:
@@ -371,7 +372,7 @@ class InertialParamUKF(BatchedUKF):
     """UKF on a rigid body's 10 standard inertial parameters pi, reporting consistent bodies.
 
     State x = pi = [m, h_x, h_y, h_z, I_xx, I_yy, I_zz, I_xy, I_xz, I_yz] (kg, kg m, kg m^2;
-    h = m c, I about the frame origin), constant with a small random walk. Measurements
+    h = m c, I about the frame origin), constant up to the random walk Q. Measurements
     z = A pi + b + v (the wrench balance, ``estimator.rne``) are linear in pi, so the unscented
     transform is exact and this filter is the Kalman filter of the linear-Gaussian model: its
     posterior N(x, P) is the exact posterior of its Gaussian prior and measurements (the tests

@@ -50,9 +50,11 @@ from scipy.stats import chi2  # noqa: E402
 from astrocargo.estimator.motion import lag_weighted_covariance  # noqa: E402
 
 CONTROL_HZ = 62.5
-# (name, the floors replaced by W_m, the random walk on)
+# The parameters' random walk of earlier versions (``process_std_rel``; now 0 by default).
+FORMER_PROCESS_STD_REL = 1e-5
+# (name, the floors replaced by W_m, the former random walk on)
 FILTERS = (
-    ("as is", False, True),
+    ("walk 1e-5", False, True),
     ("floors W_m", True, True),
     ("no random walk", False, False),
     ("W_m, no walk", True, False),
@@ -100,7 +102,7 @@ def fly(job) -> list[dict]:
     from astrocargo.envs import astrobee_cargo_v0
 
     noise, seed, weighed, walk, duration, model_covs = job
-    kwargs = {"record": True} if walk else {"record": True, "process_std_rel": 0.0}
+    kwargs = {"record": True, "process_std_rel": FORMER_PROCESS_STD_REL if walk else 0.0}
     env = astrobee_cargo_v0.parallel_env(
         n_robots=2, trajectory="figure8_tumble", noise=noise, cargo_mass_kg=bench.CARGO_MASS,
         cargo_com_m=bench.CARGO_COM, cargo_inertia=bench.CARGO_INERTIA,
