@@ -119,6 +119,10 @@ def build_parser() -> argparse.ArgumentParser:
         help="CargoEstimator's motion_lag_s (s; 0 off; default: the estimator's)",
     )  # fmt: skip
     parser.add_argument(
+        "--bias-compensation", action="store_true",
+        help="CargoEstimator(bias_compensation=True): the errors-in-variables bias taken out",
+    )  # fmt: skip
+    parser.add_argument(
         "--no-flush", action="store_true",
         help="with a lag, leave the buffered tail unfed (the estimate holds duration - lag s)",
     )  # fmt: skip
@@ -134,6 +138,8 @@ def _run(job: tuple[str, int, argparse.Namespace]) -> tuple[str, int, dict]:
     kwargs = {}
     if args.over_time_window is not None:
         kwargs["over_time_window"] = args.over_time_window
+    if args.bias_compensation:
+        kwargs["bias_compensation"] = True
     if args.motion_lag_s is not None:
         kwargs["motion_lag_s"] = args.motion_lag_s
         kwargs["localization_every"] = sensors.NOISE_PROFILES[f"limits_{name}"].localization_every
