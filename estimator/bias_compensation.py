@@ -112,15 +112,11 @@ class DeferredCompensation:
         self.a = np.zeros(10)
         self.B = np.zeros((10, 10))
 
-    @staticmethod
-    def terms(noise, fusion, params, inst, peers, cov):
-        """(s, D, ``params``) of one update (``score_bias`` of ``own_modes`` at ``params``, the
-        estimate its maps are built at; ``inst`` the ``messages.Instant``, ``cov`` its R), or
-        None where the motion noise has no modes."""
-        modes = own_modes(noise, fusion, params, inst.motion_jac, inst.regressor, peers)
-        if modes is None:
-            return None
-        return (*score_bias(*modes, mode_groups(noise), cov), params)
+    def add_update(self, noise, update, cov_before, walk) -> None:
+        """``add`` the terms of a used update (``score_bias`` of its ``update`` = (E, dY) modes
+        (``own_modes``), R and the params they are built at)."""
+        modes, cov, params = update
+        self.add((*score_bias(*modes, mode_groups(noise), cov), params), cov_before, walk)
 
     def add(self, terms, cov_before, walk) -> None:
         """Take in one used update's ``terms`` (s (10,), D (10, 10), where evaluated (10,)),

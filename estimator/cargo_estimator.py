@@ -75,7 +75,8 @@ from collections.abc import Iterator
 import numpy as np
 from scipy.stats import chi2
 
-from .bias_compensation import DeferredCompensation
+from .bias_compensation import DeferredCompensation, own_modes
+from .encoder_covariance import EncoderCovariance
 from .fused_motion import FusedMotion, Reading
 from .messages import Instant, RelativeGrasp, WrenchMessage  # noqa: F401 (re-exported)
 from .momentum import SIZE as MOMENTUM_SIZE
@@ -205,7 +206,8 @@ class CargoEstimator(EstimatorInputs):
             channels at their per-update covariance; the peers must run it too).
         bias_compensation: report the estimate compensated for the regressor's own noise
             (errors in variables, ``bias_compensation``; window 0 only), the filter's path
-            unchanged.
+            unchanged. ``encoders_over_time``: report the covariance with the encoders' noise
+            correlated over updates (``encoder_covariance``; window 0 and no walk only).
         motion_lag_s: 0 (default), the readings as they come; > 0, the accelerometer fused
             with the localization fixes by a fixed-lag smoother of this lag (s, rounded to
             control steps), the pipeline fed every reading ``motion_lag_s`` late
@@ -247,6 +249,7 @@ class CargoEstimator(EstimatorInputs):
         rate_cutoff_hz: float | None = None,
         over_time_window: int = 0,
         bias_compensation: bool = False,
+        encoders_over_time: bool = False,
         motion_lag_s: float = 0.0,
         localization_every: int = 20,
     ) -> None:
@@ -255,8 +258,8 @@ class CargoEstimator(EstimatorInputs):
             min_excitation_snr, process_std_rel, min_relative_fixes, motion_fusion,
         )  # fmt: skip
         self._init_options(over_time_window, motion_lag_s, dt_s, localization_every)
-        if bias_compensation and self.over_time_window:
-            raise ValueError("bias_compensation needs over_time_window 0")
+        if (bias_compensation or encoders_over_time) and self.over_time_window:
+            raise ValueError("bias_compensation and encoders_over_time need over_time_window 0")
         self.motion_fusion = motion_fusion
         self._mismatch_model_std = float(mismatch_model_std)
         self._init_schedule(
@@ -273,6 +276,9 @@ class CargoEstimator(EstimatorInputs):
         self.min_relative_fixes = int(min_relative_fixes)
         self._init_bookkeeping(relative_grasps, record)
         self._compensation = DeferredCompensation() if bias_compensation else None
+        self._encoder_cov = EncoderCovariance(self.noise) if encoders_over_time else None
+        if encoders_over_time and np.any(self.ukf.Q):
+            raise ValueError("encoders_over_time needs no random walk (process_std_rel 0)")
         self._step_constants = self._compiled_step_constants()
 
     def _init_options(self, over_time_window, motion_lag_s, dt_s, localization_every) -> None:
@@ -517,8 +523,7 @@ class CargoEstimator(EstimatorInputs):
                     continue
                 measurement, entry = self._measurement(stamp, inst, msgs)
                 snapshot = (stamp, self.ukf.x.copy(), self.ukf.P.copy(), len(self.log))
-                if self._compensation is not None:
-                    snapshot = (*snapshot, self._compensation.state())
+                snapshot = (*snapshot, *(d.state() for d in self._deferred()))
                 self.ukf.predict()
                 result = self.ukf.update_linear(*measurement)
                 if result.accepted:
@@ -527,7 +532,7 @@ class CargoEstimator(EstimatorInputs):
                     if self._window is not None:
                         self._window.add(entry)
                     elif entry is not None:
-                        self._compensation.add(entry, snapshot[2], self.ukf.Q)
+                        self._defer(stamp, measurement, entry, snapshot[2])
                     if self.record:
                         self.log.append(measurement)
                 elif result.reason == "gated":
@@ -558,13 +563,28 @@ class CargoEstimator(EstimatorInputs):
         return self._window.condition(stamp, *measurement, imu_map)
 
     def _score_bias(self, inst: Instant, msgs: list, cov: np.ndarray):
-        """``DeferredCompensation.terms`` of this update (None without ``bias_compensation``)."""
-        if self._compensation is None:
+        """This update's own modes (``bias_compensation.own_modes``), R and the params they are
+        built at, for the deferred reports (None without them or without modes)."""
+        if not self._deferred():
             return None
         peers = [(self._relative[p].transform(), m) for p, m in zip(self.peers, msgs, strict=True)]
-        return self._compensation.terms(
-            self.noise, self.motion_fusion, self.ukf.params_mean(), inst, peers, cov
+        params = self.ukf.params_mean()
+        modes = own_modes(
+            self.noise, self.motion_fusion, params, inst.motion_jac, inst.regressor, peers
         )
+        return None if modes is None else (modes, cov, params)
+
+    def _deferred(self) -> list:
+        """The deferred reports on: bias compensation, the encoders' covariance over time."""
+        return [d for d in (self._compensation, self._encoder_cov) if d is not None]
+
+    def _defer(self, stamp: int, measurement: tuple, update: tuple, cov_before) -> None:
+        """Take a used update into the deferred reports."""
+        if self._compensation is not None:
+            self._compensation.add_update(self.noise, update, cov_before, self.ukf.Q)
+        if self._encoder_cov is not None:
+            index = stamp // self.update_every
+            self._encoder_cov.add(index, measurement[1], measurement[3], update[0][0])
 
     def _peer_terms(
         self, act_cov: np.ndarray, msgs: list
@@ -643,9 +663,9 @@ class CargoEstimator(EstimatorInputs):
         undo = [s for s in self._snapshots if s[0] >= gated_stamp - self.rollback_steps]
         if not undo:
             return 0
-        first, x, cov, log_len, *compensation = undo[0]
-        if compensation:
-            self._compensation.restore(compensation[0])
+        first, x, cov, log_len, *states = undo[0]
+        for deferred, state in zip(self._deferred(), states, strict=True):
+            deferred.restore(state)
         if self._window is not None:
             self._window.drop_from(first)
         # The predictions of the undone instants and of the gated one stay: P grows as if the
@@ -700,13 +720,15 @@ class CargoEstimator(EstimatorInputs):
         (kg, m, kg m^2; inertia about the centre of mass, grasp-frame axes): the reported
         (physically consistent) body and the posterior's spread carried to these quantities
         (`InertialParamUKF.physical_estimate`)."""
-        return self.ukf.physical_estimate(offset=self._offset())
+        return self.ukf.physical_estimate(offset=self._offset(), cov=self.params_cov())
 
     def params_cov(self) -> np.ndarray:
+        if self._encoder_cov is not None:
+            return self._encoder_cov.covariance(self.ukf.params_cov())
         return self.ukf.params_cov()
 
     def params_std(self) -> np.ndarray:
-        return self.ukf.params_std()
+        return np.sqrt(np.diag(self.params_cov()))
 
     @property
     def counters(self) -> dict[str, int]:

@@ -476,12 +476,13 @@ class InertialParamUKF(BatchedUKF):
         return np.sqrt(np.diag(self.P))
 
     def physical_estimate(
-        self, step: float = 1e-6, offset: np.ndarray | None = None
+        self, step: float = 1e-6, offset: np.ndarray | None = None, cov: np.ndarray | None = None
     ) -> tuple[np.ndarray, np.ndarray]:
         """Mean and standard deviation of [m, c (3), I_xx, I_yy, I_zz, I_xy, I_xz, I_yz] (kg, m,
         kg m^2; inertia about the centre of mass): the values of the reported body
         (``params_mean(offset)``), and the standard deviations of the posterior carried through
-        the map's Jacobian at that body (central differences, one vectorised call)."""
+        the map's Jacobian at that body (central differences, one vectorised call); ``cov`` in
+        place of P where given."""
         mode = self.params_mean(offset)
         probes = np.vstack((mode, mode + step * np.eye(10), mode - step * np.eye(10)))
         mass, com, inertia = mass_com_inertia_from_params(probes)
@@ -489,7 +490,7 @@ class InertialParamUKF(BatchedUKF):
             (mass[:, None], com, inertia[:, [0, 1, 2, 0, 0, 1], [0, 1, 2, 1, 2, 2]]), axis=1
         )
         jac = (values[1:11] - values[11:21]).T / (2.0 * step)
-        var = np.einsum("ij,jk,ik->i", jac, self.P, jac)
+        var = np.einsum("ij,jk,ik->i", jac, self.P if cov is None else cov, jac)
         return values[0], np.sqrt(np.maximum(var, 0.0))
 
 
