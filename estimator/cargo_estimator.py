@@ -276,7 +276,7 @@ class CargoEstimator(EstimatorInputs):
         self.min_relative_fixes = int(min_relative_fixes)
         self._init_bookkeeping(relative_grasps, record)
         self._compensation = DeferredCompensation() if bias_compensation else None
-        self._encoder_cov = EncoderCovariance(self.noise) if encoders_over_time else None
+        self._encoder_cov = EncoderCovariance.of(self.noise) if encoders_over_time else None
         if encoders_over_time and np.any(self.ukf.Q):
             raise ValueError("encoders_over_time needs no random walk (process_std_rel 0)")
         self._step_constants = self._compiled_step_constants()

@@ -35,6 +35,7 @@ from collections import deque
 import numpy as np
 
 from .motion import POINT_EXTENDED
+from .over_time import IMU_MODES
 
 
 def encoder_lag_covariances(noise) -> np.ndarray:
@@ -48,24 +49,30 @@ class EncoderCovariance:
     """The cross terms X (10, 10) of the encoders' noise over the used updates (module
     docstring), with the last n_lags updates' (index, V) to pair with the next."""
 
-    def __init__(self, noise) -> None:
-        self.lag_cov = encoder_lag_covariances(noise)
-        self.columns = slice(24, 24 + 8 * noise._n_joints)
-        self.n_joints = noise._n_joints
+    def __init__(self, lag_cov: np.ndarray, columns: slice, n_joints: int) -> None:
+        self.lag_cov = lag_cov  # Gm(L) (n_lags + 1, 8, 8)
+        self.columns = columns  # the encoders' modes among the map's columns (8 per joint)
+        self.n_joints = int(n_joints)
         self.X = np.zeros((10, 10))
         self.recent: deque[tuple[int, np.ndarray]] = deque(maxlen=self.lag_cov.shape[0] - 1)
+
+    @classmethod
+    def of(cls, noise) -> EncoderCovariance:
+        """For a ``NoiseModel``'s modes (``momentum_jacobians``: the encoders after the IMU's)."""
+        nj = noise._n_joints
+        return cls(encoder_lag_covariances(noise), slice(IMU_MODES, IMU_MODES + 8 * nj), nj)
 
     def add(self, index: int, regressor, cov, balance_map) -> None:
         """Take in a used update: its count ``index``, Y (6, 10), R (6, 6) and own modes' map
         E (6, n) (``own_modes``)."""
         v = np.linalg.solve(cov, regressor).T @ balance_map[:, self.columns]
         v = v.reshape(10, self.n_joints, 8)
-        n_lags = self.lag_cov.shape[0] - 1
-        for earlier, v_e in self.recent:
-            lag = index - earlier
-            if 0 < lag <= n_lags:
-                cross = np.einsum("pca,ab,qcb->pq", v_e, self.lag_cov[lag], v)
-                self.X += cross + cross.T
+        lags = np.array([index - earlier for earlier, _ in self.recent], dtype=int)
+        near = (lags > 0) & (lags < self.lag_cov.shape[0])
+        if near.any():
+            earlier = np.stack([v_e for (_, v_e), n in zip(self.recent, near, strict=True) if n])
+            cross = np.einsum("lpca,lab,qcb->pq", earlier, self.lag_cov[lags[near]], v)
+            self.X += cross + cross.T
         self.recent.append((index, v))
 
     def covariance(self, cov: np.ndarray) -> np.ndarray:
