@@ -75,8 +75,7 @@ from collections.abc import Iterator
 import numpy as np
 from scipy.stats import chi2
 
-from .bias_compensation import DeferredCompensation, own_modes
-from .encoder_covariance import EncoderCovariance
+from .deferred_reports import DeferredReports
 from .fused_motion import FusedMotion, Reading
 from .messages import Instant, RelativeGrasp, WrenchMessage  # noqa: F401 (re-exported)
 from .momentum import SIZE as MOMENTUM_SIZE
@@ -204,10 +203,8 @@ class CargoEstimator(EstimatorInputs):
             covariance (``noise_model``); L > 0, each update conditioned on the last L used
             updates (``over_time``: the IMU's noise weighed with its covariance over time, its
             channels at their per-update covariance; the peers must run it too).
-        bias_compensation: report the estimate compensated for the regressor's own noise
-            (errors in variables, ``bias_compensation``; window 0 only), the filter's path
-            unchanged. ``encoders_over_time``: report the covariance with the encoders' noise
-            correlated over updates (``encoder_covariance``; window 0 and no walk only).
+        bias_compensation, encoders_over_time: the reported estimate and covariance deferred
+            from the filter's (``deferred_reports``; window 0 only).
         motion_lag_s: 0 (default), the readings as they come; > 0, the accelerometer fused
             with the localization fixes by a fixed-lag smoother of this lag (s, rounded to
             control steps), the pipeline fed every reading ``motion_lag_s`` late
@@ -258,8 +255,6 @@ class CargoEstimator(EstimatorInputs):
             min_excitation_snr, process_std_rel, min_relative_fixes, motion_fusion,
         )  # fmt: skip
         self._init_options(over_time_window, motion_lag_s, dt_s, localization_every)
-        if (bias_compensation or encoders_over_time) and self.over_time_window:
-            raise ValueError("bias_compensation and encoders_over_time need over_time_window 0")
         self.motion_fusion = motion_fusion
         self._mismatch_model_std = float(mismatch_model_std)
         self._init_schedule(
@@ -275,10 +270,10 @@ class CargoEstimator(EstimatorInputs):
         self.min_excitation_snr = float(min_excitation_snr)
         self.min_relative_fixes = int(min_relative_fixes)
         self._init_bookkeeping(relative_grasps, record)
-        self._compensation = DeferredCompensation() if bias_compensation else None
-        self._encoder_cov = EncoderCovariance.of(self.noise) if encoders_over_time else None
-        if encoders_over_time and np.any(self.ukf.Q):
-            raise ValueError("encoders_over_time needs no random walk (process_std_rel 0)")
+        self._reports = DeferredReports.of(
+            self.noise, self.update_every, bias_compensation, encoders_over_time,
+            self.over_time_window, self.ukf.Q,
+        )  # fmt: skip
         self._step_constants = self._compiled_step_constants()
 
     def _init_options(self, over_time_window, motion_lag_s, dt_s, localization_every) -> None:
@@ -523,7 +518,8 @@ class CargoEstimator(EstimatorInputs):
                     continue
                 measurement, entry = self._measurement(stamp, inst, msgs)
                 snapshot = (stamp, self.ukf.x.copy(), self.ukf.P.copy(), len(self.log))
-                snapshot = (*snapshot, *(d.state() for d in self._deferred()))
+                if self._reports is not None:
+                    snapshot = (*snapshot, self._reports.state())
                 self.ukf.predict()
                 result = self.ukf.update_linear(*measurement)
                 if result.accepted:
@@ -532,7 +528,7 @@ class CargoEstimator(EstimatorInputs):
                     if self._window is not None:
                         self._window.add(entry)
                     elif entry is not None:
-                        self._defer(stamp, measurement, entry, snapshot[2])
+                        self._reports.add(stamp, measurement, entry, snapshot[2], self.ukf.Q)
                     if self.record:
                         self.log.append(measurement)
                 elif result.reason == "gated":
@@ -563,28 +559,11 @@ class CargoEstimator(EstimatorInputs):
         return self._window.condition(stamp, *measurement, imu_map)
 
     def _score_bias(self, inst: Instant, msgs: list, cov: np.ndarray):
-        """This update's own modes (``bias_compensation.own_modes``), R and the params they are
-        built at, for the deferred reports (None without them or without modes)."""
-        if not self._deferred():
+        """``DeferredReports.modes`` of this update (None without the deferred reports)."""
+        if self._reports is None:
             return None
         peers = [(self._relative[p].transform(), m) for p, m in zip(self.peers, msgs, strict=True)]
-        params = self.ukf.params_mean()
-        modes = own_modes(
-            self.noise, self.motion_fusion, params, inst.motion_jac, inst.regressor, peers
-        )
-        return None if modes is None else (modes, cov, params)
-
-    def _deferred(self) -> list:
-        """The deferred reports on: bias compensation, the encoders' covariance over time."""
-        return [d for d in (self._compensation, self._encoder_cov) if d is not None]
-
-    def _defer(self, stamp: int, measurement: tuple, update: tuple, cov_before) -> None:
-        """Take a used update into the deferred reports."""
-        if self._compensation is not None:
-            self._compensation.add_update(self.noise, update, cov_before, self.ukf.Q)
-        if self._encoder_cov is not None:
-            index = stamp // self.update_every
-            self._encoder_cov.add(index, measurement[1], measurement[3], update[0][0])
+        return self._reports.modes(self.motion_fusion, self.ukf.params_mean(), inst, peers, cov)
 
     def _peer_terms(
         self, act_cov: np.ndarray, msgs: list
@@ -663,9 +642,9 @@ class CargoEstimator(EstimatorInputs):
         undo = [s for s in self._snapshots if s[0] >= gated_stamp - self.rollback_steps]
         if not undo:
             return 0
-        first, x, cov, log_len, *states = undo[0]
-        for deferred, state in zip(self._deferred(), states, strict=True):
-            deferred.restore(state)
+        first, x, cov, log_len, *reports = undo[0]
+        if reports:
+            self._reports.restore(reports[0])
         if self._window is not None:
             self._window.drop_from(first)
         # The predictions of the undone instants and of the gated one stay: P grows as if the
@@ -707,25 +686,21 @@ class CargoEstimator(EstimatorInputs):
     # ------------------------------------------------------------------ outputs
     def params_mean(self) -> np.ndarray:
         """Estimated cargo parameters pi (10,) in this robot's grasp frame."""
-        return self.ukf.params_mean(self._offset())
-
-    def _offset(self) -> np.ndarray | None:
-        """The deferred bias compensation's d (``bias_compensation``), None without it."""
-        if self._compensation is None:
-            return None
-        return self._compensation.offset(self.ukf.x, self.ukf.P)
+        return self.ukf.params_mean(
+            None if self._reports is None else self._reports.offset(self.ukf)
+        )
 
     def physical_estimate(self) -> tuple[np.ndarray, np.ndarray]:
         """Mean and standard deviation of [m, c_x, c_y, c_z, I_xx, I_yy, I_zz, I_xy, I_xz, I_yz]
         (kg, m, kg m^2; inertia about the centre of mass, grasp-frame axes): the reported
         (physically consistent) body and the posterior's spread carried to these quantities
         (`InertialParamUKF.physical_estimate`)."""
-        return self.ukf.physical_estimate(offset=self._offset(), cov=self.params_cov())
+        offset = None if self._reports is None else self._reports.offset(self.ukf)
+        return self.ukf.physical_estimate(offset=offset, cov=self.params_cov())
 
     def params_cov(self) -> np.ndarray:
-        if self._encoder_cov is not None:
-            return self._encoder_cov.covariance(self.ukf.params_cov())
-        return self.ukf.params_cov()
+        cov = self.ukf.params_cov()
+        return cov if self._reports is None else self._reports.covariance(cov)
 
     def params_std(self) -> np.ndarray:
         return np.sqrt(np.diag(self.params_cov()))
