@@ -44,3 +44,25 @@ def test_sandwich_matches_the_filters_spread():
     stderr = np.std(nees_sandwich) / np.sqrt(len(nees_sandwich))
     assert abs(np.mean(nees_sandwich) - 10) < 3 * stderr
     assert abs(np.mean(nees_plain) - 10) > 8 * stderr
+
+
+def test_estimator_reports_leave_the_filters_path():
+    """``bias_compensation`` and ``encoders_over_time`` move only what is reported: the filter's
+    x and P are those of the estimator without them, bit for bit; the reported mean and
+    covariance differ from them, and the reported spread follows the reported covariance."""
+    from test_estimator import simulate
+
+    kwargs = {"process_std_rel": 0.0}
+    reports = {**kwargs, "bias_compensation": True, "encoders_over_time": True}
+    _, plain = simulate(2, "nominal", 20.0, "figure8_tumble", estimator_kwargs=kwargs)
+    world, both = simulate(2, "nominal", 20.0, "figure8_tumble", estimator_kwargs=reports)
+    for est, ref in zip(both, plain, strict=True):
+        assert est.ukf.n_updates > 50
+        np.testing.assert_array_equal(est.ukf.x, ref.ukf.x)
+        np.testing.assert_array_equal(est.ukf.P, ref.ukf.P)
+        np.testing.assert_array_equal(ref.params_cov(), ref.ukf.P)
+        assert not np.allclose(est.params_mean(), ref.params_mean(), rtol=0, atol=1e-12)
+        assert not np.allclose(est.params_cov(), est.ukf.P, rtol=1e-9, atol=0)
+        assert np.all(np.linalg.eigvalsh(est.params_cov()) > 0)
+        np.testing.assert_allclose(est.params_std(), np.sqrt(np.diag(est.params_cov())))
+        assert np.all(est.physical_estimate()[1] != ref.physical_estimate()[1])
