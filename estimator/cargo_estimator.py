@@ -75,6 +75,7 @@ from collections.abc import Iterator
 import numpy as np
 from scipy.stats import chi2
 
+from .deferred_reports import DeferredReports
 from .fused_motion import FusedMotion, Reading
 from .messages import Instant, RelativeGrasp, WrenchMessage  # noqa: F401 (re-exported)
 from .momentum import SIZE as MOMENTUM_SIZE
@@ -202,6 +203,8 @@ class CargoEstimator(EstimatorInputs):
             covariance (``noise_model``); L > 0, each update conditioned on the last L used
             updates (``over_time``: the IMU's noise weighed with its covariance over time, its
             channels at their per-update covariance; the peers must run it too).
+        bias_compensation, encoders_over_time: the reported estimate and covariance deferred
+            from the filter's (``deferred_reports``; window 0 only).
         motion_lag_s: 0 (default), the readings as they come; > 0, the accelerometer fused
             with the localization fixes by a fixed-lag smoother of this lag (s, rounded to
             control steps), the pipeline fed every reading ``motion_lag_s`` late
@@ -242,6 +245,8 @@ class CargoEstimator(EstimatorInputs):
         mismatch_model_std: float = 5.3e-7,
         rate_cutoff_hz: float | None = None,
         over_time_window: int = 0,
+        bias_compensation: bool = False,
+        encoders_over_time: bool = False,
         motion_lag_s: float = 0.0,
         localization_every: int = 20,
     ) -> None:
@@ -265,6 +270,10 @@ class CargoEstimator(EstimatorInputs):
         self.min_excitation_snr = float(min_excitation_snr)
         self.min_relative_fixes = int(min_relative_fixes)
         self._init_bookkeeping(relative_grasps, record)
+        self._reports = DeferredReports.of(
+            self.noise, self.update_every, bias_compensation, encoders_over_time,
+            self.over_time_window, self.ukf.Q,
+        )  # fmt: skip
         self._step_constants = self._compiled_step_constants()
 
     def _init_options(self, over_time_window, motion_lag_s, dt_s, localization_every) -> None:
@@ -509,6 +518,8 @@ class CargoEstimator(EstimatorInputs):
                     continue
                 measurement, entry = self._measurement(stamp, inst, msgs)
                 snapshot = (stamp, self.ukf.x.copy(), self.ukf.P.copy(), len(self.log))
+                if self._reports is not None:
+                    snapshot = (*snapshot, self._reports.state())
                 self.ukf.predict()
                 result = self.ukf.update_linear(*measurement)
                 if result.accepted:
@@ -516,6 +527,8 @@ class CargoEstimator(EstimatorInputs):
                     self._snapshots.append(snapshot)
                     if self._window is not None:
                         self._window.add(entry)
+                    elif entry is not None:
+                        self._reports.add(stamp, measurement, entry, snapshot[2], self.ukf.Q)
                     if self.record:
                         self.log.append(measurement)
                 elif result.reason == "gated":
@@ -542,8 +555,15 @@ class CargoEstimator(EstimatorInputs):
         meas_cov = meas_cov + self._rate_square_cov(stamp)
         measurement = (inst.thrust, inst.regressor, inst.links - peers - motion_mean, meas_cov)
         if self._window is None:
-            return measurement, None
+            return measurement, self._score_bias(inst, msgs, meas_cov)
         return self._window.condition(stamp, *measurement, imu_map)
+
+    def _score_bias(self, inst: Instant, msgs: list, cov: np.ndarray):
+        """``DeferredReports.modes`` of this update (None without the deferred reports)."""
+        if self._reports is None:
+            return None
+        peers = [(self._relative[p].transform(), m) for p, m in zip(self.peers, msgs, strict=True)]
+        return self._reports.modes(self.motion_fusion, self.ukf.params_mean(), inst, peers, cov)
 
     def _peer_terms(
         self, act_cov: np.ndarray, msgs: list
@@ -622,7 +642,9 @@ class CargoEstimator(EstimatorInputs):
         undo = [s for s in self._snapshots if s[0] >= gated_stamp - self.rollback_steps]
         if not undo:
             return 0
-        first, x, cov, log_len = undo[0]
+        first, x, cov, log_len, *reports = undo[0]
+        if reports:
+            self._reports.restore(reports[0])
         if self._window is not None:
             self._window.drop_from(first)
         # The predictions of the undone instants and of the gated one stay: P grows as if the
@@ -664,20 +686,24 @@ class CargoEstimator(EstimatorInputs):
     # ------------------------------------------------------------------ outputs
     def params_mean(self) -> np.ndarray:
         """Estimated cargo parameters pi (10,) in this robot's grasp frame."""
-        return self.ukf.params_mean()
+        return self.ukf.params_mean(
+            None if self._reports is None else self._reports.offset(self.ukf)
+        )
 
     def physical_estimate(self) -> tuple[np.ndarray, np.ndarray]:
         """Mean and standard deviation of [m, c_x, c_y, c_z, I_xx, I_yy, I_zz, I_xy, I_xz, I_yz]
         (kg, m, kg m^2; inertia about the centre of mass, grasp-frame axes): the reported
         (physically consistent) body and the posterior's spread carried to these quantities
         (`InertialParamUKF.physical_estimate`)."""
-        return self.ukf.physical_estimate()
+        offset = None if self._reports is None else self._reports.offset(self.ukf)
+        return self.ukf.physical_estimate(offset=offset, cov=self.params_cov())
 
     def params_cov(self) -> np.ndarray:
-        return self.ukf.params_cov()
+        cov = self.ukf.params_cov()
+        return cov if self._reports is None else self._reports.covariance(cov)
 
     def params_std(self) -> np.ndarray:
-        return self.ukf.params_std()
+        return np.sqrt(np.diag(self.params_cov()))
 
     @property
     def counters(self) -> dict[str, int]:

@@ -454,9 +454,12 @@ class InertialParamUKF(BatchedUKF):
             _as_float_array(R, (m, m), "R"),
         )
 
-    def params_mean(self) -> np.ndarray:
+    def params_mean(self, offset: np.ndarray | None = None) -> np.ndarray:
         """The reported estimate: the physically consistent body of highest posterior density
-        (x when x is consistent); a copy."""
+        (x when x is consistent); a copy. ``offset`` (10,): that of N(x + offset, P) (the
+        deferred bias compensation, ``estimator.bias_compensation``; not cached)."""
+        if offset is not None:
+            return constrained_mode(self.x + offset, self.P, start=self._mode)[0]
         x_of, P_of = self._mode_of
         if not (unscented.same_values(self.x, x_of) and unscented.same_values(self.P, P_of)):
             self._mode, solved = constrained_mode(self.x, self.P, start=self._mode)
@@ -472,19 +475,22 @@ class InertialParamUKF(BatchedUKF):
         """Posterior standard deviations (10,) of pi."""
         return np.sqrt(np.diag(self.P))
 
-    def physical_estimate(self, step: float = 1e-6) -> tuple[np.ndarray, np.ndarray]:
+    def physical_estimate(
+        self, step: float = 1e-6, offset: np.ndarray | None = None, cov: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Mean and standard deviation of [m, c (3), I_xx, I_yy, I_zz, I_xy, I_xz, I_yz] (kg, m,
-        kg m^2; inertia about the centre of mass): the values of the reported body, and the
-        standard deviations of the posterior carried through the map's Jacobian at that body
-        (central differences, one vectorised call)."""
-        mode = self.params_mean()
+        kg m^2; inertia about the centre of mass): the values of the reported body
+        (``params_mean(offset)``), and the standard deviations of the posterior carried through
+        the map's Jacobian at that body (central differences, one vectorised call); ``cov`` in
+        place of P where given."""
+        mode = self.params_mean(offset)
         probes = np.vstack((mode, mode + step * np.eye(10), mode - step * np.eye(10)))
         mass, com, inertia = mass_com_inertia_from_params(probes)
         values = np.concatenate(
             (mass[:, None], com, inertia[:, [0, 1, 2, 0, 0, 1], [0, 1, 2, 1, 2, 2]]), axis=1
         )
         jac = (values[1:11] - values[11:21]).T / (2.0 * step)
-        var = np.einsum("ij,jk,ik->i", jac, self.P, jac)
+        var = np.einsum("ij,jk,ik->i", jac, self.P if cov is None else cov, jac)
         return values[0], np.sqrt(np.maximum(var, 0.0))
 
 

@@ -119,6 +119,14 @@ def build_parser() -> argparse.ArgumentParser:
         help="CargoEstimator's motion_lag_s (s; 0 off; default: the estimator's)",
     )  # fmt: skip
     parser.add_argument(
+        "--bias-compensation", action="store_true",
+        help="CargoEstimator(bias_compensation=True): the errors-in-variables bias taken out",
+    )  # fmt: skip
+    parser.add_argument(
+        "--encoders-over-time", action="store_true",
+        help="CargoEstimator(encoders_over_time=True): the encoders' correlation in the covariance",
+    )  # fmt: skip
+    parser.add_argument(
         "--no-flush", action="store_true",
         help="with a lag, leave the buffered tail unfed (the estimate holds duration - lag s)",
     )  # fmt: skip
@@ -134,6 +142,9 @@ def _run(job: tuple[str, int, argparse.Namespace]) -> tuple[str, int, dict]:
     kwargs = {}
     if args.over_time_window is not None:
         kwargs["over_time_window"] = args.over_time_window
+    for option in ("bias_compensation", "encoders_over_time"):
+        if getattr(args, option):
+            kwargs[option] = True
     if args.motion_lag_s is not None:
         kwargs["motion_lag_s"] = args.motion_lag_s
         kwargs["localization_every"] = sensors.NOISE_PROFILES[f"limits_{name}"].localization_every
@@ -212,8 +223,8 @@ def _print_nees(results: list[tuple[str, int, dict]], args: argparse.Namespace, 
         f"(10 parameters) per noise source; 95 % band of the mean [{low:.1f}, "
         f"{high:.1f}]"
     )
-    print("| noise | NEES per seed (robots) | mean | in band |")
-    print("|---|---|---|---|")
+    print("| noise | NEES per seed (robots) | mean | in band | mass, CoM, I1 / I2 / I3 (rms) |")
+    print("|---|---|---|---|---|")
     for name, label, _ in variants:
         runs = [r for v, _, r in results if v == name]
         if not runs:
@@ -221,7 +232,18 @@ def _print_nees(results: list[tuple[str, int, dict]], args: argparse.Namespace, 
         per_seed = [[a["nees"] for a in r["agents"].values()] for r in runs]
         mean = float(np.mean([np.mean(x) for x in per_seed]))
         cells = "; ".join(" / ".join(f"{x:.1f}" for x in seed) for seed in per_seed)
-        print(f"| {label} | {cells} | {mean:.1f} | {'yes' if low <= mean <= high else 'no'} |")
+        band = "yes" if low <= mean <= high else "no"
+        print(f"| {label} | {cells} | {mean:.1f} | {band} | {_rms_errors(runs)} |")
+
+
+def _rms_errors(runs: list[dict]) -> str:
+    """The estimates' errors, rms over seeds and robots: mass (%), CoM (mm), principal moments
+    (%)."""
+    agents = [a for r in runs for a in r["agents"].values()]
+    mass = 100 * np.sqrt(np.mean([a["mass_rel_err"] ** 2 for a in agents]))
+    com = 1e3 * np.sqrt(np.mean([a["com_err_m"] ** 2 for a in agents]))
+    principal = 100 * np.sqrt(np.mean([np.square(a["principal_rel_err"]) for a in agents], 0))
+    return f"{mass:.3f} %, {com:.2f} mm, {' / '.join(f'{x:.2f}' for x in principal)} %"
 
 
 def _principal_ratio(bound: dict, perfect: dict) -> float:
