@@ -204,7 +204,10 @@ class CargoEstimator(EstimatorInputs):
             updates (``over_time``: the IMU's noise weighed with its covariance over time, its
             channels at their per-update covariance; the peers must run it too).
         bias_compensation, encoders_over_time: the reported estimate and covariance deferred
-            from the filter's (``deferred_reports``; window 0 only).
+            from the filter's (``deferred_reports``; window 0 only). The compensation is off by
+            default; ``encoders_over_time`` None (default) reports the covariance with the
+            encoders' noise correlated over updates (``encoder_covariance``) wherever that holds
+            (window 0, no random walk), True demands it, False reports the filter's P.
         motion_lag_s: 0 (default), the readings as they come; > 0, the accelerometer fused
             with the localization fixes by a fixed-lag smoother of this lag (s, rounded to
             control steps), the pipeline fed every reading ``motion_lag_s`` late
@@ -246,7 +249,7 @@ class CargoEstimator(EstimatorInputs):
         rate_cutoff_hz: float | None = None,
         over_time_window: int = 0,
         bias_compensation: bool = False,
-        encoders_over_time: bool = False,
+        encoders_over_time: bool | None = None,
         motion_lag_s: float = 0.0,
         localization_every: int = 20,
     ) -> None:

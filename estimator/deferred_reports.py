@@ -1,8 +1,9 @@
 """What the estimator reports beside its filter's own (x, P), built from the used updates and
 deferred (the filter's path untouched): the errors-in-variables compensation of the estimate
 (``bias_compensation``) and the encoders' correlation over updates in its covariance
-(``encoder_covariance``). Both off by default (``CargoEstimator(bias_compensation=...,
-encoders_over_time=...)``), for the filter without an over-time window."""
+(``encoder_covariance``), for the filter without an over-time window. The compensation is off
+by default (``CargoEstimator(bias_compensation=True)``); the encoders' covariance is on by
+default wherever its derivation holds (no window, no random walk; ``encoders_over_time=None``)."""
 
 from __future__ import annotations
 
@@ -24,7 +25,10 @@ class DeferredReports:
     @classmethod
     def of(cls, noise, update_every, compensate, over_time, window, walk):
         """The reports asked for, or None; ValueError with a window or (``over_time``) a
-        random walk ``walk`` Q != 0 (their derivations assume neither)."""
+        random walk ``walk`` Q != 0 (their derivations assume neither). ``over_time`` None: on
+        without a window and a walk, else off."""
+        if over_time is None:
+            over_time = not window and not np.any(walk)
         if not (compensate or over_time):
             return None
         if window:

@@ -71,7 +71,10 @@ class EncoderCovariance:
         near = (lags > 0) & (lags < self.lag_cov.shape[0])
         if near.any():
             earlier = np.stack([v_e for (_, v_e), n in zip(self.recent, near, strict=True) if n])
-            cross = np.einsum("lpca,lab,qcb->pq", earlier, self.lag_cov[lags[near]], v)
+            # sum_l V_l Gm(k - l), then its product with V_k: sum_(l, c, a, b) of
+            # V_l[p, c, a] Gm[a, b] V_k[q, c, b], the pairs' sum without a five-index loop.
+            carried = np.matmul(earlier, self.lag_cov[lags[near]][:, None]).sum(axis=0)
+            cross = carried.reshape(10, -1) @ v.reshape(10, -1).T
             self.X += cross + cross.T
         self.recent.append((index, v))
 

@@ -123,8 +123,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="CargoEstimator(bias_compensation=True): the errors-in-variables bias taken out",
     )  # fmt: skip
     parser.add_argument(
-        "--encoders-over-time", action="store_true",
-        help="CargoEstimator(encoders_over_time=True): the encoders' correlation in the covariance",
+        "--encoders-over-time", choices=("on", "off"), default=None,
+        help="CargoEstimator's encoders_over_time: the encoders' correlation over updates in the "
+        "reported covariance (default: the estimator's, on without a window)",
     )  # fmt: skip
     parser.add_argument(
         "--no-flush", action="store_true",
@@ -142,9 +143,10 @@ def _run(job: tuple[str, int, argparse.Namespace]) -> tuple[str, int, dict]:
     kwargs = {}
     if args.over_time_window is not None:
         kwargs["over_time_window"] = args.over_time_window
-    for option in ("bias_compensation", "encoders_over_time"):
-        if getattr(args, option):
-            kwargs[option] = True
+    if args.bias_compensation:
+        kwargs["bias_compensation"] = True
+    if args.encoders_over_time is not None:
+        kwargs["encoders_over_time"] = args.encoders_over_time == "on"
     if args.motion_lag_s is not None:
         kwargs["motion_lag_s"] = args.motion_lag_s
         kwargs["localization_every"] = sensors.NOISE_PROFILES[f"limits_{name}"].localization_every

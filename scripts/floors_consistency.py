@@ -102,7 +102,11 @@ def fly(job) -> list[dict]:
     from astrocargo.envs import astrobee_cargo_v0
 
     noise, seed, weighed, walk, duration, model_covs = job
-    kwargs = {"record": True, "process_std_rel": FORMER_PROCESS_STD_REL if walk else 0.0}
+    # The filter's own covariance P (``encoders_over_time`` off): this study is of P's weights.
+    kwargs = {
+        "record": True, "process_std_rel": FORMER_PROCESS_STD_REL if walk else 0.0,
+        "encoders_over_time": False,
+    }  # fmt: skip
     env = astrobee_cargo_v0.parallel_env(
         n_robots=2, trajectory="figure8_tumble", noise=noise, cargo_mass_kg=bench.CARGO_MASS,
         cargo_com_m=bench.CARGO_COM, cargo_inertia=bench.CARGO_INERTIA,

@@ -185,7 +185,8 @@ def fly(job: tuple[str, int, int, float]) -> list[dict]:
     env = astrobee_cargo_v0.parallel_env(
         n_robots=2, trajectory="figure8_tumble", noise=noise,
         max_cycles=int(round(duration * CONTROL_HZ)),
-        estimator_kwargs={"record": True, "over_time_window": window},
+        # The filter's own covariance P at every window (``encoders_over_time`` off).
+        estimator_kwargs={"record": True, "over_time_window": window, "encoders_over_time": False},
     )  # fmt: skip
     obs, _ = env.reset(seed=seed)
     recorders = [BiasRecorder(est) if window else None for est in env.sim.estimators]

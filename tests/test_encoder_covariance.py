@@ -52,7 +52,7 @@ def test_estimator_reports_leave_the_filters_path():
     covariance differ from them, and the reported spread follows the reported covariance."""
     from test_estimator import simulate
 
-    kwargs = {"process_std_rel": 0.0}
+    kwargs = {"process_std_rel": 0.0, "encoders_over_time": False}
     reports = {**kwargs, "bias_compensation": True, "encoders_over_time": True}
     _, plain = simulate(2, "nominal", 20.0, "figure8_tumble", estimator_kwargs=kwargs)
     world, both = simulate(2, "nominal", 20.0, "figure8_tumble", estimator_kwargs=reports)
@@ -66,3 +66,28 @@ def test_estimator_reports_leave_the_filters_path():
         assert np.all(np.linalg.eigvalsh(est.params_cov()) > 0)
         np.testing.assert_allclose(est.params_std(), np.sqrt(np.diag(est.params_cov())))
         assert np.all(est.physical_estimate()[1] != ref.physical_estimate()[1])
+
+
+def test_default_reports_the_encoders_correlation_where_it_holds():
+    """By default (``encoders_over_time=None``) the estimator reports P + P X P without a window
+    and a random walk, and its filter's P with either; asked for (True) with a window or a walk
+    it raises."""
+    import pytest
+    from test_estimator import simulate
+
+    _, plain = simulate(1, "nominal", 12.0, "figure8_tumble")
+    _, walk = simulate(1, "nominal", 12.0, "figure8_tumble",
+                       estimator_kwargs={"process_std_rel": 1e-5})  # fmt: skip
+    _, window = simulate(1, "nominal", 12.0, "figure8_tumble",
+                         estimator_kwargs={"over_time_window": 8})  # fmt: skip
+    est = plain[0]
+    assert est.ukf.n_updates > 10
+    assert est._reports is not None and est._reports.encoder_cov is not None
+    assert not np.allclose(est.params_cov(), est.ukf.P, rtol=1e-9, atol=0)
+    for other in (walk[0], window[0]):
+        assert other.ukf.n_updates > 10
+        np.testing.assert_array_equal(other.params_cov(), other.ukf.P)
+    for demand in ({"process_std_rel": 1e-5}, {"over_time_window": 8}):
+        with pytest.raises(ValueError, match="encoders_over_time|over_time_window"):
+            simulate(1, "nominal", 1.0, "figure8_tumble",
+                     estimator_kwargs={**demand, "encoders_over_time": True})  # fmt: skip
