@@ -36,6 +36,7 @@ import mujoco
 import numpy as np
 from numba import njit
 
+from astrocargo.envs.step_record import bound_views, record_of
 from astrocargo.envs.world import World
 from astrocargo.estimator.geometry import (
     cross3_into,
@@ -121,6 +122,10 @@ class SensorPacket(NamedTuple):
     base_quat_world: np.ndarray | None  # (4,) w x y z, only at a localization fix
 
 
+# The fields of ``SensorReadings.empty_record``'s record, in the order of the readings' arrays.
+READINGS_FIELDS = ("accel", "gyro", "joints", "pos", "quat", "has_imu", "has_fix")
+
+
 @dataclass(slots=True)
 class SensorReadings:
     """Every robot's readings at one control step as arrays, one row per robot; a row's IMU
@@ -151,6 +156,25 @@ class SensorReadings:
             np.zeros((n_rows, 3)), np.zeros((n_rows, 4)), np.zeros(n_rows, dtype=np.bool_),
             np.zeros(n_rows, dtype=np.bool_),
         )  # fmt: skip
+
+    @classmethod
+    def empty_record(cls, n_rows: int, n_joints: int = 2) -> tuple[SensorReadings, np.ndarray]:
+        """``empty``'s readings, each array a view of one record (``step_record.record_of``;
+        fields ``READINGS_FIELDS``), and that record: what the compiled step writes
+        (``step_kernels.sense_and_navigate``)."""
+        readings = cls.empty(n_rows, n_joints)
+        record = record_of(
+            dict(zip(READINGS_FIELDS, dataclasses.astuple(readings)[1:], strict=True))
+        )
+        readings.view_record(record)
+        return readings, record
+
+    def view_record(self, record: np.ndarray) -> None:
+        """The arrays become views of ``record``'s fields (``empty_record``; after a copy, whose
+        arrays are detached from the copied record)."""
+        names = [f.name for f in dataclasses.fields(self)[1:]]
+        for name, view in zip(names, bound_views(record).values(), strict=True):
+            setattr(self, name, view)
 
     def in_rows(self, rows: list[int], n_rows: int) -> SensorReadings:
         """These readings as rows ``rows`` of ``n_rows`` (the others: zeros, nothing valid)."""
