@@ -29,6 +29,7 @@ the command and 5e-4 N m + 2 %.
 from __future__ import annotations
 
 import dataclasses
+import functools
 from dataclasses import dataclass, replace
 from typing import NamedTuple
 
@@ -162,11 +163,8 @@ class SensorReadings:
         """``empty``'s readings, each array a view of one record (``step_record.record_of``;
         fields ``READINGS_FIELDS``), and that record: what the compiled step writes
         (``step_kernels.sense_and_navigate``)."""
-        readings = cls.empty(n_rows, n_joints)
-        record = record_of(
-            dict(zip(READINGS_FIELDS, dataclasses.astuple(readings)[1:], strict=True))
-        )
-        readings.view_record(record)
+        record = np.zeros(1, dtype=_readings_dtype(n_rows, n_joints))
+        readings = cls(0.0, *bound_views(record).values())
         return readings, record
 
     def view_record(self, record: np.ndarray) -> None:
@@ -184,6 +182,13 @@ class SensorReadings:
             full[rows] = value
             out.append(full)
         return SensorReadings(self.time_s, *out)
+
+
+@functools.cache
+def _readings_dtype(n_rows: int, n_joints: int) -> np.dtype:
+    """The dtype of ``SensorReadings.empty_record``'s record (built once per shape)."""
+    empty = SensorReadings.empty(n_rows, n_joints)
+    return record_of(dict(zip(READINGS_FIELDS, dataclasses.astuple(empty)[1:], strict=True))).dtype
 
 
 @njit(cache=True, inline="always")

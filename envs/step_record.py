@@ -11,6 +11,8 @@ stored as uint8 (0 or 1; the kernel reads and writes it as numbers) and viewed b
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 
@@ -29,11 +31,16 @@ def record_of(arrays: dict[str, np.ndarray]) -> np.ndarray:
 
 def bound_views(record: np.ndarray) -> dict[str, np.ndarray]:
     """Each field of ``record`` (``record_of``) as a view: writing one writes the record."""
-    views = {name: record[name][0] for name in record.dtype.names}
     return {
-        name: view.view(np.bool_) if view.dtype == np.uint8 else view
-        for name, view in views.items()
+        name: record[name][0].view(np.bool_) if stored_bool else record[name][0]
+        for name, stored_bool in _fields(record.dtype)
     }
+
+
+@functools.cache
+def _fields(dtype: np.dtype) -> tuple[tuple[str, bool], ...]:
+    """Each field's name and whether it holds a bool array (stored as uint8)."""
+    return tuple((name, dtype.fields[name][0].base == np.uint8) for name in dtype.names)
 
 
 def _stored(dtype: np.dtype) -> np.dtype:
