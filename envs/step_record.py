@@ -3,10 +3,11 @@
 numba checks and unboxes every argument of every call (about 55 ns for each array), which for
 the few robots of a step costs more than the arithmetic; a NumPy record of a structured dtype
 with one field per array is unboxed in one check, and inside the kernel ``rec[0].name`` is the
-same array as before. ``record_of`` builds such a record (shape (1,)) from named arrays;
-``bound_views`` gives the fields back as views, so the Python code that writes an array in
-place writes the record the kernel reads. numba's records hold no booleans: a bool array is
-stored as uint8 (0 or 1; the kernel reads and writes it as numbers) and viewed back as bool.
+same array as before. ``record_of`` builds such a record (shape (1,)) from named arrays, its
+dtype ``interned``; ``bound_views`` gives the fields back as views, so the Python code that
+writes an array in place writes the record the kernel reads. numba's records hold no
+booleans: a bool array is stored as uint8 (0 or 1; the kernel reads and writes it as numbers)
+and viewed back as bool.
 """
 
 from __future__ import annotations
@@ -22,11 +23,20 @@ def record_of(arrays: dict[str, np.ndarray]) -> np.ndarray:
     for name, value in arrays.items():
         if np.ndim(value) == 0:
             raise ValueError(f"field {name!r} must be an array of at least one dimension")
-    dtype = np.dtype([(name, _stored(value.dtype), value.shape) for name, value in arrays.items()])
+    dtype = interned(
+        np.dtype([(name, _stored(value.dtype), value.shape) for name, value in arrays.items()])
+    )
     record = np.zeros(1, dtype=dtype)
     for name, value in arrays.items():
         record[name][0] = value
     return record
+
+
+@functools.cache
+def interned(dtype: np.dtype) -> np.dtype:
+    """The first dtype built equal to ``dtype``: numba's dispatch recognises a structured dtype
+    quickly only by identity (an equal one built anew costs about 1.5 us more per argument)."""
+    return dtype
 
 
 def bound_views(record: np.ndarray) -> dict[str, np.ndarray]:
