@@ -37,7 +37,6 @@ import mujoco
 import numpy as np
 from numba import njit
 
-from astrocargo.envs.step_record import bound_views, record_of
 from astrocargo.envs.world import World
 from astrocargo.estimator.geometry import (
     cross3_into,
@@ -48,6 +47,7 @@ from astrocargo.estimator.geometry import (
     quat_mul_into,
     rotvec_to_quat_into,
 )
+from astrocargo.estimator.records import bound_views, record_of
 
 
 @dataclass(frozen=True)
@@ -160,7 +160,7 @@ class SensorReadings:
 
     @classmethod
     def empty_record(cls, n_rows: int, n_joints: int = 2) -> tuple[SensorReadings, np.ndarray]:
-        """``empty``'s readings, each array a view of one record (``step_record.record_of``;
+        """``empty``'s readings, each array a view of one record (``estimator.records.record_of``;
         fields ``READINGS_FIELDS``), and that record: what the compiled step writes
         (``step_kernels.sense_and_navigate``)."""
         record = np.zeros(1, dtype=_readings_dtype(n_rows, n_joints))

@@ -1,5 +1,5 @@
 """A control step's compiled calls, each over the arrays of the step's record (``world``, bound
-once per world: ``transport.CargoTransport._bind_step_record``, ``envs.step_record``):
+once per world: ``transport.CargoTransport._bind_step_record``, ``estimator.records``):
 
 - ``commands``, before the physics: the period's commands (``actions.command_period``);
 - ``sense_and_navigate``, after it: the physics state's check (``physics.state_finite``), every

@@ -53,10 +53,10 @@ from astrocargo.envs.sensors import (
 from astrocargo.envs.sensors import noise_profile as get_noise_profile
 from astrocargo.envs.step_kernels import commands as step_commands
 from astrocargo.envs.step_kernels import observe_and_reward, sense_and_navigate
-from astrocargo.envs.step_record import bound_views, record_of
 from astrocargo.envs.world import ARM_DEPLOYED_RAD, MAX_TIMESTEP_S, World
 from astrocargo.estimator.cargo_estimator import CargoEstimator
 from astrocargo.estimator.geometry import mat_to_quat, quat_to_mat
+from astrocargo.estimator.records import as_interned, bound_views, record_of
 
 REWARD_KEYS = tuple(f"reward_{t}" for t in REWARD_TERMS)  # their names in infos
 TERMINATION_REASONS = ("wall_contact", "non_finite", "released")  # "released": one agent
@@ -236,8 +236,11 @@ class CargoTransport:
         self.__dict__.update(state)
         self._bind_views()
         if "_step_record" in state:
+            self._step_record = as_interned(self._step_record)  # unpickled: a new dtype object
             self._bind_record_views()
-        self._readings[0].view_record(self._readings[1])
+        readings, record = self._readings
+        self._readings = readings, as_interned(record)
+        readings.view_record(self._readings[1])
 
     # The step record's fields that are views of attributes (written in place from Python); the
     # others are constants, copied in (``_bind_step_record``).
@@ -250,7 +253,7 @@ class CargoTransport:
     _REF_FIELDS = ("ref_rot", "ref_vecs", "ref_pan")  # the reference's arrays (_ref_arrays)
 
     def _bind_step_record(self) -> None:
-        """The arrays of the world's step in one record (``envs.step_record``; the fields that
+        """The arrays of the world's step in one record (``estimator.records``; the fields that
         ``step_kernels`` reads): the sensors' indices and noise, the actuators, the observation
         layout and the reward weights copied in; the IMU states, the faults' masks, the acting
         mask, the arms' targets and rates, the step's effort, clipping, saturation and mixed

@@ -1,13 +1,15 @@
 """Arrays bound once as one record, so that a compiled kernel takes them as one argument.
 
-numba checks and unboxes every argument of every call (about 55 ns for each array), which for
-the few robots of a step costs more than the arithmetic; a NumPy record of a structured dtype
-with one field per array is unboxed in one check, and inside the kernel ``rec[0].name`` is the
-same array as before. ``record_of`` builds such a record (shape (1,)) from named arrays, its
-dtype ``interned``; ``bound_views`` gives the fields back as views, so the Python code that
-writes an array in place writes the record the kernel reads. numba's records hold no
-booleans: a bool array is stored as uint8 (0 or 1; the kernel reads and writes it as numbers)
-and viewed back as bool.
+numba checks and unboxes every argument of every call, which for the few robots of a step
+costs more than the arithmetic; a NumPy record of a structured dtype with one field per array
+is unboxed in one check, and inside the kernel ``rec[0].name`` is the same array as before.
+
+- ``record_of`` builds such a record (shape (1,)) from named arrays, its dtype ``interned``;
+- ``bound_views`` gives the fields back as views, so the Python code that writes an array in
+  place writes the record the kernel reads.
+
+numba's records hold no booleans: a bool array is stored as uint8 (0 or 1; the kernel reads
+and writes it as numbers) and viewed back as bool.
 """
 
 from __future__ import annotations
@@ -35,8 +37,13 @@ def record_of(arrays: dict[str, np.ndarray]) -> np.ndarray:
 @functools.cache
 def interned(dtype: np.dtype) -> np.dtype:
     """The first dtype built equal to ``dtype``: numba's dispatch recognises a structured dtype
-    quickly only by identity (an equal one built anew costs about 1.5 us more per argument)."""
+    quickly only by identity (an equal one built anew takes its slow path at every call)."""
     return dtype
+
+
+def as_interned(record: np.ndarray) -> np.ndarray:
+    """``record`` viewed with its dtype ``interned`` (an unpickled record has a new one)."""
+    return record.view(interned(record.dtype))
 
 
 def bound_views(record: np.ndarray) -> dict[str, np.ndarray]:
