@@ -47,7 +47,7 @@ from astrocargo.estimator.geometry import (
     quat_mul_into,
     rotvec_to_quat_into,
 )
-from astrocargo.estimator.records import bound_views, record_of
+from astrocargo.estimator.records import bound_views, interned, record_of
 
 
 @dataclass(frozen=True)
@@ -182,6 +182,42 @@ class SensorReadings:
             full[rows] = value
             out.append(full)
         return SensorReadings(self.time_s, *out)
+
+
+class FreshReadings:
+    """New readings of ``n_rows`` robots and their record at each call, as
+    ``SensorReadings.empty_record`` gives them, cut from blocks of ``block`` records allocated
+    at once (one allocation and one set of field views per block, not per step). Readings kept
+    by their user (an estimator) keep their block alive."""
+
+    def __init__(self, n_rows: int, n_joints: int = 2, block: int = 64) -> None:
+        self.dtype = _readings_dtype(n_rows, n_joints)
+        self.block = block
+        self._start_block()
+
+    def _start_block(self) -> None:
+        self._records = np.zeros(self.block, dtype=self.dtype)
+        views = [self._records[name] for name in self.dtype.names]
+        self._fields = tuple(
+            v.view(np.bool_) if v.dtype == np.uint8 else v for v in views
+        )  # (block, ...) each: row j is record j's field
+        self._next = 0
+
+    def __call__(self) -> tuple[SensorReadings, np.ndarray]:
+        if self._next == self.block:
+            self._start_block()
+        j = self._next
+        self._next = j + 1
+        return SensorReadings(0.0, *(f[j] for f in self._fields)), self._records[j : j + 1]
+
+    # A copy (copy.deepcopy, pickle) starts a block of its own: copied views would be detached.
+    def __getstate__(self) -> dict:
+        return {"dtype": self.dtype, "block": self.block}
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        self.dtype = interned(self.dtype)  # unpickled: a new dtype object
+        self._start_block()
 
 
 @functools.cache

@@ -45,6 +45,7 @@ from astrocargo.envs.rewards import (  # noqa: F401 (re-exported)
     tracking_errors,
 )
 from astrocargo.envs.sensors import (
+    FreshReadings,
     SensorReadings,
     SensorSuite,
     estimator_noise_kwargs,
@@ -178,8 +179,10 @@ class CargoTransport:
         self._saturation, self._no_info = np.zeros(n), np.zeros(n)
         self._no_contacts = np.zeros(n, dtype=int)  # per robot, while no geom touches the module
         self._mixed = np.zeros((len(REWARD_TERMS), n))  # the weighted, mixed terms
-        # Without estimators: the same readings (and their record) every step.
+        # Without estimators: the same readings (and their record) every step; with them, new
+        # ones (an estimator may keep a reading).
         self._readings = SensorReadings.empty_record(n)
+        self._fresh_readings = FreshReadings(n)
         # Peer slots without estimators: no message is ever sent.
         self._no_peers = (
             np.zeros((n, n - 1, 6)), np.zeros((n, n - 1)), np.zeros((n, n - 1)),
@@ -485,8 +488,7 @@ class CargoTransport:
         step's standard ``normals`` (``SensorSuite.draw_step``); the navigation filters
         (``step_kernels.sense_and_navigate``). Fresh reading arrays while estimators run (they may
         keep a reading), else the same ones every step."""
-        fresh = self.estimators  # they may keep a reading
-        r, record = SensorReadings.empty_record(self.n_robots) if fresh else self._readings
+        r, record = self._fresh_readings() if self.estimators else self._readings
         r.time_s = time_s = float(self.data.time)
         cvel, site_xpos, site_xmat, subtree_com, sensordata = self._sensor_views
         p = self._physics
