@@ -290,11 +290,18 @@ def estimator_constants(values: tuple) -> np.ndarray:
     return packed_ready(record_of(fields))
 
 
+# The ids of the interned dtypes ``estimator_step`` is compiled for (interned dtypes live on, so
+# their ids are never reused).
+_READY_LAYOUTS: set[int] = set()
+
+
 def packed_ready(constants: np.ndarray) -> np.ndarray:
-    """``constants`` (``estimator_constants``; also one unpickled, whose dtype is a new object)
-    with its dtype ``interned``, and ``estimator_step`` compiled for its layout. Each
-    layout is compiled here, never at a call: a call with other argument types raises
+    """``constants`` (``estimator_constants``; also one copied or unpickled, whose dtype may be
+    a new object) with its dtype ``interned``, and ``estimator_step`` compiled for its layout.
+    Each layout is compiled here, never at a call: a call with other argument types raises
     TypeError, as ``estimator_step_arrays``' signature does."""
+    if id(constants.dtype) in _READY_LAYOUTS:  # a deep copy keeps its dtype object
+        return constants
     constants = as_interned(constants)
     signature = _STEP_SIGNATURE.return_type(
         typeof(constants), *_STEP_SIGNATURE.args[len(CONSTANT_FIELDS) :]
@@ -305,6 +312,7 @@ def packed_ready(constants: np.ndarray) -> np.ndarray:
             estimator_step.compile(signature)
         finally:
             estimator_step.disable_compile(True)
+    _READY_LAYOUTS.add(id(constants.dtype))
     return constants
 
 
@@ -339,7 +347,7 @@ class EstimatorInputs:
     channels), attitude, actuation
     covariance sum, counters and histories, which ``CargoEstimator.__init__`` creates."""
 
-    # An unpickled estimator (another process) readies its constants' record again.
+    # A copied or unpickled estimator (another process) readies its constants' record again.
     def __setstate__(self, state: dict) -> None:
         self.__dict__.update(state)
         if "_step_constants" in state:
