@@ -39,17 +39,19 @@ def commands(actions, normals, thrust_scale, ctrl, max_move_rad, dt_s, world):
 
 
 @njit(cache=True)
-def observe_and_reward(obs, rewards, world, readings, nav, arms, xpos, xmat, peers, estimates,
-                       info, robot_contacts, cargo_contacts, finite):  # fmt: skip
-    """``rewards.observe_and_reward`` into ``obs`` (N, obs_dim) and ``rewards`` (N,): the
-    layout, the reference, the arms' targets and rates, the effort, the weights and the mixed
-    terms from the record ``world``; the encoders from ``readings``; ``nav`` the navigation
-    filters, ``arms`` the arm models (``ObservationBuilder.arms``), ``xpos`` / ``xmat`` MuJoCo's
-    body poses, ``peers`` the peer slots' (wrench, age, valid, arm), ``estimates`` (N, 20) or
-    (N, 0), ``info`` (N,), the wall contacts per robot and of the cargo. Returns finite."""
+def observe_and_reward(obs, rewards, acting, world, readings, nav, arms, xpos, xmat, peers,
+                       estimates, info, robot_contacts, cargo_contacts, finite):  # fmt: skip
+    """``rewards.observe_and_reward`` into ``obs`` (N, obs_dim) and ``rewards`` (N,) of the
+    robots ``acting`` at this step (bool (N,): those letting go at its end included, whom the
+    record of the world after a release no longer counts): the layout, the reference, the arms'
+    targets and rates, the effort, the weights and the mixed terms from the record ``world``;
+    the encoders from ``readings``; ``nav`` the navigation filters, ``arms`` the arm models
+    (``ObservationBuilder.arms``), ``xpos`` / ``xmat`` MuJoCo's body poses, ``peers`` the peer
+    slots' (wrench, age, valid, arm), ``estimates`` (N, 20) or (N, 0), ``info`` (N,), the wall
+    contacts per robot and of the cargo. Returns finite."""
     w = world[0]
     return observe_and_reward_arrays(
-        obs, w.acting, w.own_starts, w.peer_starts, w.estimate_start[0], w.link_parent, arms,
+        obs, acting, w.own_starts, w.peer_starts, w.estimate_start[0], w.link_parent, arms,
         nav, readings[0].joints, w.arm_targets, (w.ref_rot, w.ref_vecs, w.ref_pan), peers,
         estimates, w.arm_rates, (xpos, xmat, w.cargo_body[0]), finite, w.effort, info,
         (robot_contacts, cargo_contacts), w.weights, w.shared[0], w.mixed, rewards,

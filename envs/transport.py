@@ -396,7 +396,7 @@ class CargoTransport:
         obs, rewards = np.empty((self.n_robots, self.obs_dim)), np.empty(self.n_robots)
         self._reference_arrays()  # the reference of the step's end, into the step's record
         finite = observe_and_reward(
-            obs, rewards, self._step_record, readings_record, self.navigator.filters,
+            obs, rewards, acting_mask, self._step_record, readings_record, self.navigator.filters,
             self._observations.arms, self._xpos, self._xmat, self._peer_observations(acting_mask),
             self._estimates, self._info_gain(), robot_contacts, cargo_contacts, finite,
         )  # fmt: skip
