@@ -13,6 +13,8 @@ arm chain, ``rne.grasp_pose_into``).
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 from numba import njit
 
@@ -116,6 +118,7 @@ def _own_blocks(out, starts, rot, base_pos, base_vel, w, q, target, rot_ref, pos
     _put(out, starts[12], qd)
 
 
+@functools.cache  # one dtype object per chain length: numba dispatches on it fastest
 def arm_dtype(n_links: int) -> np.dtype:
     """One robot's known arm chain and handrail as a record (``ObservationBuilder.arms``):
     each link's rotation, position (in its parent) and joint axis (a zero axis for the base,

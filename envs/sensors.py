@@ -29,6 +29,7 @@ the command and 5e-4 N m + 2 %.
 from __future__ import annotations
 
 import dataclasses
+import functools
 from dataclasses import dataclass, replace
 from typing import NamedTuple
 
@@ -46,6 +47,7 @@ from astrocargo.estimator.geometry import (
     quat_mul_into,
     rotvec_to_quat_into,
 )
+from astrocargo.estimator.records import bound_views, interned, record_of
 
 
 @dataclass(frozen=True)
@@ -121,6 +123,10 @@ class SensorPacket(NamedTuple):
     base_quat_world: np.ndarray | None  # (4,) w x y z, only at a localization fix
 
 
+# The fields of ``SensorReadings.empty_record``'s record, in the order of the readings' arrays.
+READINGS_FIELDS = ("accel", "gyro", "joints", "pos", "quat", "has_imu", "has_fix")
+
+
 @dataclass(slots=True)
 class SensorReadings:
     """Every robot's readings at one control step as arrays, one row per robot; a row's IMU
@@ -152,6 +158,22 @@ class SensorReadings:
             np.zeros(n_rows, dtype=np.bool_),
         )  # fmt: skip
 
+    @classmethod
+    def empty_record(cls, n_rows: int, n_joints: int = 2) -> tuple[SensorReadings, np.ndarray]:
+        """``empty``'s readings, each array a view of one record (``estimator.records.record_of``;
+        fields ``READINGS_FIELDS``), and that record: what the compiled step writes
+        (``step_kernels.sense_and_navigate``)."""
+        record = np.zeros(1, dtype=_readings_dtype(n_rows, n_joints))
+        readings = cls(0.0, *bound_views(record).values())
+        return readings, record
+
+    def view_record(self, record: np.ndarray) -> None:
+        """The arrays become views of ``record``'s fields (``empty_record``; after a copy, whose
+        arrays are detached from the copied record)."""
+        names = [f.name for f in dataclasses.fields(self)[1:]]
+        for name, view in zip(names, bound_views(record).values(), strict=True):
+            setattr(self, name, view)
+
     def in_rows(self, rows: list[int], n_rows: int) -> SensorReadings:
         """These readings as rows ``rows`` of ``n_rows`` (the others: zeros, nothing valid)."""
         out = []
@@ -160,6 +182,49 @@ class SensorReadings:
             full[rows] = value
             out.append(full)
         return SensorReadings(self.time_s, *out)
+
+
+class FreshReadings:
+    """New readings of ``n_rows`` robots and their record at each call, as
+    ``SensorReadings.empty_record`` gives them, cut from blocks of ``block`` records allocated
+    at once (one allocation and one set of field views per block, not per step). Readings kept
+    by their user (an estimator) keep their block alive."""
+
+    def __init__(self, n_rows: int, n_joints: int = 2, block: int = 64) -> None:
+        self.dtype = _readings_dtype(n_rows, n_joints)
+        self.block = block
+        self._start_block()
+
+    def _start_block(self) -> None:
+        self._records = np.zeros(self.block, dtype=self.dtype)
+        views = [self._records[name] for name in self.dtype.names]
+        self._fields = tuple(
+            v.view(np.bool_) if v.dtype == np.uint8 else v for v in views
+        )  # (block, ...) each: row j is record j's field
+        self._next = 0
+
+    def __call__(self) -> tuple[SensorReadings, np.ndarray]:
+        if self._next == self.block:
+            self._start_block()
+        j = self._next
+        self._next = j + 1
+        return SensorReadings(0.0, *(f[j] for f in self._fields)), self._records[j : j + 1]
+
+    # A copy (copy.deepcopy, pickle) starts a block of its own: copied views would be detached.
+    def __getstate__(self) -> dict:
+        return {"dtype": self.dtype, "block": self.block}
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        self.dtype = interned(self.dtype)  # unpickled: a new dtype object
+        self._start_block()
+
+
+@functools.cache
+def _readings_dtype(n_rows: int, n_joints: int) -> np.dtype:
+    """The dtype of ``SensorReadings.empty_record``'s record (built once per shape)."""
+    empty = SensorReadings.empty(n_rows, n_joints)
+    return record_of(dict(zip(READINGS_FIELDS, dataclasses.astuple(empty)[1:], strict=True))).dtype
 
 
 @njit(cache=True, inline="always")

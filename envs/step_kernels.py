@@ -1,44 +1,89 @@
-"""The part of a control step between the physics and the estimators as one compiled call:
-the physics state's check (``physics.state_finite``), every robot's sensor readings
-(``sensors.read_into``) with the faults' masks of the step, and the robots' navigation filters
-(``navigation.navigate``). Each of these is the same kernel the separate calls run; the one call
-passes their arrays across the Python boundary once (numba checks and unboxes every argument at
-every call, which costs more than the arithmetic of two robots).
+"""A control step's compiled calls, each over the arrays of the step's record (``world``, bound
+once per world: ``transport.CargoTransport._bind_step_record``, ``estimator.records``):
+
+- ``commands``, before the physics: the period's commands (``actions.command_period``);
+- ``sense_and_navigate``, after it: the physics state's check (``physics.state_finite``), every
+  robot's sensor readings (``sensors.read_into``) with the faults' masks of the step, and the
+  robots' navigation filters (``navigation.navigate``);
+- ``observe_and_reward``, after the estimators: the observations and rewards
+  (``rewards.observe_and_reward``).
+
+Each runs the same kernels the separate calls would, with the same arithmetic; the record
+passes their arrays across the Python boundary as one argument (numba checks and unboxes every
+argument at every call, which costs more than the arithmetic of two robots).
 """
 
 from __future__ import annotations
 
 from numba import njit
 
+from astrocargo.envs.actions import command_period
 from astrocargo.envs.navigation import navigate
 from astrocargo.envs.physics import state_finite
+from astrocargo.envs.rewards import observe_and_reward as observe_and_reward_arrays
 from astrocargo.envs.sensors import read_into
 
 
 @njit(cache=True)
+def commands(actions, normals, thrust_scale, ctrl, max_move_rad, dt_s, world):
+    """``command_period`` of ``actions`` (N, 8) with the step's standard ``normals``, the
+    faults' ``thrust_scale`` (H,) and MuJoCo's ``ctrl``; the record ``world`` gives the limits,
+    the actuators, the arms' targets and rates and the step's clipping, effort and saturation
+    (written in place). Returns the thrust commands (N, 6)."""
+    w = world[0]
+    return command_period(
+        actions, w.acting, w.thrust_limits, w.joint_low, w.joint_high, max_move_rad, dt_s,
+        w.arm_targets, w.arm_rates, normals, w.actuation_std, thrust_scale, w.rows, w.thrust_ctrl,
+        w.arm_ctrl, ctrl, w.n_clipped, w.effort, w.saturation,
+    )  # fmt: skip
+
+
+@njit(cache=True)
+def observe_and_reward(obs, rewards, acting, world, readings, nav, arms, xpos, xmat, peers,
+                       estimates, info, robot_contacts, cargo_contacts, finite):  # fmt: skip
+    """``rewards.observe_and_reward`` into ``obs`` (N, obs_dim) and ``rewards`` (N,) of the
+    robots ``acting`` at this step (bool (N,): those letting go at its end included, whom the
+    record of the world after a release no longer counts): the layout, the reference, the arms'
+    targets and rates, the effort, the weights and the mixed terms from the record ``world``;
+    the encoders from ``readings``; ``nav`` the navigation filters, ``arms`` the arm models
+    (``ObservationBuilder.arms``), ``xpos`` / ``xmat`` MuJoCo's body poses, ``peers`` the peer
+    slots' (wrench, age, valid, arm), ``estimates`` (N, 20) or (N, 0), ``info`` (N,), the wall
+    contacts per robot and of the cargo. Returns finite."""
+    w = world[0]
+    return observe_and_reward_arrays(
+        obs, acting, w.own_starts, w.peer_starts, w.estimate_start[0], w.link_parent, arms,
+        nav, readings[0].joints, w.arm_targets, (w.ref_rot, w.ref_vecs, w.ref_pan), peers,
+        estimates, w.arm_rates, (xpos, xmat, w.cargo_body[0]), finite, w.effort, info,
+        (robot_contacts, cargo_contacts), w.weights, w.shared[0], w.mixed, rewards,
+    )  # fmt: skip
+
+
+@njit(cache=True)
 def sense_and_navigate(
-    qpos, qvel, warnings, unstable, saved_qpos, saved_qvel,
-    v0, r0, period_s, cvel, site_xpos, site_xmat, subtree_com, imu_index, sensordata, joint_adr,
-    pos_adr, quat_adr, normals, noise_std, fix, rows, accel, gyro, joints, pos, quat, has_imu,
-    has_fix, imu_ok, fix_ok, filters, acting, dt_s,
+    qpos, qvel, warnings, saved_qpos, saved_qvel, cvel, site_xpos, site_xmat, subtree_com,
+    sensordata, period_s, normals, fix, world, readings, filters, dt_s,
 ):  # fmt: skip
     """After the physics of a period: whether its state is finite (``state_finite``, which also
-    saves qpos and qvel); the readings (``read_into``: the H robots of the world in ``rows``; their
-    noise: the standard normals ``normals`` after the propulsion's first 6 H, as (H, draws), times
-    ``noise_std``), whose IMU frames and fixes are then kept only where ``imu_ok`` / ``fix_ok``
-    (bool (N,): what the faults leave); the navigation ``filters`` of the ``acting`` robots
-    (``navigate``). Returns whether the state is finite."""
-    h = rows.shape[0]
+    saves qpos and qvel); the readings (``read_into``: the H robots of the world in its ``rows``;
+    their noise: the standard normals ``normals`` after the propulsion's first 6 H, as (H,
+    draws), times ``noise_std``) into ``readings`` (``sensors.readings_record``), whose IMU
+    frames and fixes are then kept only where ``imu_ok`` / ``fix_ok`` (bool (N,): what the
+    faults leave); the navigation ``filters`` of the ``acting`` robots (``navigate``).
+    ``world``: the step's record (``transport.CargoTransport._bind_step_record``: unstable,
+    imu_index, joint_adr, pos_adr, quat_adr, noise_std, rows, imu_v0, imu_r0, imu_ok, fix_ok,
+    acting). Returns whether the state is finite."""
+    w, r = world[0], readings[0]
+    h = w.rows.shape[0]
     draws = (normals.shape[0] - 6 * h) // h
-    noise = noise_std[:draws] * normals[6 * h :].reshape(h, draws)
-    finite = state_finite(qpos, qvel, warnings, unstable, saved_qpos, saved_qvel)
+    noise = w.noise_std[:draws] * normals[6 * h :].reshape(h, draws)
+    finite = state_finite(qpos, qvel, warnings, w.unstable, saved_qpos, saved_qvel)
     read_into(
-        v0, r0, period_s, cvel, site_xpos, site_xmat, subtree_com, imu_index, sensordata,
-        joint_adr, pos_adr, quat_adr, noise, fix, rows, accel, gyro, joints, pos, quat,
-        has_imu, has_fix,
+        w.imu_v0, w.imu_r0, period_s, cvel, site_xpos, site_xmat, subtree_com, w.imu_index,
+        sensordata, w.joint_adr, w.pos_adr, w.quat_adr, noise, fix, w.rows, r.accel, r.gyro,
+        r.joints, r.pos, r.quat, r.has_imu, r.has_fix,
     )  # fmt: skip
-    for i in range(has_imu.shape[0]):
-        has_imu[i] = has_imu[i] and imu_ok[i]
-        has_fix[i] = has_fix[i] and fix_ok[i]
-    navigate(filters, dt_s, gyro, accel, has_imu, pos, quat, has_fix, acting)
+    for i in range(r.has_imu.shape[0]):
+        r.has_imu[i] = r.has_imu[i] and w.imu_ok[i]
+        r.has_fix[i] = r.has_fix[i] and w.fix_ok[i]
+    navigate(filters, dt_s, r.gyro, r.accel, r.has_imu, r.pos, r.quat, r.has_fix, w.acting)
     return finite

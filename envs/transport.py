@@ -42,20 +42,22 @@ from astrocargo.envs.physics import UNSTABLE_WARNINGS, PeriodStepper
 from astrocargo.envs.rewards import (  # noqa: F401 (re-exported)
     ROTATION_WEIGHT_M_PER_RAD,
     all_finite,
-    observe_and_reward,
     tracking_errors,
 )
 from astrocargo.envs.sensors import (
+    FreshReadings,
     SensorReadings,
     SensorSuite,
     estimator_noise_kwargs,
     imu_state_into,
 )
 from astrocargo.envs.sensors import noise_profile as get_noise_profile
-from astrocargo.envs.step_kernels import sense_and_navigate
+from astrocargo.envs.step_kernels import commands as step_commands
+from astrocargo.envs.step_kernels import observe_and_reward, sense_and_navigate
 from astrocargo.envs.world import ARM_DEPLOYED_RAD, MAX_TIMESTEP_S, World
 from astrocargo.estimator.cargo_estimator import CargoEstimator
 from astrocargo.estimator.geometry import mat_to_quat, quat_to_mat
+from astrocargo.estimator.records import as_interned, bound_views, record_of
 
 REWARD_KEYS = tuple(f"reward_{t}" for t in REWARD_TERMS)  # their names in infos
 TERMINATION_REASONS = ("wall_contact", "non_finite", "released")  # "released": one agent
@@ -177,7 +179,10 @@ class CargoTransport:
         self._saturation, self._no_info = np.zeros(n), np.zeros(n)
         self._no_contacts = np.zeros(n, dtype=int)  # per robot, while no geom touches the module
         self._mixed = np.zeros((len(REWARD_TERMS), n))  # the weighted, mixed terms
-        self._readings = SensorReadings.empty(n)  # without estimators: reused every step
+        # Without estimators: the same readings (and their record) every step; with them, new
+        # ones (an estimator may keep a reading).
+        self._readings = SensorReadings.empty_record(n)
+        self._fresh_readings = FreshReadings(n)
         # Peer slots without estimators: no message is ever sent.
         self._no_peers = (
             np.zeros((n, n - 1, 6)), np.zeros((n, n - 1)), np.zeros((n, n - 1)),
@@ -233,6 +238,55 @@ class CargoTransport:
     def __setstate__(self, state: dict[str, Any]) -> None:
         self.__dict__.update(state)
         self._bind_views()
+        if "_step_record" in state:
+            self._step_record = as_interned(self._step_record)  # unpickled: a new dtype object
+            self._bind_record_views()
+        readings, record = self._readings
+        self._readings = readings, as_interned(record)
+        readings.view_record(self._readings[1])
+
+    # The step record's fields that are views of attributes (written in place from Python); the
+    # others are constants, copied in (``_bind_step_record``).
+    _RECORD_VIEWS = {
+        "imu_v0": "_imu_v0", "imu_r0": "_imu_r0", "imu_ok": "_imu_ok", "fix_ok": "_fix_ok",
+        "acting": "_acting_mask", "arm_targets": "arm_targets", "arm_rates": "arm_rates",
+        "n_clipped": "_n_clipped", "effort": "_effort", "saturation": "_saturation",
+        "mixed": "_mixed",
+    }  # fmt: skip
+    _REF_FIELDS = ("ref_rot", "ref_vecs", "ref_pan")  # the reference's arrays (_ref_arrays)
+
+    def _bind_step_record(self) -> None:
+        """The arrays of the world's step in one record (``estimator.records``; the fields that
+        ``step_kernels`` reads): the sensors' indices and noise, the actuators, the observation
+        layout and the reward weights copied in; the IMU states, the faults' masks, the acting
+        mask, the arms' targets and rates, the step's effort, clipping, saturation and mixed
+        terms and the reference's arrays become views of it."""
+        s, ob = self.sensors, self._observations
+        self._step_record = record_of(
+            {
+                "unstable": UNSTABLE_WARNINGS, "imu_index": s.imu_index,
+                "joint_adr": s.joint_adr, "pos_adr": s.pos_adr, "quat_adr": s.quat_adr,
+                "noise_std": s.noise_std, "rows": self._row_index,
+                "thrust_limits": self.thrust_limits, "joint_low": self._joint_low,
+                "joint_high": self._joint_high, "actuation_std": s.actuation_std,
+                "thrust_ctrl": self._thrust_ctrl, "arm_ctrl": self._arm_ctrl,
+                "own_starts": ob.own_starts, "peer_starts": ob.peer_starts,
+                "estimate_start": np.array([ob.estimate_start]),
+                "link_parent": ob.link_parent, "weights": self._weights,
+                "shared": np.array([float(self.shared_reward)]),
+                "cargo_body": np.array([self.world.cargo_body]),
+                **{field: getattr(self, name) for field, name in self._RECORD_VIEWS.items()},
+                **dict(zip(self._REF_FIELDS, self._ref_arrays, strict=True)),
+            }
+        )  # fmt: skip
+        self._bind_record_views()
+
+    def _bind_record_views(self) -> None:
+        views = bound_views(self._step_record)
+        for field, name in self._RECORD_VIEWS.items():
+            setattr(self, name, views[field])
+        self._ref_arrays = tuple(views[field] for field in self._REF_FIELDS)
+        self._ref_cache = None
 
     # ------------------------------------------------------------------ episode
     def reset(self, rng: np.random.Generator) -> tuple[np.ndarray, list[dict[str, Any]]]:
@@ -252,7 +306,10 @@ class CargoTransport:
         self.true_params_grasp = [
             self.world.cargo_params_in_grasp_frame(i) for i in range(self.n_robots)
         ]
+        self.arm_targets = np.tile(np.asarray(ARM_DEPLOYED_RAD), (self.n_robots, 1))
+        self.arm_rates = np.zeros((self.n_robots, 2))  # the servo targets' rate, rad/s
         self.sensors = SensorSuite(self.world, self.profile, sensor_rng)
+        self._bind_step_record()
         self._kinematics_done()
         self.channel = CommChannel(
             self.n_robots, *self.comm_args, self.dt_s, comm_rng, fault_rng=self.fault_rng
@@ -263,8 +320,6 @@ class CargoTransport:
             self.n_robots, self.estimators, self.true_params_grasp, self.dt_s
         )
         self.navigator = BaseNavigator(self.robots, self.dt_s, self.profile)
-        self.arm_targets = np.tile(np.asarray(ARM_DEPLOYED_RAD), (self.n_robots, 1))
-        self.arm_rates = np.zeros((self.n_robots, 2))  # the servo targets' rate, rad/s
         self.peer_msgs = self.estimation.peer_msgs  # per receiver: sender -> latest message
         self.step_count = 0
         self._ready = True
@@ -327,7 +382,7 @@ class CargoTransport:
         self._fault_masks(k, fix)
         commands = self._apply_commands(actions, normals)
         self._physics.integrate(self._kinematics_current)
-        finite, readings = self._sense_and_navigate(fix, normals)
+        finite, readings, readings_record = self._sense_and_navigate(fix, normals)
         self._update_estimators(readings, commands, k)
         self.readings = readings
 
@@ -339,14 +394,11 @@ class CargoTransport:
         if released:
             self._release(released)
         obs, rewards = np.empty((self.n_robots, self.obs_dim)), np.empty(self.n_robots)
-        ob = self._observations
+        self._reference_arrays()  # the reference of the step's end, into the step's record
         finite = observe_and_reward(
-            obs, acting_mask, ob.own_starts, ob.peer_starts, ob.estimate_start, ob.link_parent,
-            ob.arms, self.navigator.filters, self.readings.joint_pos_rad, self.arm_targets,
-            self._reference_arrays(), self._peer_observations(acting_mask), self._estimates,
-            self.arm_rates, self._cargo_pose, finite, self._effort, self._info_gain(),
-            (robot_contacts, cargo_contacts), self._weights, self.shared_reward, self._mixed,
-            rewards,
+            obs, rewards, acting_mask, self._step_record, readings_record, self.navigator.filters,
+            self._observations.arms, self._xpos, self._xmat, self._peer_observations(acting_mask),
+            self._estimates, self._info_gain(), robot_contacts, cargo_contacts, finite,
         )  # fmt: skip
         reason = None
         if not finite:
@@ -375,6 +427,7 @@ class CargoTransport:
         world.load_state(self.world, self.data, data)
         self._bind_world(world, data)
         self.sensors = SensorSuite(world, self.profile, self.sensors.rng)
+        self._bind_step_record()
         self._kinematics_done()
         for i in released:
             self.channel.disconnect(i)
@@ -390,14 +443,10 @@ class CargoTransport:
         cargo: the thrust commands with actuation noise (the first 6 H of the step's standard
         ``normals``, ``SensorSuite.draw_step``) and the servo targets; start the period. Returns the
         thrust commands (N, 6)."""
-        commands = command_period(
-            actions, self._acting_mask, self.thrust_limits, self._joint_low, self._joint_high,
-            ARM_SPEED_RADPS * self.dt_s, self.dt_s, self.arm_targets, self.arm_rates, normals,
-            self.sensors.actuation_std,
+        commands = step_commands(
+            actions, normals,
             self.fault_schedule.thrust_scale(self.step_count, self.holding, self._unit_scale),
-            self._row_index,
-            self._thrust_ctrl, self._arm_ctrl, self._ctrl, self._n_clipped, self._effort,
-            self._saturation,
+            self._ctrl, ARM_SPEED_RADPS * self.dt_s, self.dt_s, self._step_record,
         )  # fmt: skip
         # The IMU states that started the period: kept from the last reading while qpos and
         # qvel are as the last step (or reset) left them.
@@ -431,25 +480,24 @@ class CargoTransport:
         np.logical_and(self._acting_mask, fix, out=self._fix_ok)
         self.fault_schedule.apply_to_readings(self._imu_ok, self._fix_ok, k)
 
-    def _sense_and_navigate(self, fix: bool, normals: np.ndarray) -> tuple[bool, SensorReadings]:
+    def _sense_and_navigate(
+        self, fix: bool, normals: np.ndarray
+    ) -> tuple[bool, SensorReadings, np.ndarray]:
         """After the physics: whether the state is finite; every robot's readings, one row per robot
         index (nothing valid in the rows of robots that have let go) with the faults' masks and the
         step's standard ``normals`` (``SensorSuite.draw_step``); the navigation filters
         (``step_kernels.sense_and_navigate``). Fresh reading arrays while estimators run (they may
         keep a reading), else the same ones every step."""
-        r = SensorReadings.empty(self.n_robots) if self.estimators else self._readings
+        r, record = self._fresh_readings() if self.estimators else self._readings
         r.time_s = time_s = float(self.data.time)
         cvel, site_xpos, site_xmat, subtree_com, sensordata = self._sensor_views
-        p, s, nav = self._physics, self.sensors, self.navigator
+        p = self._physics
         finite = sense_and_navigate(
-            p.qpos, p.qvel, p.warnings, UNSTABLE_WARNINGS, p.saved_qpos, p.saved_qvel,
-            self._imu_v0, self._imu_r0, time_s - self._period_start_s, cvel, site_xpos,
-            site_xmat, subtree_com, s.imu_index, sensordata, s.joint_adr, s.pos_adr, s.quat_adr,
-            normals, s.noise_std, fix, self._row_index, r.accel_imu, r.gyro_imu, r.joint_pos_rad,
-            r.base_pos_world, r.base_quat_world, r.has_imu, r.has_fix, self._imu_ok,
-            self._fix_ok, nav.filters, self._acting_mask, nav.dt_s,
+            p.qpos, p.qvel, p.warnings, p.saved_qpos, p.saved_qvel, cvel, site_xpos, site_xmat,
+            subtree_com, sensordata, time_s - self._period_start_s, normals, fix,
+            self._step_record, record, self.navigator.filters, self.navigator.dt_s,
         )  # fmt: skip
-        return finite, r
+        return finite, r, record
 
     def _update_estimators(self, readings: SensorReadings, commands: np.ndarray, k: int) -> None:
         """The team's estimation of step ``k`` (``TeamEstimation.step``); the estimates are

@@ -32,7 +32,7 @@ those that refresh it (update instants) and on the Python path.
 from __future__ import annotations
 
 import numpy as np
-from numba import boolean, float64, int64, njit, types
+from numba import boolean, float64, int64, njit, typeof, types
 
 from .geometry import exp_so3, quat_to_mat
 from .messages import Instant, WrenchMessage
@@ -43,6 +43,7 @@ from .momentum import (
     servo_ripple_velocities,
 )
 from .preprocess import first_order_hold_step
+from .records import as_interned, record_of
 from .rne import RobotArrays, grasp_from_base_kernel
 
 # Outcomes of `estimator_step` (its first return value).
@@ -214,7 +215,7 @@ _STEP_SIGNATURE = types.Tuple((int64, float64))(
 
 
 @njit(_STEP_SIGNATURE, cache=True)
-def estimator_step(
+def estimator_step_arrays(
     parent, joint_axis, rot_in_parent, pos_in_parent, mass, com, inertia_com, grasp_link,
     grasp_rot, grasp_pos, pre_to_input, pre_ad, pre_b_value, pre_b_slope, pre_held,
     rate_ad, rate_b_value, rate_b_slope, rate_held, prod_ad, prod_b_value, prod_b_slope,
@@ -271,14 +272,90 @@ def estimator_step(
     return outcome, lever
 
 
+# ``estimator_step_arrays``' constant arguments, in its order: the fields of
+# ``estimator_constants``.
+CONSTANT_FIELDS = (
+    *RobotArrays._fields, "pre_to_input", "pre_ad", "pre_b_value", "pre_b_slope", "pre_held",
+    "rate_ad", "rate_b_value", "rate_b_slope", "rate_held", "prod_ad", "prod_b_value",
+    "prod_b_slope", "prod_held", "imu_pos", "qd_var", "bal_ad", "bal_b_value", "bal_b_slope",
+    "bal_held", "imu_rot", "thrust_to_base", "act_abs", "act_rel", "dt_s",
+)  # fmt: skip
+
+
+def estimator_constants(values: tuple) -> np.ndarray:
+    """``estimator_step_arrays``' constant arguments ``values`` (in ``CONSTANT_FIELDS`` order) as
+    one record (``records.record_of``; the scalars grasp_link and dt_s as arrays of one), ready
+    for ``estimator_step`` (``packed_ready``)."""
+    fields = {name: np.atleast_1d(v) for name, v in zip(CONSTANT_FIELDS, values, strict=True)}
+    return packed_ready(record_of(fields))
+
+
+# The ids of the interned dtypes ``estimator_step`` is compiled for (interned dtypes live on, so
+# their ids are never reused).
+_READY_LAYOUTS: set[int] = set()
+
+
+def packed_ready(constants: np.ndarray) -> np.ndarray:
+    """``constants`` (``estimator_constants``; also one copied or unpickled, whose dtype may be
+    a new object) with its dtype ``interned``, and ``estimator_step`` compiled for its layout.
+    Each layout is compiled here, never at a call: a call with other argument types raises
+    TypeError, as ``estimator_step_arrays``' signature does."""
+    if id(constants.dtype) in _READY_LAYOUTS:  # a deep copy keeps its dtype object
+        return constants
+    constants = as_interned(constants)
+    signature = _STEP_SIGNATURE.return_type(
+        typeof(constants), *_STEP_SIGNATURE.args[len(CONSTANT_FIELDS) :]
+    )
+    if signature.args not in estimator_step.overloads:
+        estimator_step.disable_compile(False)
+        try:
+            estimator_step.compile(signature)
+        finally:
+            estimator_step.disable_compile(True)
+    _READY_LAYOUTS.add(id(constants.dtype))
+    return constants
+
+
+@njit(cache=True)
+def estimator_step(
+    constants, pre_state, pre_u_prev, rate_state, rate_u_prev, prod_state, prod_u_prev,
+    bal_state, bal_u_prev, act_cov_sum, rot_world_base, pos_world_base, accel, gyro, q, thrust,
+    fix_pos, fix_quat, has_fix, do_balance, ripple_map, target_rate, ripple_prev, accel_out,
+    with_ripple,
+):  # fmt: skip
+    """``estimator_step_arrays`` with its constant arguments as one record
+    (``estimator_constants``): the same call, its constants passed across the Python boundary
+    as one argument."""
+    c = constants[0]
+    return estimator_step_arrays(
+        c.parent[:], c.joint_axis[:], c.rot_in_parent[:], c.pos_in_parent[:], c.mass[:],
+        c.com[:], c.inertia_com[:], c.grasp_link[0], c.grasp_rot[:], c.grasp_pos[:],
+        c.pre_to_input[:], c.pre_ad[:], c.pre_b_value[:], c.pre_b_slope[:], c.pre_held[:] != 0,
+        c.rate_ad[:], c.rate_b_value[:], c.rate_b_slope[:], c.rate_held[:] != 0, c.prod_ad[:],
+        c.prod_b_value[:], c.prod_b_slope[:], c.prod_held[:] != 0, c.imu_pos[:], c.qd_var[:],
+        c.bal_ad[:], c.bal_b_value[:], c.bal_b_slope[:], c.bal_held[:] != 0, c.imu_rot[:],
+        c.thrust_to_base[:], c.act_abs[:], c.act_rel[:], c.dt_s[0], pre_state, pre_u_prev,
+        rate_state, rate_u_prev, prod_state, prod_u_prev, bal_state, bal_u_prev, act_cov_sum,
+        rot_world_base, pos_world_base, accel, gyro, q, thrust, fix_pos, fix_quat, has_fix,
+        do_balance, ripple_map, target_rate, ripple_prev, accel_out, with_ripple,
+    )  # fmt: skip
+
+
 class EstimatorInputs:
     """The input side of ``CargoEstimator``: ``step`` and the recording of update instants.
     It uses the estimator's filters (``pre``, ``balance_filter`` over the momentum form's
     channels), attitude, actuation
     covariance sum, counters and histories, which ``CargoEstimator.__init__`` creates."""
 
-    def _compiled_step_constants(self) -> tuple:
-        """The constant arguments of ``estimator_step``, in its order."""
+    # A copied or unpickled estimator (another process) readies its constants' record again.
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        if "_step_constants" in state:
+            self._step_constants = packed_ready(self._step_constants)
+
+    def _compiled_step_constants(self) -> np.ndarray:
+        """The constant arguments of ``estimator_step_arrays`` as one record
+        (``estimator_constants``)."""
         pre, bal = self.pre.filter, self.balance_filter
         rate, prod = self.pre.rate_filter, self.pre.product_filter
 
@@ -288,10 +365,13 @@ class EstimatorInputs:
         def f(filt):
             return filt.ad, filt.b_value, c(filt.b_slope), filt._held
 
-        return (
-            *self.robot.arrays, c(self.pre._to_input), *f(pre), *f(rate), *f(prod),
-            c(self.pre._imu_pos), c(self.pre.qd_var), *f(bal), c(self._imu_rot),
-            c(self._thrust_to_base), c(self._actuation_abs), c(self._actuation_rel), self.dt_s,
+        return estimator_constants(
+            (
+                *self.robot.arrays, c(self.pre._to_input), *f(pre), *f(rate), *f(prod),
+                c(self.pre._imu_pos), c(self.pre.qd_var), *f(bal), c(self._imu_rot),
+                c(self._thrust_to_base), c(self._actuation_abs), c(self._actuation_rel),
+                self.dt_s,
+            )
         )  # fmt: skip
 
     def step(
@@ -400,7 +480,7 @@ class EstimatorInputs:
         try:
             pre, rate, prod = self.pre.filter, self.pre.rate_filter, self.pre.product_filter
             outcome, lever = estimator_step(
-                *self._step_constants, pre.state, pre._u_prev, rate.state, rate._u_prev,
+                self._step_constants, pre.state, pre._u_prev, rate.state, rate._u_prev,
                 prod.state, prod._u_prev, self.balance_filter.state, self.balance_filter._u_prev,
                 self._act_cov_sum,
                 self._rot_world_base, self._pos_world_base, accel, gyro, q, thrust,
