@@ -38,11 +38,11 @@ the grasp's velocity and angular velocity carry almost all of it), where that we
 the gain multiplies the regressor's noise by the noise itself (errors in variables), a bias of
 relative size var(dY) / var(Y) that W, far below C(0) for noise read out of a derivative, leaves
 uncovered (one robot, encoders alone: NEES 66 at W, 6 at C(0)). Their modes carry the per-update
-covariance C(0); their correlation over updates is in the reported covariance only with
-``CargoEstimator(encoders_over_time=True)`` (``encoder_covariance``). With ``over_time``
-(``CargoEstimator(over_time_window=L)``, off by default) the IMU's channels carry C(0) too, and
-the estimator weighs them over time instead
-(``over_time``, ``over_time_noise``). With the accelerometer fused with localization
+covariance C(0); their correlation over updates is in the reported covariance
+(``encoder_covariance``; ``CargoEstimator``'s default without a window, ``encoders_over_time``).
+With ``over_time`` (``CargoEstimator(over_time_window=L)``, off by default) the IMU's channels
+carry C(0) too, and the estimator weighs them over time instead (``over_time``,
+``over_time_noise``). With the accelerometer fused with localization
 (``CargoEstimator(motion_lag_s=...)``, ``fused_motion``) its noise is no longer white: its
 channels' G(L) are those of the fused error's spectrum (``_init_fused_accelerometer``).
 """
