@@ -75,12 +75,13 @@ from collections.abc import Iterator
 import numpy as np
 from scipy.stats import chi2
 
+from .arguments import check_arguments, motion_lag_steps
 from .deferred_reports import DeferredReports
 from .fused_motion import FusedMotion, Reading
 from .messages import Instant, RelativeGrasp, WrenchMessage  # noqa: F401 (re-exported)
 from .momentum import SIZE as MOMENTUM_SIZE
 from .momentum import cargo_regressor_parts
-from .noise_model import MOTION_FUSION, NoiseModel, rate_square_var
+from .noise_model import NoiseModel, rate_square_var
 from .over_time import UpdateWindow
 from .per_step import EstimatorInputs
 from .preprocess import Preprocessor, StateVariableFilter
@@ -104,48 +105,6 @@ def _nis_gate(gate_prob: float) -> float:
 # A pure function of four numbers that steps a filter's impulse response: one evaluation per
 # set-up, not one per estimator and reset.
 _cached_rate_square_var = functools.lru_cache(maxsize=16)(rate_square_var)
-
-
-def _check_arguments(
-    index, peers, update_every, regressor_every, warmup_s, history_s, gate_prob,
-    min_excitation_snr, process_std_rel, min_relative_fixes, motion_fusion,
-) -> None:  # fmt: skip
-    """Raise ValueError for a constructor argument of ``CargoEstimator`` out of its range (the
-    noise model's arguments: ``NoiseModel``)."""
-    if motion_fusion not in MOTION_FUSION:
-        raise ValueError(f"motion_fusion must be one of {MOTION_FUSION}, got {motion_fusion!r}")
-    if regressor_every < 1 or update_every < 1 or update_every % regressor_every:
-        raise ValueError(
-            f"update_every ({update_every}) must be a positive multiple of regressor_every "
-            f"({regressor_every})"
-        )
-    if index in peers:
-        raise ValueError(f"robot {index} cannot be its own peer")
-    if not (np.isfinite(warmup_s) and warmup_s >= 0):
-        raise ValueError(f"warmup_s must be a finite number >= 0 s, got {warmup_s!r}")
-    if not (np.isfinite(history_s) and history_s > 0):
-        raise ValueError(f"history_s must be a finite number > 0 s, got {history_s!r}")
-    if gate_prob is not None and not 0 < gate_prob < 1:
-        raise ValueError(f"gate_prob must be None or a probability in (0, 1), got {gate_prob!r}")
-    if not (np.isfinite(min_excitation_snr) and min_excitation_snr >= 0):
-        raise ValueError(f"min_excitation_snr must be finite and >= 0, got {min_excitation_snr!r}")
-    if not (np.isfinite(process_std_rel) and process_std_rel >= 0):
-        raise ValueError(f"process_std_rel must be finite and >= 0, got {process_std_rel!r}")
-    if min_relative_fixes < 1:
-        raise ValueError(f"min_relative_fixes must be >= 1, got {min_relative_fixes}")
-
-
-def _motion_lag_steps(motion_lag_s, dt_s, localization_every) -> int:
-    """``motion_lag_s`` in control steps (0: off); ValueError unless finite, >= 0 and, when
-    positive, at least one control step; ``localization_every`` must be >= 1."""
-    if not (np.isfinite(motion_lag_s) and motion_lag_s >= 0):
-        raise ValueError(f"motion_lag_s must be a finite number >= 0 s, got {motion_lag_s!r}")
-    if localization_every < 1:
-        raise ValueError(f"localization_every must be >= 1, got {localization_every}")
-    steps = int(round(motion_lag_s / dt_s))
-    if motion_lag_s > 0 and steps < 1:
-        raise ValueError(f"motion_lag_s must be 0 or at least one control step ({dt_s} s)")
-    return steps
 
 
 class CargoEstimator(EstimatorInputs):
@@ -253,7 +212,7 @@ class CargoEstimator(EstimatorInputs):
         motion_lag_s: float = 0.0,
         localization_every: int = 20,
     ) -> None:
-        _check_arguments(
+        check_arguments(
             index, peers, update_every, regressor_every, warmup_s, history_s, gate_prob,
             min_excitation_snr, process_std_rel, min_relative_fixes, motion_fusion,
         )  # fmt: skip
@@ -273,10 +232,8 @@ class CargoEstimator(EstimatorInputs):
         self.min_excitation_snr = float(min_excitation_snr)
         self.min_relative_fixes = int(min_relative_fixes)
         self._init_bookkeeping(relative_grasps, record)
-        self._reports = DeferredReports.of(
-            self.noise, self.update_every, bias_compensation, encoders_over_time,
-            self.over_time_window, self.ukf.Q,
-        )  # fmt: skip
+        options = (bias_compensation, encoders_over_time, self.over_time_window, self.ukf.Q)
+        self._reports = DeferredReports.of(self.noise, self.update_every, *options)
         self._step_constants = self._compiled_step_constants()
 
     def _init_options(self, over_time_window, motion_lag_s, dt_s, localization_every) -> None:
@@ -284,7 +241,7 @@ class CargoEstimator(EstimatorInputs):
         if over_time_window < 0:
             raise ValueError(f"over_time_window must be >= 0 updates, got {over_time_window}")
         self.over_time_window = int(over_time_window)
-        self.motion_lag_steps = _motion_lag_steps(motion_lag_s, dt_s, localization_every)
+        self.motion_lag_steps = motion_lag_steps(motion_lag_s, dt_s, localization_every)
         self._localization_every = int(localization_every)
 
     def _init_fused_motion(self, robot, sensor_noise, localization_noise) -> None:
