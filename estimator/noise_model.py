@@ -132,6 +132,14 @@ def _team_maps(params, d_links, d_y, regressor, transforms, peer_links, peer_gra
     return n_map, d_map, mismatch
 
 
+def _same_key(a: tuple, b: tuple) -> bool:
+    """Whether two ``NoiseModel._team`` keys name the same instant: the same objects, and equal
+    bytes for the parameters."""
+    return len(a) == len(b) and all(
+        x is y or (isinstance(x, bytes) and x == y) for x, y in zip(a, b, strict=True)
+    )
+
+
 def decorrelation_updates(slow_delay_s: float, update_s: float) -> float:
     """Updates per decorrelation time of the slow filter (at least 1): residuals of successive
     updates are correlated over 1 / (2 ENBW), ENBW = 3 w / 32 for (w / (s + w))^3 with
@@ -641,7 +649,23 @@ class NoiseModel:
 
     def _team(self, own, params, motion_jac, regressor, peers):
         """The team's noise map N, mismatch map D, mismatch d (``_team_maps``) and the
-        per-mode levels var * band."""
+        per-mode levels var * band. The last call's maps are kept (read-only) and returned
+        again for the same instant (the same arrays and messages, ``params`` equal): the
+        measurement's noise and the reported covariance's modes (``bias_compensation.own_modes``)
+        ask for the same maps."""
+        key = (own, np.asarray(params, dtype=float).tobytes(), *motion_jac, regressor,
+               *(x for pair in peers for x in pair))  # fmt: skip
+        last = getattr(self, "_last_team", None)
+        if last is not None and _same_key(last[0], key):
+            return last[1]
+        team = self._team_maps_of(own, params, motion_jac, regressor, peers)
+        for array in team:
+            array.flags.writeable = False
+        self._last_team = (key, team)
+        return team
+
+    def _team_maps_of(self, own, params, motion_jac, regressor, peers):
+        """``_team``'s maps, computed."""
         d_links, d_y = motion_jac
         var, band, stacked, offsets = self._stacked_motion(
             own, params, d_links, d_y, regressor, peers
