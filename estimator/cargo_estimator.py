@@ -522,7 +522,7 @@ class CargoEstimator(EstimatorInputs):
         """``DeferredReports.modes`` of this update (None without the deferred reports)."""
         if self._reports is None:
             return None
-        peers = [(self._relative[p].transform(), m) for p, m in zip(self.peers, msgs, strict=True)]
+        peers = self._peer_motion(msgs)
         return self._reports.modes(self.motion_fusion, self.ukf.params_mean(), inst, peers, cov)
 
     def _peer_terms(
@@ -555,10 +555,14 @@ class CargoEstimator(EstimatorInputs):
             np.add.reduce(np.concatenate(noise_terms), axis=0),
         )
 
+    def _peer_motion(self, msgs: list) -> list:
+        """Per peer, its wrench transform G_j -> G and its message (the noise model's peers)."""
+        return [(self._relative[p].transform(), m) for p, m in zip(self.peers, msgs, strict=True)]
+
     def _motion_noise(self, inst: Instant, msgs: list) -> tuple[np.ndarray, np.ndarray]:
         """Mean and covariance of the balance's motion noise at this instant
         (``NoiseModel.motion_noise``)."""
-        peers = [(self._relative[p].transform(), m) for p, m in zip(self.peers, msgs, strict=True)]
+        peers = self._peer_motion(msgs)
         return self.noise.motion_noise(
             self.motion_fusion, self.ukf.params_mean(), inst.motion_jac, inst.regressor, peers,
             self._grasp_lever, own=self.noise.momentum_motion, params_cov=self.ukf.P,
@@ -566,7 +570,7 @@ class CargoEstimator(EstimatorInputs):
 
     def _over_time_noise(self, inst: Instant, msgs: list):
         """``_motion_noise`` and the team's IMU map (``NoiseModel.over_time_noise``)."""
-        peers = [(self._relative[p].transform(), m) for p, m in zip(self.peers, msgs, strict=True)]
+        peers = self._peer_motion(msgs)
         return self.noise.over_time_noise(
             self.motion_fusion, self.ukf.params_mean(), inst.motion_jac, inst.regressor, peers,
             self._grasp_lever, params_cov=self.ukf.P,

@@ -155,6 +155,35 @@ def condition_maps(
     return gain @ mismatch, 0.5 * (cov + cov.T)
 
 
+@njit(cache=True)
+def posterior_spread(d_y, level, params_cov):
+    """sum_k level_k dY_k P dY_k^T (6, 6): the regressor noise's spread over the posterior P
+    (10, 10), for the (n, 6, 10) d Y and the first n entries of ``level``, as one product over
+    the stacked (6, 10 n) rows."""
+    n = d_y.shape[0]
+    scaled = np.sqrt(level[:n]).reshape(n, 1, 1) * d_y
+    spread = (scaled.reshape(6 * n, 10) @ params_cov).reshape(n, 6, 10)
+    rows = np.ascontiguousarray(scaled.transpose(1, 0, 2)).reshape(6, 10 * n)
+    spread_rows = np.ascontiguousarray(spread.transpose(1, 0, 2)).reshape(6, 10 * n)
+    return spread_rows @ np.ascontiguousarray(rows.T)
+
+
+@njit(cache=True)
+def conditioned_noise(n_map, d_map, mismatch, level, condition, mismatch_model_var, d_y,
+                       params_cov, with_spread):  # fmt: skip
+    """Mean (6,) and covariance (6, 6) of the motion noise from the team's maps
+    (``noise_model._team_maps``): conditioned on the mismatch (``condition_maps``) or not
+    (``noise_cov``), plus the posterior's spread (``posterior_spread``) when
+    ``with_spread``."""
+    if condition:
+        mean, cov = condition_maps(n_map, d_map, level, mismatch, mismatch_model_var)
+    else:
+        mean, cov = np.zeros(6), noise_cov(n_map, level)
+    if with_spread:
+        cov = cov + posterior_spread(d_y, level, params_cov)
+    return mean, cov
+
+
 def balance_noise_map(d_links: np.ndarray, d_y: np.ndarray, params: np.ndarray) -> np.ndarray:
     """E = d(links + Y pi)/dxi (6, n) at parameters pi (10,)."""
     return balance_noise_map_kernel(_float(d_links), _float(d_y), _float(params))

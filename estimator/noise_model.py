@@ -66,13 +66,12 @@ from .motion import (
     balance_noise_map_kernel,
     band_factors,
     chain_kernels,
-    condition_maps,
+    conditioned_noise,
     filtered_motion_gains,
     grasp_acc_map_kernel,
     instant_noise_modes,
     kernel_lag_covariances,
     lag_weighted_covariance,
-    noise_cov,
     psd_factor,
     time_weighted_kernels,
 )
@@ -214,35 +213,6 @@ class MotionNoiseSpec:
     band: np.ndarray
 
 
-@njit(cache=True)
-def _posterior_spread(d_y, level, params_cov):
-    """sum_k level_k dY_k P dY_k^T (6, 6): the regressor noise's spread over the posterior P
-    (10, 10), for the (n, 6, 10) d Y and the first n entries of ``level``, as one product over
-    the stacked (6, 10 n) rows."""
-    n = d_y.shape[0]
-    scaled = np.sqrt(level[:n]).reshape(n, 1, 1) * d_y
-    spread = (scaled.reshape(6 * n, 10) @ params_cov).reshape(n, 6, 10)
-    rows = np.ascontiguousarray(scaled.transpose(1, 0, 2)).reshape(6, 10 * n)
-    spread_rows = np.ascontiguousarray(spread.transpose(1, 0, 2)).reshape(6, 10 * n)
-    return spread_rows @ np.ascontiguousarray(rows.T)
-
-
-@njit(cache=True)
-def _conditioned_noise(n_map, d_map, mismatch, level, condition, mismatch_model_var, d_y,
-                       params_cov, with_spread):  # fmt: skip
-    """Mean (6,) and covariance (6, 6) of the motion noise from the team's maps
-    (``_team_maps``): conditioned on the mismatch (``motion.condition_maps``) or not
-    (``motion.noise_cov``), plus the posterior's spread (``_posterior_spread``) when
-    ``with_spread``."""
-    if condition:
-        mean, cov = condition_maps(n_map, d_map, level, mismatch, mismatch_model_var)
-    else:
-        mean, cov = np.zeros(6), noise_cov(n_map, level)
-    if with_spread:
-        cov = cov + _posterior_spread(d_y, level, params_cov)
-    return mean, cov
-
-
 class NoiseModel:
     """One robot's measurement covariance (see the module docstring).
 
@@ -319,6 +289,7 @@ class NoiseModel:
         self.loc_pos_std, self.loc_att_std = (float(x) for x in loc)
         self.mismatch_model_var = self.correlated * float(mismatch_model_std) ** 2
         self.over_time = bool(over_time)
+        self._last_team = None  # (key, maps) of the last ``_team`` call
         self.accel_psd_ratio = accel_psd_ratio
         self._init_scalar_model(robot, dt_s, cutoff_hz, sensor)
         self._init_acceleration_form(robot, dt_s, kinematics_cutoff_hz, cutoff_hz,
@@ -604,7 +575,7 @@ class NoiseModel:
         mismatch or not, with the posterior's spread (``motion_noise``)."""
         n_map, d_map, mismatch, level = team
         spread = params_cov is not None
-        return _conditioned_noise(
+        return conditioned_noise(
             n_map, d_map, mismatch, level, condition, self.mismatch_model_var,
             np.ascontiguousarray(motion_jac[1], dtype=float),
             np.ascontiguousarray(params_cov, dtype=float) if spread else _NO_COV, spread,
@@ -655,7 +626,7 @@ class NoiseModel:
         ask for the same maps."""
         key = (own, np.asarray(params, dtype=float).tobytes(), *motion_jac, regressor,
                *(x for pair in peers for x in pair))  # fmt: skip
-        last = getattr(self, "_last_team", None)
+        last = self._last_team
         if last is not None and _same_key(last[0], key):
             return last[1]
         team = self._team_maps_of(own, params, motion_jac, regressor, peers)

@@ -60,13 +60,9 @@ def test_killed_run_resumes_to_the_same_results(tmp_path):
 
 
 def _module():
-    import importlib.util
+    from test_scripts import load
 
-    spec = importlib.util.spec_from_file_location("_bench_estimation", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
+    return load("benchmark_estimation")
 
 
 def test_time_to_certainty_is_when_the_spread_stays_below_its_target():

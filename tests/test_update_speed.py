@@ -1,5 +1,5 @@
 """The compiled per-update kernels (rne._balance_jacobians, motion's conditioning and
-noise modes, noise_model._team_maps and _posterior_spread) against the plain forms they
+noise modes, noise_model._team_maps and motion.posterior_spread) against the plain forms they
 replace, and the update path's caches (the relative grasp, process's early return)."""
 
 from types import SimpleNamespace
@@ -176,16 +176,16 @@ def test_instant_noise_modes_are_the_modes_of_their_parts():
 
 
 def test_posterior_spread_is_the_sum_over_modes():
-    """``noise_model._posterior_spread`` (one product over the stacked rows, compiled) is
+    """``motion.posterior_spread`` (one product over the stacked rows, compiled) is
     sum_k level_k dY_k P dY_k^T over the first n levels."""
-    from astrocargo.estimator.noise_model import _posterior_spread
+    from astrocargo.estimator.motion import posterior_spread
 
     rng = np.random.default_rng(6)
     d_y, level = rng.normal(size=(7, 6, 10)), rng.uniform(0.1, 2.0, 9)
     root = rng.normal(size=(10, 10))
     cov = root @ root.T
     ref = sum(level[k] * d_y[k] @ cov @ d_y[k].T for k in range(7))
-    np.testing.assert_allclose(_posterior_spread(d_y, level, cov), ref, rtol=1e-12,
+    np.testing.assert_allclose(posterior_spread(d_y, level, cov), ref, rtol=1e-12,
                                atol=1e-12 * np.abs(ref).max())  # fmt: skip
 
 
