@@ -88,11 +88,12 @@ def _in_modes(factor: np.ndarray, cov: np.ndarray) -> np.ndarray:
     return inverse @ cov @ inverse.T
 
 
-def own_modes(noise, fusion, params, motion_jac, regressor, peers):
+def own_modes(noise, fusion, params, motion_jac, regressor, peers, slope=True):
     """This robot's modes as the residual sees them, (E (6, n), dY (n, 6, 10)) at unit
     per-update variance (``NoiseModel.motion_noise``'s maps at ``params``: E = N's own columns,
-    conditioned on the team's mismatch, N - K D, under "team" fusion with peers); None where
-    the motion noise has no modes (fusion "none", no Jacobians, a peer without motion)."""
+    conditioned on the team's mismatch, N - K D, under "team" fusion with peers; dY None
+    without ``slope``); None where the motion noise has no modes (fusion "none", no
+    Jacobians, a peer without motion)."""
     if fusion == "none" or motion_jac is None:
         return None
     if any(m.motion_links_jac is None for _, m in peers):
@@ -102,7 +103,8 @@ def own_modes(noise, fusion, params, motion_jac, regressor, peers):
     if fusion == "team" and peers:
         n_map = n_map - conditioning_gain(n_map, d_map, level, noise.mismatch_model_var) @ d_map
     scale = np.sqrt(level[: own.var.size])
-    return n_map[:, : own.var.size] * scale, motion_jac[1] * scale[:, None, None]
+    d_y = motion_jac[1] * scale[:, None, None] if slope else None
+    return n_map[:, : own.var.size] * scale, d_y
 
 
 class DeferredCompensation:
@@ -134,7 +136,8 @@ class DeferredCompensation:
         return -cov @ (self.a - self.B @ x)
 
     def state(self) -> tuple[np.ndarray, np.ndarray]:
-        return self.a.copy(), self.B.copy()
+        """(a, B), shared: ``add`` replaces them, never changes them in place."""
+        return self.a, self.B
 
     def restore(self, state: tuple[np.ndarray, np.ndarray]) -> None:
-        self.a, self.B = state[0].copy(), state[1].copy()
+        self.a, self.B = state

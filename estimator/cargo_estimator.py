@@ -233,7 +233,9 @@ class CargoEstimator(EstimatorInputs):
         self.min_relative_fixes = int(min_relative_fixes)
         self._init_bookkeeping(relative_grasps, record)
         options = (bias_compensation, encoders_over_time, self.over_time_window, self.ukf.Q)
-        self._reports = DeferredReports.of(self.noise, self.update_every, *options)
+        self._reports = DeferredReports.of(
+            self.noise, self.update_every, *options, rollback=self._snapshots.maxlen
+        )
         self._step_constants = self._compiled_step_constants()
 
     def _init_options(self, over_time_window, motion_lag_s, dt_s, localization_every) -> None:

@@ -17,16 +17,20 @@ class DeferredReports:
     """The deferred reports that are on, fed each used update's own modes (``modes``, ``add``)
     and restored with the filter on a rollback (``state``, ``restore``)."""
 
-    def __init__(self, noise, update_every: int, compensate: bool, over_time: bool) -> None:
+    def __init__(
+        self, noise, update_every: int, compensate: bool, over_time: bool, rollback: int = 0
+    ) -> None:
         self.noise, self.update_every = noise, int(update_every)
         self.compensation = DeferredCompensation() if compensate else None
-        self.encoder_cov = EncoderCovariance.of(noise) if over_time else None
+        self.encoder_cov = EncoderCovariance.of(noise, rollback) if over_time else None
+        self._reports = tuple(r for r in (self.compensation, self.encoder_cov) if r is not None)
 
     @classmethod
-    def of(cls, noise, update_every, compensate, over_time, window, walk):
+    def of(cls, noise, update_every, compensate, over_time, window, walk, rollback: int = 0):
         """The reports asked for, or None; ValueError with a window or (``over_time``) a
         random walk ``walk`` Q != 0 (their derivations assume neither). ``over_time`` None: on
-        without a window and a walk, else off."""
+        without a window and a walk, else off. ``rollback``: the most updates a ``restore``
+        undoes (the estimator's snapshots)."""
         if over_time is None:
             over_time = not window and not np.any(walk)
         if not (compensate or over_time):
@@ -35,12 +39,14 @@ class DeferredReports:
             raise ValueError("bias_compensation and encoders_over_time need over_time_window 0")
         if over_time and np.any(walk):
             raise ValueError("encoders_over_time needs no random walk (process_std_rel 0)")
-        return cls(noise, update_every, compensate, over_time)
+        return cls(noise, update_every, compensate, over_time, rollback)
 
     def modes(self, fusion, params, inst, peers, cov):
         """(this update's own modes (E, dY) at ``params`` (``own_modes``), its R ``cov``,
         ``params``), or None where the motion noise has no modes."""
-        modes = own_modes(self.noise, fusion, params, inst.motion_jac, inst.regressor, peers)
+        slope = self.compensation is not None  # dY: the compensation's alone
+        args = (inst.motion_jac, inst.regressor, peers)
+        modes = own_modes(self.noise, fusion, params, *args, slope=slope)
         return None if modes is None else (modes, cov, params)
 
     def add(self, stamp: int, measurement: tuple, update: tuple, cov_before, walk) -> None:
@@ -61,9 +67,10 @@ class DeferredReports:
         return cov if self.encoder_cov is None else self.encoder_cov.covariance(cov)
 
     def state(self) -> tuple:
-        return tuple(r.state() for r in (self.compensation, self.encoder_cov) if r is not None)
+        """The reports' states, for ``restore`` on a rollback (their arrays shared: the
+        reports replace them, never change them in place)."""
+        return tuple([r.state() for r in self._reports])
 
     def restore(self, state: tuple) -> None:
-        reports = [r for r in (self.compensation, self.encoder_cov) if r is not None]
-        for report, saved in zip(reports, state, strict=True):
+        for report, saved in zip(self._reports, state, strict=True):
             report.restore(saved)

@@ -26,16 +26,22 @@ independent). The estimate itself is unchanged; only ``params_cov`` (and the spr
 any motion, where the lag-weighted W with one autocorrelation rho is not (the floors' case,
 ``scripts/floors_consistency.py``). With a random walk (Q != 0) the older terms would need the
 filter's discount; the option requires Q = 0.
+
+The last n_lags updates' V_k wait in a ring buffer for the next, which takes them in with one
+compiled call (``add_cross_terms``): carried = sum_l V_l Gm(k - l) over the lags, then
+C = carried V_k^T and X + C + C^T. The ring holds a rollback's depth more (``CargoEstimator``'s
+snapshots), so a rollback restores X and the count alone (``state``, ``restore``).
 """
 
 from __future__ import annotations
 
-from collections import deque
-
 import numpy as np
+from numba import njit
 
 from .motion import POINT_EXTENDED
 from .over_time import IMU_MODES
+
+MODES = 8  # the encoders' modes per joint (``motion.POINT_EXTENDED``)
 
 
 def encoder_lag_covariances(noise) -> np.ndarray:
@@ -45,48 +51,92 @@ def encoder_lag_covariances(noise) -> np.ndarray:
     return np.einsum("ab,lbc,dc->lad", inverse, point, inverse)
 
 
+@njit(cache=True)
+def add_cross_terms(X, ring, ring_index, count, index, v, lag_cov):
+    """X + C + C^T (10, 10), C = carried V_k^T, carried = sum_l V_l Gm(k - l) over the ring's
+    last n_lags entries l with 0 < k - l <= n_lags (module docstring), one product with the
+    lags' Gm stacked by slot.
+
+    ``ring`` (10 nj, capacity 8) holds V_l of the entry in slot s in columns 8 s ... 8 s + 7,
+    row p nj + c for parameter p and joint c, entry ``count`` - 1 the latest; ``ring_index``
+    (capacity,) their update counts l; ``index`` k and ``v`` V_k (10 nj, 8) the new update's;
+    ``lag_cov`` Gm(L) (n_lags + 1, 8, 8)."""
+    n_lags, capacity = lag_cov.shape[0] - 1, ring_index.shape[0]
+    lags = np.zeros((capacity * MODES, MODES))  # Gm(k - l) in the rows of entry l's slot
+    for back in range(1, min(count, n_lags) + 1):
+        slot = (count - back) % capacity
+        lag = index - ring_index[slot]
+        if 0 < lag <= n_lags:
+            lags[slot * MODES : (slot + 1) * MODES] = lag_cov[lag]
+    carried = ring @ lags
+    cross = carried.reshape(10, -1) @ v.reshape(10, -1).T
+    return X + (cross + cross.T)  # exactly symmetric
+
+
+@njit(cache=True)
+def sandwich(cov, X):
+    """P + P X P (10, 10), symmetrised, for the filter's P ``cov``."""
+    out = cov + cov @ X @ cov
+    return 0.5 * (out + out.T)
+
+
 class EncoderCovariance:
     """The cross terms X (10, 10) of the encoders' noise over the used updates (module
-    docstring), with the last n_lags updates' (index, V) to pair with the next."""
+    docstring), with the last updates' (index, V) in a ring to pair with the next.
 
-    def __init__(self, lag_cov: np.ndarray, columns: slice, n_joints: int) -> None:
-        self.lag_cov = lag_cov  # Gm(L) (n_lags + 1, 8, 8)
+    X is replaced, never changed in place, so ``state`` holds it without a copy. The ring keeps
+    ``rollback`` entries beyond the n_lags a new update pairs with: after ``state`` at count c,
+    up to ``rollback`` more updates overwrite none of the entries c - n_lags ... c - 1, so
+    ``restore`` needs only X and c."""
+
+    def __init__(
+        self, lag_cov: np.ndarray, columns: slice, n_joints: int, rollback: int = 0
+    ) -> None:
+        self.lag_cov = np.ascontiguousarray(lag_cov, dtype=float)  # Gm(L) (n_lags + 1, 8, 8)
         self.columns = columns  # the encoders' modes among the map's columns (8 per joint)
         self.n_joints = int(n_joints)
+        self.n_lags = self.lag_cov.shape[0] - 1
+        capacity = max(self.n_lags + int(rollback), 1)
         self.X = np.zeros((10, 10))
-        self.recent: deque[tuple[int, np.ndarray]] = deque(maxlen=self.lag_cov.shape[0] - 1)
+        self.ring = np.zeros((10 * self.n_joints, capacity * MODES))
+        self.ring_index = np.zeros(capacity, dtype=np.int64)  # update counts of the entries
+        self.ring_count = np.full(capacity, -1, dtype=np.int64)  # which entry each slot holds
+        self.count = 0  # entries taken in so far
 
     @classmethod
-    def of(cls, noise) -> EncoderCovariance:
-        """For a ``NoiseModel``'s modes (``momentum_jacobians``: the encoders after the IMU's)."""
+    def of(cls, noise, rollback: int = 0) -> EncoderCovariance:
+        """For a ``NoiseModel``'s modes (``momentum_jacobians``: the encoders after the IMU's),
+        restorable over ``rollback`` updates."""
         nj = noise._n_joints
-        return cls(encoder_lag_covariances(noise), slice(IMU_MODES, IMU_MODES + 8 * nj), nj)
+        columns = slice(IMU_MODES, IMU_MODES + MODES * nj)
+        return cls(encoder_lag_covariances(noise), columns, nj, rollback)
 
     def add(self, index: int, regressor, cov, balance_map) -> None:
         """Take in a used update: its count ``index``, Y (6, 10), R (6, 6) and own modes' map
-        E (6, n) (``own_modes``)."""
+        E (6, n) (``own_modes``): V = Y^T R^-1 E's encoder columns."""
         v = np.linalg.solve(cov, regressor).T @ balance_map[:, self.columns]
-        v = v.reshape(10, self.n_joints, 8)
-        lags = np.array([index - earlier for earlier, _ in self.recent], dtype=int)
-        near = (lags > 0) & (lags < self.lag_cov.shape[0])
-        if near.any():
-            earlier = np.stack([v_e for (_, v_e), n in zip(self.recent, near, strict=True) if n])
-            # sum_l V_l Gm(k - l), then its product with V_k: sum_(l, c, a, b) of
-            # V_l[p, c, a] Gm[a, b] V_k[q, c, b], the pairs' sum without a five-index loop.
-            carried = np.matmul(earlier, self.lag_cov[lags[near]][:, None]).sum(axis=0)
-            cross = carried.reshape(10, -1) @ v.reshape(10, -1).T
-            self.X += cross + cross.T
-        self.recent.append((index, v))
+        v = np.ascontiguousarray(v).reshape(10 * self.n_joints, MODES)
+        args = (self.ring, self.ring_index, self.count, int(index), v, self.lag_cov)
+        self.X = add_cross_terms(self.X, *args)
+        slot = self.count % self.ring_index.size
+        self.ring[:, slot * MODES : (slot + 1) * MODES] = v
+        self.ring_index[slot] = index
+        self.ring_count[slot] = self.count
+        self.count += 1
 
     def covariance(self, cov: np.ndarray) -> np.ndarray:
         """P + P X P (10, 10), symmetric, for the filter's P ``cov``."""
-        out = cov + cov @ self.X @ cov
-        return 0.5 * (out + out.T)
+        return sandwich(np.ascontiguousarray(cov, dtype=float), self.X)
 
-    def state(self):
-        return self.X.copy(), list(self.recent)
+    def state(self) -> tuple[np.ndarray, int]:
+        """(X, count): what ``restore`` needs, X shared (never changed in place)."""
+        return self.X, self.count
 
-    def restore(self, state) -> None:
-        self.X = state[0].copy()
-        self.recent.clear()
-        self.recent.extend(state[1])
+    def restore(self, state: tuple[np.ndarray, int]) -> None:
+        """Back to a ``state``; RuntimeError where the ring has overwritten an entry it pairs
+        with (a rollback deeper than ``rollback``)."""
+        X, count = state
+        kept = np.arange(max(count - self.n_lags, 0), count)
+        if np.any(self.ring_count[kept % self.ring_index.size] != kept):
+            raise RuntimeError("rollback deeper than the encoders' covariance can restore")
+        self.X, self.count = X, count

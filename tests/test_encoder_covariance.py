@@ -2,6 +2,7 @@
 (``estimator.encoder_covariance``) against a Monte Carlo of the filter."""
 
 import numpy as np
+import pytest
 from scipy.linalg import expm
 
 from astrocargo.estimator.encoder_covariance import EncoderCovariance
@@ -72,7 +73,6 @@ def test_default_reports_the_encoders_correlation_where_it_holds():
     """By default (``encoders_over_time=None``) the estimator reports P + P X P without a window
     and a random walk, and its filter's P with either; asked for (True) with a window or a walk
     it raises."""
-    import pytest
     from test_estimator import simulate
 
     _, plain = simulate(1, "nominal", 12.0, "figure8_tumble")
@@ -91,3 +91,118 @@ def test_default_reports_the_encoders_correlation_where_it_holds():
         with pytest.raises(ValueError, match="encoders_over_time|over_time_window"):
             simulate(1, "nominal", 1.0, "figure8_tumble",
                      estimator_kwargs={**demand, "encoders_over_time": True})  # fmt: skip
+
+
+def plain_cross_terms(indices, vs, lag_cov):
+    """X = sum_(k != l) V_k Gm(l - k) V_l^T per joint, Gm(-L) = Gm(L)^T, zero beyond n_lags:
+    the definition, pair by pair (``vs`` (n, 10, nj, 8)); and the sum of the terms' sizes |.|
+    entry by entry, the scale of the sum's rounding."""
+    n_lags = lag_cov.shape[0] - 1
+    X, size = np.zeros((10, 10)), np.zeros((10, 10))
+    for k, (index_k, v_k) in enumerate(zip(indices, vs, strict=True)):
+        for index_l, v_l in zip(indices[:k], vs[:k], strict=True):
+            lag = index_k - index_l
+            if lag <= n_lags:
+                for c in range(v_k.shape[1]):
+                    term = v_l[:, c] @ lag_cov[lag] @ v_k[:, c].T
+                    X += term + term.T
+                    size += np.abs(v_l[:, c]) @ np.abs(lag_cov[lag]) @ np.abs(v_k[:, c]).T
+    return X, size + size.T
+
+
+def assert_rounding(actual, plain):
+    """Equal to the ``plain`` sum (X, sizes) to rounding: 1e-12 of the terms' sizes."""
+    desired, size = plain
+    assert np.all(np.abs(actual - desired) <= 1e-12 * size)
+
+
+def _random_updates(rng, n, n_joints=N_JOINTS):
+    """Y (6, 10), R (6, 6) and E (6, 8 nj) of ``n`` updates, and their V = Y^T R^-1 E."""
+    updates = []
+    for _ in range(n):
+        y, e = rng.standard_normal((6, 10)), rng.standard_normal((6, 8 * n_joints))
+        cov = e @ e.T + np.eye(6)
+        v = (np.linalg.solve(cov, y).T @ e).reshape(10, n_joints, 8)
+        updates.append((y, cov, e, v))
+    return updates
+
+
+def test_compiled_cross_terms_equal_the_definition():
+    """``add`` (the ring and the compiled sum over lags) gives X as defined, to rounding, on
+    random V's whose update counts have gaps (some pairs beyond n_lags) and a ring that wraps
+    around several times; every step of the way, not only at the end."""
+    rng = np.random.default_rng(5)
+    n_lags, n_joints = 6, 3
+    lag_cov = rng.standard_normal((n_lags + 1, 8, 8))  # not symmetric: Gm(-L) = Gm(L)^T
+    indices = np.cumsum(rng.integers(1, 4, size=40))
+    updates = _random_updates(rng, len(indices), n_joints)
+    cross = EncoderCovariance(lag_cov, slice(0, 8 * n_joints), n_joints, rollback=2)
+    for k, (index, (y, cov, e, _)) in enumerate(zip(indices, updates, strict=True)):
+        cross.add(int(index), y, cov, e)
+        vs = [u[3] for u in updates[: k + 1]]
+        assert_rounding(cross.X, plain_cross_terms(indices[: k + 1], vs, lag_cov))
+    assert np.abs(cross.X).max() > 1.0
+    np.testing.assert_array_equal(cross.X, cross.X.T)
+
+
+def test_state_restores_after_a_rollback():
+    """After ``state``, up to ``rollback`` more updates, ``restore`` and the updates that follow,
+    X equals that of a twin that never took the undone updates, bit for bit (and the
+    definition); a rollback deeper than the ring keeps raises instead of pairing wrong V's."""
+    rng = np.random.default_rng(6)
+    lag_cov = rng.standard_normal((N_LAGS + 1, 8, 8))
+    columns, depth = slice(0, 8 * N_JOINTS), 5
+    updates = _random_updates(rng, 60)
+    cross = EncoderCovariance(lag_cov, columns, N_JOINTS, rollback=depth)
+    twin = EncoderCovariance(lag_cov, columns, N_JOINTS, rollback=depth)  # the same ring
+    for index in range(40):
+        cross.add(index, *updates[index][:3])
+        twin.add(index, *updates[index][:3])
+    saved = cross.state()
+    for index in range(40, 40 + depth):  # undone: their V's differ from the ones that follow
+        cross.add(index, *_random_updates(rng, 1)[0][:3])
+    cross.restore(saved)
+    np.testing.assert_array_equal(cross.X, twin.X)
+    kept = list(range(40)) + list(range(42, 60))
+    for index in kept[40:]:
+        cross.add(index, *updates[index][:3])
+        twin.add(index, *updates[index][:3])
+        np.testing.assert_array_equal(cross.X, twin.X)
+    assert_rounding(cross.X, plain_cross_terms(kept, [updates[k][3] for k in kept], lag_cov))
+    saved = cross.state()
+    for index in range(60, 61 + depth):
+        cross.add(index, *updates[index - 60][:3])
+    with pytest.raises(RuntimeError, match="rollback deeper"):
+        cross.restore(saved)
+
+
+def test_estimators_rollback_restores_its_cross_terms():
+    """A rollback of a flying estimator (``CargoEstimator._roll_back``, as after a gated
+    instant) restores X to the sum over the surviving updates' V's (the definition over the
+    ones it recorded), and an update after it pairs with them alone."""
+    from test_estimator import simulate
+
+    taken = []
+    add = EncoderCovariance.add
+
+    def recording_add(self, index, regressor, cov, balance_map):
+        v = np.linalg.solve(cov, regressor).T @ balance_map[:, self.columns]
+        taken.append((index, v.reshape(10, self.n_joints, 8), (regressor, cov, balance_map)))
+        add(self, index, regressor, cov, balance_map)
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(EncoderCovariance, "add", recording_add)
+        _, (est,) = simulate(1, "nominal", 12.0, "figure8_tumble")
+    cross = est._reports.encoder_cov
+    assert len(taken) == est.ukf.n_updates > 20
+    before, gated = cross.X, est.stamp
+    undone = [s[0] for s in est._snapshots if s[0] >= gated - est.rollback_steps]
+    assert est._roll_back(gated) == len(undone) > 1
+    kept = [t for t in taken if t[0] < undone[0] // est.update_every]
+    assert len(taken) - len(undone) <= len(kept) < len(taken)
+    indices, vs = [t[0] for t in kept], [t[1] for t in kept]
+    assert not np.allclose(cross.X, before, rtol=1e-6, atol=0)
+    assert_rounding(cross.X, plain_cross_terms(indices, vs, cross.lag_cov))
+    index, v, inputs = taken[-1][0] + 1, taken[-1][1], taken[-1][2]
+    cross.add(index, *inputs)
+    assert_rounding(cross.X, plain_cross_terms([*indices, index], [*vs, v], cross.lag_cov))
