@@ -52,6 +52,13 @@ def encoder_lag_covariances(noise) -> np.ndarray:
 
 
 @njit(cache=True)
+def encoder_weights(regressor, cov, encoder_map):
+    """V = Y^T R^-1 E (10, 8 nj): ``regressor`` Y (6, 10), ``cov`` R (6, 6), ``encoder_map``
+    E (6, 8 nj) the encoders' columns of the update's own modes' map."""
+    return np.linalg.solve(cov, regressor).T @ np.ascontiguousarray(encoder_map)
+
+
+@njit(cache=True)
 def add_cross_terms(X, ring, ring_index, count, index, v, lag_cov):
     """X + C + C^T (10, 10), C = carried V_k^T, carried = sum_l V_l Gm(k - l) over the ring's
     last n_lags entries l with 0 < k - l <= n_lags (module docstring), one product with the
@@ -114,8 +121,8 @@ class EncoderCovariance:
     def add(self, index: int, regressor, cov, balance_map) -> None:
         """Take in a used update: its count ``index``, Y (6, 10), R (6, 6) and own modes' map
         E (6, n) (``own_modes``): V = Y^T R^-1 E's encoder columns."""
-        v = np.linalg.solve(cov, regressor).T @ balance_map[:, self.columns]
-        v = np.ascontiguousarray(v).reshape(10 * self.n_joints, MODES)
+        v = encoder_weights(regressor, cov, balance_map[:, self.columns])
+        v = v.reshape(10 * self.n_joints, MODES)
         args = (self.ring, self.ring_index, self.count, int(index), v, self.lag_cov)
         self.X = add_cross_terms(self.X, *args)
         slot = self.count % self.ring_index.size
