@@ -64,7 +64,7 @@ def add_cross_terms(X, ring, ring_index, count, index, v, lag_cov):
     last n_lags entries l with 0 < k - l <= n_lags (module docstring), one product with the
     lags' Gm stacked by slot.
 
-    ``ring`` (10 nj, capacity 8) holds V_l of the entry in slot s in columns 8 s ... 8 s + 7,
+    ``ring`` (10 nj, 8 capacity) holds V_l of the entry in slot s in columns 8 s ... 8 s + 7,
     row p nj + c for parameter p and joint c, entry ``count`` - 1 the latest; ``ring_index``
     (capacity,) their update counts l; ``index`` k and ``v`` V_k (10 nj, 8) the new update's;
     ``lag_cov`` Gm(L) (n_lags + 1, 8, 8)."""
