@@ -398,7 +398,8 @@ class CargoTransport:
         time_s = float(self.data.time)
         finite = observe_and_reward(
             obs, rewards, acting_mask, self._step_record, readings_record, self.navigator.filters,
-            self._observations.arms, self._xpos, self._xmat, self._peer_observations(acting_mask),
+            self._observations.arms, self._xpos, self._xmat,
+            self._peer_slot_values(acting_mask) if self.estimators else self._no_peers,
             self._estimates, self._info_gain(), robot_contacts, cargo_contacts, finite,
             self._reference_shapes(time_s), time_s,
         )  # fmt: skip
