@@ -249,7 +249,7 @@ def _pan(t: float, ramp: tuple[float, float, float], shape: np.record) -> tuple[
 
 
 @njit(cache=True)
-def _evaluate_into(rot: np.ndarray, vecs: np.ndarray, pan: np.ndarray, t: float,
+def evaluate_into(rot: np.ndarray, vecs: np.ndarray, pan: np.ndarray, t: float,
                    shapes: np.ndarray) -> None:  # fmt: skip
     """The reference at t written into ``rot`` (3, 3); ``vecs`` (5, 3), whose rows are pos,
     vel, acc, w, wd; ``pan`` (2,): pan angle and rate. ``shapes``: (1,) of ``SHAPE_DTYPE``."""
@@ -298,8 +298,9 @@ class Trajectory:
         self.omega = 0.11 * (FAST_FACTOR if self.fast else 1.0)
         self.ramp_s = 15.0  # smooth start of every motion
         amp_deg, period_s = np.array([*self.TUMBLE, self.TUMBLE_YAW]).T
-        self._shape = np.zeros(1, dtype=SHAPE_DTYPE)
-        shape = self._shape[0]
+        # The shape as one record (``evaluate_into``; the env's step evaluates it compiled).
+        self.shape_record = np.zeros(1, dtype=SHAPE_DTYPE)
+        shape = self.shape_record[0]
         shape["moving"], shape["tumble"] = name != "hover", name == "figure8_tumble"
         shape["pan_ramp"], shape["center_m"] = self.pan_ramp, self.center
         shape["figure8_amp_m"], shape["figure8_harmonic"] = self.amp, (1.0, 2.0)
@@ -323,4 +324,4 @@ class Trajectory:
     def arrays_into(self, t: float, rot: np.ndarray, vecs: np.ndarray, pan: np.ndarray) -> None:
         """``arrays(t)`` written into ``rot`` (3, 3), ``vecs`` (5, 3) and ``pan`` (2,), float64
         and C-contiguous (the env's per-step call: nothing is allocated)."""
-        _evaluate_into(rot, vecs, pan, float(t), self._shape)
+        evaluate_into(rot, vecs, pan, float(t), self.shape_record)

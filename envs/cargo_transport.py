@@ -469,9 +469,15 @@ class AstrobeeCargoEnv(ParallelEnv):
         self._check_running()
         live = self.agents  # replaced by _advance, never changed in place
         result, truncated = self._advance(self._action_array(actions))
-        rewards, obs, infos = self._by_live(
-            live, (result.rewards.tolist(), result.observations, result.infos)
-        )
+        if len(live) == len(self.possible_agents):  # live is possible_agents, in index order
+            # One entry per robot in each: zip's strict check would cost more than the dicts.
+            obs = dict(zip(live, result.observations))  # noqa: B905
+            rewards = dict(zip(live, result.rewards.tolist()))  # noqa: B905
+            infos = dict(zip(live, result.infos))  # noqa: B905
+        else:
+            rewards, obs, infos = self._by_live(
+                live, (result.rewards.tolist(), result.observations, result.infos)
+            )
         if result.released:
             released = {self.possible_agents[i] for i in result.released}
             terminations = {a: result.terminated or a in released for a in live}
@@ -526,11 +532,8 @@ class AstrobeeCargoEnv(ParallelEnv):
         return result, truncated
 
     def _by_live(self, live: list[str], columns: tuple) -> list[dict[str, Any]]:
-        """Each of ``columns`` (indexed by robot) as a dict over the ``live`` agents."""
-        if len(live) == len(self.possible_agents):  # live is possible_agents, in index order
-            # Every column has one entry per robot: zip's strict check is not needed (and it
-            # costs more than the dicts themselves).
-            return [dict(zip(live, values)) for values in columns]  # noqa: B905
+        """Each of ``columns`` (indexed by robot) as a dict over the ``live`` agents (some of the
+        robots: ``step`` zips the columns of all of them itself)."""
         rows = [self._index[a] for a in live]
         return [{a: values[i] for a, i in zip(live, rows, strict=True)} for values in columns]
 

@@ -36,6 +36,7 @@ is counted per robot in ``fault_stats`` (``lost_sent``, ``lost_received``, ``del
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections import defaultdict
 from dataclasses import dataclass
 from typing import Any
@@ -71,6 +72,13 @@ def _periods(seconds: float, dt_s: float) -> int:
     """Nearest whole number of control periods, halves up (round() takes halves to even: 0.2 s
     at 16 ms would be 12 periods); the tiny margin absorbs float error in seconds / dt."""
     return int(np.floor(seconds / dt_s + 0.5 + 1e-9))
+
+
+@functools.cache
+def _init_fields(cls: type) -> tuple[str, ...]:
+    """The names of the dataclass ``cls``'s fields that ``__init__`` takes (those
+    ``dataclasses.replace`` passes on), looked up once per class."""
+    return tuple(f.name for f in dataclasses.fields(cls) if f.init)
 
 
 class CommChannel:
@@ -234,19 +242,21 @@ class CommChannel:
             self.stats["in_flight"] += 1
 
     def _copy(self, message: Any) -> Any:
-        """An independent copy of ``message`` with this copy's wrench noise added."""
+        """An independent copy of ``message`` with this copy's wrench noise added: its class
+        called with its fields, each array copied (``dataclasses.replace`` with the arrays
+        changed, without looking the fields up again at every copy)."""
+        fields = {name: getattr(message, name) for name in _init_fields(type(message))}
         changes = {}
-        for f in dataclasses.fields(message):
-            value = getattr(message, f.name)
+        for name, value in fields.items():
             if isinstance(value, np.ndarray):
-                changes[f.name] = np.array(value, copy=True)
+                changes[name] = np.array(value, copy=True)
         if self._noisy:
             noise_grasp = self._wrench_noise_std * self.rng.standard_normal(6)
             rot = np.asarray(message.grasp_rot_world, dtype=float)
             noise_world = np.concatenate((rot @ noise_grasp[:3], rot @ noise_grasp[3:]))
             for name, noise in zip(WRENCH_FIELDS, (noise_grasp, noise_world), strict=True):
                 changes[name] = changes[name] + noise
-        return dataclasses.replace(message, **changes)
+        return type(message)(**(fields | changes))
 
     def deliver(self, step: int) -> dict[int, list[Any]]:
         """The copies due at control step ``step`` (and any older ones not yet collected), per

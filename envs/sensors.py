@@ -401,6 +401,11 @@ class SensorSuite:
         )
         self._n_draws = sum(size for _, size in _NOISE_DRAWS)
         self._n_draws_fix = sum(size for _, size in draws)
+        # draw_step's buffers, without and with a fix (the step reads one before the next draw).
+        self._normals = {
+            fix: np.empty(len(self._imu_sites) * (6 + n))
+            for fix, n in ((False, self._n_draws), (True, self._n_draws_fix))
+        }
         self._actuation_abs = np.repeat([p.force_std_n, p.torque_std_nm], 3)
         self._actuation_rel = np.repeat([p.force_rel, p.torque_rel], 3)
         self.actuation_std = np.array([self._actuation_abs, self._actuation_rel])  # (2, 6)
@@ -436,9 +441,11 @@ class SensorSuite:
         """One control step's standard normals in one draw (n (6 + draws),): the propulsion's
         (n, 6) (``command_period``'s, drawn as ``actuate`` draws them), then the readings'
         (n, draws) that ``draw_noise(fix)`` scales by ``noise_std``; the same stream as the two
-        draws in that order."""
-        n_draws = self._n_draws_fix if fix else self._n_draws
-        return self.rng.standard_normal(len(self._imu_sites) * (6 + n_draws))
+        draws in that order. Drawn into the same array at every call with the same ``fix``: it is
+        valid until the next such call."""
+        out = self._normals[fix]
+        self.rng.standard_normal(out=out)
+        return out
 
     def read_into(self, views: tuple, time_s: float, fix: bool, start: tuple,
                   rows: np.ndarray, out: SensorReadings) -> None:  # fmt: skip

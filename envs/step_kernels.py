@@ -5,8 +5,8 @@ once per world: ``transport.CargoTransport._bind_step_record``, ``estimator.reco
 - ``sense_and_navigate``, after it: the physics state's check (``physics.state_finite``), every
   robot's sensor readings (``sensors.read_into``) with the faults' masks of the step, and the
   robots' navigation filters (``navigation.navigate``);
-- ``observe_and_reward``, after the estimators: the observations and rewards
-  (``rewards.observe_and_reward``).
+- ``observe_and_reward``, after the estimators: the reference at the step's end
+  (``trajectories.evaluate_into``), the observations and rewards (``rewards.observe_and_reward``).
 
 Each runs the same kernels the separate calls would, with the same arithmetic; the record
 passes their arrays across the Python boundary as one argument (numba checks and unboxes every
@@ -17,6 +17,7 @@ from __future__ import annotations
 
 from numba import njit
 
+from astrocargo.agents.trajectories import evaluate_into
 from astrocargo.envs.actions import command_period
 from astrocargo.envs.navigation import navigate
 from astrocargo.envs.physics import state_finite
@@ -40,7 +41,8 @@ def commands(actions, normals, thrust_scale, ctrl, max_move_rad, dt_s, world):
 
 @njit(cache=True)
 def observe_and_reward(obs, rewards, acting, world, readings, nav, arms, xpos, xmat, peers,
-                       estimates, info, robot_contacts, cargo_contacts, finite):  # fmt: skip
+                       estimates, info, robot_contacts, cargo_contacts, finite, shapes,
+                       time_s):  # fmt: skip
     """``rewards.observe_and_reward`` into ``obs`` (N, obs_dim) and ``rewards`` (N,) of the
     robots ``acting`` at this step (bool (N,): those letting go at its end included, whom the
     record of the world after a release no longer counts): the layout, the reference, the arms'
@@ -48,8 +50,14 @@ def observe_and_reward(obs, rewards, acting, world, readings, nav, arms, xpos, x
     the encoders from ``readings``; ``nav`` the navigation filters, ``arms`` the arm models
     (``ObservationBuilder.arms``), ``xpos`` / ``xmat`` MuJoCo's body poses, ``peers`` the peer
     slots' (wrench, age, valid, arm), ``estimates`` (N, 20) or (N, 0), ``info`` (N,), the wall
-    contacts per robot and of the cargo. Returns finite."""
+    contacts per robot and of the cargo. The reference first: the analytic trajectory's
+    ``shapes`` (1,) (``trajectories.SHAPE_DTYPE``) evaluated at the step's end ``time_s`` (s) into
+    the record's ref_rot, ref_vecs, ref_pan (``trajectories.evaluate_into``); with ``shapes``
+    empty (0,) they already hold it (a designed trajectory, written by the caller). Returns
+    finite."""
     w = world[0]
+    if shapes.shape[0] == 1:
+        evaluate_into(w.ref_rot, w.ref_vecs, w.ref_pan, time_s, shapes)
     return observe_and_reward_arrays(
         obs, acting, w.own_starts, w.peer_starts, w.estimate_start[0], w.link_parent, arms,
         nav, readings[0].joints, w.arm_targets, (w.ref_rot, w.ref_vecs, w.ref_pan), peers,

@@ -12,7 +12,7 @@ import mujoco
 import numpy as np
 
 from astrocargo.agents.excitation import make_trajectory
-from astrocargo.agents.trajectories import Reference
+from astrocargo.agents.trajectories import SHAPE_DTYPE, Reference
 from astrocargo.envs.actions import (  # noqa: F401 (re-exported)
     ACTION_DIM,
     ARM_DEPLOYED,
@@ -36,6 +36,7 @@ from astrocargo.envs.estimation import (  # noqa: F401 (re-exported)
     make_estimators,
 )
 from astrocargo.envs.faults import FaultSchedule, parse_release_at
+from astrocargo.envs.infos import REWARD_KEYS, step_infos  # noqa: F401 (re-exported)
 from astrocargo.envs.navigation import BaseNavigator
 from astrocargo.envs.observations import ObservationBuilder, observation_layout
 from astrocargo.envs.physics import UNSTABLE_WARNINGS, PeriodStepper
@@ -59,8 +60,8 @@ from astrocargo.estimator.cargo_estimator import CargoEstimator
 from astrocargo.estimator.geometry import mat_to_quat, quat_to_mat
 from astrocargo.estimator.records import as_interned, bound_views, record_of
 
-REWARD_KEYS = tuple(f"reward_{t}" for t in REWARD_TERMS)  # their names in infos
 TERMINATION_REASONS = ("wall_contact", "non_finite", "released")  # "released": one agent
+NO_SHAPE = np.zeros(0, dtype=SHAPE_DTYPE)  # observe_and_reward's shapes: the reference is written
 
 
 @dataclass(slots=True)
@@ -333,7 +334,7 @@ class CargoTransport:
         obs = self._get_obs(self._acting_mask)
         zero_terms = np.zeros((len(REWARD_TERMS), self.n_robots))
         none = np.zeros(self.n_robots, dtype=int)
-        infos = self._get_infos(zero_terms, none, none, None, self.holding, ())
+        infos = step_infos(self, zero_terms, none, none, None, self.holding, ())
         return obs, infos
 
     def _read_at_rest(self) -> SensorReadings:
@@ -394,12 +395,15 @@ class CargoTransport:
         if released:
             self._release(released)
         obs, rewards = np.empty((self.n_robots, self.obs_dim)), np.empty(self.n_robots)
-        self._reference_arrays()  # the reference of the step's end, into the step's record
+        time_s = float(self.data.time)
         finite = observe_and_reward(
             obs, rewards, acting_mask, self._step_record, readings_record, self.navigator.filters,
-            self._observations.arms, self._xpos, self._xmat, self._peer_observations(acting_mask),
+            self._observations.arms, self._xpos, self._xmat,
+            self._peer_slot_values(acting_mask) if self.estimators else self._no_peers,
             self._estimates, self._info_gain(), robot_contacts, cargo_contacts, finite,
+            self._reference_shapes(time_s), time_s,
         )  # fmt: skip
+        self._ref_cache = [time_s, self._ref_arrays, None]  # the step's record holds them
         reason = None
         if not finite:
             reason = "non_finite"
@@ -407,8 +411,8 @@ class CargoTransport:
             reason = "wall_contact"
         # Each robot's contacts plus the cargo's (numpy's scalar add alone costs about 1 us).
         contacts = robot_contacts + cargo_contacts if cargo_contacts else robot_contacts
-        infos = self._get_infos(
-            self._mixed, self._n_clipped, contacts, reason, acting, released, self._saturation
+        infos = step_infos(
+            self, self._mixed, self._n_clipped, contacts, reason, acting, released, self._saturation
         )
         if reason is not None or not self.holding:
             self._ready = False
@@ -562,6 +566,16 @@ class CargoTransport:
             self._ref_cache = [t, self._ref_arrays, None]
         return self._ref_cache
 
+    def _reference_shapes(self, time_s: float) -> np.ndarray:
+        """The reference at the step's end ``time_s`` for ``observe_and_reward``: the analytic
+        trajectory's shape record, which the kernel evaluates into the step's record; another
+        trajectory's arrays are written there now, and the shape is empty."""
+        shapes = getattr(self.trajectory, "shape_record", None)
+        if shapes is None:
+            self.trajectory.arrays_into(time_s, *self._ref_arrays)
+            return NO_SHAPE
+        return shapes
+
     def _get_obs(self, acting: np.ndarray) -> np.ndarray:
         """Observations of the ``acting`` robots (bool (N,); the others' rows zeros), from the
         layout (``envs.observations``)."""
@@ -597,56 +611,6 @@ class CargoTransport:
         gain = self._log_std_sum - log_std
         self._log_std_sum = log_std
         return gain if all_finite(gain) else np.zeros(self.n_robots)
-
-    def _get_infos(
-        self,
-        terms: np.ndarray,
-        n_clipped: np.ndarray,
-        wall_contacts: np.ndarray,
-        reason: str | None,
-        robots: tuple[int, ...],
-        released: tuple[int, ...],
-        saturated: np.ndarray | None = None,
-    ) -> list[dict[str, Any] | None]:
-        """Infos of ``robots`` (None for the others); ``terms`` (4, N): the weighted, mixed
-        reward terms in ``REWARD_TERMS`` order, each per robot; ``released``: those letting go now;
-        ``saturated`` (n_robots,): ``thrust_saturation`` of this step (zeros at reset)."""
-        infos: list[dict[str, Any] | None] = [None] * self.n_robots
-        comm = dict(self.channel.stats)
-        per_robot = terms.T.tolist()
-        k_track, k_effort, k_info, k_contact = REWARD_KEYS
-        n_clipped, wall_contacts = n_clipped.tolist(), wall_contacts.tolist()
-        saturated = [0.0] * self.n_robots if saturated is None else saturated.tolist()
-        faults = self.fault_schedule.infos(self.step_count, self.channel.fault_stats)
-        time_s, releases, holding = float(self.data.time), len(self.released_at_s), self.holding
-        estimators = self.estimators
-        for i in robots:
-            r = per_robot[i]
-            info: dict[str, Any] = {
-                k_track: r[0],
-                k_effort: r[1],
-                k_info: r[2],
-                k_contact: r[3],
-                "termination_reason": reason or ("released" if i in released else None),
-                "releases": releases,
-                "holding": list(holding),
-                "time_s": time_s,
-                "clipped_actions": n_clipped[i],
-                "saturated": saturated[i],
-                "wall_contacts": wall_contacts[i],
-                "true_params": self.true_params_grasp[i].copy(),
-                "comm": comm,
-                "faults": faults[i],
-            }
-            if i in released:
-                info["released_momentum"] = self.released_momentum[i].copy()
-            if estimators:
-                info["estimate"] = self.est_mean[i].copy()
-                info["estimate_std"] = self.est_std[i].copy()
-                info["estimator"] = estimators[i].counters
-                info |= self.est_errors[i]
-            infos[i] = info
-        return infos
 
     def state(self) -> np.ndarray:
         """The full true state (see the module docstring, section State)."""
