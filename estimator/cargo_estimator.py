@@ -504,26 +504,28 @@ class CargoEstimator(EstimatorInputs):
         """The update's (z, Y, b, R): thrust_G = links_G + Y pi - sum_j T_ij W_j with
         z = thrust, b = links - peers' wrenches - the motion noise's mean, R its covariance
         (floors, actuation, motion, peers' noise, squared rates); with ``over_time_window``
-        conditioned on the window's updates (``over_time``), and the window's entry for it."""
+        conditioned on the window's updates (``over_time``), and the window's entry for it.
+        The noise terms are taken at one estimate of pi (the filter's, before this update)."""
         peers, cov, peer_noise = self._peer_terms(inst.act_cov, msgs)
+        params, peer_motion = self.ukf.params_mean(), self._peer_motion(msgs)
         imu_map = None
         if self._window is None:
-            motion_mean, motion_cov = self._motion_noise(inst, msgs)
+            motion_mean, motion_cov = self._motion_noise(inst, peer_motion, params)
         else:
-            motion_mean, motion_cov, imu_map = self._over_time_noise(inst, msgs)
+            motion_mean, motion_cov, imu_map = self._over_time_noise(inst, peer_motion, params)
         meas_cov = self.meas_cov + cov / self.update_every + motion_cov + peer_noise
-        meas_cov = meas_cov + self._rate_square_cov(stamp)
+        meas_cov = meas_cov + self._rate_square_cov(stamp, params)
         measurement = (inst.thrust, inst.regressor, inst.links - peers - motion_mean, meas_cov)
         if self._window is None:
-            return measurement, self._score_bias(inst, msgs, meas_cov)
+            return measurement, self._score_bias(inst, peer_motion, meas_cov, params)
         return self._window.condition(stamp, *measurement, imu_map)
 
-    def _score_bias(self, inst: Instant, msgs: list, cov: np.ndarray):
-        """``DeferredReports.modes`` of this update (None without the deferred reports)."""
+    def _score_bias(self, inst: Instant, peers: list, cov: np.ndarray, params: np.ndarray):
+        """``DeferredReports.modes`` of this update at ``params`` (None without the deferred
+        reports); ``peers`` as ``_peer_motion``'s."""
         if self._reports is None:
             return None
-        peers = self._peer_motion(msgs)
-        return self._reports.modes(self.motion_fusion, self.ukf.params_mean(), inst, peers, cov)
+        return self._reports.modes(self.motion_fusion, params, inst, peers, cov)
 
     def _peer_terms(
         self, act_cov: np.ndarray, msgs: list
@@ -559,32 +561,29 @@ class CargoEstimator(EstimatorInputs):
         """Per peer, its wrench transform G_j -> G and its message (the noise model's peers)."""
         return [(self._relative[p].transform(), m) for p, m in zip(self.peers, msgs, strict=True)]
 
-    def _motion_noise(self, inst: Instant, msgs: list) -> tuple[np.ndarray, np.ndarray]:
-        """Mean and covariance of the balance's motion noise at this instant
-        (``NoiseModel.motion_noise``)."""
-        peers = self._peer_motion(msgs)
+    def _motion_noise(self, inst: Instant, peers: list, params: np.ndarray):
+        """Mean and covariance of the balance's motion noise at this instant at the cargo
+        ``params`` (``NoiseModel.motion_noise``; ``peers`` as ``_peer_motion``'s)."""
         return self.noise.motion_noise(
-            self.motion_fusion, self.ukf.params_mean(), inst.motion_jac, inst.regressor, peers,
+            self.motion_fusion, params, inst.motion_jac, inst.regressor, peers,
             self._grasp_lever, own=self.noise.momentum_motion, params_cov=self.ukf.P,
         )  # fmt: skip
 
-    def _over_time_noise(self, inst: Instant, msgs: list):
+    def _over_time_noise(self, inst: Instant, peers: list, params: np.ndarray):
         """``_motion_noise`` and the team's IMU map (``NoiseModel.over_time_noise``)."""
-        peers = self._peer_motion(msgs)
         return self.noise.over_time_noise(
-            self.motion_fusion, self.ukf.params_mean(), inst.motion_jac, inst.regressor, peers,
+            self.motion_fusion, params, inst.motion_jac, inst.regressor, peers,
             self._grasp_lever, params_cov=self.ukf.P,
         )  # fmt: skip
 
-    def _rate_square_cov(self, stamp: int) -> np.ndarray:
+    def _rate_square_cov(self, stamp: int, params: np.ndarray) -> np.ndarray:
         """Covariance (6, 6) of the encoders' squared rate noise in this instant's own balance
-        (links and regressor at the current estimate): var sum_k w_k b_k b_k^T,
+        (links and regressor at the estimate ``params``): var sum_k w_k b_k b_k^T,
         b_k = Q_links + Q_Y pi of ``momentum.rate_square_terms``."""
         entry = self._rate_terms.pop(stamp, None)
         if entry is None:
             return np.zeros((6, 6))
         terms, weights = entry
-        params = self.ukf.params_mean()
         b = terms[:, 12:18] + cargo_regressor_parts(terms)[1] @ params
         return self._rate_square_var * (b.T * weights) @ b
 
