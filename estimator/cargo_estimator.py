@@ -504,27 +504,26 @@ class CargoEstimator(EstimatorInputs):
         """The update's (z, Y, b, R): thrust_G = links_G + Y pi - sum_j T_ij W_j with
         z = thrust, b = links - peers' wrenches - the motion noise's mean, R its covariance
         (floors, actuation, motion, peers' noise, squared rates); with ``over_time_window``
-        conditioned on the window's updates (``over_time``), and the window's entry for it.
-        The noise terms are taken at one estimate of pi (the filter's, before this update)."""
+        conditioned on the window's updates (``over_time``), and the window's entry for it."""
         peers, cov, peer_noise = self._peer_terms(inst.act_cov, msgs)
-        params, peer_motion = self.ukf.params_mean(), self._peer_motion(msgs)
         imu_map = None
         if self._window is None:
-            motion_mean, motion_cov = self._motion_noise(inst, peer_motion, params)
+            motion_mean, motion_cov = self._motion_noise(inst, msgs)
         else:
-            motion_mean, motion_cov, imu_map = self._over_time_noise(inst, peer_motion, params)
+            motion_mean, motion_cov, imu_map = self._over_time_noise(inst, msgs)
+        params = self.ukf.params_mean()
         meas_cov = self.meas_cov + cov / self.update_every + motion_cov + peer_noise
         meas_cov = meas_cov + self._rate_square_cov(stamp, params)
         measurement = (inst.thrust, inst.regressor, inst.links - peers - motion_mean, meas_cov)
         if self._window is None:
-            return measurement, self._score_bias(inst, peer_motion, meas_cov, params)
+            return measurement, self._score_bias(inst, msgs, meas_cov, params)
         return self._window.condition(stamp, *measurement, imu_map)
 
-    def _score_bias(self, inst: Instant, peers: list, cov: np.ndarray, params: np.ndarray):
-        """``DeferredReports.modes`` of this update at ``params`` (None without the deferred
-        reports); ``peers`` as ``_peer_motion``'s."""
+    def _score_bias(self, inst: Instant, msgs: list, cov: np.ndarray, params: np.ndarray):
+        """``DeferredReports.modes`` of this update at ``params`` (None without the reports)."""
         if self._reports is None:
             return None
+        peers = self._peer_motion(msgs)
         return self._reports.modes(self.motion_fusion, params, inst, peers, cov)
 
     def _peer_terms(
@@ -561,18 +560,20 @@ class CargoEstimator(EstimatorInputs):
         """Per peer, its wrench transform G_j -> G and its message (the noise model's peers)."""
         return [(self._relative[p].transform(), m) for p, m in zip(self.peers, msgs, strict=True)]
 
-    def _motion_noise(self, inst: Instant, peers: list, params: np.ndarray):
-        """Mean and covariance of the balance's motion noise at this instant at the cargo
-        ``params`` (``NoiseModel.motion_noise``; ``peers`` as ``_peer_motion``'s)."""
+    def _motion_noise(self, inst: Instant, msgs: list) -> tuple[np.ndarray, np.ndarray]:
+        """Mean and covariance of the balance's motion noise at this instant
+        (``NoiseModel.motion_noise``)."""
+        peers = self._peer_motion(msgs)
         return self.noise.motion_noise(
-            self.motion_fusion, params, inst.motion_jac, inst.regressor, peers,
+            self.motion_fusion, self.ukf.params_mean(), inst.motion_jac, inst.regressor, peers,
             self._grasp_lever, own=self.noise.momentum_motion, params_cov=self.ukf.P,
         )  # fmt: skip
 
-    def _over_time_noise(self, inst: Instant, peers: list, params: np.ndarray):
+    def _over_time_noise(self, inst: Instant, msgs: list):
         """``_motion_noise`` and the team's IMU map (``NoiseModel.over_time_noise``)."""
+        peers = self._peer_motion(msgs)
         return self.noise.over_time_noise(
-            self.motion_fusion, params, inst.motion_jac, inst.regressor, peers,
+            self.motion_fusion, self.ukf.params_mean(), inst.motion_jac, inst.regressor, peers,
             self._grasp_lever, params_cov=self.ukf.P,
         )  # fmt: skip
 
