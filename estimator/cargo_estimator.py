@@ -513,19 +513,20 @@ class CargoEstimator(EstimatorInputs):
             motion_mean, motion_cov = self._motion_noise(inst, msgs)
         else:
             motion_mean, motion_cov, imu_map = self._over_time_noise(inst, msgs)
+        params = self.ukf.params_mean()
         meas_cov = self.meas_cov + cov / self.update_every + motion_cov + peer_noise
-        meas_cov = meas_cov + self._rate_square_cov(stamp)
+        meas_cov = meas_cov + self._rate_square_cov(stamp, params)
         measurement = (inst.thrust, inst.regressor, inst.links - peers - motion_mean, meas_cov)
         if self._window is None:
-            return measurement, self._score_bias(inst, msgs, meas_cov)
+            return measurement, self._score_bias(inst, msgs, meas_cov, params)
         return self._window.condition(stamp, *measurement, imu_map)
 
-    def _score_bias(self, inst: Instant, msgs: list, cov: np.ndarray):
-        """``DeferredReports.modes`` of this update (None without the deferred reports)."""
+    def _score_bias(self, inst: Instant, msgs: list, cov: np.ndarray, params: np.ndarray):
+        """``DeferredReports.modes`` of this update at ``params`` (None without the reports)."""
         if self._reports is None:
             return None
         peers = self._peer_motion(msgs)
-        return self._reports.modes(self.motion_fusion, self.ukf.params_mean(), inst, peers, cov)
+        return self._reports.modes(self.motion_fusion, params, inst, peers, cov)
 
     def _peer_terms(
         self, act_cov: np.ndarray, msgs: list
@@ -578,15 +579,14 @@ class CargoEstimator(EstimatorInputs):
             self._grasp_lever, params_cov=self.ukf.P,
         )  # fmt: skip
 
-    def _rate_square_cov(self, stamp: int) -> np.ndarray:
+    def _rate_square_cov(self, stamp: int, params: np.ndarray) -> np.ndarray:
         """Covariance (6, 6) of the encoders' squared rate noise in this instant's own balance
-        (links and regressor at the current estimate): var sum_k w_k b_k b_k^T,
+        (links and regressor at the estimate ``params``): var sum_k w_k b_k b_k^T,
         b_k = Q_links + Q_Y pi of ``momentum.rate_square_terms``."""
         entry = self._rate_terms.pop(stamp, None)
         if entry is None:
             return np.zeros((6, 6))
         terms, weights = entry
-        params = self.ukf.params_mean()
         b = terms[:, 12:18] + cargo_regressor_parts(terms)[1] @ params
         return self._rate_square_var * (b.T * weights) @ b
 

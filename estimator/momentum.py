@@ -103,7 +103,16 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit
 
-from .geometry import cross3, exp_so3, matmul3, matvec3, skew
+from .geometry import (
+    cross3,
+    cross3_into,
+    exp_so3_into,
+    matmul3,
+    matmul3_into,
+    matvec3,
+    matvec3_into,
+    skew,
+)
 from .rne import (
     Balance,
     RobotArrays,
@@ -156,71 +165,57 @@ def _link_frames(arrays, q):
     rot = np.empty((n_links, 3, 3))
     pos = np.empty((n_links, 3))
     rot[0], pos[0] = np.eye(3), 0.0
+    rotvec, joint, to_joint, offset = np.empty(3), np.empty((3, 3)), np.empty((3, 3)), np.empty(3)
     for k in range(1, n_links):
         p = arrays.parent[k]
-        joint = exp_so3(arrays.joint_axis[k] * q[k - 1])
-        rot[k] = matmul3(matmul3(rot[p], arrays.rot_in_parent[k]), joint)
-        pos[k] = pos[p] + matvec3(rot[p], arrays.pos_in_parent[k])
+        for i in range(3):
+            rotvec[i] = arrays.joint_axis[k, i] * q[k - 1]
+        exp_so3_into(joint, rotvec)
+        matmul3_into(to_joint, rot[p], arrays.rot_in_parent[k])
+        matmul3_into(rot[k], to_joint, joint)
+        matvec3_into(offset, rot[p], arrays.pos_in_parent[k])
+        for i in range(3):
+            pos[k, i] = pos[p, i] + offset[i]
     g = arrays.grasp_link
     return rot, pos, matmul3(rot[g], arrays.grasp_rot), pos[g] + matvec3(rot[g], arrays.grasp_pos)
 
 
 @njit(cache=True)
-def _cross_rows(a, b):
-    """a_r x b_r (n, 3) row by row (``geometry.cross3``'s formula) of two (n, 3) arrays; one
-    allocation for the whole batch."""
-    out = np.empty((a.shape[0], 3))
-    for r in range(a.shape[0]):
-        out[r, 0] = a[r, 1] * b[r, 2] - a[r, 2] * b[r, 1]
-        out[r, 1] = a[r, 2] * b[r, 0] - a[r, 0] * b[r, 2]
-        out[r, 2] = a[r, 0] * b[r, 1] - a[r, 1] * b[r, 0]
-    return out
-
-
-@njit(cache=True)
-def _matvec_rows(m, v):
-    """M v_r (n, 3) row by row (``geometry.matvec3``'s sum order) of a 3x3 matrix (any strides)
-    and an (n, 3) array; one allocation for the whole batch."""
-    out = np.empty((v.shape[0], 3))
-    for r in range(v.shape[0]):
-        for i in range(3):
-            out[r, i] = m[i, 0] * v[r, 0] + m[i, 1] * v[r, 1] + m[i, 2] * v[r, 2]
-    return out
-
-
-@njit(cache=True)
-def _rows(v, n):
-    """The vector ``v`` (3,) as n equal rows (n, 3) (read-only view)."""
-    return np.broadcast_to(v, (n, 3))
-
-
-@njit(cache=True)
 def _link_rates(arrays, rot, w_base, qd):
     """Angular velocities (n, n_links, 3) of the links in B at the link frames ``rot``, for n
-    rows of base rates ``w_base`` (n, 3) and joint rates ``qd`` (n, nj)."""
+    rows of base rates ``w_base`` (n, 3) and joint rates ``qd`` (n, nj):
+    w_k = w_parent + qd_k R_k axis_k."""
     n_links = arrays.parent.shape[0]
     w = np.empty((w_base.shape[0], n_links, 3))
     w[:, 0] = w_base
+    axis = np.empty(3)
     for k in range(1, n_links):
-        axis = matvec3(rot[k], arrays.joint_axis[k])
-        w[:, k] = w[:, arrays.parent[k]] + qd[:, k - 1 : k] * axis
+        matvec3_into(axis, rot[k], arrays.joint_axis[k])
+        p = arrays.parent[k]
+        for r in range(w.shape[0]):
+            for i in range(3):
+                w[r, k, i] = w[r, p, i] + qd[r, k - 1] * axis[i]
     return w
 
 
 @njit(cache=True)
 def _mass_geometry(arrays, rot, pos, grasp_pos):
     """The links' mass distribution in B at the link frames ``rot``, ``pos``: centres of mass
-    relative to the link origins (n_links, 3) m, inertias about them (n_links, 3, 3) kg m^2,
-    the total mass kg and the first moment about G's origin sum m_k rho_k (3,) kg m."""
+    relative to the link origins (n_links, 3) m, inertias about them R_k I_k R_k^T
+    (n_links, 3, 3) kg m^2, the total mass kg and the first moment about G's origin
+    sum m_k rho_k (3,) kg m."""
     n_links = arrays.parent.shape[0]
     com_b = np.empty((n_links, 3))
     inertia_b = np.empty((n_links, 3, 3))
+    turned = np.empty((3, 3))
     first_moment = np.zeros(3)
     total_mass = 0.0
     for k in range(n_links):
-        com_b[k] = matvec3(rot[k], arrays.com[k])
-        inertia_b[k] = matmul3(matmul3(rot[k], arrays.inertia_com[k]), rot[k].T)
-        first_moment += arrays.mass[k] * (pos[k] + com_b[k] - grasp_pos)
+        matvec3_into(com_b[k], rot[k], arrays.com[k])
+        matmul3_into(turned, rot[k], arrays.inertia_com[k])
+        matmul3_into(inertia_b[k], turned, rot[k].T)
+        for i in range(3):
+            first_moment[i] += arrays.mass[k] * (pos[k, i] + com_b[k, i] - grasp_pos[i])
         total_mass += arrays.mass[k]
     return com_b, inertia_b, total_mass, first_moment
 
@@ -230,37 +225,83 @@ def _momentum_terms(arrays, imu_pos, geo, w, acc_imu, out):
     """Fill out[:, 6:SIZE] (n rows of P_links, Q_links, the cargo's P and Q arguments; module
     docstring) from the links' positions and mass distribution at the link geometry ``geo``,
     their angular velocities ``w`` (n, n_links, 3) and the IMU point's acceleration (n, 3), all
-    in B."""
-    n, n_links = w.shape[0], arrays.parent.shape[0]
-    pos, com_b, grasp_pos = geo.pos, geo.com_b, geo.grasp_pos
-    # Velocities of the link origins relative to the frame translating with the IMU point.
-    vel = np.empty((n, n_links, 3))
-    vel[:, 0] = _cross_rows(w[:, 0], _rows(-imu_pos, n))
-    for k in range(1, n_links):
-        p = arrays.parent[k]
-        vel[:, k] = vel[:, p] + _cross_rows(w[:, p], _rows(pos[k] - pos[p], n))
+    in B; row by row (``_momentum_row``), with the levers between the links' points once."""
+    n_links = arrays.parent.shape[0]
+    pos, com_b, grasp_pos, g = geo.pos, geo.com_b, geo.grasp_pos, arrays.grasp_link
+    # levers[0]: the base origin from the IMU point; levers[k]: link k's origin from its
+    # parent's; levers[n_links]: G's origin from its link's.
+    levers = np.empty((n_links + 1, 3))
+    rho = np.empty((n_links, 3))  # the links' centres of mass from G's origin
+    for i in range(3):
+        levers[0, i] = -imu_pos[i]
+        levers[n_links, i] = grasp_pos[i] - pos[g, i]
+        for k in range(n_links):
+            if k > 0:
+                levers[k, i] = pos[k, i] - pos[arrays.parent[k], i]
+            rho[k, i] = pos[k, i] + com_b[k, i] - grasp_pos[i]
+    vel, work = np.empty((n_links, 3)), np.empty((10, 3))
+    for r in range(w.shape[0]):
+        _momentum_row(arrays, geo, levers, rho, w[r], acc_imu[r], out[r], vel, work)
+
+
+@njit(cache=True, inline="always")
+def _momentum_row(arrays, geo, levers, rho, w, acc_imu, out, vel, work):
+    """One row of ``_momentum_terms``: the links' velocities relative to the frame translating
+    with the IMU point, nu_k = nu_parent + w_parent x lever_k, their momentum
+    p = sum m_k (nu_k + w_k x c_k) and angular momentum L = sum I_k w_k + m_k rho_k x nu_k about
+    G's origin, then P and Q in G (module docstring). ``vel`` (n_links, 3) and ``work``
+    (10, 3) are scratch."""
+    t, u, nu, nu_g, momentum = work[0], work[1], work[2], work[3], work[4]
+    ang, w_g, p_g, l_g, nu_gg = work[5], work[6], work[7], work[8], work[9]
     g = arrays.grasp_link
-    nu_g = vel[:, g] + _cross_rows(w[:, g], _rows(grasp_pos - pos[g], n))
-    momentum, ang_momentum = np.zeros((n, 3)), np.zeros((n, 3))
-    for k in range(n_links):
-        nu = vel[:, k] + _cross_rows(w[:, k], _rows(com_b[k], n))
-        rho = pos[k] + com_b[k] - grasp_pos
+    cross3_into(vel[0], w[0], levers[0])
+    for k in range(1, vel.shape[0]):
+        p = arrays.parent[k]
+        cross3_into(t, w[p], levers[k])
+        for i in range(3):
+            vel[k, i] = vel[p, i] + t[i]
+    cross3_into(t, w[g], levers[vel.shape[0]])
+    for i in range(3):
+        nu_g[i] = vel[g, i] + t[i]
+    momentum[:], ang[:] = 0.0, 0.0
+    for k in range(vel.shape[0]):
+        cross3_into(t, w[k], geo.com_b[k])
+        for i in range(3):
+            nu[i] = vel[k, i] + t[i]
         m = arrays.mass[k]
-        momentum += m * nu
-        ang_momentum += _matvec_rows(geo.inertia_b[k], w[:, k]) + m * _cross_rows(_rows(rho, n), nu)
+        matvec3_into(t, geo.inertia_b[k], w[k])
+        cross3_into(u, rho[k], nu)
+        for i in range(3):
+            momentum[i] += m * nu[i]
+            ang[i] += t[i] + m * u[i]
     rot_t = geo.grasp_rot.T
-    w_g = _matvec_rows(rot_t, w[:, g])
-    p_g, l_g = _matvec_rows(rot_t, momentum), _matvec_rows(rot_t, ang_momentum)
-    out[:, 6:9], out[:, 9:12] = p_g, l_g
-    out[:, 12:15] = _matvec_rows(rot_t, geo.total_mass * acc_imu) + _cross_rows(w_g, p_g)
-    moment = _cross_rows(_rows(geo.first_moment, n), acc_imu) + _cross_rows(nu_g, momentum)
-    out[:, 15:18] = _matvec_rows(rot_t, moment) + _cross_rows(w_g, l_g)
-    nu_gg = _matvec_rows(rot_t, nu_g)
-    out[:, 18:21], out[:, 21:24] = nu_gg, w_g
-    out[:, 24:27] = _matvec_rows(rot_t, acc_imu) + _cross_rows(w_g, nu_gg)
+    matvec3_into(w_g, rot_t, w[g])
+    matvec3_into(p_g, rot_t, momentum)
+    matvec3_into(l_g, rot_t, ang)
+    out[6:9], out[9:12] = p_g, l_g
+    for i in range(3):
+        nu[i] = geo.total_mass * acc_imu[i]  # nu: scratch from here on
+    matvec3_into(t, rot_t, nu)
+    cross3_into(u, w_g, p_g)
+    for i in range(3):
+        out[12 + i] = t[i] + u[i]
+    cross3_into(t, geo.first_moment, acc_imu)
+    cross3_into(u, nu_g, momentum)
+    for i in range(3):
+        nu[i] = t[i] + u[i]  # the moment about G's origin, B axes
+    matvec3_into(t, rot_t, nu)
+    cross3_into(u, w_g, l_g)
+    for i in range(3):
+        out[15 + i] = t[i] + u[i]
+    matvec3_into(nu_gg, rot_t, nu_g)
+    out[18:21], out[21:24] = nu_gg, w_g
+    matvec3_into(t, rot_t, acc_imu)
+    cross3_into(u, w_g, nu_gg)
+    for i in range(3):
+        out[24 + i] = t[i] + u[i]
     for col in range(6):
         i, j = _PRODUCTS[col]
-        out[:, 27 + col] = w_g[:, i] * w_g[:, j]
+        out[27 + col] = w_g[i] * w_g[j]
 
 
 class LinkGeometry(NamedTuple):

@@ -49,8 +49,11 @@ channels' G(L) are those of the fused error's spectrum (``_init_fused_accelerome
 
 from __future__ import annotations
 
+import bisect
+import collections
 import functools
 import itertools
+import operator
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -356,7 +359,7 @@ class NoiseModel:
         self._imu_pos = np.ascontiguousarray(robot.imu_pos, dtype=float)
         self._n_joints = nj
         self._dt_s = dt_s
-        self._states: list[tuple[int, np.ndarray]] = []
+        self._states: collections.deque[tuple[int, np.ndarray]] = collections.deque()
 
     def _init_fused_accelerometer(self, n_lags: int) -> None:
         """The accelerometer fused with localization (``accel_psd_ratio`` r(f), None: raw):
@@ -470,9 +473,15 @@ class NoiseModel:
         ``_jacobian_lag_steps`` before ``stamp``: the recorded state nearest that instant, moved
         the rest of the way along its derivatives (first order)."""
         target = stamp - self._jacobian_lag_steps
-        self._states = [(s, x) for s, x in self._states if s >= target - 2 * self.update_every]
-        self._states.append((int(stamp), np.array(pre_state[:3], dtype=float)))
-        s, x = min(self._states, key=lambda item: abs(item[0] - target))
+        states = self._states  # in increasing stamp order
+        while states and states[0][0] < target - 2 * self.update_every:
+            states.popleft()
+        states.append((int(stamp), np.array(pre_state[:3], dtype=float)))
+        # The nearest to the target, the earlier of two as near.
+        i = bisect.bisect_left(states, target, key=operator.itemgetter(0))
+        if i == len(states) or (i > 0 and target - states[i - 1][0] <= states[i][0] - target):
+            i -= 1
+        s, x = states[i]
         back = (s - target) * self._dt_s
         moved = x.copy()
         moved[:2] -= back * x[1:3]

@@ -627,10 +627,12 @@ class EstimatorInputs:
         fall before the history's horizon, so that ``process`` has to give it up? (The dicts
         keyed by own stamps hold them in increasing order: the first is the oldest.)"""
         horizon = self.stamp - self.history_steps
-        return self._oldest_peer_msg < horizon or any(
-            next(iter(held), horizon) < horizon
-            for held in (self._pending, self._rate_terms, self._own_fix)
-        )
+        if self._oldest_peer_msg < horizon:
+            return True
+        for held in (self._pending, self._rate_terms, self._own_fix):
+            if held and next(iter(held)) < horizon:
+                return True
+        return False
 
     def _record_instant(self, stamp: int, q_raw: np.ndarray, fix: bool) -> WrenchMessage | None:
         # H[Z] = H'[P] + H[Q] from the slow filter's value and derivative (``momentum``).
