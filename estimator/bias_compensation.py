@@ -40,7 +40,7 @@ from __future__ import annotations
 import numpy as np
 
 from .motion import HELD_EXTENDED, POINT_EXTENDED
-from .over_time import MODES_PER_CHANNEL, conditioning_gain
+from .over_time import MODES_PER_CHANNEL
 
 
 def score_bias(balance_map, d_y, groups, cov) -> tuple[np.ndarray, np.ndarray]:
@@ -99,12 +99,12 @@ def own_modes(noise, fusion, params, motion_jac, regressor, peers, slope=True):
     if any(m.motion_links_jac is None for _, m in peers):
         return None
     own = noise.momentum_motion
-    n_map, d_map, _, level = noise._team(own, params, motion_jac, regressor, peers)
-    if fusion == "team" and peers:
-        n_map = n_map - conditioning_gain(n_map, d_map, level, noise.mismatch_model_var) @ d_map
-    scale = np.sqrt(level[: own.var.size])
-    d_y = motion_jac[1] * scale[:, None, None] if slope else None
-    return n_map[:, : own.var.size] * scale, d_y
+    team = noise._team(own, params, motion_jac, regressor, peers)
+    modes = noise.own_modes(team, fusion == "team" and bool(peers))
+    if not slope:
+        return modes, None
+    scale = np.sqrt(team[3][: own.var.size])
+    return modes, motion_jac[1] * scale[:, None, None]
 
 
 class DeferredCompensation:

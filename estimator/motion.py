@@ -140,10 +140,18 @@ def condition_maps(
     mismatch_model_var: float,
 ) -> tuple[np.ndarray, np.ndarray]:
     """E[n | d] and Cov[n | d] for n = N dxi, d = D dxi + e with Cov dxi = diag(level) and
-    Cov e = mismatch_model_var I (``condition_on_mismatch`` on stacked maps):
+    Cov e = mismatch_model_var I (``condition_on_mismatch`` on stacked maps; ``conditioned_maps``
+    without its remaining map)."""
+    mean, cov, _ = conditioned_maps(n_map, d_map, level, mismatch, mismatch_model_var)
+    return mean, cov
 
-        K = S_nd S_dd^+,  S_nd = N diag(level) D^T,  S_dd = D diag(level) D^T + var I,
-        E[n | d] = K d,   Cov[n | d] = (N - K D) diag(level) (N - K D)^T + var K K^T."""
+
+@njit(cache=True)
+def conditioned_maps(n_map, d_map, level, mismatch, mismatch_model_var):
+    """``condition_maps``' E[n | d] (6,), Cov[n | d] (6, 6) and the remaining map N - K D:
+
+    K = S_nd S_dd^+,  S_nd = N diag(level) D^T,  S_dd = D diag(level) D^T + var I,
+    E[n | d] = K d,   Cov[n | d] = (N - K D) diag(level) (N - K D)^T + var K K^T."""
     d_map_t = np.ascontiguousarray(d_map.T)
     s_nd = (n_map * level) @ d_map_t
     s_dd = (d_map * level) @ d_map_t + mismatch_model_var * np.eye(d_map.shape[0])
@@ -152,7 +160,25 @@ def condition_maps(
     remaining = n_map - gain @ d_map
     cov = (remaining * level) @ np.ascontiguousarray(remaining.T)
     cov += (mismatch_model_var * gain) @ np.ascontiguousarray(gain.T)
-    return gain @ mismatch, 0.5 * (cov + cov.T)
+    return gain @ mismatch, 0.5 * (cov + cov.T), remaining
+
+
+@njit(cache=True)
+def scaled_own_modes(n_map, level, n_own):
+    """The first ``n_own`` columns of a noise map at unit variance, N[:, :n_own]
+    diag(level[:n_own])^1/2 (6, n_own)."""
+    return np.ascontiguousarray(n_map[:, :n_own]) * np.sqrt(level[:n_own])
+
+
+@njit(cache=True)
+def conditioned_own_modes(n_map, d_map, level, condition, mismatch_model_var, n_own):
+    """This robot's modes as the residual sees them (``scaled_own_modes``): of the remaining
+    map N - K D (``conditioned_maps``) when ``condition``, else of N."""
+    if condition:
+        no_mismatch = np.zeros(d_map.shape[0])
+        remaining = conditioned_maps(n_map, d_map, level, no_mismatch, mismatch_model_var)[2]
+        return scaled_own_modes(remaining, level, n_own)
+    return scaled_own_modes(n_map, level, n_own)
 
 
 @njit(cache=True)
@@ -172,16 +198,20 @@ def posterior_spread(d_y, level, params_cov):
 def conditioned_noise(n_map, d_map, mismatch, level, condition, mismatch_model_var, d_y,
                        params_cov, with_spread):  # fmt: skip
     """Mean (6,) and covariance (6, 6) of the motion noise from the team's maps
-    (``noise_model._team_maps``): conditioned on the mismatch (``condition_maps``) or not
+    (``team_noise.team_maps``): conditioned on the mismatch (``conditioned_maps``) or not
     (``noise_cov``), plus the posterior's spread (``posterior_spread``) when
-    ``with_spread``."""
+    ``with_spread``; and this robot's modes as the residual sees them (6, n)
+    (``conditioned_own_modes``, n = d_y's count), from the same remaining map."""
+    n_own = d_y.shape[0]
     if condition:
-        mean, cov = condition_maps(n_map, d_map, level, mismatch, mismatch_model_var)
+        mean, cov, remaining = conditioned_maps(n_map, d_map, level, mismatch, mismatch_model_var)
+        modes = scaled_own_modes(remaining, level, n_own)
     else:
         mean, cov = np.zeros(6), noise_cov(n_map, level)
+        modes = scaled_own_modes(n_map, level, n_own)
     if with_spread:
         cov = cov + posterior_spread(d_y, level, params_cov)
-    return mean, cov
+    return mean, cov, modes
 
 
 def balance_noise_map(d_links: np.ndarray, d_y: np.ndarray, params: np.ndarray) -> np.ndarray:

@@ -52,13 +52,11 @@ from __future__ import annotations
 import bisect
 import collections
 import functools
-import itertools
 import operator
 from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
-from numba import njit
 
 from .fused_motion import coloured_lag_covariances
 from .momentum import SIZE
@@ -66,12 +64,11 @@ from .motion import (
     HELD_EXTENDED,
     POINT_EXTENDED,
     RegressorAutocorrelation,
-    balance_noise_map_kernel,
     band_factors,
     chain_kernels,
     conditioned_noise,
+    conditioned_own_modes,
     filtered_motion_gains,
-    grasp_acc_map_kernel,
     instant_noise_modes,
     kernel_lag_covariances,
     lag_weighted_covariance,
@@ -81,6 +78,7 @@ from .motion import (
 from .over_time import IMU_MODES, MODES_PER_CHANNEL, conditioning_gain, mode_lag_covariances
 from .preprocess import DEFAULT_RATE_CUTOFF_HZ, StateVariableFilter
 from .rne import RobotDescription
+from .team_noise import excitation_snr_kernel, same_key, team_maps_of
 
 # Ways the motion's sensor noise enters the measurement (``NoiseModel.motion_noise``).
 MOTION_FUSION = ("none", "own", "team")
@@ -100,46 +98,6 @@ class PeerMotion(Protocol):
     motion_grasp_jac: np.ndarray | None  # (3, n) d grasp_acc / d xi
     motion_var: np.ndarray | None  # (n,) per-sample variance of its filtered xi's noise
     motion_band: np.ndarray | None  # (n,) each coordinate's weight per update
-
-
-@njit(cache=True)
-def _team_maps(params, d_links, d_y, regressor, transforms, peer_links, peer_grasp, peer_acc,
-               peer_start):  # fmt: skip
-    """The team's stacked maps of ``NoiseModel.motion_noise``: noise map N (6, n) over the
-    motion of this robot (its n_own coordinates first) and its peers (peer k's from column
-    n_own + peer_start[k]), mismatch map D (3 P, n) and mismatch d (3 P,).
-
-    Peer k (T = ``transforms[k]`` G_k -> G, R its rotation, p the peer's grasp point in G, read
-    from the moment rows' [p]x R): N's block T L_k; D's rows 3k..3k+2 are -G_i(p) over this
-    robot's columns and R G_k over the peer's; d_k = R a_Gk - (a_G + (skew(wd) + skew(w)^2) p),
-    a_G and the h block from the filtered ``regressor``."""
-    n_own, n_peers = d_y.shape[0], transforms.shape[0]
-    n_map = np.zeros((6, n_own + peer_links.shape[1]))
-    d_map = np.zeros((3 * n_peers, n_map.shape[1]))
-    mismatch = np.empty(3 * n_peers)
-    n_map[:, :n_own] = balance_noise_map_kernel(d_links, d_y, params)
-    acc_g = regressor[:3, 0].copy()
-    ang_g = np.ascontiguousarray(regressor[:3, 1:4])  # skew(wd) + skew(w)^2
-    for k in range(n_peers):
-        rot = np.ascontiguousarray(transforms[k, :3, :3])
-        lever = np.ascontiguousarray(transforms[k, 3:, :3]) @ np.ascontiguousarray(rot.T)
-        pos = np.array([lever[2, 1], lever[0, 2], lever[1, 0]])
-        cols = slice(n_own + peer_start[k], n_own + peer_start[k + 1])
-        peer = slice(peer_start[k], peer_start[k + 1])
-        rows = slice(3 * k, 3 * k + 3)
-        n_map[:, cols] = transforms[k] @ np.ascontiguousarray(peer_links[:, peer])
-        d_map[rows, :n_own] = -grasp_acc_map_kernel(d_y, pos)
-        d_map[rows, cols] = rot @ np.ascontiguousarray(peer_grasp[:, peer])
-        mismatch[rows] = rot @ peer_acc[k] - (acc_g + ang_g @ pos)
-    return n_map, d_map, mismatch
-
-
-def _same_key(a: tuple, b: tuple) -> bool:
-    """Whether two ``NoiseModel._team`` keys name the same instant: the same objects, and equal
-    bytes for the parameters."""
-    return len(a) == len(b) and all(
-        x is y or (isinstance(x, bytes) and x == y) for x, y in zip(a, b, strict=True)
-    )
 
 
 def decorrelation_updates(slow_delay_s: float, update_s: float) -> float:
@@ -293,6 +251,7 @@ class NoiseModel:
         self.mismatch_model_var = self.correlated * float(mismatch_model_std) ** 2
         self.over_time = bool(over_time)
         self._last_team = None  # (key, maps) of the last ``_team`` call
+        self._last_modes = None  # (maps, condition, own modes) of the last ``_conditioned``
         self.accel_psd_ratio = accel_psd_ratio
         self._init_scalar_model(robot, dt_s, cutoff_hz, sensor)
         self._init_acceleration_form(robot, dt_s, kinematics_cutoff_hz, cutoff_hz,
@@ -504,14 +463,9 @@ class NoiseModel:
         sigma_ang (gyro and joints) and sigma_lin = hypot(sigma_a, L sigma_ang) at the
         base-to-grasp lever L (m); a_G and wd from the filtered regressor (6, 10) (its force
         rows' h-columns are skew(wd) + skew(w)^2: wd is their antisymmetric part)."""
-        acc = regressor[:3, 0]
-        h = regressor[:3, 1:4]
-        wd = 0.5 * np.array((h[2, 1] - h[1, 2], h[0, 2] - h[2, 0], h[1, 0] - h[0, 1]))
-        ang_noise = self.grasp_ang_acc_noise
-        lin_noise = np.hypot(self.acc_noise, lever_m * ang_noise)
-        snr_lin = np.linalg.norm(acc) / max(lin_noise, 1e-300)
-        snr_ang = np.linalg.norm(wd) / max(ang_noise, 1e-300)
-        return float(max(snr_lin, snr_ang))
+        return excitation_snr_kernel(
+            regressor, float(self.acc_noise), float(self.grasp_ang_acc_noise), float(lever_m)
+        )
 
     def sensor_cov_at(self, params: np.ndarray, lever_m: float | np.ndarray) -> np.ndarray:
         """Measurement covariance (..., 6, 6) from the sensors' noise on the filtered
@@ -584,11 +538,25 @@ class NoiseModel:
         mismatch or not, with the posterior's spread (``motion_noise``)."""
         n_map, d_map, mismatch, level = team
         spread = params_cov is not None
-        return conditioned_noise(
+        mean, cov, modes = conditioned_noise(
             n_map, d_map, mismatch, level, condition, self.mismatch_model_var,
             np.ascontiguousarray(motion_jac[1], dtype=float),
             np.ascontiguousarray(params_cov, dtype=float) if spread else _NO_COV, spread,
         )  # fmt: skip
+        self._last_modes = (team, condition, modes)
+        return mean, cov
+
+    def own_modes(self, team: tuple, condition: bool) -> np.ndarray:
+        """This robot's modes as the residual sees them, (N - K D)[:, :n] diag(level[:n])^1/2
+        (6, n) from ``_team``'s maps (K D zero without ``condition``;
+        ``motion.conditioned_own_modes``): the last ``_conditioned`` call's for the same maps."""
+        last = self._last_modes
+        if last is not None and last[0] is team and last[1] == condition:
+            return last[2]
+        n_map, d_map, _, level = team
+        n_own = self.momentum_motion.var.size
+        var = self.mismatch_model_var
+        return conditioned_own_modes(n_map, d_map, level, condition, var, n_own)
 
     def over_time_noise(
         self,
@@ -628,7 +596,7 @@ class NoiseModel:
         return mean, cov, imu.reshape(6, -1, MODES_PER_CHANNEL)
 
     def _team(self, own, params, motion_jac, regressor, peers):
-        """The team's noise map N, mismatch map D, mismatch d (``_team_maps``) and the
+        """The team's noise map N, mismatch map D, mismatch d (``team_noise.team_maps``) and the
         per-mode levels var * band. The last call's maps are kept (read-only) and returned
         again for the same instant (the same arrays and messages, ``params`` equal): the
         measurement's noise and the reported covariance's modes (``bias_compensation.own_modes``)
@@ -636,60 +604,10 @@ class NoiseModel:
         key = (own, np.asarray(params, dtype=float).tobytes(), *motion_jac, regressor,
                *(x for pair in peers for x in pair))  # fmt: skip
         last = self._last_team
-        if last is not None and _same_key(last[0], key):
+        if last is not None and same_key(last[0], key):
             return last[1]
-        team = self._team_maps_of(own, params, motion_jac, regressor, peers)
+        team = team_maps_of(own, params, motion_jac, regressor, peers)
         for array in team:
             array.flags.writeable = False
         self._last_team = (key, team)
         return team
-
-    def _team_maps_of(self, own, params, motion_jac, regressor, peers):
-        """``_team``'s maps, computed."""
-        d_links, d_y = motion_jac
-        var, band, stacked, offsets = self._stacked_motion(
-            own, params, d_links, d_y, regressor, peers
-        )
-        n_map, d_map, mismatch = _team_maps(
-            np.ascontiguousarray(params, dtype=float),
-            np.ascontiguousarray(d_links, dtype=float),
-            np.ascontiguousarray(d_y, dtype=float),
-            np.ascontiguousarray(regressor, dtype=float),
-            *stacked,
-            offsets,
-        )
-        return n_map, d_map, mismatch, var * band
-
-    def _stacked_motion(self, own, params, d_links, d_y, regressor, peers):
-        """This robot's and the peers' motion noise stacked for ``_team_maps``: per-coordinate
-        variances and band weights (n_own + sum n_j,), the peers' (T_ij, d links_j, d a_Gj,
-        a_Gj) as arrays, and each peer's first coordinate; ValueError on inconsistent shapes."""
-        var = np.concatenate([own.var] + [m.motion_var for _, m in peers])
-        band = np.concatenate([own.band] + [m.motion_band for _, m in peers])
-        sizes = [np.shape(m.motion_links_jac)[1] for _, m in peers]
-        if var.shape != (np.shape(d_y)[0] + sum(sizes),) or band.shape != var.shape:
-            raise ValueError(
-                f"motion variances ({var.size}) and bands ({band.size}) must match the "
-                f"Jacobians' {np.shape(d_y)[0]} + {sizes} coordinates"
-            )
-        if peers:
-            # np.array and np.concatenate: the stacks without numpy's Python-level wrappers.
-            transforms = np.array([t for t, _ in peers], dtype=float)
-            peer_links = np.concatenate([m.motion_links_jac for _, m in peers], axis=1, dtype=float)
-            peer_grasp = np.concatenate([m.motion_grasp_jac for _, m in peers], axis=1, dtype=float)
-            peer_acc = np.array([m.grasp_acc for _, m in peers], dtype=float)
-        else:
-            transforms, peer_links = np.zeros((0, 6, 6)), np.zeros((6, 0))
-            peer_grasp, peer_acc = np.zeros((3, 0)), np.zeros((0, 3))
-        n_own, n_peers = np.shape(d_y)[0], len(peers)
-        shapes = (np.shape(params), np.shape(d_links), np.shape(d_y), np.shape(regressor),
-                  transforms.shape, peer_links.shape, peer_grasp.shape, peer_acc.shape)  # fmt: skip
-        expected = ((10,), (6, n_own), (n_own, 6, 10), (6, 10), (n_peers, 6, 6),
-                    (6, sum(sizes)), (3, sum(sizes)), (n_peers, 3))  # fmt: skip
-        if shapes != expected:
-            raise ValueError(
-                f"params, motion_jac, regressor and the peers' (transform, motion_links_jac, "
-                f"motion_grasp_jac, grasp_acc) have shapes {shapes}, expected {expected}"
-            )
-        offsets = np.array([0, *itertools.accumulate(sizes)], dtype=np.int64)
-        return var, band, (transforms, peer_links, peer_grasp, peer_acc), offsets

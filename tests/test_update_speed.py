@@ -1,5 +1,5 @@
 """The compiled per-update kernels (rne._balance_jacobians, motion's conditioning and
-noise modes, noise_model._team_maps and motion.posterior_spread) against the plain forms they
+noise modes, team_noise.team_maps and motion.posterior_spread) against the plain forms they
 replace, and the update path's caches (the relative grasp, process's early return)."""
 
 from types import SimpleNamespace

@@ -1,0 +1,120 @@
+"""The team's noise maps of one update instant (``noise_model.NoiseModel.motion_noise``): this
+robot's and its peers' motion noise stacked (``stacked_motion``), mapped into the balance and the
+peers' grasp-acceleration mismatches in one compiled call (``team_maps``, ``team_maps_of``); and
+the excitation gate's signal-to-noise ratio (``excitation_snr_kernel``)."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+from numba import njit
+
+from .motion import balance_noise_map_kernel, grasp_acc_map_kernel
+
+
+@njit(cache=True)
+def team_maps(params, d_links, d_y, regressor, transforms, peer_links, peer_grasp, peer_acc,
+               peer_start):  # fmt: skip
+    """The team's stacked maps of ``NoiseModel.motion_noise``: noise map N (6, n) over the
+    motion of this robot (its n_own coordinates first) and its peers (peer k's from column
+    n_own + peer_start[k]), mismatch map D (3 P, n) and mismatch d (3 P,).
+
+    Peer k (T = ``transforms[k]`` G_k -> G, R its rotation, p the peer's grasp point in G, read
+    from the moment rows' [p]x R): N's block T L_k; D's rows 3k..3k+2 are -G_i(p) over this
+    robot's columns and R G_k over the peer's; d_k = R a_Gk - (a_G + (skew(wd) + skew(w)^2) p),
+    a_G and the h block from the filtered ``regressor``."""
+    n_own, n_peers = d_y.shape[0], transforms.shape[0]
+    n_map = np.zeros((6, n_own + peer_links.shape[1]))
+    d_map = np.zeros((3 * n_peers, n_map.shape[1]))
+    mismatch = np.empty(3 * n_peers)
+    n_map[:, :n_own] = balance_noise_map_kernel(d_links, d_y, params)
+    acc_g = regressor[:3, 0].copy()
+    ang_g = np.ascontiguousarray(regressor[:3, 1:4])  # skew(wd) + skew(w)^2
+    for k in range(n_peers):
+        rot = np.ascontiguousarray(transforms[k, :3, :3])
+        lever = np.ascontiguousarray(transforms[k, 3:, :3]) @ np.ascontiguousarray(rot.T)
+        pos = np.array([lever[2, 1], lever[0, 2], lever[1, 0]])
+        cols = slice(n_own + peer_start[k], n_own + peer_start[k + 1])
+        peer = slice(peer_start[k], peer_start[k + 1])
+        rows = slice(3 * k, 3 * k + 3)
+        n_map[:, cols] = transforms[k] @ np.ascontiguousarray(peer_links[:, peer])
+        d_map[rows, :n_own] = -grasp_acc_map_kernel(d_y, pos)
+        d_map[rows, cols] = rot @ np.ascontiguousarray(peer_grasp[:, peer])
+        mismatch[rows] = rot @ peer_acc[k] - (acc_g + ang_g @ pos)
+    return n_map, d_map, mismatch
+
+
+def same_key(a: tuple, b: tuple) -> bool:
+    """Whether two ``NoiseModel._team`` keys name the same instant: the same objects, and equal
+    bytes for the parameters."""
+    return len(a) == len(b) and all(
+        x is y or (isinstance(x, bytes) and x == y) for x, y in zip(a, b, strict=True)
+    )
+
+
+def stacked_motion(own, params, d_links, d_y, regressor, peers):
+    """This robot's and the peers' motion noise stacked for ``team_maps``: per-coordinate
+    variances and band weights (n_own + sum n_j,), the peers' (T_ij, d links_j, d a_Gj,
+    a_Gj) as arrays, and each peer's first coordinate; ValueError on inconsistent shapes."""
+    var = np.concatenate([own.var] + [m.motion_var for _, m in peers])
+    band = np.concatenate([own.band] + [m.motion_band for _, m in peers])
+    sizes = [np.shape(m.motion_links_jac)[1] for _, m in peers]
+    if var.shape != (np.shape(d_y)[0] + sum(sizes),) or band.shape != var.shape:
+        raise ValueError(
+            f"motion variances ({var.size}) and bands ({band.size}) must match the "
+            f"Jacobians' {np.shape(d_y)[0]} + {sizes} coordinates"
+        )
+    if peers:
+        # np.array and np.concatenate: the stacks without numpy's Python-level wrappers.
+        transforms = np.array([t for t, _ in peers], dtype=float)
+        peer_links = np.concatenate([m.motion_links_jac for _, m in peers], axis=1, dtype=float)
+        peer_grasp = np.concatenate([m.motion_grasp_jac for _, m in peers], axis=1, dtype=float)
+        peer_acc = np.array([m.grasp_acc for _, m in peers], dtype=float)
+    else:
+        transforms, peer_links = np.zeros((0, 6, 6)), np.zeros((6, 0))
+        peer_grasp, peer_acc = np.zeros((3, 0)), np.zeros((0, 3))
+    n_own, n_peers = np.shape(d_y)[0], len(peers)
+    shapes = (np.shape(params), np.shape(d_links), np.shape(d_y), np.shape(regressor),
+              transforms.shape, peer_links.shape, peer_grasp.shape, peer_acc.shape)  # fmt: skip
+    expected = ((10,), (6, n_own), (n_own, 6, 10), (6, 10), (n_peers, 6, 6),
+                (6, sum(sizes)), (3, sum(sizes)), (n_peers, 3))  # fmt: skip
+    if shapes != expected:
+        raise ValueError(
+            f"params, motion_jac, regressor and the peers' (transform, motion_links_jac, "
+            f"motion_grasp_jac, grasp_acc) have shapes {shapes}, expected {expected}"
+        )
+    offsets = np.array([0, *itertools.accumulate(sizes)], dtype=np.int64)
+    return var, band, (transforms, peer_links, peer_grasp, peer_acc), offsets
+
+
+def team_maps_of(own, params, motion_jac, regressor, peers):
+    """The team's noise map N (6, n), mismatch map D (3 P, n), mismatch d (3 P,) (``team_maps``)
+    and the per-mode levels var * band (n,), for ``own`` (``noise_model.MotionNoiseSpec``) and
+    ``peers`` [(T_ij, message)] (``noise_model.NoiseModel.motion_noise``)."""
+    d_links, d_y = motion_jac
+    var, band, stacked, offsets = stacked_motion(own, params, d_links, d_y, regressor, peers)
+    n_map, d_map, mismatch = team_maps(
+        np.ascontiguousarray(params, dtype=float),
+        np.ascontiguousarray(d_links, dtype=float),
+        np.ascontiguousarray(d_y, dtype=float),
+        np.ascontiguousarray(regressor, dtype=float),
+        *stacked,
+        offsets,
+    )
+    return n_map, d_map, mismatch, var * band
+
+
+@njit(cache=True)
+def excitation_snr_kernel(regressor, acc_noise, ang_noise, lever_m):
+    """The larger of |a_G| / sigma_lin and |wd| / sigma_ang, sigma_lin = hypot(sigma_a,
+    L sigma_ang) at the base-to-grasp lever L (m); a_G (m/s^2) and wd (rad/s^2) from the
+    filtered regressor (6, 10), whose force rows' h-columns are skew(wd) + skew(w)^2 (wd is
+    their antisymmetric part)."""
+    acc = regressor[:3, 0]
+    h = regressor[:3, 1:4]
+    wd = 0.5 * np.array((h[2, 1] - h[1, 2], h[0, 2] - h[2, 0], h[1, 0] - h[0, 1]))
+    lin_noise = np.hypot(acc_noise, lever_m * ang_noise)
+    snr_lin = np.linalg.norm(acc) / max(lin_noise, 1e-300)
+    snr_ang = np.linalg.norm(wd) / max(ang_noise, 1e-300)
+    return max(snr_lin, snr_ang)
