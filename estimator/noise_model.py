@@ -78,7 +78,7 @@ from .motion import (
 from .over_time import IMU_MODES, MODES_PER_CHANNEL, conditioning_gain, mode_lag_covariances
 from .preprocess import DEFAULT_RATE_CUTOFF_HZ, StateVariableFilter
 from .rne import RobotDescription
-from .team_noise import excitation_snr_kernel, same_key, team_maps_of
+from .team_noise import excitation_snr_kernel, message_map, same_key, team_maps_of
 
 # Ways the motion's sensor noise enters the measurement (``NoiseModel.motion_noise``).
 MOTION_FUSION = ("none", "own", "team")
@@ -417,7 +417,7 @@ class NoiseModel:
         With ``over_time``: the 24 IMU modes as they are (scaled to unit variance), then 9 that
         carry the rest's (6, 33), (3, 33), ones (33,): the receiver weighs the IMU's over time
         (``over_time_noise``)."""
-        stacked = np.concatenate((d_links, d_y[:, :3, 0].T)) * self._mode_std
+        stacked = message_map(d_links, d_y, self._mode_std)
         if not self.over_time:
             factor = psd_factor(stacked @ stacked.T)
             return factor[:6], factor[6:], np.ones(9)
@@ -601,8 +601,8 @@ class NoiseModel:
         again for the same instant (the same arrays and messages, ``params`` equal): the
         measurement's noise and the reported covariance's modes (``bias_compensation.own_modes``)
         ask for the same maps."""
-        key = (own, np.asarray(params, dtype=float).tobytes(), *motion_jac, regressor,
-               *(x for pair in peers for x in pair))  # fmt: skip
+        inputs = (own, *motion_jac, regressor, *[x for pair in peers for x in pair])
+        key = (np.asarray(params, dtype=float).tobytes(), inputs)
         last = self._last_team
         if last is not None and same_key(last[0], key):
             return last[1]

@@ -6,6 +6,7 @@ the excitation gate's signal-to-noise ratio (``excitation_snr_kernel``)."""
 from __future__ import annotations
 
 import itertools
+import operator
 
 import numpy as np
 from numba import njit
@@ -46,11 +47,9 @@ def team_maps(params, d_links, d_y, regressor, transforms, peer_links, peer_gras
 
 
 def same_key(a: tuple, b: tuple) -> bool:
-    """Whether two ``NoiseModel._team`` keys name the same instant: the same objects, and equal
-    bytes for the parameters."""
-    return len(a) == len(b) and all(
-        x is y or (isinstance(x, bytes) and x == y) for x, y in zip(a, b, strict=True)
-    )
+    """Whether two ``NoiseModel._team`` keys (the parameters' bytes, the other inputs' objects)
+    name the same instant: equal bytes, the same objects."""
+    return a[0] == b[0] and len(a[1]) == len(b[1]) and all(map(operator.is_, a[1], b[1]))
 
 
 def stacked_motion(own, params, d_links, d_y, regressor, peers):
@@ -118,3 +117,16 @@ def excitation_snr_kernel(regressor, acc_noise, ang_noise, lever_m):
     snr_lin = np.linalg.norm(acc) / max(lin_noise, 1e-300)
     snr_ang = np.linalg.norm(wd) / max(ang_noise, 1e-300)
     return max(snr_lin, snr_ang)
+
+
+@njit(cache=True)
+def message_map(d_links, d_y, mode_std):
+    """The modes' map a peer sees, M diag(s) (9, n): M = [L; A], the links' map L = d links
+    (6, n) over the grasp acceleration's A = d Y[:, :3, 0]^T (3, n), each mode k scaled by its
+    std s_k (``NoiseModel.message_modes``)."""
+    n = d_y.shape[0]
+    out = np.empty((9, n))
+    out[:6] = d_links * mode_std
+    for k in range(n):
+        out[6:, k] = d_y[k, :3, 0] * mode_std[k]
+    return out
