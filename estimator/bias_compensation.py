@@ -99,11 +99,11 @@ def own_modes(noise, fusion, params, motion_jac, regressor, peers, slope=True):
     if any(m.motion_links_jac is None for _, m in peers):
         return None
     own = noise.momentum_motion
-    team = noise._team(own, params, motion_jac, regressor, peers)
-    modes = noise.own_modes(team, fusion == "team" and bool(peers))
+    args = (own, params, motion_jac, regressor, peers)
+    modes = noise.own_modes(*args, fusion == "team" and bool(peers))
     if not slope:
         return modes, None
-    scale = np.sqrt(team[3][: own.var.size])
+    scale = np.sqrt(noise._team(*args)[3][: own.var.size])
     return modes, motion_jac[1] * scale[:, None, None]
 
 

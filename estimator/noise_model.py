@@ -78,7 +78,7 @@ from .motion import (
 from .over_time import IMU_MODES, MODES_PER_CHANNEL, conditioning_gain, mode_lag_covariances
 from .preprocess import DEFAULT_RATE_CUTOFF_HZ, StateVariableFilter
 from .rne import RobotDescription
-from .team_noise import excitation_snr_kernel, message_map, same_key, team_maps_of
+from .team_noise import excitation_snr_kernel, message_map, same_key, team_maps_of, team_noise
 
 # Ways the motion's sensor noise enters the measurement (``NoiseModel.motion_noise``).
 MOTION_FUSION = ("none", "own", "team")
@@ -88,6 +88,13 @@ FACTOR_REFRESH_UPDATES = 8
 # ``momentum_jacobians`` without the squared rate noise's terms.
 _NO_RATE_TERMS = (np.zeros((0, SIZE)), np.zeros(0))
 _NO_COV = np.zeros((10, 10))  # ``_conditioned`` without the posterior's spread
+
+
+def _team_key(own, params, motion_jac, regressor, peers) -> tuple:
+    """What names one instant's team maps (``team_noise.same_key``): the parameters' bytes and
+    the other inputs' objects."""
+    inputs = (own, *motion_jac, regressor, *[x for pair in peers for x in pair])
+    return np.asarray(params, dtype=float).tobytes(), inputs
 
 
 class PeerMotion(Protocol):
@@ -251,7 +258,7 @@ class NoiseModel:
         self.mismatch_model_var = self.correlated * float(mismatch_model_std) ** 2
         self.over_time = bool(over_time)
         self._last_team = None  # (key, maps) of the last ``_team`` call
-        self._last_modes = None  # (maps, condition, own modes) of the last ``_conditioned``
+        self._last_modes = None  # (key, condition, own modes) of the last ``motion_noise``
         self.accel_psd_ratio = accel_psd_ratio
         self._init_scalar_model(robot, dt_s, cutoff_hz, sensor)
         self._init_acceleration_form(robot, dt_s, kinematics_cutoff_hz, cutoff_hz,
@@ -530,30 +537,36 @@ class NoiseModel:
         ):
             return np.zeros(6), self.sensor_cov_at(params, lever_m)
         own = self.motion if own is None else own
-        team = self._team(own, params, motion_jac, regressor, peers)
-        return self._conditioned(fusion == "team" and bool(peers), team, motion_jac, params_cov)
+        condition = fusion == "team" and bool(peers)
+        key = _team_key(own, params, motion_jac, regressor, peers)
+        mean, cov, modes = team_noise(
+            own, params, motion_jac, regressor, peers, condition, self.mismatch_model_var,
+            params_cov,
+        )  # fmt: skip
+        self._last_modes = (key, condition, modes)
+        return mean, cov
 
     def _conditioned(self, condition, team, motion_jac, params_cov):
         """Mean and covariance of the motion noise from ``_team``'s maps, conditioned on the
         mismatch or not, with the posterior's spread (``motion_noise``)."""
         n_map, d_map, mismatch, level = team
         spread = params_cov is not None
-        mean, cov, modes = conditioned_noise(
+        return conditioned_noise(
             n_map, d_map, mismatch, level, condition, self.mismatch_model_var,
             np.ascontiguousarray(motion_jac[1], dtype=float),
             np.ascontiguousarray(params_cov, dtype=float) if spread else _NO_COV, spread,
-        )  # fmt: skip
-        self._last_modes = (team, condition, modes)
-        return mean, cov
+        )[:2]  # fmt: skip
 
-    def own_modes(self, team: tuple, condition: bool) -> np.ndarray:
+    def own_modes(self, own, params, motion_jac, regressor, peers, condition) -> np.ndarray:
         """This robot's modes as the residual sees them, (N - K D)[:, :n] diag(level[:n])^1/2
         (6, n) from ``_team``'s maps (K D zero without ``condition``;
-        ``motion.conditioned_own_modes``): the last ``_conditioned`` call's for the same maps."""
+        ``motion.conditioned_own_modes``): the last ``motion_noise`` call's for the same
+        instant (its arguments, as in ``_team``)."""
         last = self._last_modes
-        if last is not None and last[0] is team and last[1] == condition:
+        key = _team_key(own, params, motion_jac, regressor, peers)
+        if last is not None and last[1] == condition and same_key(last[0], key):
             return last[2]
-        n_map, d_map, _, level = team
+        n_map, d_map, _, level = self._team(own, params, motion_jac, regressor, peers)
         n_own = self.momentum_motion.var.size
         var = self.mismatch_model_var
         return conditioned_own_modes(n_map, d_map, level, condition, var, n_own)
@@ -598,11 +611,10 @@ class NoiseModel:
     def _team(self, own, params, motion_jac, regressor, peers):
         """The team's noise map N, mismatch map D, mismatch d (``team_noise.team_maps``) and the
         per-mode levels var * band. The last call's maps are kept (read-only) and returned
-        again for the same instant (the same arrays and messages, ``params`` equal): the
-        measurement's noise and the reported covariance's modes (``bias_compensation.own_modes``)
-        ask for the same maps."""
-        inputs = (own, *motion_jac, regressor, *[x for pair in peers for x in pair])
-        key = (np.asarray(params, dtype=float).tobytes(), inputs)
+        again for the same instant (the same arrays and messages, ``params`` equal):
+        ``over_time_noise`` and ``bias_compensation.own_modes`` (its slope) ask for the same
+        maps. (``motion_noise`` builds them inside its one compiled call.)"""
+        key = _team_key(own, params, motion_jac, regressor, peers)
         last = self._last_team
         if last is not None and same_key(last[0], key):
             return last[1]

@@ -11,7 +11,9 @@ import operator
 import numpy as np
 from numba import njit
 
-from .motion import balance_noise_map_kernel, grasp_acc_map_kernel
+from .motion import balance_noise_map_kernel, conditioned_noise, grasp_acc_map_kernel
+
+_NO_COV = np.zeros((10, 10))  # ``team_noise`` without the posterior's spread
 
 
 @njit(cache=True)
@@ -91,17 +93,45 @@ def team_maps_of(own, params, motion_jac, regressor, peers):
     """The team's noise map N (6, n), mismatch map D (3 P, n), mismatch d (3 P,) (``team_maps``)
     and the per-mode levels var * band (n,), for ``own`` (``noise_model.MotionNoiseSpec``) and
     ``peers`` [(T_ij, message)] (``noise_model.NoiseModel.motion_noise``)."""
+    args, level = _team_args(own, params, motion_jac, regressor, peers)
+    return (*team_maps(*args), level)
+
+
+def team_noise(own, params, motion_jac, regressor, peers, condition, mismatch_model_var,
+               params_cov):  # fmt: skip
+    """``NoiseModel.motion_noise``'s mean (6,) and covariance (6, 6) of one instant, and this
+    robot's modes as the residual sees them (6, n_own), in one compiled call
+    (``team_noise_kernel``): the team's maps (``team_maps``) conditioned on the mismatch or not
+    (``motion.conditioned_noise``), with the spread of ``params_cov`` (None: none)."""
+    args, level = _team_args(own, params, motion_jac, regressor, peers)
+    spread = params_cov is not None
+    cov = np.ascontiguousarray(params_cov, dtype=float) if spread else _NO_COV
+    return team_noise_kernel(*args, level, condition, mismatch_model_var, cov, spread)
+
+
+def _team_args(own, params, motion_jac, regressor, peers):
+    """``team_maps``' arguments (``stacked_motion``, the arrays contiguous floats) and the
+    per-mode levels var * band."""
     d_links, d_y = motion_jac
     var, band, stacked, offsets = stacked_motion(own, params, d_links, d_y, regressor, peers)
-    n_map, d_map, mismatch = team_maps(
+    arrays = (
         np.ascontiguousarray(params, dtype=float),
         np.ascontiguousarray(d_links, dtype=float),
         np.ascontiguousarray(d_y, dtype=float),
         np.ascontiguousarray(regressor, dtype=float),
-        *stacked,
-        offsets,
     )
-    return n_map, d_map, mismatch, var * band
+    return (*arrays, *stacked, offsets), var * band
+
+
+@njit(cache=True)
+def team_noise_kernel(params, d_links, d_y, regressor, transforms, peer_links, peer_grasp,
+                      peer_acc, peer_start, level, condition, mismatch_model_var, params_cov,
+                      with_spread):  # fmt: skip
+    """``team_maps`` then ``motion.conditioned_noise`` on its maps (``team_noise``)."""
+    n_map, d_map, mismatch = team_maps(params, d_links, d_y, regressor, transforms, peer_links,
+                                       peer_grasp, peer_acc, peer_start)  # fmt: skip
+    return conditioned_noise(n_map, d_map, mismatch, level, condition, mismatch_model_var, d_y,
+                             params_cov, with_spread)  # fmt: skip
 
 
 @njit(cache=True)
