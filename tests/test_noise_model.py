@@ -339,3 +339,47 @@ def test_message_modes_condition_the_team_exactly(window):
         level = model.momentum_motion.var[:24]
         expected = noise_cov(balance_noise_map(*own, params)[:, :24], level)
         np.testing.assert_allclose(np.einsum("icx,jcx->ij", alone, alone), expected, rtol=1e-9)
+
+
+def test_own_modes_are_the_conditioned_map_kept_from_motion_noise():
+    """``bias_compensation.own_modes``: this robot's columns of N - K D at unit variance,
+    K = S_nd S_dd^+ (``motion.condition_maps``), the same array whether kept from the instant's
+    ``motion_noise`` or computed alone (a fresh model), and N's own columns under "own"."""
+    from types import SimpleNamespace
+
+    from astrocargo.estimator.bias_compensation import own_modes
+    from astrocargo.estimator.geometry import skew
+
+    robot = _robot()
+    kept_model, fresh_model = (
+        CargoEstimator(robot, 0, [1], DT, sensor_noise=(1e-3, 2e-4, 1e-3)).noise for _ in "ab"
+    )
+    n = kept_model.momentum_motion.var.size
+    rng = np.random.default_rng(7)
+    jac = (rng.normal(size=(6, n)), rng.normal(size=(n, 6, 10)))
+    rot = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    transform = np.zeros((6, 6))
+    transform[:3, :3] = transform[3:, 3:] = rot
+    transform[3:, :3] = skew(np.array([0.1, -0.9, 0.05])) @ rot
+    peer = SimpleNamespace(grasp_acc=rng.normal(0.0, 0.01, 3),
+                           motion_links_jac=rng.normal(size=(6, 9)),
+                           motion_grasp_jac=rng.normal(size=(3, 9)), motion_var=np.ones(9),
+                           motion_band=np.ones(9))  # fmt: skip
+    peers = [(transform, peer)]
+    params = np.array([5.0, 0.05, 0.9, -0.05, 0.1, 0.08, 0.12, 0.0, 0.01, 0.0])
+    regressor = rng.normal(size=(6, 10))
+    args = (params, jac, regressor, peers)
+    kept_model.motion_noise(
+        "team", *args, own=kept_model.momentum_motion, params_cov=1e-4 * np.eye(10)
+    )
+    kept, _ = own_modes(kept_model, "team", *args, slope=False)
+    alone, _ = own_modes(fresh_model, "team", *args, slope=False)
+    np.testing.assert_array_equal(kept, alone)
+    n_map, d_map, _, level = fresh_model._team(fresh_model.momentum_motion, *args)
+    s_dd = (d_map * level) @ d_map.T + fresh_model.mismatch_model_var * np.eye(3)
+    gain = (n_map * level) @ d_map.T @ np.linalg.pinv(s_dd)
+    expected = (n_map - gain @ d_map)[:, :n] * np.sqrt(level[:n])
+    assert np.abs(gain @ d_map).max() > 1e-3 * np.abs(n_map).max()  # the conditioning acts
+    np.testing.assert_allclose(kept, expected, rtol=1e-9, atol=1e-12 * np.abs(expected).max())
+    unconditioned, _ = own_modes(kept_model, "own", *args, slope=False)
+    np.testing.assert_allclose(unconditioned, n_map[:, :n] * np.sqrt(level[:n]), rtol=1e-12)
