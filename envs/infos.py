@@ -39,9 +39,9 @@ def step_infos(
     time_s, releases, holding = float(sim.data.time), len(sim.released_at_s), sim.holding
     estimators = sim.estimators
     # One copy per step of each (n_robots, 10) array; each info gets its row of it.
-    true_params = np.array(sim.true_params_grasp)
+    true_params = sim.true_params_grasp.copy()
     if estimators:
-        est_mean, est_std = np.array(sim.est_mean), np.array(sim.est_std)
+        est_mean, est_std = sim.est_mean.copy(), sim.est_std.copy()
     for i in robots:
         r = per_robot[i]
         info: dict[str, Any] = {

@@ -477,11 +477,12 @@ class EstimatorInputs:
         do_balance = stamp % self.regressor_every == 0
         with_ripple = ripple_rate is not None
         accel_used = np.empty(3) if with_ripple else _UNUSED_ACCEL
-        if self._step_state is None:
-            self._step_state = self._in_place_state()
         try:
+            pre, rate, prod = self.pre.filter, self.pre.rate_filter, self.pre.product_filter
             outcome, lever = estimator_step(
-                self._step_constants, *self._step_state,
+                self._step_constants, pre.state, pre._u_prev, rate.state, rate._u_prev,
+                prod.state, prod._u_prev, self.balance_filter.state, self.balance_filter._u_prev,
+                self._act_cov_sum,
                 self._rot_world_base, self._pos_world_base, accel, gyro, q, thrust,
                 pos if fix_given else _NO_POS, quat if fix_given else _NO_QUAT, fix_given,
                 do_balance, self._servo_ripple_map if with_ripple else _NO_MAP,
@@ -500,16 +501,6 @@ class EstimatorInputs:
             self._act_cov_n += 1
             self._grasp_lever = lever
         return outcome
-
-    # ``_in_place_state``, bound at the first compiled step (the arrays are never rebound).
-    _step_state: tuple[np.ndarray, ...] | None = None
-
-    def _in_place_state(self) -> tuple[np.ndarray, ...]:
-        """The arrays ``estimator_step`` changes in place, in its order: each filter's state and
-        previous input (pre-, rate, product and slow filter) and the actuation covariance sum."""
-        filters = (self.pre.filter, self.pre.rate_filter, self.pre.product_filter,
-                   self.balance_filter)  # fmt: skip
-        return (*(a for f in filters for a in (f.state, f._u_prev)), self._act_cov_sum)
 
     @staticmethod
     def _check_imu_frame(accel_imu, gyro_imu) -> None:
@@ -649,7 +640,7 @@ class EstimatorInputs:
         wrench_grasp = b.thrust - b.links
         # Per-step actuation covariance averaged over this update's window (grasp frame).
         act_cov = self._act_cov_sum / max(self._act_cov_n, 1)
-        self._act_cov_sum[:] = 0.0  # in place: ``_in_place_state`` holds it
+        self._act_cov_sum = np.zeros((6, 6))
         self._act_cov_n = 0
         rate_links_cov = self._rate_square_links_cov(stamp)
         tainted = stamp <= self._tainted_until
