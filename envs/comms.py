@@ -258,6 +258,10 @@ class CommChannel:
                 changes[name] = changes[name] + noise
         return type(message)(**(fields | changes))
 
+    def due(self, step: int) -> bool:
+        """Whether ``deliver(step)`` has any copy to hand out."""
+        return any(d <= step for d in self._queue)
+
     def deliver(self, step: int) -> dict[int, list[Any]]:
         """The copies due at control step ``step`` (and any older ones not yet collected), per
         receiver; every robot index is a key. Each copy is delivered once."""

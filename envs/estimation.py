@@ -121,22 +121,25 @@ class TeamEstimation:
         commands (n_robots, 6); messages are sent (with the sender's arm angles and
         ``arm_rates``) and delivered through ``channel``; every estimator processes its
         complete instants. Returns whether any estimate changed."""
+        r = readings  # row i of its arrays, None for a missing IMU frame or fix (``packet``)
         for i in holding:
-            packet = readings.packet(i)
+            imu, fix = r.has_imu[i], r.has_fix[i]
             msg = self.estimators[i].step(
-                k, packet.accel_imu, packet.gyro_imu, packet.joint_pos_rad, commands[i],
-                packet.base_pos_world, packet.base_quat_world, servo_target_rate=arm_rates[i],
+                k, r.accel_imu[i] if imu else None, r.gyro_imu[i] if imu else None,
+                r.joint_pos_rad[i], commands[i], r.base_pos_world[i] if fix else None,
+                r.base_quat_world[i] if fix else None, servo_target_rate=arm_rates[i],
             )  # fmt: skip
             if msg is not None:
                 sent = self.sent_arm[i]
-                sent[msg.stamp] = np.concatenate((packet.joint_pos_rad, arm_rates[i]))
+                sent[msg.stamp] = np.concatenate((r.joint_pos_rad[i], arm_rates[i]))
                 if len(sent) > SENT_ARM_KEPT:
                     del sent[next(iter(sent))]  # the oldest
                 channel.send(msg, k)
-        for receiver, msgs in channel.deliver(k).items():
-            for msg in msgs:
-                self.estimators[receiver].receive(msg)
-                self._keep_latest(receiver, msg)
+        if channel.due(k):
+            for receiver, msgs in channel.deliver(k).items():
+                for msg in msgs:
+                    self.estimators[receiver].receive(msg)
+                    self._keep_latest(receiver, msg)
         updated = False
         for i in holding:
             updated |= self.estimators[i].process() > 0
@@ -161,15 +164,15 @@ class TeamEstimation:
         self.latest_wrench[receiver, sender] = 0.0
         self.latest_arm[receiver, sender] = 0.0
 
-    def refresh(self) -> tuple[list[np.ndarray], list[np.ndarray], list[dict[str, float]]]:
-        """Every estimator's mean and standard deviation of pi (10,), and its errors against the
-        true cargo (mass relative, centre of mass m, principal moments relative); also updates
-        ``log_std_sums``."""
-        est_mean = [est.params_mean() for est in self.estimators]
-        est_std = [est.params_std() for est in self.estimators]
-        std = np.array(est_std)
-        self.log_std_sums = np.log(np.maximum(std, LOG_STD_FLOOR)).sum(axis=1)
-        mass, com, principal = estimate_errors(np.array(est_mean), self.true_params_grasp)
+    def refresh(self) -> tuple[np.ndarray, np.ndarray, list[dict[str, float]]]:
+        """Every estimator's mean and standard deviation of pi, (n_robots, 10), row i robot i's
+        (``CargoEstimator.params_mean``, ``params_std``: the square roots of its covariance's
+        diagonal), and its errors against the true cargo (mass relative, centre of mass m,
+        principal moments relative); also updates ``log_std_sums``."""
+        est_mean = np.array([est.params_mean() for est in self.estimators])
+        est_std = np.sqrt(np.array([np.diagonal(est.params_cov()) for est in self.estimators]))
+        self.log_std_sums = np.log(np.maximum(est_std, LOG_STD_FLOOR)).sum(axis=1)
+        mass, com, principal = estimate_errors(est_mean, self.true_params_grasp)
         errors = [
             {"mass_rel_err": m, "com_err_m": c, "principal_rel_err": p}
             for m, c, p in zip(mass.tolist(), com.tolist(), principal.tolist(), strict=True)

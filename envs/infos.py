@@ -38,6 +38,10 @@ def step_infos(
     faults = sim.fault_schedule.infos(sim.step_count, sim.channel.fault_stats)
     time_s, releases, holding = float(sim.data.time), len(sim.released_at_s), sim.holding
     estimators = sim.estimators
+    # One copy per step of each (n_robots, 10) array; each info gets its row of it.
+    true_params = sim.true_params_grasp.copy()
+    if estimators:
+        est_mean, est_std = sim.est_mean.copy(), sim.est_std.copy()
     for i in robots:
         r = per_robot[i]
         info: dict[str, Any] = {
@@ -52,15 +56,15 @@ def step_infos(
             "clipped_actions": n_clipped[i],
             "saturated": saturated[i],
             "wall_contacts": wall_contacts[i],
-            "true_params": sim.true_params_grasp[i].copy(),
+            "true_params": true_params[i],
             "comm": comm,
             "faults": faults[i],
         }
         if i in released:
             info["released_momentum"] = sim.released_momentum[i].copy()
         if estimators:
-            info["estimate"] = sim.est_mean[i].copy()
-            info["estimate_std"] = sim.est_std[i].copy()
+            info["estimate"] = est_mean[i]
+            info["estimate_std"] = est_std[i]
             info["estimator"] = estimators[i].counters
             info |= sim.est_errors[i]
         infos[i] = info

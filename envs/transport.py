@@ -304,9 +304,9 @@ class CargoTransport:
         self.world.set_cargo(*self.cargo)
         self.world.reset_data(self.data)
         self.true_params = self.world.cargo_params()
-        self.true_params_grasp = [
-            self.world.cargo_params_in_grasp_frame(i) for i in range(self.n_robots)
-        ]
+        self.true_params_grasp = np.array(
+            [self.world.cargo_params_in_grasp_frame(i) for i in range(self.n_robots)]
+        )  # (n_robots, 10), row i in robot i's grasp frame
         self.arm_targets = np.tile(np.asarray(ARM_DEPLOYED_RAD), (self.n_robots, 1))
         self.arm_rates = np.zeros((self.n_robots, 2))  # the servo targets' rate, rad/s
         self.sensors = SensorSuite(self.world, self.profile, sensor_rng)

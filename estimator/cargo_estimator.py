@@ -217,8 +217,7 @@ class CargoEstimator(EstimatorInputs):
             min_excitation_snr, process_std_rel, min_relative_fixes, motion_fusion,
         )  # fmt: skip
         self._init_options(over_time_window, motion_lag_s, dt_s, localization_every)
-        self.motion_fusion = motion_fusion
-        self._mismatch_model_std = float(mismatch_model_std)
+        self.motion_fusion, self._mismatch_model_std = motion_fusion, float(mismatch_model_std)
         self._init_schedule(
             robot, index, peers, dt_s, update_every, regressor_every, warmup_s, history_s
         )

@@ -66,6 +66,15 @@ def test_send_defaults_to_the_stamp_and_late_collection_gets_everything():
     assert ch.deliver(21) == {0: [], 1: [], 2: []}
 
 
+def test_due_tells_whether_deliver_has_copies():
+    ch = _channel(n=3, latency_s=0.032)  # 2 periods
+    assert not ch.due(0)
+    ch.send(_message(1, 10))
+    assert not ch.due(11) and ch.due(12) and ch.due(30)
+    ch.deliver(12)
+    assert not ch.due(30)
+
+
 def test_each_receiver_gets_its_own_copy():
     ch = _channel(n=3)
     msg = _message(0, 1)

@@ -8,6 +8,7 @@ commands divided by the propulsion limits as actions, and the trajectory's pan r
 action (offset / 0.5 rad).
 """
 
+import copy
 import json
 import os
 import subprocess
@@ -558,3 +559,28 @@ def test_non_finite_physics_ends_the_episode_with_finite_observations(tmp_path, 
     assert all(info["termination_reason"] == "non_finite" for info in infos.values())
     assert all(np.isfinite(o).all() for o in obs.values())
     assert not env.agents
+
+
+def test_infos_kept_by_the_caller_never_change():
+    """Infos of one step (estimates, their spreads, the truth, the counters) stay as they were
+    while the env steps on and the estimates change, and writing into one robot's changes
+    neither another robot's nor a later step's."""
+    env = astrobee_cargo_v0.parallel_env(n_robots=2, noise="nominal")
+    env.reset(seed=5)
+    kept = None
+    for k in range(400):
+        actions = {a: 0.3 * np.sin(0.02 * k + np.arange(8) + i) for i, a in enumerate(env.agents)}
+        _, _, _, _, infos = env.step(actions)
+        if k == 260:  # past the warm-up: estimates are being updated
+            kept, snapshot = infos, copy.deepcopy(infos)
+    a, b = env.possible_agents
+    assert not np.array_equal(infos[a]["estimate"], kept[a]["estimate"])  # they moved on
+    for agent in (a, b):
+        for key, value in snapshot[agent].items():
+            np.testing.assert_equal(kept[agent][key], value)
+    # Steps 400 and 401 hold the same estimates (no update instant between them).
+    for key in ("estimate", "estimate_std", "true_params"):
+        infos[a][key][:] = -1.0
+    _, _, _, _, later = env.step({agent: np.zeros(8) for agent in env.agents})
+    for key in ("estimate", "estimate_std", "true_params"):
+        assert (infos[b][key] != -1.0).all() and (later[a][key] != -1.0).all()
