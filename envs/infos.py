@@ -67,5 +67,6 @@ def step_infos(
             info["estimate_std"] = est_std[i]
             info["estimator"] = estimators[i].counters
             info |= sim.est_errors[i]
+            info["principal_rel_err"] = list(info["principal_rel_err"])  # kept until a refresh
         infos[i] = info
     return infos

@@ -579,8 +579,9 @@ def test_infos_kept_by_the_caller_never_change():
         for key, value in snapshot[agent].items():
             np.testing.assert_equal(kept[agent][key], value)
     # Steps 400 and 401 hold the same estimates (no update instant between them).
-    for key in ("estimate", "estimate_std", "true_params"):
-        infos[a][key][:] = -1.0
+    for key in ("estimate", "estimate_std", "true_params", "principal_rel_err"):
+        infos[a][key][:] = [-1.0] * len(infos[a][key])
     _, _, _, _, later = env.step({agent: np.zeros(8) for agent in env.agents})
-    for key in ("estimate", "estimate_std", "true_params"):
-        assert (infos[b][key] != -1.0).all() and (later[a][key] != -1.0).all()
+    for key in ("estimate", "estimate_std", "true_params", "principal_rel_err"):
+        assert (np.array(infos[b][key]) != -1.0).all()
+        assert (np.array(later[a][key]) != -1.0).all()
