@@ -39,10 +39,12 @@ from .team_dynamics import (
     arm_motion_wrench,
     body_from_params,
     composite_body,
+    empty_arm_motions,
     pd_accelerations,
+    place_arm_motion,
     place_body,
     robot_body,
-    team_arm_motion,
+    store_arm_motion,
     team_commands,
     team_model,
     team_wrench,
@@ -178,28 +180,66 @@ _OBSERVED_BLOCKS = BaseTracking._fields[2:-1]
 
 
 @njit(cache=True)
+def _team_views(team: TeamModel, holding: np.ndarray, q: np.ndarray, qd: np.ndarray) -> tuple:
+    """The arms of the robots ``holding`` as each acting robot a sees them (q, qd (k, n,
+    n_joints)), each distinct (model, q[a, j], qd[a, j]) worked out once (equal bit for bit,
+    as when every robot has heard every peer's latest message): row (k, n), robot j seen by a
+    being row[a, j] of the stacked ``robot_body`` results (masses, centres, inertias, grasp
+    rotations, grasp origins, base frame) and ``arm_motion_in_grasp`` results (motions)."""
+    k, n_joints = q.shape[0], q.shape[2]
+    count = k * len(holding)
+    keys = np.empty((count, 1 + 2 * n_joints))
+    bodies = (np.empty(count), np.empty((count, 3)), np.empty((count, 3, 3)))
+    grasps = (np.empty((count, 3, 3)), np.empty((count, 3)))
+    motions = empty_arm_motions(count, team.parent.shape[1])
+    row = np.zeros((k, q.shape[1]), dtype=np.int64)
+    used = 0
+    for a in range(k):
+        for idx in range(len(holding)):
+            j = holding[idx]
+            m = team.model_of[j]
+            keys[used, 0] = m
+            keys[used, 1 : 1 + n_joints], keys[used, 1 + n_joints :] = q[a, j], qd[a, j]
+            bits = keys[: used + 1].view(np.int64)
+            r = 0
+            while r < used and not np.array_equal(bits[r], bits[used]):
+                r += 1
+            row[a, j] = r
+            if r == used:
+                mass, com, inertia, rot_bg, pos_bg = robot_body(team, m, q[a, j])
+                bodies[0][r], bodies[1][r], bodies[2][r] = mass, com, inertia
+                grasps[0][r], grasps[1][r] = rot_bg, pos_bg
+                store_arm_motion(motions, r, team, m, q[a, j], qd[a, j])
+                used += 1
+    return row, bodies, grasps, motions
+
+
+@njit(cache=True)
 def _team_in_cargo(
-    team: TeamModel,
     handrail_rot: np.ndarray,
     handrail_pos: np.ndarray,
     holding: np.ndarray,
-    q: np.ndarray,
+    robot_bodies: tuple,
+    grasps: tuple,
+    row: np.ndarray,
 ) -> tuple:
-    """The team in the cargo frame C, robot j's arm at q[j]: the bases of the robots
+    """The team in the cargo frame C, robot j's body and grasp frame (R_bg, p_bg) in its base
+    at row[j] of ``robot_bodies`` and ``grasps`` (``_team_views``): the bases of the robots
     ``holding`` (rotations (n, 3, 3), origins (n, 3), zeros for the others) and the bodies of
     those robots with one more slot for the cargo (masses, centres, inertias). Base j in C:
-    R_cb = R_ch R_bg^T, p_cb = p_ch - R_cb p_bg (handrail j's pose (R_ch, p_ch) in C, grasp
-    frame (R_bg, p_bg) in base j at q[j])."""
+    R_cb = R_ch R_bg^T, p_cb = p_ch - R_cb p_bg (handrail j's pose (R_ch, p_ch) in C)."""
     n, count = len(handrail_rot), len(holding) + 1
     rot_base, pos_base = np.zeros((n, 3, 3)), np.zeros((n, 3))
     masses, coms, inertias = np.zeros(count), np.zeros((count, 3)), np.zeros((count, 3, 3))
     for idx in range(len(holding)):
         j = holding[idx]
-        mass, com, inertia, rot_bg, pos_bg = robot_body(team, team.model_of[j], q[j])
-        rot_base[j] = handrail_rot[j] @ rot_bg.T
-        pos_base[j] = handrail_pos[j] - rot_base[j] @ pos_bg
-        masses[idx] = mass
-        coms[idx], inertias[idx] = place_body(com, inertia, rot_base[j], pos_base[j])
+        r = row[j]
+        rot_base[j] = handrail_rot[j] @ grasps[0][r].T
+        pos_base[j] = handrail_pos[j] - rot_base[j] @ grasps[1][r]
+        masses[idx] = robot_bodies[0][r]
+        coms[idx], inertias[idx] = place_body(
+            robot_bodies[1][r], robot_bodies[2][r], rot_base[j], pos_base[j]
+        )
     return rot_base, pos_base, (masses, coms, inertias)
 
 
@@ -231,16 +271,23 @@ def _observation_actions(
     out = np.zeros((len(acting), 8))
     ratios = np.zeros(len(acting))
     origin = np.zeros(3)
+    row, robot_bodies, grasps, motions = _team_views(
+        team, holding, obs.team_joint_pos, obs.team_joint_vel
+    )
+    placed = -1  # the acting robot whose view of the team is placed in C
     for a in range(len(acting)):
         i = acting[a]
-        q, qd = obs.team_joint_pos[a], obs.team_joint_vel[a]
-        rot_base, pos_base, bodies = _team_in_cargo(team, handrail_rot, handrail_pos, holding, q)
+        if placed < 0 or not np.array_equal(row[a], row[placed]):
+            rot_base, pos_base, bodies = _team_in_cargo(
+                handrail_rot, handrail_pos, holding, robot_bodies, grasps, row[a]
+            )
+            arms = place_arm_motion(team, holding, handrail_rot, handrail_pos, motions, row[a])
+            placed = a
         masses, coms, inertias = bodies
-        if with_cargo:
+        if with_cargo:  # the cargo's slot, this robot's estimate
             mass, com, inertia = body_from_params(obs.cargo_params[a])
             masses[-1] = mass
             coms[-1], inertias[-1] = place_body(com, inertia, handrail_rot[i], handrail_pos[i])
-        arms = team_arm_motion(team, holding, handrail_rot, handrail_pos, q, qd)
         base_vel_rel, base_w_rel = arms[7], arms[8]
         r = rot_base[i]
         w = r @ obs.base_ang_vel[a] - base_w_rel[i]

@@ -359,6 +359,67 @@ def arm_motion_wrench(
 
 
 @njit(cache=True)
+def empty_arm_motions(count: int, n_links: int) -> tuple:
+    """Room for ``count`` results of ``arm_motion_in_grasp`` stacked by row (``store_arm_motion``):
+    centres, inertias, velocities, accelerations, angular velocities and accelerations
+    (count, L, ...), base origin velocities (count, 3)."""
+    return (
+        np.empty((count, n_links, 3)),
+        np.empty((count, n_links, 3, 3)),
+        np.empty((count, n_links, 3)),
+        np.empty((count, n_links, 3)),
+        np.empty((count, n_links, 3)),
+        np.empty((count, n_links, 3)),
+        np.empty((count, 3)),
+    )
+
+
+@njit(cache=True)
+def store_arm_motion(
+    motions: tuple, r: int, team: TeamModel, m: int, q: np.ndarray, qd: np.ndarray
+) -> None:
+    """Row r of the stacked ``motions`` (``empty_arm_motions``) = ``arm_motion_in_grasp`` of model
+    m at joint angles q (rad) turning at qd (rad/s)."""
+    c, inertia, v, a, w, al, v_base = arm_motion_in_grasp(team, m, q, qd)
+    motions[0][r], motions[1][r], motions[2][r] = c, inertia, v
+    motions[3][r], motions[4][r], motions[5][r], motions[6][r] = a, w, al, v_base
+
+
+@njit(cache=True)
+def place_arm_motion(
+    team: TeamModel,
+    holding: np.ndarray,
+    grasp_rot: np.ndarray,
+    grasp_pos: np.ndarray,
+    motions: tuple,
+    row: np.ndarray,
+) -> tuple:
+    """``team_arm_motion`` from the arms' motions in their grasp frames, robot j's at row[j] of
+    the stacked ``motions`` (``store_arm_motion``), rotated into W (robot j's grasp frame in W:
+    grasp_rot[j], grasp_pos[j]): x_W = R x_G (+ p for the centres), I_W = R I_G R^T."""
+    n_links = team.parent.shape[1]
+    count = len(holding) * n_links
+    masses, coms, inertias = np.empty(count), np.empty((count, 3)), np.empty((count, 3, 3))
+    vel, acc = np.empty((count, 3)), np.empty((count, 3))
+    w_rel, al_rel = np.empty((count, 3)), np.empty((count, 3))
+    base_vel, base_w = np.zeros((len(grasp_rot), 3)), np.zeros((len(grasp_rot), 3))
+    for idx in range(len(holding)):
+        j = holding[idx]
+        m, r, rot = team.model_of[j], row[j], grasp_rot[j]
+        c, inertia, v = motions[0][r], motions[1][r], motions[2][r]
+        a, w, al = motions[3][r], motions[4][r], motions[5][r]
+        for k in range(n_links):
+            b = idx * n_links + k
+            masses[b] = team.link_mass[m, k]
+            coms[b] = rot @ c[k] + grasp_pos[j]
+            inertias[b] = rot @ inertia[k] @ rot.T
+            vel[b], acc[b] = rot @ v[k], rot @ a[k]
+            w_rel[b], al_rel[b] = rot @ w[k], rot @ al[k]
+        base_vel[j], base_w[j] = rot @ motions[6][r], rot @ w[0]
+    return masses, coms, inertias, vel, acc, w_rel, al_rel, base_vel, base_w
+
+
+@njit(cache=True)
 def team_arm_motion(
     team: TeamModel,
     holding: np.ndarray,
@@ -370,28 +431,15 @@ def team_arm_motion(
     """Every link of the robots ``holding`` with its motion relative to the cargo, in a frame W
     fixed to the cargo in which robot j's grasp frame is (grasp_rot[j], grasp_pos[j]); arms at
     q (n, n_joints) turning at qd: masses, centres, inertias, velocities, accelerations, angular
-    velocities and accelerations (``arm_motion_in_grasp`` rotated into W), and per robot its base
-    origin's velocity (n, 3) and angular velocity (n, 3) relative to the cargo (W axes)."""
-    n_links = team.parent.shape[1]
-    count = len(holding) * n_links
-    masses, coms, inertias = np.empty(count), np.empty((count, 3)), np.empty((count, 3, 3))
-    vel, acc = np.empty((count, 3)), np.empty((count, 3))
-    w_rel, al_rel = np.empty((count, 3)), np.empty((count, 3))
-    base_vel, base_w = np.zeros((len(grasp_rot), 3)), np.zeros((len(grasp_rot), 3))
+    velocities and accelerations (``arm_motion_in_grasp`` rotated into W, ``place_arm_motion``),
+    and per robot its base origin's velocity (n, 3) and angular velocity (n, 3) relative to the
+    cargo (W axes)."""
+    motions = empty_arm_motions(len(grasp_rot), team.parent.shape[1])
     for idx in range(len(holding)):
         j = holding[idx]
-        m = team.model_of[j]
-        c, inertia, v, a, w, al, v_base = arm_motion_in_grasp(team, m, q[j], qd[j])
-        rot = grasp_rot[j]
-        for k in range(n_links):
-            b = idx * n_links + k
-            masses[b] = team.link_mass[m, k]
-            coms[b] = rot @ c[k] + grasp_pos[j]
-            inertias[b] = rot @ inertia[k] @ rot.T
-            vel[b], acc[b] = rot @ v[k], rot @ a[k]
-            w_rel[b], al_rel[b] = rot @ w[k], rot @ al[k]
-        base_vel[j], base_w[j] = rot @ v_base, rot @ w[0]
-    return masses, coms, inertias, vel, acc, w_rel, al_rel, base_vel, base_w
+        store_arm_motion(motions, j, team, team.model_of[j], q[j], qd[j])
+    row = np.arange(len(grasp_rot))
+    return place_arm_motion(team, holding, grasp_rot, grasp_pos, motions, row)
 
 
 @njit(cache=True)
