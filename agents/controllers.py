@@ -372,6 +372,7 @@ class ObservationController:
         if len(names) != len(self.robots):
             raise ValueError(f"agents must name the {len(self.robots)} robots, got {names!r}")
         self.robot_index = {name: i for i, name in enumerate(names)}
+        self._peer_slots = self._peer_slot_columns()
 
     @classmethod
     def for_env(cls, env, cargo_model: str = "estimate", **kwargs: Any) -> ObservationController:
@@ -398,16 +399,30 @@ class ObservationController:
         qd = np.zeros_like(q)
         if "joint_vel" in lay:
             qd = np.repeat(obs[:, None, lay["joint_vel"]], n, axis=1)
-        if "peer0_joint_pos" not in lay:
-            return q, qd
         for a, i in enumerate(acting.tolist()):
-            for p, j in enumerate(j for j in range(n) if j != i):
-                if obs[a, lay[f"peer{p}_valid"].start] > 0:
-                    rate = obs[a, lay[f"peer{p}_joint_vel"]]
-                    age = obs[a, lay[f"peer{p}_age"].start]
-                    q[a, j] = obs[a, lay[f"peer{p}_joint_pos"]] + rate * age
+            for j, valid, age, joint_pos, joint_vel in self._peer_slots[i]:
+                if obs[a, valid] > 0:
+                    rate = obs[a, joint_vel]
+                    q[a, j] = obs[a, joint_pos] + rate * obs[a, age]
                     qd[a, j] = rate
         return q, qd
+
+    def _peer_slot_columns(self) -> list[list[tuple]]:
+        """Per robot i, its peers' arm message slots in the observation: (peer j, valid column,
+        age column, joint angle slice, joint rate slice), the peers in robot order (none for a
+        layout without peer arms)."""
+        lay, n = self.layout, len(self.robots)
+        if "peer0_joint_pos" not in lay:
+            return [[] for _ in range(n)]
+        slots = []
+        for i in range(n):
+            peers = [j for j in range(n) if j != i]
+            slots.append([
+                (j, lay[f"peer{p}_valid"].start, lay[f"peer{p}_age"].start,
+                 lay[f"peer{p}_joint_pos"], lay[f"peer{p}_joint_vel"])
+                for p, j in enumerate(peers)
+            ])  # fmt: skip
+        return slots
 
     def _tracking(self, acting: np.ndarray, obs: np.ndarray) -> BaseTracking:
         """The blocks of the observations ``obs`` (k, obs_dim) of the robots ``acting``."""
