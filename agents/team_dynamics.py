@@ -286,22 +286,23 @@ ARM_STEP_S = 0.01  # central-difference step of the arms' relative motion
 @njit(cache=True)
 def links_in_grasp(team: TeamModel, m: int, q: np.ndarray) -> tuple:
     """Model m's links at joint angles q in its grasp frame G: centres of mass (L, 3) m,
-    rotations (L, 3, 3), inertias about the centres (L, 3, 3) kg m^2 (G axes), and the link
-    frames' origins (L, 3) m: (R_bg^T R_k, R_bg^T (p_k - p_bg)) with (R_bg, p_bg) G in the
-    base."""
+    rotations (L, 3, 3) and the link frames' origins (L, 3) m: (R_bg^T R_k, R_bg^T (p_k -
+    p_bg)) with (R_bg, p_bg) G in the base."""
     rots, poss = link_frames(team, m, q)
     g = team.grasp_link[m]
     rot_gb = (rots[g] @ team.grasp_rot[m]).T
     pos_bg = poss[g] + rots[g] @ team.grasp_pos[m]
     n_links = len(rots)
-    coms, rots_g = np.empty((n_links, 3)), np.empty((n_links, 3, 3))
-    inertias, origins = np.empty((n_links, 3, 3)), np.empty((n_links, 3))
+    coms, rots_g, origins = (
+        np.empty((n_links, 3)),
+        np.empty((n_links, 3, 3)),
+        np.empty((n_links, 3)),
+    )
     for k in range(n_links):
         rots_g[k] = rot_gb @ rots[k]
         origins[k] = rot_gb @ (poss[k] - pos_bg)
         coms[k] = origins[k] + rots_g[k] @ team.link_com[m, k]
-        inertias[k] = rots_g[k] @ team.link_inertia[m, k] @ rots_g[k].T
-    return coms, rots_g, inertias, origins
+    return coms, rots_g, origins
 
 
 @njit(cache=True)
@@ -313,14 +314,15 @@ def arm_motion_in_grasp(team: TeamModel, m: int, q: np.ndarray, qd: np.ndarray) 
     ``ARM_STEP_S``: v = (c(h) - c(-h)) / 2h, a = (c(h) - 2 c(0) + c(-h)) / h^2,
     w(+-h/2) = +-log(R(+-h) R(0)^T)^(+-1) / h, w = mean, al = (w(h/2) - w(-h/2)) / h."""
     h = ARM_STEP_S
-    c0, r0, inertias, o0 = links_in_grasp(team, m, q)
-    cp, rp, _, op = links_in_grasp(team, m, q + qd * h)
-    cm, rm, _, om = links_in_grasp(team, m, q - qd * h)
+    c0, r0, o0 = links_in_grasp(team, m, q)
+    cp, rp, op = links_in_grasp(team, m, q + qd * h)
+    cm, rm, om = links_in_grasp(team, m, q - qd * h)
     vel = (cp - cm) / (2 * h)
     acc = (cp - 2 * c0 + cm) / (h * h)
     n_links = len(c0)
-    w, al = np.empty((n_links, 3)), np.empty((n_links, 3))
+    w, al, inertias = np.empty((n_links, 3)), np.empty((n_links, 3)), np.empty((n_links, 3, 3))
     for k in range(n_links):
+        inertias[k] = r0[k] @ team.link_inertia[m, k] @ r0[k].T  # about c_b, G axes
         w_up = log_so3(rp[k] @ r0[k].T) / h
         w_down = log_so3(r0[k] @ rm[k].T) / h
         w[k] = 0.5 * (w_up + w_down)
