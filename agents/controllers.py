@@ -307,6 +307,23 @@ def _observation_actions(
     return out, ratios
 
 
+@njit(cache=True)
+def _peer_arms(
+    obs: np.ndarray, acting: np.ndarray, slots: np.ndarray, q: np.ndarray, qd: np.ndarray
+) -> None:
+    """Each peer arm heard by the acting robot a (observation obs[a]): q[a, j] = q_j + qd_j age,
+    qd[a, j] = qd_j, from the message slots of robot acting[a] (``slots`` (n, n-1, 5): peer j,
+    valid, age, first joint angle and first joint rate columns); the others left as they are."""
+    for a in range(len(acting)):
+        for p in range(slots.shape[1]):
+            j, valid, age, joint_pos, joint_vel = slots[acting[a], p]
+            if obs[a, valid] > 0:
+                for c in range(q.shape[2]):
+                    rate = obs[a, joint_vel + c]
+                    q[a, j, c] = obs[a, joint_pos + c] + rate * obs[a, age]
+                    qd[a, j, c] = rate
+
+
 class ObservationController:
     """The cooperative controller driven by the env's observations only, scored like a policy.
 
@@ -399,30 +416,23 @@ class ObservationController:
         qd = np.zeros_like(q)
         if "joint_vel" in lay:
             qd = np.repeat(obs[:, None, lay["joint_vel"]], n, axis=1)
-        for a, i in enumerate(acting.tolist()):
-            for j, valid, age, joint_pos, joint_vel in self._peer_slots[i]:
-                if obs[a, valid] > 0:
-                    rate = obs[a, joint_vel]
-                    q[a, j] = obs[a, joint_pos] + rate * obs[a, age]
-                    qd[a, j] = rate
+        _peer_arms(obs, acting, self._peer_slots, q, qd)
         return q, qd
 
-    def _peer_slot_columns(self) -> list[list[tuple]]:
-        """Per robot i, its peers' arm message slots in the observation: (peer j, valid column,
-        age column, joint angle slice, joint rate slice), the peers in robot order (none for a
-        layout without peer arms)."""
+    def _peer_slot_columns(self) -> np.ndarray:
+        """Per robot i, its peers' arm message slots in the observation (n, n-1, 5): peer j,
+        valid column, age column, first joint angle column, first joint rate column, the peers
+        in robot order (no slots for a layout without peer arms)."""
         lay, n = self.layout, len(self.robots)
         if "peer0_joint_pos" not in lay:
-            return [[] for _ in range(n)]
-        slots = []
-        for i in range(n):
-            peers = [j for j in range(n) if j != i]
-            slots.append([
-                (j, lay[f"peer{p}_valid"].start, lay[f"peer{p}_age"].start,
-                 lay[f"peer{p}_joint_pos"], lay[f"peer{p}_joint_vel"])
-                for p, j in enumerate(peers)
-            ])  # fmt: skip
-        return slots
+            return np.zeros((n, 0, 5), dtype=np.int64)
+        names = ("valid", "age", "joint_pos", "joint_vel")
+        slots = [
+            [[j, *(lay[f"peer{p}_{name}"].start for name in names)]
+             for p, j in enumerate(j for j in range(n) if j != i)]
+            for i in range(n)
+        ]  # fmt: skip
+        return np.array(slots, dtype=np.int64)
 
     def _tracking(self, acting: np.ndarray, obs: np.ndarray) -> BaseTracking:
         """The blocks of the observations ``obs`` (k, obs_dim) of the robots ``acting``."""
