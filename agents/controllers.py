@@ -268,9 +268,7 @@ def _observation_actions(
     the team's centre of mass plus ``arm_motion_wrench`` of the arms' motion, allocated by
     ``allocate``; with ``scale_down`` False the commands are the allocation's before its
     scaling (the env then clips each entry to its limit)."""
-    out = np.zeros((len(acting), 8))
-    ratios = np.zeros(len(acting))
-    origin = np.zeros(3)
+    out, ratios, origin = np.zeros((len(acting), 8)), np.zeros(len(acting)), np.zeros(3)
     row, robot_bodies, grasps, motions = _team_views(
         team, holding, obs.team_joint_pos, obs.team_joint_vel
     )
