@@ -166,11 +166,11 @@ class TeamEstimation:
 
     def refresh(self) -> tuple[np.ndarray, np.ndarray, list[dict[str, float]]]:
         """Every estimator's mean and standard deviation of pi, (n_robots, 10), row i robot i's
-        (``CargoEstimator.params_mean``, ``params_std``: the square roots of its covariance's
-        diagonal), and its errors against the true cargo (mass relative, centre of mass m,
-        principal moments relative); also updates ``log_std_sums``."""
+        (``CargoEstimator.params_mean``, ``params_std``), and its errors against the true
+        cargo (mass relative, centre of mass m, principal moments relative); also updates
+        ``log_std_sums``."""
         est_mean = np.array([est.params_mean() for est in self.estimators])
-        est_std = np.sqrt(np.array([np.diagonal(est.params_cov()) for est in self.estimators]))
+        est_std = np.array([est.params_std() for est in self.estimators])
         self.log_std_sums = np.log(np.maximum(est_std, LOG_STD_FLOOR)).sum(axis=1)
         mass, com, principal = estimate_errors(est_mean, self.true_params_grasp)
         errors = [

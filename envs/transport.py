@@ -399,7 +399,7 @@ class CargoTransport:
         finite = observe_and_reward(
             obs, rewards, acting_mask, self._step_record, readings_record, self.navigator.filters,
             self._observations.arms, self._xpos, self._xmat,
-            self._peer_slot_values(acting_mask) if self.estimators else self._no_peers,
+            self._peer_observations(acting_mask),
             self._estimates, self._info_gain(), robot_contacts, cargo_contacts, finite,
             self._reference_shapes(time_s), time_s,
         )  # fmt: skip

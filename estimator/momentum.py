@@ -239,7 +239,7 @@ def _momentum_terms(arrays, imu_pos, geo, w, acc_imu, out):
             if k > 0:
                 levers[k, i] = pos[k, i] - pos[arrays.parent[k], i]
             rho[k, i] = pos[k, i] + com_b[k, i] - grasp_pos[i]
-    vel, work = np.empty((n_links, 3)), np.empty((10, 3))
+    vel, work = np.empty((n_links, 3)), np.empty((12, 3))
     for r in range(w.shape[0]):
         _momentum_row(arrays, geo, levers, rho, w[r], acc_imu[r], out[r], vel, work)
 
@@ -250,9 +250,9 @@ def _momentum_row(arrays, geo, levers, rho, w, acc_imu, out, vel, work):
     with the IMU point, nu_k = nu_parent + w_parent x lever_k, their momentum
     p = sum m_k (nu_k + w_k x c_k) and angular momentum L = sum I_k w_k + m_k rho_k x nu_k about
     G's origin, then P and Q in G (module docstring). ``vel`` (n_links, 3) and ``work``
-    (10, 3) are scratch."""
-    t, u, nu, nu_g, momentum = work[0], work[1], work[2], work[3], work[4]
-    ang, w_g, p_g, l_g, nu_gg = work[5], work[6], work[7], work[8], work[9]
+    (12, 3) are scratch."""
+    t, u, nu, nu_g, momentum, ang = work[0], work[1], work[2], work[3], work[4], work[5]
+    w_g, p_g, l_g, nu_gg, force, moment = work[6], work[7], work[8], work[9], work[10], work[11]
     g = arrays.grasp_link
     cross3_into(vel[0], w[0], levers[0])
     for k in range(1, vel.shape[0]):
@@ -280,16 +280,16 @@ def _momentum_row(arrays, geo, levers, rho, w, acc_imu, out, vel, work):
     matvec3_into(l_g, rot_t, ang)
     out[6:9], out[9:12] = p_g, l_g
     for i in range(3):
-        nu[i] = geo.total_mass * acc_imu[i]  # nu: scratch from here on
-    matvec3_into(t, rot_t, nu)
+        force[i] = geo.total_mass * acc_imu[i]
+    matvec3_into(t, rot_t, force)
     cross3_into(u, w_g, p_g)
     for i in range(3):
         out[12 + i] = t[i] + u[i]
     cross3_into(t, geo.first_moment, acc_imu)
     cross3_into(u, nu_g, momentum)
     for i in range(3):
-        nu[i] = t[i] + u[i]  # the moment about G's origin, B axes
-    matvec3_into(t, rot_t, nu)
+        moment[i] = t[i] + u[i]  # about G's origin, B axes
+    matvec3_into(t, rot_t, moment)
     cross3_into(u, w_g, l_g)
     for i in range(3):
         out[15 + i] = t[i] + u[i]

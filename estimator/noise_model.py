@@ -567,9 +567,8 @@ class NoiseModel:
         if last is not None and last[1] == condition and same_key(last[0], key):
             return last[2]
         n_map, d_map, _, level = self._team(own, params, motion_jac, regressor, peers)
-        n_own = self.momentum_motion.var.size
         var = self.mismatch_model_var
-        return conditioned_own_modes(n_map, d_map, level, condition, var, n_own)
+        return conditioned_own_modes(n_map, d_map, level, condition, var, own.var.size)
 
     def over_time_noise(
         self,
