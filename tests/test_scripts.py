@@ -14,6 +14,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from astrocargo.estimator.ukf import InertialParamUKF as UKF
+
 SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"
 TWO_ROBOT_DESIGN = SCRIPTS.parent / "agents" / "designs" / "excite_2robots.json"
 
@@ -362,3 +364,22 @@ def test_same_results_compare_flags_a_change_beyond_rounding(tmp_path, capsys):
     assert same.relative_difference(np.zeros(3), np.zeros(3)) == 0.0
     with pytest.raises(SystemExit):
         same.main(["compare", a, str(tmp_path / "missing.npz")])
+
+
+def test_same_results_open_loop_keeps_the_estimates_out_of_the_physics(monkeypatch):
+    """Open loop: a change in the estimator moves the estimates but not one bit of the flight;
+    closed loop (the default), the same change moves the flight too."""
+    same = load("same_results")
+    args = (1, "figure8_yaw", 3, 310)  # the first update at step 249; state() at 250, 300
+    base = {loop: same.record_scenario(*args, open_loop=loop) for loop in (False, True)}
+    original = UKF.update_linear
+
+    def noisier(self, z, A, b, R):
+        return original(self, z, A, b, 4.0 * R)
+
+    monkeypatch.setattr(UKF, "update_linear", noisier)
+    changed = {loop: same.record_scenario(*args, open_loop=loop) for loop in (False, True)}
+    for loop in (False, True):
+        assert same.relative_difference(base[loop]["est"], changed[loop]["est"]) > 1e-6
+    assert np.array_equal(base[True]["state"], changed[True]["state"])
+    assert not np.array_equal(base[False]["state"], changed[False]["state"])
