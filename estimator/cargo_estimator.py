@@ -507,7 +507,9 @@ class CargoEstimator(EstimatorInputs):
         else:
             motion_mean, motion_cov, imu_map = self._over_time_noise(inst, motion, params)
         meas_cov = self.meas_cov + cov / self.update_every + motion_cov + peer_noise
-        meas_cov = meas_cov + self._rate_square_cov(stamp, params)
+        rate_cov = self._rate_square_cov(stamp, params)
+        if rate_cov is not None:
+            meas_cov = meas_cov + rate_cov
         measurement = (inst.thrust, inst.regressor, inst.links - peers - motion_mean, meas_cov)
         if self._window is None:
             return measurement, self._score_bias(inst, motion, meas_cov, params)
@@ -568,13 +570,14 @@ class CargoEstimator(EstimatorInputs):
             self._grasp_lever, params_cov=self.ukf.P,
         )  # fmt: skip
 
-    def _rate_square_cov(self, stamp: int, params: np.ndarray) -> np.ndarray:
+    def _rate_square_cov(self, stamp: int, params: np.ndarray) -> np.ndarray | None:
         """Covariance (6, 6) of the encoders' squared rate noise in this instant's own balance
         (links and regressor at the estimate ``params``): var sum_k w_k b_k b_k^T,
-        b_k = Q_links + Q_Y pi of ``momentum.rate_square_terms``."""
+        b_k = Q_links + Q_Y pi of ``momentum.rate_square_terms``; None where the instant holds
+        none (motion fusion takes them into its modes, ``EstimatorInputs._motion_fields``)."""
         entry = self._rate_terms.pop(stamp, None)
         if entry is None:
-            return np.zeros((6, 6))
+            return None
         terms, weights = entry
         b = terms[:, 12:18] + cargo_regressor_parts(terms)[1] @ params
         return self._rate_square_var * (b.T * weights) @ b
