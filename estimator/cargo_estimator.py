@@ -496,30 +496,28 @@ class CargoEstimator(EstimatorInputs):
         """The update's (z, Y, b, R): thrust_G = links_G + Y pi - sum_j T_ij W_j with
         z = thrust, b = links - peers' wrenches - the motion noise's mean, R its covariance
         (floors, actuation, motion, peers' noise, squared rates); with ``over_time_window``
-        conditioned on the window's updates (``over_time``), and the window's entry for it.
-        The estimate pi and the peers' (T_ij, message) pairs are taken once for all of them."""
+        conditioned on the window's updates (``over_time``), and the window's entry for it."""
         peers, cov, peer_noise = self._peer_terms(inst.act_cov, msgs)
-        params = self.ukf.params_mean()
-        motion = self._peer_motion(msgs)
         imu_map = None
         if self._window is None:
-            motion_mean, motion_cov = self._motion_noise(inst, motion, params)
+            motion_mean, motion_cov = self._motion_noise(inst, msgs)
         else:
-            motion_mean, motion_cov, imu_map = self._over_time_noise(inst, motion, params)
+            motion_mean, motion_cov, imu_map = self._over_time_noise(inst, msgs)
+        params = self.ukf.params_mean()
         meas_cov = self.meas_cov + cov / self.update_every + motion_cov + peer_noise
         rate_cov = self._rate_square_cov(stamp, params)
         if rate_cov is not None:
             meas_cov = meas_cov + rate_cov
         measurement = (inst.thrust, inst.regressor, inst.links - peers - motion_mean, meas_cov)
         if self._window is None:
-            return measurement, self._score_bias(inst, motion, meas_cov, params)
+            return measurement, self._score_bias(inst, msgs, meas_cov, params)
         return self._window.condition(stamp, *measurement, imu_map)
 
-    def _score_bias(self, inst: Instant, peers: list, cov: np.ndarray, params: np.ndarray):
-        """``DeferredReports.modes`` of this update at ``params`` (None without the reports);
-        ``peers`` as ``_peer_motion`` gives them."""
+    def _score_bias(self, inst: Instant, msgs: list, cov: np.ndarray, params: np.ndarray):
+        """``DeferredReports.modes`` of this update at ``params`` (None without the reports)."""
         if self._reports is None:
             return None
+        peers = self._peer_motion(msgs)
         return self._reports.modes(self.motion_fusion, params, inst, peers, cov)
 
     def _peer_terms(
@@ -553,20 +551,20 @@ class CargoEstimator(EstimatorInputs):
         """Per peer, its wrench transform G_j -> G and its message (the noise model's peers)."""
         return [(self._relative[p].transform(), m) for p, m in zip(self.peers, msgs, strict=True)]
 
-    def _motion_noise(
-        self, inst: Instant, peers: list, params: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """Mean and covariance of the balance's motion noise at this instant and estimate
-        ``params`` (``NoiseModel.motion_noise``; ``peers`` of ``_peer_motion``)."""
+    def _motion_noise(self, inst: Instant, msgs: list) -> tuple[np.ndarray, np.ndarray]:
+        """Mean and covariance of the balance's motion noise at this instant
+        (``NoiseModel.motion_noise``)."""
+        peers = self._peer_motion(msgs)
         return self.noise.motion_noise(
-            self.motion_fusion, params, inst.motion_jac, inst.regressor, peers,
+            self.motion_fusion, self.ukf.params_mean(), inst.motion_jac, inst.regressor, peers,
             self._grasp_lever, own=self.noise.momentum_motion, params_cov=self.ukf.P,
         )  # fmt: skip
 
-    def _over_time_noise(self, inst: Instant, peers: list, params: np.ndarray):
+    def _over_time_noise(self, inst: Instant, msgs: list):
         """``_motion_noise`` and the team's IMU map (``NoiseModel.over_time_noise``)."""
+        peers = self._peer_motion(msgs)
         return self.noise.over_time_noise(
-            self.motion_fusion, params, inst.motion_jac, inst.regressor, peers,
+            self.motion_fusion, self.ukf.params_mean(), inst.motion_jac, inst.regressor, peers,
             self._grasp_lever, params_cov=self.ukf.P,
         )  # fmt: skip
 
