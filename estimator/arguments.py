@@ -1,9 +1,12 @@
 """The argument checks of ``CargoEstimator`` (``cargo_estimator``): each constructor argument in
-its range, and the fused motion's lag in control steps."""
+its range, the fused motion's lag in control steps and the NIS gate of ``gate_prob``."""
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
+from scipy.stats import chi2
 
 from .noise_model import MOTION_FUSION
 
@@ -48,3 +51,10 @@ def motion_lag_steps(motion_lag_s, dt_s, localization_every) -> int:
     if motion_lag_s > 0 and steps < 1:
         raise ValueError(f"motion_lag_s must be 0 or at least one control step ({dt_s} s)")
     return steps
+
+
+@functools.lru_cache(maxsize=16)
+def nis_gate(gate_prob: float) -> float:
+    """The NIS gate of a 6-component wrench: the chi-square(6) quantile of ``gate_prob`` (computed
+    once per probability: scipy's quantile takes longer than building the rest of the UKF)."""
+    return float(chi2.ppf(gate_prob, 6))

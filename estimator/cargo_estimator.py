@@ -73,9 +73,8 @@ from collections import deque
 from collections.abc import Iterator
 
 import numpy as np
-from scipy.stats import chi2
 
-from .arguments import check_arguments, motion_lag_steps
+from .arguments import check_arguments, motion_lag_steps, nis_gate
 from .deferred_reports import DeferredReports
 from .fused_motion import FusedMotion, Reading
 from .messages import Instant, RelativeGrasp, WrenchMessage  # noqa: F401 (re-exported)
@@ -93,14 +92,6 @@ from .prior import (  # noqa: F401 (re-exported)
 )
 from .rne import Balance, RobotDescription, grasp_pose, wrench_transform
 from .ukf import InertialParamUKF
-
-
-@functools.lru_cache(maxsize=16)
-def _nis_gate(gate_prob: float) -> float:
-    """The NIS gate of a 6-component wrench: the chi-square(6) quantile of ``gate_prob`` (computed
-    once per probability: scipy's quantile takes longer than building the rest of the UKF)."""
-    return float(chi2.ppf(gate_prob, 6))
-
 
 # A pure function of four numbers that steps a filter's impulse response: one evaluation per
 # set-up, not one per estimator and reset.
@@ -301,7 +292,7 @@ class CargoEstimator(EstimatorInputs):
         """The UKF on the ten parameters: prior, its covariance, the random walk, the gate."""
         robot = self.robot
         prior = default_prior(robot) if prior_params is None else np.asarray(prior_params, float)
-        gate = None if gate_prob is None else _nis_gate(gate_prob)
+        gate = None if gate_prob is None else nis_gate(gate_prob)
         prior_cov = prior_covariance(prior, prior_std)
         process_cov = np.diag(process_std_rel**2 * np.diag(prior_cov))
         self.ukf = InertialParamUKF(prior, prior_cov, process_cov, gate_nis=gate)
@@ -514,7 +505,9 @@ class CargoEstimator(EstimatorInputs):
             motion_mean, motion_cov, imu_map = self._over_time_noise(inst, msgs)
         params = self.ukf.params_mean()
         meas_cov = self.meas_cov + cov / self.update_every + motion_cov + peer_noise
-        meas_cov = meas_cov + self._rate_square_cov(stamp, params)
+        rate_cov = self._rate_square_cov(stamp, params)
+        if rate_cov is not None:
+            meas_cov = meas_cov + rate_cov
         measurement = (inst.thrust, inst.regressor, inst.links - peers - motion_mean, meas_cov)
         if self._window is None:
             return measurement, self._score_bias(inst, msgs, meas_cov, params)
@@ -535,27 +528,24 @@ class CargoEstimator(EstimatorInputs):
         covariance act_cov + sum_j T_j C_j T_j^T (6, 6) (C_j the message's), and the noise the
         peers add (6, 6): sum_j T_j N T_j^T (N ``peer_noise``) and, for a grasp layout not
         given, the averaged relative pose's (``NoiseModel.relative_pose_cov``). Sums run in
-        peer order."""
-        zero = np.zeros((1, 6, 6))
+        peer order, from zero (the wrenches, the noise) or act_cov."""
+        wrench, cov, noise = np.zeros(6), act_cov, np.zeros((6, 6))
         if not msgs:
-            return np.zeros(6), act_cov.copy(), zero[0]
+            return wrench, act_cov.copy(), noise
         rels = [self._relative[p] for p in self.peers]
         transforms = np.array([rel.transform() for rel in rels])
         turned = transforms.transpose(0, 2, 1)
         wrenches = (transforms @ np.array([m.wrench_grasp for m in msgs])[:, :, None])[:, :, 0]
         carried = transforms @ np.array([m.wrench_cov_grasp for m in msgs]) @ turned
         peer_noise = transforms @ self._peer_noise_cov @ turned if self._peer_noise else None
-        noise_terms = [zero]
         for k, rel in enumerate(rels):
+            wrench = wrench + wrenches[k]
+            cov = cov + carried[k]
             if peer_noise is not None:
-                noise_terms.append(peer_noise[k : k + 1])
+                noise = noise + peer_noise[k]
             if rel.known is None:
-                noise_terms.append(self.noise.relative_pose_cov(wrenches[k], rel.count)[None])
-        return (
-            np.add.reduce(np.concatenate((zero[0, :1], wrenches)), axis=0),
-            np.add.reduce(np.concatenate((act_cov[None], carried)), axis=0),
-            np.add.reduce(np.concatenate(noise_terms), axis=0),
-        )
+                noise = noise + self.noise.relative_pose_cov(wrenches[k], rel.count)
+        return wrench, cov, noise
 
     def _peer_motion(self, msgs: list) -> list:
         """Per peer, its wrench transform G_j -> G and its message (the noise model's peers)."""
@@ -578,13 +568,14 @@ class CargoEstimator(EstimatorInputs):
             self._grasp_lever, params_cov=self.ukf.P,
         )  # fmt: skip
 
-    def _rate_square_cov(self, stamp: int, params: np.ndarray) -> np.ndarray:
+    def _rate_square_cov(self, stamp: int, params: np.ndarray) -> np.ndarray | None:
         """Covariance (6, 6) of the encoders' squared rate noise in this instant's own balance
         (links and regressor at the estimate ``params``): var sum_k w_k b_k b_k^T,
-        b_k = Q_links + Q_Y pi of ``momentum.rate_square_terms``."""
+        b_k = Q_links + Q_Y pi of ``momentum.rate_square_terms``; None where the instant holds
+        none (motion fusion takes them into its modes, ``EstimatorInputs._motion_fields``)."""
         entry = self._rate_terms.pop(stamp, None)
         if entry is None:
-            return np.zeros((6, 6))
+            return None
         terms, weights = entry
         b = terms[:, 12:18] + cargo_regressor_parts(terms)[1] @ params
         return self._rate_square_var * (b.T * weights) @ b
@@ -668,7 +659,9 @@ class CargoEstimator(EstimatorInputs):
         return cov if self._reports is None else self._reports.covariance(cov)
 
     def params_std(self) -> np.ndarray:
-        return np.sqrt(np.diag(self.params_cov()))
+        """sqrt(diag(``params_cov``)) (10,), without its copy of P."""
+        cov = self.ukf.P if self._reports is None else self._reports.covariance(self.ukf.P)
+        return np.sqrt(np.diag(cov))
 
     @property
     def counters(self) -> dict[str, int]:

@@ -419,7 +419,7 @@ class InertialParamUKF(BatchedUKF):
             N_INERTIAL_PARAMS, dim_z, prior_params, prior_cov, process_cov,
             alpha=alpha, beta=beta, kappa=kappa, gate_nis=gate_nis,
         )  # fmt: skip
-        self._mode_of = (np.full(N_INERTIAL_PARAMS, np.nan), None)  # the (x, P) of `_mode`
+        self._mode_of: np.ndarray | None = None  # the (x, P) of `_mode`, as `_moments` holds them
         self._mode = prior_params.copy()
         self.n_mode_fallbacks = 0  # reports that fell back to the eigenvalue-clipped body
 
@@ -460,12 +460,19 @@ class InertialParamUKF(BatchedUKF):
         deferred bias compensation, ``estimator.bias_compensation``; not cached)."""
         if offset is not None:
             return constrained_mode(self.x + offset, self.P, start=self._mode)[0]
-        x_of, P_of = self._mode_of
-        if not (unscented.same_values(self.x, x_of) and unscented.same_values(self.P, P_of)):
-            self._mode, solved = constrained_mode(self.x, self.P, start=self._mode)
+        moments = self._moments()
+        if not unscented.same_values(moments, self._mode_of):
+            self._mode, solved = constrained_mode(self._x, self._P, start=self._mode)
             self.n_mode_fallbacks += not solved
-            self._mode_of = (self.x.copy(), self.P.copy())
+            self._mode_of = moments.copy()
         return self._mode.copy()
+
+    def _moments(self) -> np.ndarray:
+        """x and P, after every `predict`, as one flat view of the buffer (x's row, then P's:
+        `unscented.filter_arrays`), so that one comparison tells whether either changed."""
+        self.P  # noqa: B018 (a pending predict adds Q)
+        n = self.dim_x
+        return self._state[: n * (n + 1)]
 
     def params_cov(self) -> np.ndarray:
         """Posterior covariance of pi (10, 10), a copy of P."""

@@ -595,6 +595,35 @@ def test_reported_estimate_is_the_constrained_mode(seed):
     assert ukf.n_mode_fallbacks == 0
 
 
+def test_reported_estimate_follows_every_change_of_x_and_p():
+    """The cached report is made again whenever x or P changes: in place, by assignment or by a
+    pending predict (its P + Q), and each time equals the constrained mode of the new (x, P)."""
+    rng = np.random.default_rng(15)
+    inertia = np.diag([0.02, 0.03, 0.04])
+    inertia[0, 0] = inertia[1, 1] + inertia[2, 2] + 0.01  # triangle broken: x is not the mode
+    bad = params_from_mass_com_inertia(2.0, np.array([0.05, -0.02, 0.03]), inertia)
+    walk = random_spd(rng, scale=1e-4)
+    ukf = InertialParamUKF(WRONG_PRIOR, random_spd(rng, scale=1e-3), walk)
+    ukf.x = bad
+    reports = [ukf.params_mean()]
+
+    def check_new_report() -> None:
+        mode = ukf.params_mean()
+        np.testing.assert_array_equal(mode, constrained_mode(ukf.x, ukf.P, start=reports[-1])[0])
+        assert not any(np.array_equal(mode, earlier) for earlier in reports)
+        reports.append(mode)
+
+    ukf.P[0, 0] *= 4.0  # P in place
+    check_new_report()
+    ukf.x[4] += 0.002  # x in place
+    check_new_report()
+    ukf.predict()  # P + Q, made when P is read
+    check_new_report()
+    ukf.P = ukf.P * 0.5
+    check_new_report()
+    np.testing.assert_array_equal(ukf.params_mean(), reports[-1])  # nothing changed: cached
+
+
 def test_physical_estimate_propagates_the_posterior():
     rng = np.random.default_rng(14)
     cov = random_spd(rng, scale=1e-6)
