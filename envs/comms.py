@@ -260,7 +260,7 @@ class CommChannel:
 
     def due(self, step: int) -> bool:
         """Whether ``deliver(step)`` has any copy to hand out."""
-        return any(d <= step for d in self._queue)
+        return bool(self._queue) and min(self._queue) <= step
 
     def deliver(self, step: int) -> dict[int, list[Any]]:
         """The copies due at control step ``step`` (and any older ones not yet collected), per

@@ -122,27 +122,28 @@ class TeamEstimation:
         ``arm_rates``) and delivered through ``channel``; every estimator processes its
         complete instants. Returns whether any estimate changed."""
         r = readings  # row i of its arrays, None for a missing IMU frame or fix (``packet``)
+        has_imu, has_fix, estimators = r.has_imu.tolist(), r.has_fix.tolist(), self.estimators
         for i in holding:
-            imu, fix = r.has_imu[i], r.has_fix[i]
-            msg = self.estimators[i].step(
-                k, r.accel_imu[i] if imu else None, r.gyro_imu[i] if imu else None,
-                r.joint_pos_rad[i], commands[i], r.base_pos_world[i] if fix else None,
+            imu, fix, q = has_imu[i], has_fix[i], r.joint_pos_rad[i]
+            msg = estimators[i].step(
+                k, r.accel_imu[i] if imu else None, r.gyro_imu[i] if imu else None, q,
+                commands[i], r.base_pos_world[i] if fix else None,
                 r.base_quat_world[i] if fix else None, servo_target_rate=arm_rates[i],
             )  # fmt: skip
             if msg is not None:
                 sent = self.sent_arm[i]
-                sent[msg.stamp] = np.concatenate((r.joint_pos_rad[i], arm_rates[i]))
+                sent[msg.stamp] = np.concatenate((q, arm_rates[i]))
                 if len(sent) > SENT_ARM_KEPT:
                     del sent[next(iter(sent))]  # the oldest
                 channel.send(msg, k)
         if channel.due(k):
             for receiver, msgs in channel.deliver(k).items():
                 for msg in msgs:
-                    self.estimators[receiver].receive(msg)
+                    estimators[receiver].receive(msg)
                     self._keep_latest(receiver, msg)
         updated = False
         for i in holding:
-            updated |= self.estimators[i].process() > 0
+            updated |= estimators[i].process() > 0
         return updated
 
     def _keep_latest(self, receiver: int, msg) -> None:

@@ -393,21 +393,25 @@ class EstimatorInputs:
         moved over the period that ends now; given, the accelerometer's period mean is read less
         the servos' ripple it holds (``_without_servo_ripple``).
         """
-        self._check_imu_frame(accel_imu, gyro_imu)
+        if (accel_imu is None) != (gyro_imu is None):
+            self._check_imu_frame(accel_imu, gyro_imu)
         # The ripple goes into the compiled call when its map needs no refresh now.
-        ripple_rate = servo_target_rate if self._ripple_map_current(stamp) else None
-        if servo_target_rate is not None and ripple_rate is None:
-            accel_imu = self._without_servo_ripple(
-                stamp, accel_imu, joint_pos_rad, servo_target_rate
-            )
-        if self._compiled_path_ready(stamp, accel_imu):
-            fix_given = base_pos_world is not None and base_quat_world is not None
+        instant = stamp % self.update_every == 0
+        ripple_rate = None
+        if servo_target_rate is not None:
+            if self._servo_ripple_map is None or instant:
+                accel_imu = self._without_servo_ripple(
+                    stamp, accel_imu, joint_pos_rad, servo_target_rate
+                )
+            else:
+                ripple_rate = servo_target_rate
+        if accel_imu is not None and stamp > self.stamp and self._compiled_path_ready(stamp):
             outcome = self._compiled_step(
                 stamp, accel_imu, gyro_imu, joint_pos_rad, thrust_command, base_pos_world,
-                base_quat_world, fix_given, ripple_rate,
+                base_quat_world, ripple_rate,
             )  # fmt: skip
             if outcome != NOT_USABLE:
-                if stamp % self.update_every or stamp < self.warmup_steps:
+                if not instant or stamp < self.warmup_steps:
                     return None
                 return self._record_instant(stamp, joint_pos_rad, outcome == FIX)
         if ripple_rate is not None:  # the compiled call changed nothing: the ripple here
@@ -452,51 +456,72 @@ class EstimatorInputs:
         )  # fmt: skip
         return corrected
 
-    def _ripple_map_current(self, stamp: int) -> bool:
-        """Whether ``_without_servo_ripple`` at ``stamp`` would keep its map (known, and not an
-        update instant), so that the compiled call may take the ripple off instead."""
-        return self._servo_ripple_map is not None and stamp % self.update_every != 0
+    # Whether the filters are started and the attitude known: once so, they stay so.
+    _filters_ready = False
+    # ``estimator_step``'s state arguments (the filters' states and previous inputs, which
+    # they change in place only), gathered at the first compiled step.
+    _step_states: tuple[np.ndarray, ...] | None = None
 
-    def _compiled_path_ready(self, stamp: int, accel_imu: np.ndarray | None) -> bool:
-        """Can this step take ``estimator_step``: an IMU frame, an increasing stamp,
+    def _compiled_path_ready(self, stamp: int) -> bool:
+        """With an IMU frame and an increasing stamp, can this step take ``estimator_step``:
         the filters started (the balance filter if this step feeds it) and an attitude?"""
-        return (
-            accel_imu is not None
-            and stamp > self.stamp
-            and self._rot_world_base is not None
-            and self.pre.filter.started
-            and (self.balance_filter.started or stamp % self.regressor_every != 0)
-        )
+        if self._filters_ready:
+            return True
+        if self._rot_world_base is None or not self.pre.filter.started:
+            return False
+        if self.balance_filter.started:
+            pre, rate, prod = self.pre.filter, self.pre.rate_filter, self.pre.product_filter
+            self._step_states = (
+                pre.state, pre._u_prev, rate.state, rate._u_prev, prod.state, prod._u_prev,
+                self.balance_filter.state, self.balance_filter._u_prev,
+            )  # fmt: skip
+            self._filters_ready = True
+            return True
+        return stamp % self.regressor_every != 0
 
-    def _compiled_step(self, stamp, accel, gyro, q, thrust, pos, quat, fix_given,
-                       ripple_rate=None) -> int:  # fmt: skip
+    def _compiled_step(self, stamp, accel, gyro, q, thrust, pos, quat, ripple_rate) -> int:
         """The common path in one compiled call (``per_step``), with the servos' ripple taken
         off the accelerometer first when ``ripple_rate`` (the targets' rate) is given; NOT_USABLE
         (nothing changed) for a non-finite or wrongly shaped reading, or readings not float64
         vectors."""
         do_balance = stamp % self.regressor_every == 0
-        with_ripple = ripple_rate is not None
-        accel_used = np.empty(3) if with_ripple else _UNUSED_ACCEL
-        try:
+        fix_given = pos is not None and quat is not None
+        if not fix_given:
+            pos, quat = _NO_POS, _NO_QUAT
+        states = self._step_states
+        if states is None:  # the balance filter not started yet (nor fed on this step)
             pre, rate, prod = self.pre.filter, self.pre.rate_filter, self.pre.product_filter
-            outcome, lever = estimator_step(
-                self._step_constants, pre.state, pre._u_prev, rate.state, rate._u_prev,
-                prod.state, prod._u_prev, self.balance_filter.state, self.balance_filter._u_prev,
-                self._act_cov_sum,
-                self._rot_world_base, self._pos_world_base, accel, gyro, q, thrust,
-                pos if fix_given else _NO_POS, quat if fix_given else _NO_QUAT, fix_given,
-                do_balance, self._servo_ripple_map if with_ripple else _NO_MAP,
-                ripple_rate if with_ripple else _NO_RATE,
-                self._servo_ripple_prev if with_ripple else _NO_RATE, accel_used, with_ripple,
+            bal = self.balance_filter
+            states = (
+                pre.state, pre._u_prev, rate.state, rate._u_prev, prod.state, prod._u_prev,
+                bal.state, bal._u_prev,
             )  # fmt: skip
+        try:
+            if ripple_rate is None:
+                outcome, lever = estimator_step(
+                    self._step_constants, *states, self._act_cov_sum, self._rot_world_base,
+                    self._pos_world_base, accel, gyro, q, thrust, pos, quat, fix_given,
+                    do_balance, _NO_MAP, _NO_RATE, _NO_RATE, _UNUSED_ACCEL, False,
+                )  # fmt: skip
+                accel_used = accel
+            else:
+                accel_used = np.empty(3)
+                outcome, lever = estimator_step(
+                    self._step_constants, *states, self._act_cov_sum, self._rot_world_base,
+                    self._pos_world_base, accel, gyro, q, thrust, pos, quat, fix_given,
+                    do_balance, self._servo_ripple_map, ripple_rate, self._servo_ripple_prev,
+                    accel_used, True,
+                )  # fmt: skip
         except TypeError:  # not float64 vectors: the Python path converts them
             return NOT_USABLE
         if outcome == NOT_USABLE:
             return outcome
         self.stamp = int(stamp)
-        self._last_input = (accel_used if with_ripple else accel, gyro, q, thrust)
-        self.n_fixes += outcome == FIX
-        self.n_bad_readings += outcome == BAD_FIX
+        self._last_input = (accel_used, gyro, q, thrust)
+        if outcome == FIX:
+            self.n_fixes += 1
+        elif outcome == BAD_FIX:
+            self.n_bad_readings += 1
         if do_balance:
             self._act_cov_n += 1
             self._grasp_lever = lever
