@@ -470,14 +470,15 @@ class EstimatorInputs:
         if self._rot_world_base is None or not self.pre.filter.started:
             return False
         if self.balance_filter.started:
-            pre, rate, prod = self.pre.filter, self.pre.rate_filter, self.pre.product_filter
-            self._step_states = (
-                pre.state, pre._u_prev, rate.state, rate._u_prev, prod.state, prod._u_prev,
-                self.balance_filter.state, self.balance_filter._u_prev,
-            )  # fmt: skip
+            self._step_states = self._filter_states()
             self._filters_ready = True
             return True
         return stamp % self.regressor_every != 0
+
+    def _filter_states(self) -> tuple[np.ndarray, ...]:
+        """``estimator_step``'s state arguments: each filter's state and previous input."""
+        filters = (self.pre.filter, self.pre.rate_filter, self.pre.product_filter)
+        return tuple(a for f in (*filters, self.balance_filter) for a in (f.state, f._u_prev))
 
     def _compiled_step(self, stamp, accel, gyro, q, thrust, pos, quat, ripple_rate) -> int:
         """The common path in one compiled call (``per_step``), with the servos' ripple taken
@@ -490,12 +491,7 @@ class EstimatorInputs:
             pos, quat = _NO_POS, _NO_QUAT
         states = self._step_states
         if states is None:  # the balance filter not started yet (nor fed on this step)
-            pre, rate, prod = self.pre.filter, self.pre.rate_filter, self.pre.product_filter
-            bal = self.balance_filter
-            states = (
-                pre.state, pre._u_prev, rate.state, rate._u_prev, prod.state, prod._u_prev,
-                bal.state, bal._u_prev,
-            )  # fmt: skip
+            states = self._filter_states()
         try:
             if ripple_rate is None:
                 outcome, lever = estimator_step(
@@ -612,30 +608,37 @@ class EstimatorInputs:
             self._rot_world_base = self._rot_world_base @ exp_so3(self.dt_s * w_base)
         return False
 
-    def _rate_square_links_cov(self, stamp: int) -> np.ndarray:
+    def _rate_square_terms(self) -> tuple[np.ndarray, np.ndarray] | None:
         """The encoders' squared rate noise (``noise_model.rate_square_var``) at this instant:
-        this robot's regressor part waits with the instant (``_rate_terms``); the links' part,
-        returned (6, 6), goes with the message as the actuation's does (per step: the receiver
-        divides by update_every)."""
+        ``momentum.rate_square_terms`` at the rate filter's joint rates, None when that noise is
+        off."""
         if self._rate_square_var <= 0:
-            return np.zeros((6, 6))
+            return None
         q_rate = self.pre.rate_filter.state[0, 6 : 6 + self.robot.n_joints]
-        terms, weights = rate_square_terms(self.robot, q_rate)
-        self._rate_terms[stamp] = (terms, weights)
+        return rate_square_terms(self.robot, q_rate)
+
+    def _rate_square_links_cov(self, rate_terms: tuple | None) -> np.ndarray:
+        """The links' part (6, 6) of the squared rate noise ``rate_terms``
+        (``_rate_square_terms``): it goes with the message as the actuation's does (per step:
+        the receiver divides by update_every)."""
+        if rate_terms is None:
+            return np.zeros((6, 6))
+        terms, weights = rate_terms
         links = terms[:, 12:18]
         return self.update_every * self._rate_square_var * ((links.T * weights) @ links)
 
-    def _motion_fields(self, b, stamp: int) -> tuple[tuple | None, dict]:
+    def _motion_fields(self, b, stamp: int, rate_terms: tuple | None) -> tuple[tuple | None, dict]:
         """The instant's sensor-noise modes in the momentum chain
-        (``NoiseModel.momentum_jacobians``, None without motion fusion) and the message's motion
-        fields."""
+        (``NoiseModel.momentum_jacobians``, with the squared rate noise ``rate_terms``; None
+        without motion fusion) and the message's motion fields."""
         if self.motion_fusion == "none":
             return None, {}
         # The squared rate noise joins the modes (``NoiseModel.momentum_jacobians``): it enters
         # the team's mismatch too, and neither the message's covariance nor
         # ``_rate_square_cov`` carries it then.
-        entry = self._rate_terms.pop(stamp, None)
-        rate = None if entry is None else (entry[0], self._rate_square_var * entry[1])
+        rate = (
+            None if rate_terms is None else (rate_terms[0], self._rate_square_var * rate_terms[1])
+        )
         jac = self.noise.momentum_jacobians(stamp, b.regressor, self.pre.filter.state, rate)
         links, grasp, var = self.noise.message_modes(*jac)
         motion = {
@@ -667,10 +670,14 @@ class EstimatorInputs:
         act_cov = self._act_cov_sum / max(self._act_cov_n, 1)
         self._act_cov_sum = np.zeros((6, 6))
         self._act_cov_n = 0
-        rate_links_cov = self._rate_square_links_cov(stamp)
+        rate_terms = self._rate_square_terms()
         tainted = stamp <= self._tainted_until
-        jac, motion = self._motion_fields(b, stamp)
-        sent_cov = act_cov + rate_links_cov if jac is None else act_cov
+        jac, motion = self._motion_fields(b, stamp, rate_terms)
+        sent_cov = act_cov
+        if jac is None:  # the regressor's part waits with the instant (``_rate_square_cov``)
+            sent_cov = act_cov + self._rate_square_links_cov(rate_terms)
+            if rate_terms is not None:
+                self._rate_terms[stamp] = rate_terms
         self._changed = True
         self._pending[stamp] = Instant(
             thrust=b.thrust.copy(),
