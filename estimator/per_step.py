@@ -153,65 +153,17 @@ def actuation_cov_step(grasp_rot, grasp_pos, thrust_to_base, act_abs, act_rel, a
 _V, _M, _T3 = float64[::1], float64[:, ::1], float64[:, :, ::1]
 _BOOLS = boolean[::1]
 _STEP_SIGNATURE = types.Tuple((int64, float64))(
-    int64[::1],
-    _M,
-    _T3,
-    _M,
-    _V,
-    _M,
-    _T3,
-    int64,
-    _M,
-    _V,  # RobotArrays
-    _M,
-    _M,
-    _V,
-    _V,
-    _BOOLS,  # pre-filter constants
-    _M,
-    _V,
-    _V,
-    _BOOLS,
-    _M,
-    _V,
-    _V,
-    _BOOLS,  # rate and product filter constants
-    _V,
-    _V,  # IMU position, joint-rate noise variance
-    _M,
-    _V,
-    _V,
-    _BOOLS,  # balance filter constants
-    _M,
-    _M,
-    _V,
-    _V,
-    float64,  # IMU rotation, thrust site, actuation noise, dt
-    _M,
-    _V,
-    _M,
-    _V,
-    _M,
-    _V,
-    _M,
-    _V,  # filter states and previous inputs
-    _M,
-    _M,
-    _V,  # actuation covariance sum, attitude
-    _V,
-    _V,
-    _V,
-    _V,
-    _V,
-    _V,
-    boolean,
-    boolean,  # readings, flags
-    _M,
-    _V,
-    _V,
-    _V,
-    boolean,  # servo ripple: map, targets' rate, last ripple, corrected accelerometer, flag
-)
+    int64[::1], _M, _T3, _M, _V, _M, _T3, int64, _M, _V,  # RobotArrays
+    _M, _M, _V, _V, _BOOLS,  # pre-filter constants
+    _M, _V, _V, _BOOLS, _M, _V, _V, _BOOLS,  # rate and product filter constants
+    _V, _V,  # IMU position, joint-rate noise variance
+    _M, _V, _V, _BOOLS,  # balance filter constants
+    _M, _M, _V, _V, float64,  # IMU rotation, thrust site, actuation noise, dt
+    _M, _V, _M, _V, _M, _V, _M, _V,  # filter states and previous inputs
+    _M, _M, _V,  # actuation covariance sum, attitude
+    _V, _V, _V, _V, _V, _V, boolean, boolean,  # readings, flags
+    _M, _V, _V, _V, boolean,  # servo ripple: map, targets' rate, last ripple, corrected accel, flag
+)  # fmt: skip
 
 
 @njit(_STEP_SIGNATURE, cache=True)
@@ -492,22 +444,17 @@ class EstimatorInputs:
         states = self._step_states
         if states is None:  # the balance filter not started yet (nor fed on this step)
             states = self._filter_states()
+        with_ripple = ripple_rate is not None
+        accel_used = np.empty(3) if with_ripple else accel
         try:
-            if ripple_rate is None:
-                outcome, lever = estimator_step(
-                    self._step_constants, *states, self._act_cov_sum, self._rot_world_base,
-                    self._pos_world_base, accel, gyro, q, thrust, pos, quat, fix_given,
-                    do_balance, _NO_MAP, _NO_RATE, _NO_RATE, _UNUSED_ACCEL, False,
-                )  # fmt: skip
-                accel_used = accel
-            else:
-                accel_used = np.empty(3)
-                outcome, lever = estimator_step(
-                    self._step_constants, *states, self._act_cov_sum, self._rot_world_base,
-                    self._pos_world_base, accel, gyro, q, thrust, pos, quat, fix_given,
-                    do_balance, self._servo_ripple_map, ripple_rate, self._servo_ripple_prev,
-                    accel_used, True,
-                )  # fmt: skip
+            outcome, lever = estimator_step(
+                self._step_constants, *states, self._act_cov_sum, self._rot_world_base,
+                self._pos_world_base, accel, gyro, q, thrust, pos, quat, fix_given, do_balance,
+                self._servo_ripple_map if with_ripple else _NO_MAP,
+                ripple_rate if with_ripple else _NO_RATE,
+                self._servo_ripple_prev if with_ripple else _NO_RATE,
+                accel_used if with_ripple else _UNUSED_ACCEL, with_ripple,
+            )  # fmt: skip
         except TypeError:  # not float64 vectors: the Python path converts them
             return NOT_USABLE
         if outcome == NOT_USABLE:
