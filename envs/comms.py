@@ -246,21 +246,21 @@ class CommChannel:
         called with its fields, each array copied (``dataclasses.replace`` with the arrays
         changed, without looking the fields up again at every copy)."""
         fields = {name: getattr(message, name) for name in _init_fields(type(message))}
-        changes = {}
+        noisy = self._noisy
         for name, value in fields.items():
-            if isinstance(value, np.ndarray):
-                changes[name] = np.array(value, copy=True)
-        if self._noisy:
+            if isinstance(value, np.ndarray) and not (noisy and name in WRENCH_FIELDS):
+                fields[name] = value.copy()
+        if noisy:  # the noisy wrenches are new arrays
             noise_grasp = self._wrench_noise_std * self.rng.standard_normal(6)
             rot = np.asarray(message.grasp_rot_world, dtype=float)
             noise_world = np.concatenate((rot @ noise_grasp[:3], rot @ noise_grasp[3:]))
             for name, noise in zip(WRENCH_FIELDS, (noise_grasp, noise_world), strict=True):
-                changes[name] = changes[name] + noise
-        return type(message)(**(fields | changes))
+                fields[name] = fields[name] + noise
+        return type(message)(**fields)
 
     def due(self, step: int) -> bool:
         """Whether ``deliver(step)`` has any copy to hand out."""
-        return any(d <= step for d in self._queue)
+        return bool(self._queue) and min(self._queue) <= step
 
     def deliver(self, step: int) -> dict[int, list[Any]]:
         """The copies due at control step ``step`` (and any older ones not yet collected), per

@@ -81,15 +81,12 @@ class FreshEstimators:
 
 
 @njit(cache=True)
-def message_ages(stamp, valid, step_count, dt_s):
-    """The age of each slot's latest message, s: (k - stamp) dt where ``valid``, else 0, for
-    stamps (int, control steps) and ``valid`` (bool) of one shape, at control step k =
-    ``step_count`` of period ``dt_s``; a new array."""
-    age = np.zeros(stamp.shape)
+def message_ages(stamp, valid, step_count, dt_s, age) -> None:
+    """The age of each slot's latest message, s, into ``age``: (k - stamp) dt where ``valid``,
+    else 0, for stamps (int, control steps), ``valid`` (bool) and ``age`` (float) of one shape,
+    at control step k = ``step_count`` of period ``dt_s``."""
     for idx in np.ndindex(stamp.shape):
-        if valid[idx]:
-            age[idx] = (step_count - stamp[idx]) * dt_s
-    return age
+        age[idx] = (step_count - stamp[idx]) * dt_s if valid[idx] else 0.0
 
 
 class TeamEstimation:
@@ -114,6 +111,7 @@ class TeamEstimation:
         self.peer_slots = np.array(slots, dtype=np.int64).reshape(n, n - 1)
         # `peer_slot_values` apart from the ages, while no message and no ``acting`` changes them.
         self._slot_cache: tuple[bytes, tuple[np.ndarray, ...]] | None = None
+        self._slot_ages = np.zeros((n, n - 1))  # `peer_slot_values`' ages, rewritten per call
 
     def step(self, readings: SensorReadings, commands: np.ndarray, k: int, holding,
              arm_rates: np.ndarray, channel) -> bool:  # fmt: skip
@@ -122,27 +120,28 @@ class TeamEstimation:
         ``arm_rates``) and delivered through ``channel``; every estimator processes its
         complete instants. Returns whether any estimate changed."""
         r = readings  # row i of its arrays, None for a missing IMU frame or fix (``packet``)
+        has_imu, has_fix, estimators = r.has_imu.tolist(), r.has_fix.tolist(), self.estimators
         for i in holding:
-            imu, fix = r.has_imu[i], r.has_fix[i]
-            msg = self.estimators[i].step(
-                k, r.accel_imu[i] if imu else None, r.gyro_imu[i] if imu else None,
-                r.joint_pos_rad[i], commands[i], r.base_pos_world[i] if fix else None,
+            imu, fix, q = has_imu[i], has_fix[i], r.joint_pos_rad[i]
+            msg = estimators[i].step(
+                k, r.accel_imu[i] if imu else None, r.gyro_imu[i] if imu else None, q,
+                commands[i], r.base_pos_world[i] if fix else None,
                 r.base_quat_world[i] if fix else None, servo_target_rate=arm_rates[i],
             )  # fmt: skip
             if msg is not None:
                 sent = self.sent_arm[i]
-                sent[msg.stamp] = np.concatenate((r.joint_pos_rad[i], arm_rates[i]))
+                sent[msg.stamp] = np.concatenate((q, arm_rates[i]))
                 if len(sent) > SENT_ARM_KEPT:
                     del sent[next(iter(sent))]  # the oldest
                 channel.send(msg, k)
         if channel.due(k):
             for receiver, msgs in channel.deliver(k).items():
                 for msg in msgs:
-                    self.estimators[receiver].receive(msg)
+                    estimators[receiver].receive(msg)
                     self._keep_latest(receiver, msg)
         updated = False
         for i in holding:
-            updated |= self.estimators[i].process() > 0
+            updated |= estimators[i].process() > 0
         return updated
 
     def _keep_latest(self, receiver: int, msg) -> None:
@@ -184,12 +183,13 @@ class TeamEstimation:
         in s and whether one has arrived (N, P), the sender's arm angles and rates when it sent
         it (N, P, 4); zeros before the first message and in the rows of robots not ``acting``
         (bool (N,)). The wrench, arrival and arm arrays are read-only: they are kept until a
-        message or ``acting`` changes them."""
+        message or ``acting`` changes them. The ages' array is rewritten at the next call."""
         acting_key = np.asarray(acting, dtype=bool).tobytes()
         if self._slot_cache is None or self._slot_cache[0] != acting_key:
             self._slot_cache = (acting_key, self._slot_arrays(acting))
         stamp, valid, wrench, arrived, arm = self._slot_cache[1]
-        return wrench, message_ages(stamp, valid, step_count, self.dt_s), arrived, arm
+        message_ages(stamp, valid, step_count, self.dt_s, self._slot_ages)
+        return wrench, self._slot_ages, arrived, arm
 
     def _slot_arrays(self, acting: np.ndarray) -> tuple[np.ndarray, ...]:
         """`peer_slot_values`' stamps, validity, wrenches, arrivals and arm states (read-only)."""

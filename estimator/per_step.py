@@ -153,65 +153,17 @@ def actuation_cov_step(grasp_rot, grasp_pos, thrust_to_base, act_abs, act_rel, a
 _V, _M, _T3 = float64[::1], float64[:, ::1], float64[:, :, ::1]
 _BOOLS = boolean[::1]
 _STEP_SIGNATURE = types.Tuple((int64, float64))(
-    int64[::1],
-    _M,
-    _T3,
-    _M,
-    _V,
-    _M,
-    _T3,
-    int64,
-    _M,
-    _V,  # RobotArrays
-    _M,
-    _M,
-    _V,
-    _V,
-    _BOOLS,  # pre-filter constants
-    _M,
-    _V,
-    _V,
-    _BOOLS,
-    _M,
-    _V,
-    _V,
-    _BOOLS,  # rate and product filter constants
-    _V,
-    _V,  # IMU position, joint-rate noise variance
-    _M,
-    _V,
-    _V,
-    _BOOLS,  # balance filter constants
-    _M,
-    _M,
-    _V,
-    _V,
-    float64,  # IMU rotation, thrust site, actuation noise, dt
-    _M,
-    _V,
-    _M,
-    _V,
-    _M,
-    _V,
-    _M,
-    _V,  # filter states and previous inputs
-    _M,
-    _M,
-    _V,  # actuation covariance sum, attitude
-    _V,
-    _V,
-    _V,
-    _V,
-    _V,
-    _V,
-    boolean,
-    boolean,  # readings, flags
-    _M,
-    _V,
-    _V,
-    _V,
-    boolean,  # servo ripple: map, targets' rate, last ripple, corrected accelerometer, flag
-)
+    int64[::1], _M, _T3, _M, _V, _M, _T3, int64, _M, _V,  # RobotArrays
+    _M, _M, _V, _V, _BOOLS,  # pre-filter constants
+    _M, _V, _V, _BOOLS, _M, _V, _V, _BOOLS,  # rate and product filter constants
+    _V, _V,  # IMU position, joint-rate noise variance
+    _M, _V, _V, _BOOLS,  # balance filter constants
+    _M, _M, _V, _V, float64,  # IMU rotation, thrust site, actuation noise, dt
+    _M, _V, _M, _V, _M, _V, _M, _V,  # filter states and previous inputs
+    _M, _M, _V,  # actuation covariance sum, attitude
+    _V, _V, _V, _V, _V, _V, boolean, boolean,  # readings, flags
+    _M, _V, _V, _V, boolean,  # servo ripple: map, targets' rate, last ripple, corrected accel, flag
+)  # fmt: skip
 
 
 @njit(_STEP_SIGNATURE, cache=True)
@@ -393,21 +345,25 @@ class EstimatorInputs:
         moved over the period that ends now; given, the accelerometer's period mean is read less
         the servos' ripple it holds (``_without_servo_ripple``).
         """
-        self._check_imu_frame(accel_imu, gyro_imu)
+        if (accel_imu is None) != (gyro_imu is None):
+            self._check_imu_frame(accel_imu, gyro_imu)
         # The ripple goes into the compiled call when its map needs no refresh now.
-        ripple_rate = servo_target_rate if self._ripple_map_current(stamp) else None
-        if servo_target_rate is not None and ripple_rate is None:
-            accel_imu = self._without_servo_ripple(
-                stamp, accel_imu, joint_pos_rad, servo_target_rate
-            )
-        if self._compiled_path_ready(stamp, accel_imu):
-            fix_given = base_pos_world is not None and base_quat_world is not None
+        instant = stamp % self.update_every == 0
+        ripple_rate = None
+        if servo_target_rate is not None:
+            if self._servo_ripple_map is None or instant:
+                accel_imu = self._without_servo_ripple(
+                    stamp, accel_imu, joint_pos_rad, servo_target_rate
+                )
+            else:
+                ripple_rate = servo_target_rate
+        if accel_imu is not None and stamp > self.stamp and self._compiled_path_ready(stamp):
             outcome = self._compiled_step(
                 stamp, accel_imu, gyro_imu, joint_pos_rad, thrust_command, base_pos_world,
-                base_quat_world, fix_given, ripple_rate,
+                base_quat_world, ripple_rate,
             )  # fmt: skip
             if outcome != NOT_USABLE:
-                if stamp % self.update_every or stamp < self.warmup_steps:
+                if not instant or stamp < self.warmup_steps:
                     return None
                 return self._record_instant(stamp, joint_pos_rad, outcome == FIX)
         if ripple_rate is not None:  # the compiled call changed nothing: the ripple here
@@ -452,51 +408,63 @@ class EstimatorInputs:
         )  # fmt: skip
         return corrected
 
-    def _ripple_map_current(self, stamp: int) -> bool:
-        """Whether ``_without_servo_ripple`` at ``stamp`` would keep its map (known, and not an
-        update instant), so that the compiled call may take the ripple off instead."""
-        return self._servo_ripple_map is not None and stamp % self.update_every != 0
+    # Whether the filters are started and the attitude known: once so, they stay so.
+    _filters_ready = False
+    # ``estimator_step``'s state arguments (the filters' states and previous inputs, which
+    # they change in place only), gathered at the first compiled step.
+    _step_states: tuple[np.ndarray, ...] | None = None
 
-    def _compiled_path_ready(self, stamp: int, accel_imu: np.ndarray | None) -> bool:
-        """Can this step take ``estimator_step``: an IMU frame, an increasing stamp,
+    def _compiled_path_ready(self, stamp: int) -> bool:
+        """With an IMU frame and an increasing stamp, can this step take ``estimator_step``:
         the filters started (the balance filter if this step feeds it) and an attitude?"""
-        return (
-            accel_imu is not None
-            and stamp > self.stamp
-            and self._rot_world_base is not None
-            and self.pre.filter.started
-            and (self.balance_filter.started or stamp % self.regressor_every != 0)
-        )
+        if self._filters_ready:
+            return True
+        if self._rot_world_base is None or not self.pre.filter.started:
+            return False
+        if self.balance_filter.started:
+            self._step_states = self._filter_states()
+            self._filters_ready = True
+            return True
+        return stamp % self.regressor_every != 0
 
-    def _compiled_step(self, stamp, accel, gyro, q, thrust, pos, quat, fix_given,
-                       ripple_rate=None) -> int:  # fmt: skip
+    def _filter_states(self) -> tuple[np.ndarray, ...]:
+        """``estimator_step``'s state arguments: each filter's state and previous input."""
+        filters = (self.pre.filter, self.pre.rate_filter, self.pre.product_filter)
+        return tuple(a for f in (*filters, self.balance_filter) for a in (f.state, f._u_prev))
+
+    def _compiled_step(self, stamp, accel, gyro, q, thrust, pos, quat, ripple_rate) -> int:
         """The common path in one compiled call (``per_step``), with the servos' ripple taken
         off the accelerometer first when ``ripple_rate`` (the targets' rate) is given; NOT_USABLE
         (nothing changed) for a non-finite or wrongly shaped reading, or readings not float64
         vectors."""
         do_balance = stamp % self.regressor_every == 0
+        fix_given = pos is not None and quat is not None
+        if not fix_given:
+            pos, quat = _NO_POS, _NO_QUAT
+        states = self._step_states
+        if states is None:  # the balance filter not started yet (nor fed on this step)
+            states = self._filter_states()
         with_ripple = ripple_rate is not None
-        accel_used = np.empty(3) if with_ripple else _UNUSED_ACCEL
+        accel_used = np.empty(3) if with_ripple else accel
         try:
-            pre, rate, prod = self.pre.filter, self.pre.rate_filter, self.pre.product_filter
             outcome, lever = estimator_step(
-                self._step_constants, pre.state, pre._u_prev, rate.state, rate._u_prev,
-                prod.state, prod._u_prev, self.balance_filter.state, self.balance_filter._u_prev,
-                self._act_cov_sum,
-                self._rot_world_base, self._pos_world_base, accel, gyro, q, thrust,
-                pos if fix_given else _NO_POS, quat if fix_given else _NO_QUAT, fix_given,
-                do_balance, self._servo_ripple_map if with_ripple else _NO_MAP,
+                self._step_constants, *states, self._act_cov_sum, self._rot_world_base,
+                self._pos_world_base, accel, gyro, q, thrust, pos, quat, fix_given, do_balance,
+                self._servo_ripple_map if with_ripple else _NO_MAP,
                 ripple_rate if with_ripple else _NO_RATE,
-                self._servo_ripple_prev if with_ripple else _NO_RATE, accel_used, with_ripple,
+                self._servo_ripple_prev if with_ripple else _NO_RATE,
+                accel_used if with_ripple else _UNUSED_ACCEL, with_ripple,
             )  # fmt: skip
         except TypeError:  # not float64 vectors: the Python path converts them
             return NOT_USABLE
         if outcome == NOT_USABLE:
             return outcome
         self.stamp = int(stamp)
-        self._last_input = (accel_used if with_ripple else accel, gyro, q, thrust)
-        self.n_fixes += outcome == FIX
-        self.n_bad_readings += outcome == BAD_FIX
+        self._last_input = (accel_used, gyro, q, thrust)
+        if outcome == FIX:
+            self.n_fixes += 1
+        elif outcome == BAD_FIX:
+            self.n_bad_readings += 1
         if do_balance:
             self._act_cov_n += 1
             self._grasp_lever = lever
@@ -587,30 +555,37 @@ class EstimatorInputs:
             self._rot_world_base = self._rot_world_base @ exp_so3(self.dt_s * w_base)
         return False
 
-    def _rate_square_links_cov(self, stamp: int) -> np.ndarray:
+    def _rate_square_terms(self) -> tuple[np.ndarray, np.ndarray] | None:
         """The encoders' squared rate noise (``noise_model.rate_square_var``) at this instant:
-        this robot's regressor part waits with the instant (``_rate_terms``); the links' part,
-        returned (6, 6), goes with the message as the actuation's does (per step: the receiver
-        divides by update_every)."""
+        ``momentum.rate_square_terms`` at the rate filter's joint rates, None when that noise is
+        off."""
         if self._rate_square_var <= 0:
-            return np.zeros((6, 6))
+            return None
         q_rate = self.pre.rate_filter.state[0, 6 : 6 + self.robot.n_joints]
-        terms, weights = rate_square_terms(self.robot, q_rate)
-        self._rate_terms[stamp] = (terms, weights)
+        return rate_square_terms(self.robot, q_rate)
+
+    def _rate_square_links_cov(self, rate_terms: tuple | None) -> np.ndarray:
+        """The links' part (6, 6) of the squared rate noise ``rate_terms``
+        (``_rate_square_terms``): it goes with the message as the actuation's does (per step:
+        the receiver divides by update_every)."""
+        if rate_terms is None:
+            return np.zeros((6, 6))
+        terms, weights = rate_terms
         links = terms[:, 12:18]
         return self.update_every * self._rate_square_var * ((links.T * weights) @ links)
 
-    def _motion_fields(self, b, stamp: int) -> tuple[tuple | None, dict]:
+    def _motion_fields(self, b, stamp: int, rate_terms: tuple | None) -> tuple[tuple | None, dict]:
         """The instant's sensor-noise modes in the momentum chain
-        (``NoiseModel.momentum_jacobians``, None without motion fusion) and the message's motion
-        fields."""
+        (``NoiseModel.momentum_jacobians``, with the squared rate noise ``rate_terms``; None
+        without motion fusion) and the message's motion fields."""
         if self.motion_fusion == "none":
             return None, {}
         # The squared rate noise joins the modes (``NoiseModel.momentum_jacobians``): it enters
         # the team's mismatch too, and neither the message's covariance nor
         # ``_rate_square_cov`` carries it then.
-        entry = self._rate_terms.pop(stamp, None)
-        rate = None if entry is None else (entry[0], self._rate_square_var * entry[1])
+        rate = (
+            None if rate_terms is None else (rate_terms[0], self._rate_square_var * rate_terms[1])
+        )
         jac = self.noise.momentum_jacobians(stamp, b.regressor, self.pre.filter.state, rate)
         links, grasp, var = self.noise.message_modes(*jac)
         motion = {
@@ -642,10 +617,14 @@ class EstimatorInputs:
         act_cov = self._act_cov_sum / max(self._act_cov_n, 1)
         self._act_cov_sum = np.zeros((6, 6))
         self._act_cov_n = 0
-        rate_links_cov = self._rate_square_links_cov(stamp)
+        rate_terms = self._rate_square_terms()
         tainted = stamp <= self._tainted_until
-        jac, motion = self._motion_fields(b, stamp)
-        sent_cov = act_cov + rate_links_cov if jac is None else act_cov
+        jac, motion = self._motion_fields(b, stamp, rate_terms)
+        sent_cov = act_cov
+        if jac is None:  # the regressor's part waits with the instant (``_rate_square_cov``)
+            sent_cov = act_cov + self._rate_square_links_cov(rate_terms)
+            if rate_terms is not None:
+                self._rate_terms[stamp] = rate_terms
         self._changed = True
         self._pending[stamp] = Instant(
             thrust=b.thrust.copy(),
