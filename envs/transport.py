@@ -376,15 +376,16 @@ class CargoTransport:
             raise RuntimeError("call reset() before step(), and again after the episode ended")
         acting = self.holding  # the robots of this step, those letting go at its end included
         acting_mask = self._acting_mask
-        self.step_count += 1
-        k = self.step_count
+        self.step_count = k = self.step_count + 1
         fix = k % self.profile.localization_every == 0
         normals = self.sensors.draw_step(fix)
         self._fault_masks(k, fix)
         commands = self._apply_commands(actions, normals)
         self._physics.integrate(self._kinematics_current)
-        finite, readings, readings_record = self._sense_and_navigate(fix, normals)
-        self._update_estimators(readings, commands, k)
+        time_s = float(self.data.time)  # the step's end
+        finite, readings, readings_record = self._sense_and_navigate(fix, normals, time_s)
+        if self.estimators:
+            self._update_estimators(readings, commands, k)
         self.readings = readings
 
         robot_contacts, cargo_contacts, n_contacts = self._wall_contacts()
@@ -395,7 +396,6 @@ class CargoTransport:
         if released:
             self._release(released)
         obs, rewards = np.empty((self.n_robots, self.obs_dim)), np.empty(self.n_robots)
-        time_s = float(self.data.time)
         finite = observe_and_reward(
             obs, rewards, acting_mask, self._step_record, readings_record, self.navigator.filters,
             self._observations.arms, self._xpos, self._xmat,
@@ -485,15 +485,16 @@ class CargoTransport:
         self.fault_schedule.apply_to_readings(self._imu_ok, self._fix_ok, k)
 
     def _sense_and_navigate(
-        self, fix: bool, normals: np.ndarray
+        self, fix: bool, normals: np.ndarray, time_s: float
     ) -> tuple[bool, SensorReadings, np.ndarray]:
-        """After the physics: whether the state is finite; every robot's readings, one row per robot
-        index (nothing valid in the rows of robots that have let go) with the faults' masks and the
-        step's standard ``normals`` (``SensorSuite.draw_step``); the navigation filters
-        (``step_kernels.sense_and_navigate``). Fresh reading arrays while estimators run (they may
+        """After the physics, at the period's end ``time_s`` (s): whether the state is finite;
+        every robot's readings, one row per robot index (nothing valid in the rows of robots that
+        have let go) with the faults' masks and the step's standard ``normals``
+        (``SensorSuite.draw_step``); the navigation filters (``step_kernels.sense_and_navigate``).
+        Fresh reading arrays while estimators run (they may
         keep a reading), else the same ones every step."""
         r, record = self._fresh_readings() if self.estimators else self._readings
-        r.time_s = time_s = float(self.data.time)
+        r.time_s = time_s
         cvel, site_xpos, site_xmat, subtree_com, sensordata = self._sensor_views
         p = self._physics
         finite = sense_and_navigate(
