@@ -81,6 +81,22 @@ def add_cross_terms(X, ring, ring_index, count, index, v, lag_cov):
 
 
 @njit(cache=True)
+def take_in(X, ring, ring_index, ring_count, count, index, regressor, cov, balance_map, start,
+            stop, lag_cov):  # fmt: skip
+    """``EncoderCovariance.add`` in one compiled call: V_k = Y^T R^-1 E (``encoder_weights``,
+    E = ``balance_map``'s columns start ... stop - 1) as (10 nj, 8) rows, X + C + C^T
+    (``add_cross_terms``, returned), then V_k into the ring's slot ``count`` mod capacity, with
+    its update count ``index`` and entry ``count`` (``ring_index``, ``ring_count``)."""
+    weights = encoder_weights(regressor, cov, balance_map[:, start:stop])
+    v = weights.reshape(ring.shape[0], MODES)
+    X = add_cross_terms(X, ring, ring_index, count, index, v, lag_cov)
+    slot = count % ring_index.shape[0]
+    ring[:, slot * MODES : (slot + 1) * MODES] = v
+    ring_index[slot], ring_count[slot] = index, count
+    return X
+
+
+@njit(cache=True)
 def sandwich(cov, X):
     """P + P X P (10, 10), symmetrised, for the filter's P ``cov``."""
     out = cov + cov @ X @ cov
@@ -120,15 +136,10 @@ class EncoderCovariance:
 
     def add(self, index: int, regressor, cov, balance_map) -> None:
         """Take in a used update: its count ``index``, Y (6, 10), R (6, 6) and own modes' map
-        E (6, n) (``own_modes``): V = Y^T R^-1 E's encoder columns."""
-        v = encoder_weights(regressor, cov, balance_map[:, self.columns])
-        v = v.reshape(10 * self.n_joints, MODES)
-        args = (self.ring, self.ring_index, self.count, int(index), v, self.lag_cov)
-        self.X = add_cross_terms(self.X, *args)
-        slot = self.count % self.ring_index.size
-        self.ring[:, slot * MODES : (slot + 1) * MODES] = v
-        self.ring_index[slot] = index
-        self.ring_count[slot] = self.count
+        E (6, n) (``own_modes``): V = Y^T R^-1 E's encoder columns (``take_in``)."""
+        ring = (self.ring, self.ring_index, self.ring_count, self.count, int(index))
+        columns = (self.columns.start, self.columns.stop)
+        self.X = take_in(self.X, *ring, regressor, cov, balance_map, *columns, self.lag_cov)
         self.count += 1
 
     def covariance(self, cov: np.ndarray) -> np.ndarray:

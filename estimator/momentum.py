@@ -571,13 +571,15 @@ def servo_ripple_map(arrays, imu_pos, q, cargo, dt_s):
 @njit(cache=True)
 def _servo_ripple_map(
     parent, joint_axis, rot_in_parent, pos_in_parent, mass, com, inertia_com, grasp_link,
-    grasp_rot, grasp_pos, imu_pos, q, cargo, dt_s,
+    grasp_rot, grasp_pos, imu_pos, q, cargo, dt_s, servo_gain,
 ):  # fmt: skip
+    """``servo_ripple_velocities`` compiled: ``servo_ripple_map`` times the servos' gains
+    (n_joints,) N m/rad and the period dt_s."""
     arrays = RobotArrays(
         parent, joint_axis, rot_in_parent, pos_in_parent, mass, com, inertia_com, grasp_link,
         grasp_rot, grasp_pos,
     )  # fmt: skip
-    return servo_ripple_map(arrays, imu_pos, q, cargo, dt_s)
+    return servo_ripple_map(arrays, imu_pos, q, cargo, dt_s) * (servo_gain * dt_s)
 
 
 def servo_ripple_velocities(
@@ -592,8 +594,8 @@ def servo_ripple_velocities(
     nj = (robot.n_joints,)
     q, cargo = as_single(q, nj, "q"), as_single(cargo, (10,), "cargo")
     imu_pos = np.ascontiguousarray(robot.imu_pos, dtype=float)
-    per_torque = _servo_ripple_map(*robot.arrays, imu_pos, q, cargo, float(dt_s))
-    return per_torque * (np.asarray(robot.servo_gain, dtype=float) * dt_s)
+    gain = np.asarray(robot.servo_gain, dtype=float)
+    return _servo_ripple_map(*robot.arrays, imu_pos, q, cargo, float(dt_s), gain)
 
 
 def servo_ripple(

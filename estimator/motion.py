@@ -65,6 +65,8 @@ from .momentum import (
 )
 from .preprocess import StateVariableFilter
 
+_CARGO_Q_MAP_T = np.ascontiguousarray(CARGO_Q_MAP.T)  # ``instant_noise_modes``' squared rates
+
 
 def motion_jacobians(
     balance: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]], xi: np.ndarray
@@ -132,23 +134,10 @@ def noise_cov(n_map: np.ndarray, level: np.ndarray) -> np.ndarray:
 
 
 @njit(cache=True)
-def condition_maps(
-    n_map: np.ndarray,
-    d_map: np.ndarray,
-    level: np.ndarray,
-    mismatch: np.ndarray,
-    mismatch_model_var: float,
-) -> tuple[np.ndarray, np.ndarray]:
-    """E[n | d] and Cov[n | d] for n = N dxi, d = D dxi + e with Cov dxi = diag(level) and
-    Cov e = mismatch_model_var I (``condition_on_mismatch`` on stacked maps; ``conditioned_maps``
-    without its remaining map)."""
-    mean, cov, _ = conditioned_maps(n_map, d_map, level, mismatch, mismatch_model_var)
-    return mean, cov
-
-
-@njit(cache=True)
 def conditioned_maps(n_map, d_map, level, mismatch, mismatch_model_var):
-    """``condition_maps``' E[n | d] (6,), Cov[n | d] (6, 6) and the remaining map N - K D:
+    """E[n | d] (6,), Cov[n | d] (6, 6) and the remaining map N - K D for n = N dxi,
+    d = D dxi + e with Cov dxi = diag(level) and Cov e = mismatch_model_var I
+    (``condition_on_mismatch`` on stacked maps):
 
     K = S_nd S_dd^+,  S_nd = N diag(level) D^T,  S_dd = D diag(level) D^T + var I,
     E[n | d] = K d,   Cov[n | d] = (N - K D) diag(level) (N - K D)^T + var K K^T."""
@@ -273,9 +262,9 @@ def condition_on_mismatch(
     d_map = np.hstack(mismatch_maps)
     if d_map.shape != (np.size(mismatch), var.size):
         raise ValueError(f"mismatch maps give shape {d_map.shape}, mismatch {np.shape(mismatch)}")
-    return condition_maps(
+    return conditioned_maps(
         _float(n_map), _float(d_map), level, _float(mismatch), float(mismatch_model_var)
-    )
+    )[:2]
 
 
 @functools.lru_cache(maxsize=16)
@@ -572,6 +561,13 @@ def drifting_sample_jacobian(arrays, imu_pos, state, n_joints, step_s):
     derivative): x = (gyro, acceleration, q, qd = q's derivative, thrust) at the state, and from
     J+- = J(x +- step_s x' / 2) along the state's derivatives, J = (J+ + J-) / 2 and
     dJ/dt = (J+ - J-) / step_s (central, second order in step_s)."""
+    jacs = _drifting_jacobians(arrays, imu_pos, state, n_joints, step_s)
+    return jacs[0], jacs[1]
+
+
+@njit(cache=True)
+def _drifting_jacobians(arrays, imu_pos, state, n_joints, step_s):
+    """``drifting_sample_jacobian``'s J and dJ/dt stacked (2, ``SIZE``, 6 + 2 nj)."""
     nj = n_joints
     out = np.empty((2, SIZE, 6 + 2 * nj))
     for k, sign in enumerate((-0.5, 0.5)):
@@ -579,7 +575,10 @@ def drifting_sample_jacobian(arrays, imu_pos, state, n_joints, step_s):
         rate = state[1] + sign * step_s * state[2]
         out[k] = sample_jacobian(arrays, imu_pos, value[0:3], value[3:6], value[6 : 6 + nj],
                                  rate[6 : 6 + nj], value[6 + nj :])  # fmt: skip
-    return 0.5 * (out[0] + out[1]), (out[1] - out[0]) / step_s
+    jacs = np.empty_like(out)
+    jacs[0] = 0.5 * (out[0] + out[1])
+    jacs[1] = (out[1] - out[0]) / step_s
+    return jacs
 
 
 @njit(cache=True)
@@ -587,51 +586,64 @@ def _readout_columns(jacs, p_map, q_map):
     """The balance's model-side noise n = d(links + Y pi - thrust) from the sample noise of each
     of ``jacs`` (2, ``SIZE``, c) (the Jacobian and its rate) read out of the slow filter's value
     (its thrust and Q channels) and derivative (its P channels;
-    ``momentum.balance_from_filtered``): d links - d thrust (6, c, 4) and d Y (c, 4, 60), the
+    ``momentum.balance_from_filtered``): d links - d thrust (4, 6, c) and d Y (4, 60, c), the
     read-outs m = 2 j + (0 value, 1 derivative) of ``jacs[j]``; ``p_map``, ``q_map`` the
     regressor's maps ``momentum.CARGO_P_MAP``, ``CARGO_Q_MAP``."""
     n = jacs.shape[2]
-    links = np.empty((6, n, 4))
-    y = np.empty((n, 4, 60))
+    links = np.empty((4, 6, n))
+    y = np.empty((4, 60, n))
     for j in range(2):
         jac = jacs[j]
-        links[:, :, 2 * j] = jac[LINKS_Q] - jac[THRUST]
-        links[:, :, 2 * j + 1] = jac[LINKS_P]
-        y[:, 2 * j] = (q_map @ np.ascontiguousarray(jac[CARGO_Q])).T
-        y[:, 2 * j + 1] = (p_map @ np.ascontiguousarray(jac[CARGO_P])).T
+        links[2 * j] = jac[LINKS_Q] - jac[THRUST]
+        links[2 * j + 1] = jac[LINKS_P]
+        y[2 * j] = q_map @ np.ascontiguousarray(jac[CARGO_Q])
+        y[2 * j + 1] = p_map @ np.ascontiguousarray(jac[CARGO_P])
     return links, y
 
 
 @njit(cache=True)
-def _factored(links, y, factors):
-    """Each channel's columns links (6, k, m) and y (k, m, 60) times its factor F_c
-    (``factors`` (k, m, m)): d links (6, k m) and d Y (k m, 6, 10), channel-major."""
-    k, m = y.shape[0], y.shape[1]
-    out_links = np.empty((6, k, m))
-    out_y = np.empty((k, m, 60))
-    for c in range(k):
-        out_links[:, c] = np.ascontiguousarray(links[:, c]) @ factors[c]
-        out_y[c] = (np.ascontiguousarray(y[c].T) @ factors[c]).T
-    return out_links.reshape(6, k * m), out_y.reshape(k * m, 6, 10)
+def _factored_into(out_links, out_y, start, links, y, columns, factor):
+    """One channel's read-out columns (``columns`` (m, 2): motion coordinate x, read-out m of
+    ``_readout_columns``' links (4, 6, c) and y (4, 60, c)) times its factor F (m, m), written
+    into the modes start ... start + m - 1 of ``out_links`` (6, n) and ``out_y`` (n, 60)."""
+    m = columns.shape[0]
+    chan_links = np.empty((6, m))
+    chan_y = np.empty((60, m))
+    for a in range(m):
+        chan_links[:, a] = links[columns[a, 1], :, columns[a, 0]]
+        chan_y[:, a] = y[columns[a, 1], :, columns[a, 0]]
+    out_links[:, start : start + m] = chan_links @ factor
+    out_y[start : start + m] = (chan_y @ factor).T
+
+
+@njit(cache=True)
+def _noise_modes_into(out_links, out_y, jacs, n_joints, held_factors, point_factor, p_map,
+                      q_map):  # fmt: skip
+    """``_noise_modes`` written into the first 24 + 8 nj modes of ``out_links`` (6, n) and
+    ``out_y`` (n, 60)."""
+    nj = n_joints
+    links, y = _readout_columns(jacs, p_map, q_map)
+    held = np.empty((4, 2), dtype=np.int64)
+    held[:, 1] = np.arange(4)
+    for c in range(6):  # gyro x, y, z, accelerometer x, y, z: read-outs 0 ... 3
+        held[:, 0] = c
+        _factored_into(out_links, out_y, 4 * c, links, y, held, held_factors[c])
+    point = np.empty((8, 2), dtype=np.int64)
+    for i in range(nj):  # per encoder: (q, 0), (q, 1), (qd, 0), (qd, 1), then read-outs 2, 3
+        for k in range(4):
+            point[2 * k : 2 * k + 2, 0] = 6 + i + (k % 2) * nj
+            point[2 * k, 1], point[2 * k + 1, 1] = 2 * (k // 2), 2 * (k // 2) + 1
+        _factored_into(out_links, out_y, 24 + 8 * i, links, y, point, point_factor)
 
 
 @njit(cache=True)
 def _noise_modes(jacs, n_joints, held_factors, point_factor, p_map, q_map):
     """``momentum_noise_modes`` with the factors given: one per held channel (6, 4, 4), gyro
     x, y, z then accelerometer x, y, z, and one for every encoder (8, 8)."""
-    nj = n_joints
-    links, y = _readout_columns(jacs, p_map, q_map)
-    q, qd = slice(6, 6 + nj), slice(6 + nj, 6 + 2 * nj)
-    links_point = np.empty((6, nj, 8))
-    y_point = np.empty((nj, 8, 60))
-    for k, (x, m) in enumerate(((q, 0), (qd, 0), (q, 2), (qd, 2))):
-        links_point[:, :, 2 * k : 2 * k + 2] = links[:, x, m : m + 2]
-        y_point[:, 2 * k : 2 * k + 2] = y[x, m : m + 2]
-    point_factors = np.empty((nj, 8, 8))
-    point_factors[:] = point_factor
-    held_links, held_y = _factored(links[:, :6], y[:6], held_factors)
-    point_links, point_y = _factored(links_point, y_point, point_factors)
-    return np.hstack((held_links, point_links)), np.concatenate((held_y, point_y))
+    n = 24 + 8 * n_joints
+    links, y = np.empty((6, n)), np.empty((n, 60))
+    _noise_modes_into(links, y, jacs, n_joints, held_factors, point_factor, p_map, q_map)
+    return links, y.reshape(n, 6, 10)
 
 
 @njit(cache=True)
@@ -646,23 +658,19 @@ def instant_noise_modes(arrays, imu_pos, state, n_joints, step_s, held_factors, 
     per squared-rate term k of ``rate_terms`` (k, ``SIZE``) with variance v_k (``rate_var``):
     sqrt(v_k) (Q_links, M_Q Q_Y) (``momentum.CARGO_Q_MAP``). ``n_rate`` such modes always
     (zero columns without terms: k = 0), so that the count stays that of the variances."""
-    jac, jac_rate = drifting_sample_jacobian(arrays, imu_pos, state, n_joints, step_s)
-    jacs = np.empty((2, jac.shape[0], jac.shape[1]))
-    jacs[0], jacs[1] = jac, jac_rate
-    d_links, d_y = _noise_modes(jacs, n_joints, held_factors, point_factor, CARGO_P_MAP,
-                                CARGO_Q_MAP)  # fmt: skip
-    n_modes = d_y.shape[0]
+    jacs = _drifting_jacobians(arrays, imu_pos, state, n_joints, step_s)
+    n_modes = 24 + 8 * n_joints
     if rate_terms.shape[0] != 0 and rate_terms.shape[0] != n_rate:
         raise ValueError("rate_terms must have 0 or n_rate rows")
     links = np.zeros((6, n_modes + n_rate))
-    y = np.zeros((n_modes + n_rate, 6, 10))
-    links[:, :n_modes], y[:n_modes] = d_links, d_y
+    y = np.zeros((n_modes + n_rate, 60))
+    _noise_modes_into(links, y, jacs, n_joints, held_factors, point_factor, CARGO_P_MAP,
+                      CARGO_Q_MAP)  # fmt: skip
     if rate_terms.shape[0]:
         scaled = rate_terms * np.sqrt(rate_var).reshape(-1, 1)
         links[:, n_modes:] = np.ascontiguousarray(scaled[:, LINKS_Q]).T
-        cargo = np.ascontiguousarray(scaled[:, CARGO_Q]) @ np.ascontiguousarray(CARGO_Q_MAP.T)
-        y[n_modes:] = cargo.reshape(n_rate, 6, 10)
-    return links, y
+        y[n_modes:] = np.ascontiguousarray(scaled[:, CARGO_Q]) @ _CARGO_Q_MAP_T
+    return links, y.reshape(n_modes + n_rate, 6, 10)
 
 
 def momentum_noise_modes(

@@ -81,7 +81,7 @@ def mode_lag_covariances(held_lag_cov: np.ndarray) -> tuple[np.ndarray, np.ndarr
 
 @njit(cache=True)
 def conditioning_gain(n_map, d_map, level, mismatch_model_var):
-    """K = S_nd S_dd^+ (6, 3 P) of ``motion.condition_maps``: the remaining map is N - K D."""
+    """K = S_nd S_dd^+ (6, 3 P) of ``motion.conditioned_maps``: the remaining map is N - K D."""
     d_map_t = np.ascontiguousarray(d_map.T)
     s_nd = (n_map * level) @ d_map_t
     s_dd = (d_map * level) @ d_map_t + mismatch_model_var * np.eye(d_map.shape[0])

@@ -343,7 +343,7 @@ def test_message_modes_condition_the_team_exactly(window):
 
 def test_own_modes_are_the_conditioned_map_kept_from_motion_noise():
     """``bias_compensation.own_modes``: this robot's columns of N - K D at unit variance,
-    K = S_nd S_dd^+ (``motion.condition_maps``), the same array whether kept from the instant's
+    K = S_nd S_dd^+ (``motion.conditioned_maps``), the same array whether kept from the instant's
     ``motion_noise`` or computed alone (a fresh model), and N's own columns under "own"."""
     from types import SimpleNamespace
 
