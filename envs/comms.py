@@ -5,7 +5,9 @@ channel decides, at send time, whether the copy is lost (probability ``drop_prob
 additive Gaussian noise on its wrench; a kept copy arrives ``latency_steps`` control periods
 after it was sent (``latency_s`` rounded to the nearest whole period, halves up: a control loop
 reads its mailbox once per period). Each receiver gets its own copy (arrays copied), so one
-receiver cannot alter what another one sees.
+receiver cannot alter what another one sees; a message whose arrays are all read-only
+(``freeze_arrays``) cannot be altered, so the receivers share it (with noise: each gets its own
+noisy wrenches and shares the other arrays).
 
 Noise: a wrench [force N; moment N m] drawn with standard deviations ``noise_std`` =
 (force, moment) per axis in the sender's grasp frame is added to ``wrench_grasp``; the same
@@ -79,6 +81,26 @@ def _init_fields(cls: type) -> tuple[str, ...]:
     """The names of the dataclass ``cls``'s fields that ``__init__`` takes (those
     ``dataclasses.replace`` passes on), looked up once per class."""
     return tuple(f.name for f in dataclasses.fields(cls) if f.init)
+
+
+def freeze_arrays(message: Any) -> Any:
+    """``message`` with its array fields made read-only (in place; returned), so that the
+    channel hands it to its receivers without copies. Its sender must not change them through
+    another reference afterwards."""
+    for name in _init_fields(type(message)):
+        value = getattr(message, name)
+        if isinstance(value, np.ndarray):
+            value.flags.writeable = False
+    return message
+
+
+def _is_frozen(message: Any) -> bool:
+    """Whether none of ``message``'s array fields is writable (``freeze_arrays``)."""
+    for name in _init_fields(type(message)):
+        value = getattr(message, name)
+        if isinstance(value, np.ndarray) and value.flags.writeable:
+            return False
+    return True
 
 
 class CommChannel:
@@ -224,13 +246,14 @@ class CommChannel:
         step = int(step)
         extra = sum(d.extra_steps for d in self._delays if d.robot == sender and d.active(step))
         due = step + self.latency_steps + extra
+        shared = not self._noisy and _is_frozen(message)  # then every receiver gets it as is
         for receiver in range(self.n_robots):
             if receiver == sender or receiver in self.disconnected:
                 continue
             if self.drop_prob > 0 and self.rng.random() < self.drop_prob:
                 self.stats["dropped"] += 1
                 continue
-            copy = self._copy(message)
+            copy = message if shared else self._copy(message)
             if self._bursts and self._lost_to_burst(sender, receiver, step):
                 self.fault_stats["lost_sent"][sender] += 1
                 self.fault_stats["lost_received"][receiver] += 1
@@ -242,14 +265,20 @@ class CommChannel:
             self.stats["in_flight"] += 1
 
     def _copy(self, message: Any) -> Any:
-        """An independent copy of ``message`` with this copy's wrench noise added: its class
-        called with its fields, each array copied (``dataclasses.replace`` with the arrays
-        changed, without looking the fields up again at every copy)."""
+        """A copy of ``message`` with this copy's wrench noise added: its class called with its
+        fields (``dataclasses.replace`` with the arrays changed, without looking the fields up
+        again at every copy), each writable array copied (once where fields share it, the
+        copies sharing it alike), the read-only ones shared."""
         fields = {name: getattr(message, name) for name in _init_fields(type(message))}
         noisy = self._noisy
+        copies: dict[int, np.ndarray] = {}
         for name, value in fields.items():
-            if isinstance(value, np.ndarray) and not (noisy and name in WRENCH_FIELDS):
-                fields[name] = value.copy()
+            if not isinstance(value, np.ndarray) or not value.flags.writeable:
+                continue
+            if not (noisy and name in WRENCH_FIELDS):
+                if id(value) not in copies:
+                    copies[id(value)] = value.copy()
+                fields[name] = copies[id(value)]
         if noisy:  # the noisy wrenches are new arrays
             noise_grasp = self._wrench_noise_std * self.rng.standard_normal(6)
             rot = np.asarray(message.grasp_rot_world, dtype=float)

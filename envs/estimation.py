@@ -23,9 +23,10 @@ from typing import Any
 import numpy as np
 from numba import njit
 
+from astrocargo.envs.comms import freeze_arrays
 from astrocargo.envs.sensors import SensorReadings
 from astrocargo.estimator.cargo_estimator import CargoEstimator
-from astrocargo.estimator.inertia import estimate_errors
+from astrocargo.estimator.inertia import errors_given_true, true_principal_moments
 from astrocargo.estimator.rne import RobotDescription
 
 SENT_ARM_KEPT = 1000  # messages' arm states kept per sender (160 s at one per 10 steps)
@@ -89,6 +90,16 @@ def message_ages(stamp, valid, step_count, dt_s, age) -> None:
         age[idx] = (step_count - stamp[idx]) * dt_s if valid[idx] else 0.0
 
 
+@njit(cache=True)
+def log_std_sums(std, floor, out) -> None:
+    """Into ``out`` (N,): sum_k log(max(std[i, k], floor)) of standard deviations (N, K)."""
+    for i in range(std.shape[0]):
+        total = 0.0
+        for k in range(std.shape[1]):
+            total += np.log(max(std[i, k], floor))
+        out[i] = total
+
+
 class TeamEstimation:
     """Every robot's estimator and the messages between them for one episode (module
     docstring) of ``n_robots``. ``estimators`` is the list of ``CargoEstimator`` (robot index
@@ -100,7 +111,8 @@ class TeamEstimation:
         n = n_robots
         self.estimators = estimators
         self.dt_s = dt_s
-        self.true_params_grasp = np.array(true_params_grasp)
+        self.true_params_grasp = np.array(true_params_grasp, dtype=float)
+        self._true_moments: np.ndarray | None = None  # their principal moments (``refresh``)
         self.sent_arm: list[dict[int, np.ndarray]] = [{} for _ in range(n)]
         self.peer_msgs: list[dict[int, Any]] = [{} for _ in range(n)]
         self.latest_wrench = np.zeros((n, n, 6))  # [receiver, sender], world axes
@@ -133,7 +145,7 @@ class TeamEstimation:
                 sent[msg.stamp] = np.concatenate((q, arm_rates[i]))
                 if len(sent) > SENT_ARM_KEPT:
                     del sent[next(iter(sent))]  # the oldest
-                channel.send(msg, k)
+                channel.send(freeze_arrays(msg), k)  # its receivers share it
         if channel.due(k):
             for receiver, msgs in channel.deliver(k).items():
                 for msg in msgs:
@@ -167,14 +179,21 @@ class TeamEstimation:
         """Every estimator's mean and standard deviation of pi, (n_robots, 10), row i robot i's
         (``CargoEstimator.params_mean``, ``params_std``), and its errors against the true
         cargo (mass relative, centre of mass m, principal moments relative); also updates
-        ``log_std_sums``."""
-        est_mean = np.array([est.params_mean() for est in self.estimators])
-        est_std = np.array([est.params_std() for est in self.estimators])
-        self.log_std_sums = np.log(np.maximum(est_std, LOG_STD_FLOOR)).sum(axis=1)
-        mass, com, principal = estimate_errors(est_mean, self.true_params_grasp)
+        ``log_std_sums``. The arrays are new at each call; the rows are filled in place."""
+        n = len(self.estimators)
+        est_mean, est_std = np.empty((n, 10)), np.empty((n, 10))
+        for i, est in enumerate(self.estimators):
+            est_mean[i] = est.params_mean()
+            est.params_std(est_std[i])
+        if self._true_moments is None:  # the true cargo's principal moments, checked once
+            self._true_moments = true_principal_moments(self.true_params_grasp)
+        out = np.empty((n, 5))  # mass, com, principal (3)
+        errors_given_true(est_mean, self.true_params_grasp, self._true_moments, out)
+        self.log_std_sums = np.empty(n)
+        log_std_sums(est_std, LOG_STD_FLOOR, self.log_std_sums)
         errors = [
-            {"mass_rel_err": m, "com_err_m": c, "principal_rel_err": p}
-            for m, c, p in zip(mass.tolist(), com.tolist(), principal.tolist(), strict=True)
+            {"mass_rel_err": row[0], "com_err_m": row[1], "principal_rel_err": row[2:]}
+            for row in out.tolist()
         ]
         return est_mean, est_std, errors
 
@@ -192,13 +211,36 @@ class TeamEstimation:
         return wrench, self._slot_ages, arrived, arm
 
     def _slot_arrays(self, acting: np.ndarray) -> tuple[np.ndarray, ...]:
-        """`peer_slot_values`' stamps, validity, wrenches, arrivals and arm states (read-only)."""
-        rows = np.arange(self.peer_slots.shape[0])[:, None]
-        stamp = self.latest_stamp[rows, self.peer_slots]
-        valid = (stamp >= 0) & acting[:, None]
-        wrench = np.where(valid[..., None], self.latest_wrench[rows, self.peer_slots], 0.0)
-        arm = np.where(valid[..., None], self.latest_arm[rows, self.peer_slots], 0.0)
-        arrays = (stamp, valid, wrench, valid.astype(float), arm)
+        """`peer_slot_values`' stamps, validity, wrenches, arrivals and arm states (read-only),
+        new arrays filled by one compiled call (``slot_arrays``)."""
+        n, p = self.peer_slots.shape
+        stamp, valid = np.empty((n, p), dtype=np.int64), np.empty((n, p), dtype=bool)
+        wrench, arrived, arm = np.empty((n, p, 6)), np.empty((n, p)), np.empty((n, p, 4))
+        arrays = (stamp, valid, wrench, arrived, arm)
+        slot_arrays(
+            self.latest_stamp, self.latest_wrench, self.latest_arm, self.peer_slots,
+            np.asarray(acting, dtype=bool), *arrays,
+        )  # fmt: skip
         for array in arrays:
             array.flags.writeable = False
         return arrays
+
+
+@njit(cache=True)
+def slot_arrays(latest_stamp, latest_wrench, latest_arm, peer_slots, acting, stamp, valid,
+                wrench, arrived, arm) -> None:  # fmt: skip
+    """The peer slots (N, P) from the latest messages [receiver, sender]: robot i's slot s holds
+    sender j = ``peer_slots[i, s]``: ``stamp`` its stamp, ``valid`` stamp >= 0 and
+    ``acting[i]``, ``arrived`` valid as 0/1, ``wrench`` (N, P, 6) and ``arm`` (N, P, 4) its
+    wrench and arm state where valid, else zeros."""
+    for i in range(peer_slots.shape[0]):
+        for s in range(peer_slots.shape[1]):
+            j = peer_slots[i, s]
+            stamp[i, s] = latest_stamp[i, j]
+            ok = stamp[i, s] >= 0 and acting[i]
+            valid[i, s] = ok
+            arrived[i, s] = 1.0 if ok else 0.0
+            for c in range(6):
+                wrench[i, s, c] = latest_wrench[i, j, c] if ok else 0.0
+            for c in range(4):
+                arm[i, s, c] = latest_arm[i, j, c] if ok else 0.0

@@ -91,7 +91,7 @@ from .prior import (  # noqa: F401 (re-exported)
     prior_covariance,
 )
 from .rne import Balance, RobotDescription, grasp_pose, wrench_transform
-from .ukf import InertialParamUKF
+from .ukf import InertialParamUKF, sandwich_std
 
 # A pure function of four numbers that steps a filter's impulse response: one evaluation per
 # set-up, not one per estimator and reset.
@@ -658,10 +658,16 @@ class CargoEstimator(EstimatorInputs):
         cov = self.ukf.params_cov()
         return cov if self._reports is None else self._reports.covariance(cov)
 
-    def params_std(self) -> np.ndarray:
-        """sqrt(diag(``params_cov``)) (10,), without its copy of P."""
-        cov = self.ukf.P if self._reports is None else self._reports.covariance(self.ukf.P)
-        return np.sqrt(np.diag(cov))
+    def params_std(self, out: np.ndarray | None = None) -> np.ndarray:
+        """sqrt(diag(``params_cov``)) (10,), into ``out`` where given, without its copy of P nor
+        its full product P + P X P (``ukf.sandwich_std``)."""
+        out = np.empty(10) if out is None else out
+        cross = None if self._reports is None else self._reports.encoder_cov
+        if cross is None:
+            np.sqrt(self.ukf.P.diagonal(), out=out)
+        else:
+            sandwich_std(self.ukf.P, cross.X, out)
+        return out
 
     @property
     def counters(self) -> dict[str, int]:

@@ -522,7 +522,6 @@ def _estimate_errors_kernel(pi_est, pi_true, out):
     Returns 0, or the first failed check over all bodies: 1 pi_est not finite, 2 pi_true not
     finite, 3 a mass of pi_est not positive, 4 one of pi_true, 5 a true principal moment not
     positive."""
-    n = pi_est.shape[0]
     checks = (
         np.isfinite(pi_est).all(),
         np.isfinite(pi_true).all(),
@@ -532,17 +531,50 @@ def _estimate_errors_kernel(pi_est, pi_true, out):
     for k in range(4):
         if not checks[k]:
             return k + 1
-    for b in range(n):
+    moments_true = _principal_moments_about_com(pi_true)
+    if (moments_true <= 0.0).any():
+        return 5
+    return _errors_kernel(pi_est, pi_true, moments_true, out)
+
+
+@njit(cache=True)
+def _principal_moments_about_com(pi):
+    """The principal moments about the com (n, 3), ascending, of bodies pi (n, 10) (kg m^2)."""
+    moments = np.empty((pi.shape[0], 3))
+    for b in range(pi.shape[0]):
+        moments[b] = np.linalg.eigvalsh(_inertia_about_com(pi[b]))
+    return moments
+
+
+@njit(cache=True)
+def _errors_kernel(pi_est, pi_true, moments_true, out):
+    """`_estimate_errors_kernel` given the true principal moments (n, 3); returns 0, 1 or 3."""
+    if not np.isfinite(pi_est).all():
+        return 1
+    if not (pi_est[:, 0] > 0.0).all():
+        return 3
+    for b in range(pi_est.shape[0]):
         m_est, m_true = pi_est[b, 0], pi_true[b, 0]
         out[b, 0] = np.abs(m_est - m_true) / m_true
         dc = pi_est[b, 1:4] / m_est - pi_true[b, 1:4] / m_true
         out[b, 1] = np.sqrt(dc[0] * dc[0] + dc[1] * dc[1] + dc[2] * dc[2])
         moments_est = np.linalg.eigvalsh(_inertia_about_com(pi_est[b]))
-        moments_true = np.linalg.eigvalsh(_inertia_about_com(pi_true[b]))
-        if (moments_true <= 0.0).any():
-            return 5
-        out[b, 2:] = np.abs(moments_est - moments_true) / moments_true
+        out[b, 2:] = np.abs(moments_est - moments_true[b]) / moments_true[b]
     return 0
+
+
+def true_principal_moments(pi_true: np.ndarray) -> np.ndarray:
+    """Principal moments about the com (n, 3) of true bodies (n, 10), checked (ValueError)."""
+    pi_true = np.ascontiguousarray(pi_true, dtype=float).reshape(-1, 10)
+    estimate_errors(pi_true, pi_true)
+    return _principal_moments_about_com(pi_true)
+
+
+def errors_given_true(pi_est, pi_true, moments_true, out) -> None:
+    """``estimate_errors`` of float rows (n, 10) into out (n, 5), the true principal moments
+    (n, 3) known (``true_principal_moments``): no shape checks; the same ValueError."""
+    if _errors_kernel(pi_est, pi_true, moments_true, out):
+        estimate_errors(pi_est, pi_true)  # raises the ValueError of that estimate
 
 
 @njit(cache=True)
