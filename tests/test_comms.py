@@ -6,7 +6,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 import pytest
 
-from astrocargo.envs.comms import CommChannel
+from astrocargo.envs.comms import CommChannel, freeze_arrays
 from astrocargo.estimator.cargo_estimator import WrenchMessage
 
 DT_S = 0.016
@@ -87,6 +87,46 @@ def test_each_receiver_gets_its_own_copy():
     a.wrench_grasp[:] = 0.0
     np.testing.assert_array_equal(b.wrench_grasp, msg.wrench_grasp)
     assert out[0] == []  # never to the sender
+
+
+def test_a_frozen_message_is_shared_and_a_shared_array_copied_once():
+    """A message whose arrays are all read-only (``freeze_arrays``) reaches every receiver as
+    is; a writable array that two fields share is copied once per receiver, the copy shared by
+    those fields as in the original."""
+    ch = _channel(n=3)
+    msg = freeze_arrays(_message(0, 1))
+    assert not msg.wrench_grasp.flags.writeable and not msg.grasp_rot_world.flags.writeable
+    ch.send(msg, 1)
+    out = ch.deliver(1)
+    assert out[1][0] is msg and out[2][0] is msg
+    var = np.ones(4)
+    ch.send(replace(_message(0, 2), motion_var=var, motion_band=var), 2)
+    out = ch.deliver(2)
+    a, b = out[1][0], out[2][0]
+    assert a.motion_var is a.motion_band and a.motion_var is not var
+    assert a.motion_var is not b.motion_var
+
+
+def test_frozen_and_writable_messages_get_the_same_losses_delays_and_noise():
+    """Sharing frozen messages changes no draw: with loss, latency and noise a seeded channel
+    hands out the same copies either way, each receiver its own noisy wrenches, the other
+    arrays shared with the sender's read-only ones."""
+    runs = []
+    for frozen in (False, True):
+        ch = _channel(n=3, latency_s=0.05, drop_prob=0.4, noise_std=(0.01, 0.001), seed=5)
+        got = []
+        for k in range(200):
+            msg = _message(k % 3, k, _rot_z(0.1 * k))
+            ch.send(freeze_arrays(msg) if frozen else msg, k)
+            for receiver, msgs in ch.deliver(k).items():
+                got += [(receiver, m.stamp, m.wrench_grasp, m.wrench_world, m) for m in msgs]
+        runs.append(got)
+    assert len(runs[0]) == len(runs[1]) > 100
+    for (ra, sa, ga, wa, _), (rb, sb, gb, wb, mb) in zip(*runs, strict=True):
+        assert (ra, sa) == (rb, sb)
+        np.testing.assert_array_equal(ga, gb)
+        np.testing.assert_array_equal(wa, wb)
+        assert mb.wrench_grasp.flags.writeable and not mb.grasp_pos_world.flags.writeable
 
 
 def test_drop_statistics():

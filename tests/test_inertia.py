@@ -15,6 +15,7 @@ from astrocargo.estimator.inertia import (
     InertialParams,
     check_physical,
     com_error_m,
+    errors_given_true,
     estimate_errors,
     inertia_to_vec,
     log_cholesky_jacobian,
@@ -31,6 +32,7 @@ from astrocargo.estimator.inertia import (
     pseudo_inertia_to_params,
     pseudo_inertia_transform,
     transform_params,
+    true_principal_moments,
     vec_to_inertia,
 )
 
@@ -420,6 +422,29 @@ def test_estimate_errors_equal_the_three_metrics_batched():
     flat[1, 4:] = 0.0  # zero inertia about the origin: a moment about the com is negative
     with pytest.raises(ValueError, match="pi_true must have positive principal moments"):
         estimate_errors(pi_est, flat)
+
+
+def test_errors_given_true_equal_estimate_errors():
+    """The refresh's path (true principal moments computed once) gives ``estimate_errors``'s
+    values bit for bit, and the same ValueErrors."""
+    rng = np.random.default_rng(19)
+    pi_est, pi_true = (a.reshape(-1, 10) for a in random_params(rng, (2, 6)))
+    moments = true_principal_moments(pi_true)
+    out = np.empty((6, 5))
+    errors_given_true(pi_est, pi_true, moments, out)
+    mass, com, principal = estimate_errors(pi_est, pi_true)
+    np.testing.assert_array_equal(out, np.column_stack((mass, com, principal)))
+    bad = pi_est.copy()
+    bad[2, 0] = -1.0
+    with pytest.raises(ValueError, match="pi_est must have positive mass"):
+        errors_given_true(bad, pi_true, moments, out)
+    bad[2, 0] = np.nan
+    with pytest.raises(ValueError, match="pi_est must be finite"):
+        errors_given_true(bad, pi_true, moments, out)
+    flat = pi_true.copy()
+    flat[1, 4:] = 0.0
+    with pytest.raises(ValueError, match="pi_true must have positive principal moments"):
+        true_principal_moments(flat)
 
 
 def test_pseudo_inertia_distance_is_frame_free():
