@@ -25,12 +25,15 @@ from .team_noise import message_map
 def keep_motion(stamps, states, span, stamp, pre_state, horizon):
     """Into the ring (``stamps`` (K,), ``states`` (K, 3, w), ``span`` [first, count], increasing
     stamps): drop the oldest states while their stamp is below ``horizon`` (steps), then append
-    ``pre_state``[:3] recorded at ``stamp``. The caller leaves room for one (count < K)."""
+    ``pre_state``[:3] recorded at ``stamp``. The caller leaves room for one (count < K):
+    ValueError if there is none."""
     size = stamps.shape[0]
     first, count = span[0], span[1]
     while count > 0 and stamps[first] < horizon:
         first = (first + 1) % size
         count -= 1
+    if count == size:
+        raise ValueError("the ring of states is full")
     slot = (first + count) % size
     stamps[slot] = stamp
     states[slot] = pre_state[:3]

@@ -103,3 +103,16 @@ def test_the_ring_of_states_gives_the_deque_s_delayed_motion(lag_steps):
         np.testing.assert_array_equal(got, expected)
         assert model._motion_ring[2][1] == len(states)
     assert (model._motion_ring[0].shape[0] > 8) == (lag_steps > 60)
+
+
+def test_a_full_ring_raises_instead_of_overwriting():
+    from astrocargo.estimator.instant_kernels import keep_motion
+
+    stamps, states, span = np.zeros(2, np.int64), np.zeros((2, 3, 4)), np.zeros(2, np.int64)
+    pre_state = np.ones((3, 4))
+    keep_motion(stamps, states, span, 10, pre_state, 0.0)
+    keep_motion(stamps, states, span, 20, pre_state, 0.0)
+    with pytest.raises(ValueError, match="full"):
+        keep_motion(stamps, states, span, 30, pre_state, 0.0)
+    keep_motion(stamps, states, span, 30, pre_state, 15.0)  # the oldest dropped: room again
+    np.testing.assert_array_equal(span, [1, 2])
