@@ -49,16 +49,14 @@ channels' G(L) are those of the fused error's spectrum (``_init_fused_accelerome
 
 from __future__ import annotations
 
-import bisect
-import collections
 import functools
-import operator
 from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
 
 from .fused_motion import coloured_lag_covariances
+from .instant_kernels import keep_motion, nearest_motion, record_modes
 from .momentum import SIZE
 from .motion import (
     HELD_EXTENDED,
@@ -325,7 +323,9 @@ class NoiseModel:
         self._imu_pos = np.ascontiguousarray(robot.imu_pos, dtype=float)
         self._n_joints = nj
         self._dt_s = dt_s
-        self._states: collections.deque[tuple[int, np.ndarray]] = collections.deque()
+        # The recorded pre-filter states (``_delayed_motion``): a ring of stamps (K,), states
+        # (K, 3, 12 + nj) and its span [first slot, count], made at the first instant.
+        self._motion_ring: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
     def _init_fused_accelerometer(self, n_lags: int) -> None:
         """The accelerometer fused with localization (``accel_psd_ratio`` r(f), None: raw):
@@ -395,21 +395,58 @@ class NoiseModel:
         x = self._delayed_motion(stamp, pre_state)
         if not self.over_time:
             self.autocorrelation.add(index, regressor)
-        if not self.over_time and (
-            self._held_factor is None or index % FACTOR_REFRESH_UPDATES == 0
-        ):
-            rho = self.autocorrelation.rho()
-            w = lag_weighted_covariance(self._lag_cov, rho)
-            self._held_factor = psd_factor(w[np.ix_(HELD_EXTENDED, HELD_EXTENDED)])
-            if self._accel_lag_cov is not None:
-                self._accel_factor = psd_factor(lag_weighted_covariance(self._accel_lag_cov, rho))
-            self._factors = None
+            if self._held_factor is None or index % FACTOR_REFRESH_UPDATES == 0:
+                self._refresh_factors()
         none = rate_terms is None or not self._n_rate_modes
         terms, variances = _NO_RATE_TERMS if none else rate_terms
         return instant_noise_modes(
             self._robot_arrays, self._imu_pos, x, self._n_joints, self._jacobian_rate_step_s,
             self._channel_factors(), self._point_factor, terms, variances, self._n_rate_modes,
         )  # fmt: skip
+
+    def _refresh_factors(self) -> None:
+        """The IMU channels' lag-weighted factors at the regressor's autocorrelation so far
+        (``momentum_jacobians``)."""
+        rho = self.autocorrelation.rho()
+        w = lag_weighted_covariance(self._lag_cov, rho)
+        self._held_factor = psd_factor(w[np.ix_(HELD_EXTENDED, HELD_EXTENDED)])
+        if self._accel_lag_cov is not None:
+            self._accel_factor = psd_factor(lag_weighted_covariance(self._accel_lag_cov, rho))
+        self._factors = None
+
+    def instant_modes(
+        self,
+        stamp: int,
+        regressor: np.ndarray,
+        pre_state: np.ndarray,
+        rate_terms: tuple[np.ndarray, np.ndarray] | None = None,
+    ) -> tuple[tuple[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        """``momentum_jacobians`` then ``message_modes`` of its modes: ((d links, d Y), (F's
+        links rows, its grasp rows, ones)). Not over time, one compiled call
+        (``instant_kernels.record_modes``; the factors' refresh, every
+        ``FACTOR_REFRESH_UPDATES`` updates, before it)."""
+        if self.over_time:
+            jac = self.momentum_jacobians(stamp, regressor, pre_state, rate_terms)
+            return jac, self.message_modes(*jac)
+        index = stamp // self.update_every
+        regressor = np.ascontiguousarray(regressor, dtype=float)
+        add = not (self._held_factor is None or index % FACTOR_REFRESH_UPDATES == 0)
+        if not add:
+            self.autocorrelation.add(index, regressor)
+            self._refresh_factors()
+        none = rate_terms is None or not self._n_rate_modes
+        terms, variances = _NO_RATE_TERMS if none else rate_terms
+        target = stamp - self._jacobian_lag_steps
+        auto = self.autocorrelation
+        links, y, stacked = record_modes(
+            self._robot_arrays, self._imu_pos, self._n_joints, self._jacobian_rate_step_s,
+            self._channel_factors(), self._point_factor, terms, variances, self._n_rate_modes,
+            self._mode_std, self._ring_with_room(pre_state), (auto._cross, auto._power,
+            auto._ring, auto._ring_power, auto._ring_index), int(stamp), pre_state, target,
+            target - 2 * self.update_every, self._dt_s, index, regressor, add,
+        )  # fmt: skip
+        factor = psd_factor(stacked @ stacked.T)  # numpy's syrk, as ``message_modes``
+        return (links, y), (factor[:6], factor[6:], np.ones(9))
 
     def message_modes(
         self, d_links: np.ndarray, d_y: np.ndarray
@@ -437,21 +474,25 @@ class NoiseModel:
     def _delayed_motion(self, stamp: int, pre_state: np.ndarray) -> np.ndarray:
         """The pre-filter's (value, derivative, second derivative) (3, 12 + nj) about
         ``_jacobian_lag_steps`` before ``stamp``: the recorded state nearest that instant, moved
-        the rest of the way along its derivatives (first order)."""
+        the rest of the way along its derivatives (first order); ``pre_state`` kept, and the
+        states older than 2 updates before that instant dropped (``instant_kernels``)."""
         target = stamp - self._jacobian_lag_steps
-        states = self._states  # in increasing stamp order
-        while states and states[0][0] < target - 2 * self.update_every:
-            states.popleft()
-        states.append((int(stamp), np.array(pre_state[:3], dtype=float)))
-        # The nearest to the target, the earlier of two as near.
-        i = bisect.bisect_left(states, target, key=operator.itemgetter(0))
-        if i == len(states) or (i > 0 and target - states[i - 1][0] <= states[i][0] - target):
-            i -= 1
-        s, x = states[i]
-        back = (s - target) * self._dt_s
-        moved = x.copy()
-        moved[:2] -= back * x[1:3]
-        return moved
+        ring = self._ring_with_room(pre_state)
+        keep_motion(*ring, int(stamp), pre_state, target - 2 * self.update_every)
+        return nearest_motion(*ring, target, self._dt_s)
+
+    def _ring_with_room(self, pre_state: np.ndarray) -> tuple[np.ndarray, ...]:
+        """``_motion_ring`` with room for one more state (made, or twice as long, when full)."""
+        ring = self._motion_ring
+        if ring is not None and ring[2][1] < ring[0].shape[0]:
+            return ring
+        size, count = (8, 0) if ring is None else (2 * ring[0].shape[0], int(ring[2][1]))
+        stamps, states = np.zeros(size, np.int64), np.zeros((size, 3, pre_state.shape[1]))
+        if ring is not None:  # the held states in order, from slot 0
+            order = (ring[2][0] + np.arange(count)) % ring[0].shape[0]
+            stamps[:count], states[:count] = ring[0][order], ring[1][order]
+        self._motion_ring = (stamps, states, np.array([0, count], np.int64))
+        return self._motion_ring
 
     def relative_pose_cov(self, wrench: np.ndarray, n_fixes: int) -> np.ndarray:
         """Covariance (6, 6) a peer's wrench (in G) gains from the error of a relative grasp pose

@@ -347,11 +347,14 @@ class EstimatorInputs:
         """
         if (accel_imu is None) != (gyro_imu is None):
             self._check_imu_frame(accel_imu, gyro_imu)
-        # The ripple goes into the compiled call when its map needs no refresh now.
+        # The ripple goes into the compiled call once its map is there (refreshed first at an
+        # instant).
         instant = stamp % self.update_every == 0
         ripple_rate = None
         if servo_target_rate is not None:
-            if self._servo_ripple_map is None or instant:
+            if instant and self._servo_ripple_map is not None:
+                self._refresh_servo_ripple_map(joint_pos_rad, servo_target_rate)
+            if self._servo_ripple_map is None:
                 accel_imu = self._without_servo_ripple(
                     stamp, accel_imu, joint_pos_rad, servo_target_rate
                 )
@@ -385,28 +388,49 @@ class EstimatorInputs:
         update instant (every ``update_every`` steps: it follows the slow configuration).
         Unusable joint angles or rates (the Python path handles the readings) leave the reading
         and the last ripple as they are."""
-        rate = np.asarray(target_rate, dtype=float)
-        q = np.asarray(joint_pos_rad, dtype=float)
-        nj = (self.robot.n_joints,)
-        previous = self._servo_ripple_prev
-        if previous is None:
-            previous = self._servo_ripple_prev = np.zeros(3)
-        if rate.shape != nj or q.shape != nj or _ripple_case(rate, previous, q) != RIPPLE_MOVING:
+        rate, q = self._ripple_inputs(joint_pos_rad, target_rate)
+        if rate is None:
             return accel_imu  # at rest (a NaN rate is not: it counts as nonzero), or unusable
         if self._servo_ripple_map is None or stamp % self.update_every == 0:
-            self._servo_ripple_map = servo_ripple_velocities(
-                self.robot, q, self.ukf.params_mean(), self.dt_s
-            )
+            self._servo_ripple_map = self._servo_ripple_map_at(q)
         if self._servo_ripple_map is None:
             return accel_imu  # the servos' gains are unknown
         if accel_imu is None:
             self._servo_ripple_prev = self._servo_ripple_map @ rate
             return None
         self._servo_ripple_prev, corrected = servo_ripple_step(
-            self._servo_ripple_map, rate, previous, self._imu_rot, self.dt_s,
+            self._servo_ripple_map, rate, self._servo_ripple_prev, self._imu_rot, self.dt_s,
             np.asarray(accel_imu, dtype=float),
         )  # fmt: skip
         return corrected
+
+    def _ripple_inputs(self, joint_pos_rad, target_rate):
+        """The targets' rate and the joint angles (float arrays) when the ripple changes this
+        step (``_ripple_case`` RIPPLE_MOVING, both of n_joints), else (None, None); the last
+        ripple made zero if there is none yet."""
+        rate = np.asarray(target_rate, dtype=float)
+        q = np.asarray(joint_pos_rad, dtype=float)
+        nj = (self.robot.n_joints,)
+        if self._servo_ripple_prev is None:
+            self._servo_ripple_prev = np.zeros(3)
+        if rate.shape != nj or q.shape != nj:
+            return None, None
+        if _ripple_case(rate, self._servo_ripple_prev, q) != RIPPLE_MOVING:
+            return None, None
+        return rate, q
+
+    def _servo_ripple_map_at(self, q: np.ndarray) -> np.ndarray | None:
+        """``momentum.servo_ripple_velocities`` at joint angles ``q`` (n_joints,) rad and the
+        current cargo estimate; None when the servos' gains are unknown."""
+        return servo_ripple_velocities(self.robot, q, self.ukf.params_mean(), self.dt_s)
+
+    def _refresh_servo_ripple_map(self, joint_pos_rad, target_rate) -> None:
+        """At an update instant, the servos' ripple map refreshed (``_servo_ripple_map_at``) if
+        the ripple changes this step, as ``_without_servo_ripple`` does, so that the compiled
+        step then takes the ripple off (``estimator_step``)."""
+        rate, q = self._ripple_inputs(joint_pos_rad, target_rate)
+        if rate is not None:
+            self._servo_ripple_map = self._servo_ripple_map_at(q)
 
     # Whether the filters are started and the attitude known: once so, they stay so.
     _filters_ready = False
@@ -577,7 +601,8 @@ class EstimatorInputs:
     def _motion_fields(self, b, stamp: int, rate_terms: tuple | None) -> tuple[tuple | None, dict]:
         """The instant's sensor-noise modes in the momentum chain
         (``NoiseModel.momentum_jacobians``, with the squared rate noise ``rate_terms``; None
-        without motion fusion) and the message's motion fields."""
+        without motion fusion) and the message's motion fields (``NoiseModel.message_modes``),
+        both from ``NoiseModel.instant_modes``."""
         if self.motion_fusion == "none":
             return None, {}
         # The squared rate noise joins the modes (``NoiseModel.momentum_jacobians``): it enters
@@ -586,8 +611,9 @@ class EstimatorInputs:
         rate = (
             None if rate_terms is None else (rate_terms[0], self._rate_square_var * rate_terms[1])
         )
-        jac = self.noise.momentum_jacobians(stamp, b.regressor, self.pre.filter.state, rate)
-        links, grasp, var = self.noise.message_modes(*jac)
+        jac, (links, grasp, var) = self.noise.instant_modes(
+            stamp, b.regressor, self.pre.filter.state, rate
+        )
         motion = {
             "grasp_acc": b.regressor[:3, 0].copy(),
             "motion_links_jac": links,
