@@ -168,6 +168,8 @@ class CargoEstimator(EstimatorInputs):
             between fixes (the spectrum's schedule; used only with a lag).
     """
 
+    _fused: tuple | None = None  # (Instant, instant_terms) of the last _motion_noise
+
     def __init__(
         self,
         robot: RobotDescription,
@@ -498,16 +500,20 @@ class CargoEstimator(EstimatorInputs):
         z = thrust, b = links - peers' wrenches - the motion noise's mean, R its covariance
         (floors, actuation, motion, peers' noise, squared rates); with ``over_time_window``
         conditioned on the window's updates (``over_time``), and the window's entry for it."""
-        fast = self._instant_terms(stamp, inst, msgs)
-        if fast is not None:
-            return fast
-        peers, cov, peer_noise = self._peer_terms(inst.act_cov, msgs)
         imu_map = None
         if self._window is None:
             motion_mean, motion_cov = self._motion_noise(inst, msgs)
         else:
             motion_mean, motion_cov, imu_map = self._over_time_noise(inst, msgs)
         params = self.ukf.params_mean()
+        if self._fused is not None and self._fused[0] is inst:  # b, R of the same call
+            b, meas_cov, modes = self._fused[1][:3]
+            self._fused = None
+            rate_cov = self._rate_square_cov(stamp, params)
+            meas_cov = meas_cov if rate_cov is None else meas_cov + rate_cov
+            measurement = (inst.thrust, inst.regressor, b, meas_cov)
+            return measurement, self._score_bias(inst, msgs, meas_cov, params, modes)
+        peers, cov, peer_noise = self._peer_terms(inst.act_cov, msgs)
         meas_cov = self.meas_cov + cov / self.update_every + motion_cov + peer_noise
         rate_cov = self._rate_square_cov(stamp, params)
         if rate_cov is not None:
@@ -517,25 +523,21 @@ class CargoEstimator(EstimatorInputs):
             return measurement, self._score_bias(inst, msgs, meas_cov, params)
         return self._window.condition(stamp, *measurement, imu_map)
 
-    def _instant_terms(self, stamp: int, inst: Instant, msgs: list):
-        """``_measurement`` in one compiled call (``instant_terms``) where the grasp layout is
-        known and neither a window, the peers' noise nor squared rate terms enter; else None."""
+    def _instant_terms(self, inst: Instant, msgs: list):
+        """``instant_terms``' (b, R without squared rate terms, own modes, motion mean and
+        covariance) in one compiled call, where the grasp layout is known and neither a window
+        nor the peers' noise enters; else None."""
         rels = [self._relative[p] for p in self.peers]
         if (
             self._window is not None or self._peer_noise or self.motion_fusion == "none"
-            or inst.motion_jac is None or stamp in self._rate_terms
-            or any(r.known is None for r in rels) or any(m.motion_links_jac is None for m in msgs)
+            or inst.motion_jac is None or any(r.known is None for r in rels)
+            or any(m.motion_links_jac is None for m in msgs)
         ):  # fmt: skip
             return None
         transforms, params = [r.known for r in rels], self.ukf.params_mean()
         condition = self.motion_fusion == "team" and bool(msgs)
-        terms = instant_terms(self.noise, condition, params, inst, transforms, msgs, self.ukf.P,
-                              self.meas_cov, self.update_every)  # fmt: skip
-        if terms is None:
-            return None
-        measurement = (inst.thrust, inst.regressor, *terms[:2])
-        modes = terms[2]
-        return measurement, self._score_bias(inst, msgs, terms[1], params, modes)
+        return instant_terms(self.noise, condition, params, inst, transforms, msgs, self.ukf.P,
+                             self.meas_cov, self.update_every)  # fmt: skip
 
     def _score_bias(self, inst: Instant, msgs: list, cov, params, own=None):
         """``DeferredReports.modes`` of this update at ``params`` (None without the reports;
@@ -557,7 +559,12 @@ class CargoEstimator(EstimatorInputs):
 
     def _motion_noise(self, inst: Instant, msgs: list) -> tuple[np.ndarray, np.ndarray]:
         """Mean and covariance of the balance's motion noise at this instant
-        (``NoiseModel.motion_noise``)."""
+        (``NoiseModel.motion_noise``); where ``_instant_terms`` applies, from its one call, whose
+        b, R and own modes are kept for ``_measurement`` (``_fused``: (inst, terms))."""
+        fused = self._instant_terms(inst, msgs)
+        if fused is not None:
+            self._fused = (inst, fused)
+            return fused[3], fused[4]
         peers = self._peer_motion(msgs)
         return self.noise.motion_noise(
             self.motion_fusion, self.ukf.params_mean(), inst.motion_jac, inst.regressor, peers,

@@ -7,6 +7,8 @@ and the general path's peer terms (``peer_terms``)."""
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 from numba import njit
 
@@ -31,19 +33,31 @@ def peer_sums(act_cov, transforms, wrenches, covs):
 
 @njit(cache=True)
 def instant_terms_kernel(params, d_links, d_y, regressor, transforms, peer_links, peer_grasp,
-                         peer_acc, peer_start, level, condition, mismatch_model_var, params_cov,
-                         with_spread, act_cov, wrenches, covs, floor_cov, update_every,
-                         links):  # fmt: skip
+                         peer_acc, peer_start, variances, bands, condition, mismatch_model_var,
+                         params_cov, with_spread, act_cov, wrenches, covs, floor_cov,
+                         update_every, links):  # fmt: skip
     """An update's offset b = links - sum_k T_k w_k - E[n] (6,), covariance
-    R = floor + (act_cov + sum_k T_k C_k T_k^T) / update_every + Cov[n] (6, 6) and this robot's
-    modes as the residual sees them (6, n_own): ``peer_sums`` and ``team_noise_kernel`` (n the
-    motion noise, its arguments as there)."""
+    R = floor + (act_cov + sum_k T_k C_k T_k^T) / update_every + Cov[n] (6, 6), this robot's
+    modes as the residual sees them (6, n_own), and E[n] (6,), Cov[n] (6, 6): ``peer_sums``
+    and ``team_noise_kernel`` (n the motion noise, its arguments as there; its levels
+    var * band from this robot's ``variances[0]``, ``bands[0]`` (n_own,) and the peers'
+    stacked ``variances[1]``, ``bands[1]``)."""
+    n_own = variances[0].shape[0]
+    level = np.empty(n_own + variances[1].shape[0])
+    level[:n_own] = variances[0] * bands[0]
+    level[n_own:] = variances[1] * bands[1]
     wrench, cov = peer_sums(act_cov, transforms, wrenches, covs)
     mean, motion_cov, modes = team_noise_kernel(
         params, d_links, d_y, regressor, transforms, peer_links, peer_grasp, peer_acc,
         peer_start, level, condition, mismatch_model_var, params_cov, with_spread,
     )  # fmt: skip
-    return links - wrench - mean, floor_cov + cov / update_every + motion_cov, modes
+    return (
+        links - wrench - mean,
+        floor_cov + cov / update_every + motion_cov,
+        modes,
+        mean,
+        motion_cov,
+    )
 
 
 def _stacked(arrays: list, axis: int | None) -> np.ndarray:
@@ -56,10 +70,10 @@ def _stacked(arrays: list, axis: int | None) -> np.ndarray:
 
 def instant_terms(noise, condition, params, inst, transforms, msgs, params_cov, floor_cov,
                   update_every):  # fmt: skip
-    """(b, R, own modes) of ``instant_terms_kernel`` for an ``Instant`` ``inst``, the peers'
-    transforms [(6, 6)] and messages ``msgs`` (P each), at ``params`` (10,) with its spread
-    ``params_cov`` (10, 10) and ``noise``'s ``momentum_motion``; None where the messages'
-    motion arrays do not match their Jacobians (the general path raises)."""
+    """(b, R, own modes, E[n], Cov[n]) of ``instant_terms_kernel`` for an ``Instant``
+    ``inst``, the peers' transforms [(6, 6)] and messages ``msgs`` (P each), at ``params``
+    (10,) with its spread ``params_cov`` (10, 10) and ``noise``'s ``momentum_motion``; None
+    where the messages' motion arrays do not match their Jacobians (the general path raises)."""
     own, (d_links, d_y) = noise.momentum_motion, inst.motion_jac
     if msgs:
         transforms = _stacked(transforms, None)
@@ -68,24 +82,25 @@ def instant_terms(noise, condition, params, inst, transforms, msgs, params_cov, 
         peer_links = _stacked([m.motion_links_jac for m in msgs], 1)
         peer_grasp = _stacked([m.motion_grasp_jac for m in msgs], 1)
         sizes = [m.motion_links_jac.shape[1] for m in msgs]
-        level = np.concatenate((own.var * own.band, var * band))
         acc = _stacked([m.grasp_acc for m in msgs], None)
         wrenches = _stacked([m.wrench_grasp for m in msgs], None)
         covs = _stacked([m.wrench_cov_grasp for m in msgs], None)
     else:
-        sizes, level = [], own.var * own.band
+        sizes, var = [], _EMPTY[0][0]
+        band = var
         peer_links, peer_grasp, acc, wrenches = _EMPTY
         covs = transforms = _NO_TRANSFORMS
     n_own, n_peer = d_y.shape[0], peer_links.shape[1]
-    if level.shape != (n_own + n_peer,) or peer_grasp.shape[1] != n_peer or own.var.size != n_own:
+    n_var = (own.var.size, own.band.size, var.size, band.size, peer_grasp.shape[1])
+    if n_var != (n_own, n_own, n_peer, n_peer, n_peer):
         return None
-    starts = np.cumsum([0, *sizes])
+    starts = np.array([0, *itertools.accumulate(sizes)])
     spread = params_cov is not None
     cov = params_cov if spread else _NO_COV
     return instant_terms_kernel(
         params, d_links, d_y, inst.regressor, transforms, peer_links, peer_grasp, acc, starts,
-        level, condition, noise.mismatch_model_var, cov, spread, inst.act_cov, wrenches, covs,
-        floor_cov, float(update_every), inst.links,
+        (own.var, var), (own.band, band), condition, noise.mismatch_model_var, cov, spread,
+        inst.act_cov, wrenches, covs, floor_cov, float(update_every), inst.links,
     )  # fmt: skip
 
 
