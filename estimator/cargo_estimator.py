@@ -168,7 +168,7 @@ class CargoEstimator(EstimatorInputs):
             between fixes (the spectrum's schedule; used only with a lag).
     """
 
-    _fused: tuple | None = None  # (Instant, instant_terms) of the last _motion_noise
+    _kept_terms: tuple | None = None  # (Instant, instant_terms) of the last _motion_noise
 
     def __init__(
         self,
@@ -506,9 +506,9 @@ class CargoEstimator(EstimatorInputs):
         else:
             motion_mean, motion_cov, imu_map = self._over_time_noise(inst, msgs)
         params = self.ukf.params_mean()
-        if self._fused is not None and self._fused[0] is inst:  # b, R of the same call
-            b, meas_cov, modes = self._fused[1][:3]
-            self._fused = None
+        if self._kept_terms is not None and self._kept_terms[0] is inst:  # b, R of the same call
+            b, meas_cov, modes = self._kept_terms[1][:3]
+            self._kept_terms = None
             rate_cov = self._rate_square_cov(stamp, params)
             meas_cov = meas_cov if rate_cov is None else meas_cov + rate_cov
             measurement = (inst.thrust, inst.regressor, b, meas_cov)
@@ -560,10 +560,10 @@ class CargoEstimator(EstimatorInputs):
     def _motion_noise(self, inst: Instant, msgs: list) -> tuple[np.ndarray, np.ndarray]:
         """Mean and covariance of the balance's motion noise at this instant
         (``NoiseModel.motion_noise``); where ``_instant_terms`` applies, from its one call, whose
-        b, R and own modes are kept for ``_measurement`` (``_fused``: (inst, terms))."""
+        b, R and own modes are kept for ``_measurement`` (``_kept_terms``: (inst, terms))."""
         fused = self._instant_terms(inst, msgs)
         if fused is not None:
-            self._fused = (inst, fused)
+            self._kept_terms = (inst, fused)
             return fused[3], fused[4]
         peers = self._peer_motion(msgs)
         return self.noise.motion_noise(
