@@ -88,19 +88,19 @@ def _in_modes(factor: np.ndarray, cov: np.ndarray) -> np.ndarray:
     return inverse @ cov @ inverse.T
 
 
-def own_modes(noise, fusion, params, motion_jac, regressor, peers, slope=True):
+def own_modes(noise, fusion, params, motion_jac, regressor, peers, slope=True, known=None):
     """This robot's modes as the residual sees them, (E (6, n), dY (n, 6, 10)) at unit
     per-update variance (``NoiseModel.motion_noise``'s maps at ``params``: E = N's own columns,
     conditioned on the team's mismatch, N - K D, under "team" fusion with peers; dY None
-    without ``slope``); None where the motion noise has no modes (fusion "none", no
-    Jacobians, a peer without motion)."""
+    without ``slope``; E ``known`` where the motion noise's call has made it); None where the
+    motion noise has no modes (fusion "none", no Jacobians, a peer without motion)."""
     if fusion == "none" or motion_jac is None:
         return None
     if any(m.motion_links_jac is None for _, m in peers):
         return None
     own = noise.momentum_motion
     args = (own, params, motion_jac, regressor, peers)
-    modes = noise.own_modes(*args, fusion == "team" and bool(peers))
+    modes = known if known is not None else noise.own_modes(*args, fusion == "team" and bool(peers))
     if not slope:
         return modes, None
     scale = np.sqrt(noise._team(*args)[3][: own.var.size])

@@ -77,6 +77,7 @@ import numpy as np
 from .arguments import check_arguments, motion_lag_steps, nis_gate
 from .deferred_reports import DeferredReports
 from .fused_motion import FusedMotion, Reading
+from .instant_terms import instant_terms, peer_terms
 from .messages import Instant, RelativeGrasp, WrenchMessage  # noqa: F401 (re-exported)
 from .momentum import SIZE as MOMENTUM_SIZE
 from .momentum import cargo_regressor_parts
@@ -166,6 +167,8 @@ class CargoEstimator(EstimatorInputs):
             follows the smoother's error spectrum. ``localization_every``: control steps
             between fixes (the spectrum's schedule; used only with a lag).
     """
+
+    _kept_terms: tuple | None = None  # (Instant, instant_terms) of the last _motion_noise
 
     def __init__(
         self,
@@ -497,13 +500,20 @@ class CargoEstimator(EstimatorInputs):
         z = thrust, b = links - peers' wrenches - the motion noise's mean, R its covariance
         (floors, actuation, motion, peers' noise, squared rates); with ``over_time_window``
         conditioned on the window's updates (``over_time``), and the window's entry for it."""
-        peers, cov, peer_noise = self._peer_terms(inst.act_cov, msgs)
         imu_map = None
         if self._window is None:
             motion_mean, motion_cov = self._motion_noise(inst, msgs)
         else:
             motion_mean, motion_cov, imu_map = self._over_time_noise(inst, msgs)
         params = self.ukf.params_mean()
+        if self._kept_terms is not None and self._kept_terms[0] is inst:  # b, R of the same call
+            b, meas_cov, modes = self._kept_terms[1][:3]
+            self._kept_terms = None
+            rate_cov = self._rate_square_cov(stamp, params)
+            meas_cov = meas_cov if rate_cov is None else meas_cov + rate_cov
+            measurement = (inst.thrust, inst.regressor, b, meas_cov)
+            return measurement, self._score_bias(inst, msgs, meas_cov, params, modes)
+        peers, cov, peer_noise = self._peer_terms(inst.act_cov, msgs)
         meas_cov = self.meas_cov + cov / self.update_every + motion_cov + peer_noise
         rate_cov = self._rate_square_cov(stamp, params)
         if rate_cov is not None:
@@ -513,39 +523,35 @@ class CargoEstimator(EstimatorInputs):
             return measurement, self._score_bias(inst, msgs, meas_cov, params)
         return self._window.condition(stamp, *measurement, imu_map)
 
-    def _score_bias(self, inst: Instant, msgs: list, cov: np.ndarray, params: np.ndarray):
-        """``DeferredReports.modes`` of this update at ``params`` (None without the reports)."""
+    def _instant_terms(self, inst: Instant, msgs: list):
+        """``instant_terms``' (b, R without squared rate terms, own modes, motion mean and
+        covariance) in one compiled call, where the grasp layout is known and neither a window
+        nor the peers' noise enters; else None."""
+        rels = [self._relative[p] for p in self.peers]
+        if (
+            self._window is not None or self._peer_noise or self.motion_fusion == "none"
+            or inst.motion_jac is None or any(r.known is None for r in rels)
+            or any(m.motion_links_jac is None for m in msgs)
+        ):  # fmt: skip
+            return None
+        transforms, params = [r.known for r in rels], self.ukf.params_mean()
+        condition = self.motion_fusion == "team" and bool(msgs)
+        return instant_terms(self.noise, condition, params, inst, transforms, msgs, self.ukf.P,
+                             self.meas_cov, self.update_every)  # fmt: skip
+
+    def _score_bias(self, inst: Instant, msgs: list, cov, params, own=None):
+        """``DeferredReports.modes`` of this update at ``params`` (None without the reports;
+        ``own`` the own modes where already made)."""
         if self._reports is None:
             return None
         peers = self._peer_motion(msgs)
-        return self._reports.modes(self.motion_fusion, params, inst, peers, cov)
+        return self._reports.modes(self.motion_fusion, params, inst, peers, cov, own)
 
-    def _peer_terms(
-        self, act_cov: np.ndarray, msgs: list
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The peers' side of an instant's balance, all peers at once (T_j: peer j's wrench
-        transform G_j -> G): their wrenches on the cargo sum_j T_j w_j (6,), the actuation
-        covariance act_cov + sum_j T_j C_j T_j^T (6, 6) (C_j the message's), and the noise the
-        peers add (6, 6): sum_j T_j N T_j^T (N ``peer_noise``) and, for a grasp layout not
-        given, the averaged relative pose's (``NoiseModel.relative_pose_cov``). Sums run in
-        peer order, from zero (the wrenches, the noise) or act_cov."""
-        wrench, cov, noise = np.zeros(6), act_cov, np.zeros((6, 6))
-        if not msgs:
-            return wrench, act_cov.copy(), noise
+    def _peer_terms(self, act_cov: np.ndarray, msgs: list):
+        """The peers' side of an instant's balance (``instant_terms.peer_terms``)."""
         rels = [self._relative[p] for p in self.peers]
-        transforms = np.array([rel.transform() for rel in rels])
-        turned = transforms.transpose(0, 2, 1)
-        wrenches = (transforms @ np.array([m.wrench_grasp for m in msgs])[:, :, None])[:, :, 0]
-        carried = transforms @ np.array([m.wrench_cov_grasp for m in msgs]) @ turned
-        peer_noise = transforms @ self._peer_noise_cov @ turned if self._peer_noise else None
-        for k, rel in enumerate(rels):
-            wrench = wrench + wrenches[k]
-            cov = cov + carried[k]
-            if peer_noise is not None:
-                noise = noise + peer_noise[k]
-            if rel.known is None:
-                noise = noise + self.noise.relative_pose_cov(wrenches[k], rel.count)
-        return wrench, cov, noise
+        noise_cov = self._peer_noise_cov if self._peer_noise else None
+        return peer_terms(act_cov, rels, msgs, noise_cov, self.noise)
 
     def _peer_motion(self, msgs: list) -> list:
         """Per peer, its wrench transform G_j -> G and its message (the noise model's peers)."""
@@ -553,7 +559,12 @@ class CargoEstimator(EstimatorInputs):
 
     def _motion_noise(self, inst: Instant, msgs: list) -> tuple[np.ndarray, np.ndarray]:
         """Mean and covariance of the balance's motion noise at this instant
-        (``NoiseModel.motion_noise``)."""
+        (``NoiseModel.motion_noise``); where ``_instant_terms`` applies, from its one call, whose
+        b, R and own modes are kept for ``_measurement`` (``_kept_terms``: (inst, terms))."""
+        fused = self._instant_terms(inst, msgs)
+        if fused is not None:
+            self._kept_terms = (inst, fused)
+            return fused[3], fused[4]
         peers = self._peer_motion(msgs)
         return self.noise.motion_noise(
             self.motion_fusion, self.ukf.params_mean(), inst.motion_jac, inst.regressor, peers,

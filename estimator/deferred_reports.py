@@ -41,12 +41,15 @@ class DeferredReports:
             raise ValueError("encoders_over_time needs no random walk (process_std_rel 0)")
         return cls(noise, update_every, compensate, over_time, rollback)
 
-    def modes(self, fusion, params, inst, peers, cov):
+    def modes(self, fusion, params, inst, peers, cov, own=None):
         """(this update's own modes (E, dY) at ``params`` (``own_modes``), its R ``cov``,
-        ``params``), or None where the motion noise has no modes."""
+        ``params``), or None where the motion noise has no modes; ``own`` E where the motion
+        noise's call has already made it (``instant_terms``)."""
         slope = self.compensation is not None  # dY: the compensation's alone
+        if own is not None and not slope:
+            return (own, None), cov, params
         args = (inst.motion_jac, inst.regressor, peers)
-        modes = own_modes(self.noise, fusion, params, *args, slope=slope)
+        modes = own_modes(self.noise, fusion, params, *args, slope=slope, known=own)
         return None if modes is None else (modes, cov, params)
 
     def add(self, stamp: int, measurement: tuple, update: tuple, cov_before, walk) -> None:

@@ -1,0 +1,134 @@
+"""The process side of one update instant in one compiled call (``CargoEstimator._measurement``
+for a team whose grasp layout is known, without peer noise, window or squared-rate terms): the
+peers' wrenches and actuation covariance (``peer_sums``), the team's motion noise
+(``team_noise.team_noise_kernel``) and the measurement's offset b and covariance R
+(``instant_terms_kernel``), the peers' message arrays gathered without copies for one peer;
+and the general path's peer terms (``peer_terms``)."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+from numba import njit
+
+from .team_noise import team_noise_kernel
+
+_NO_COV = np.zeros((10, 10))  # the kernel without the posterior's spread
+
+
+@njit(cache=True)
+def peer_sums(act_cov, transforms, wrenches, covs):
+    """The peers' side of an instant's balance (T_k = ``transforms[k]`` (6, 6), peer k's wrench
+    transform G_k -> G): their wrenches on the cargo sum_k T_k w_k (6,) (``wrenches`` (P, 6))
+    and the actuation covariance act_cov + sum_k T_k C_k T_k^T (6, 6) (``covs`` (P, 6, 6)),
+    summed in peer order from zero and ``act_cov``."""
+    wrench, cov = np.zeros(6), act_cov.copy()
+    for k in range(transforms.shape[0]):
+        t = transforms[k]
+        wrench = wrench + t @ wrenches[k]
+        cov = cov + t @ covs[k] @ t.T
+    return wrench, cov
+
+
+@njit(cache=True)
+def instant_terms_kernel(params, d_links, d_y, regressor, transforms, peer_links, peer_grasp,
+                         peer_acc, peer_start, variances, bands, condition, mismatch_model_var,
+                         params_cov, with_spread, act_cov, wrenches, covs, floor_cov,
+                         update_every, links):  # fmt: skip
+    """An update's offset b = links - sum_k T_k w_k - E[n] (6,), covariance
+    R = floor + (act_cov + sum_k T_k C_k T_k^T) / update_every + Cov[n] (6, 6), this robot's
+    modes as the residual sees them (6, n_own), and E[n] (6,), Cov[n] (6, 6): ``peer_sums``
+    and ``team_noise_kernel`` (n the motion noise, its arguments as there; its levels
+    var * band from this robot's ``variances[0]``, ``bands[0]`` (n_own,) and the peers'
+    stacked ``variances[1]``, ``bands[1]``)."""
+    n_own = variances[0].shape[0]
+    level = np.empty(n_own + variances[1].shape[0])
+    level[:n_own] = variances[0] * bands[0]
+    level[n_own:] = variances[1] * bands[1]
+    wrench, cov = peer_sums(act_cov, transforms, wrenches, covs)
+    mean, motion_cov, modes = team_noise_kernel(
+        params, d_links, d_y, regressor, transforms, peer_links, peer_grasp, peer_acc,
+        peer_start, level, condition, mismatch_model_var, params_cov, with_spread,
+    )  # fmt: skip
+    return (
+        links - wrench - mean,
+        floor_cov + cov / update_every + motion_cov,
+        modes,
+        mean,
+        motion_cov,
+    )
+
+
+def _stacked(arrays: list, axis: int | None) -> np.ndarray:
+    """``arrays`` concatenated along ``axis`` (None: stacked on a new first axis); one array is
+    passed through (a view) without a copy."""
+    if len(arrays) == 1:
+        return arrays[0] if axis is not None else arrays[0][None]
+    return np.concatenate(arrays, axis=axis) if axis is not None else np.array(arrays)
+
+
+def instant_terms(noise, condition, params, inst, transforms, msgs, params_cov, floor_cov,
+                  update_every):  # fmt: skip
+    """(b, R, own modes, E[n], Cov[n]) of ``instant_terms_kernel`` for an ``Instant``
+    ``inst``, the peers' transforms [(6, 6)] and messages ``msgs`` (P each), at ``params``
+    (10,) with its spread ``params_cov`` (10, 10) and ``noise``'s ``momentum_motion``; None
+    where the messages' motion arrays do not match their Jacobians (the general path raises)."""
+    own, (d_links, d_y) = noise.momentum_motion, inst.motion_jac
+    if msgs:
+        transforms = _stacked(transforms, None)
+        var = _stacked([m.motion_var for m in msgs], 0)
+        band = _stacked([m.motion_band for m in msgs], 0)
+        peer_links = _stacked([m.motion_links_jac for m in msgs], 1)
+        peer_grasp = _stacked([m.motion_grasp_jac for m in msgs], 1)
+        sizes = [m.motion_links_jac.shape[1] for m in msgs]
+        acc = _stacked([m.grasp_acc for m in msgs], None)
+        wrenches = _stacked([m.wrench_grasp for m in msgs], None)
+        covs = _stacked([m.wrench_cov_grasp for m in msgs], None)
+    else:
+        sizes, var = [], _EMPTY[0][0]
+        band = var
+        peer_links, peer_grasp, acc, wrenches = _EMPTY
+        covs = transforms = _NO_TRANSFORMS
+    n_own, n_peer = d_y.shape[0], peer_links.shape[1]
+    n_var = (own.var.size, own.band.size, var.size, band.size, peer_grasp.shape[1])
+    if n_var != (n_own, n_own, n_peer, n_peer, n_peer):
+        return None
+    starts = np.array([0, *itertools.accumulate(sizes)])
+    spread = params_cov is not None
+    cov = params_cov if spread else _NO_COV
+    return instant_terms_kernel(
+        params, d_links, d_y, inst.regressor, transforms, peer_links, peer_grasp, acc, starts,
+        (own.var, var), (own.band, band), condition, noise.mismatch_model_var, cov, spread,
+        inst.act_cov, wrenches, covs, floor_cov, float(update_every), inst.links,
+    )  # fmt: skip
+
+
+def peer_terms(act_cov, rels, msgs, peer_noise_cov, noise):
+    """The peers' side of an instant's balance, all peers at once (T_j: peer j's wrench
+    transform G_j -> G, ``rels[j].transform()``): their wrenches on the cargo sum_j T_j w_j
+    (6,), the actuation covariance act_cov + sum_j T_j C_j T_j^T (6, 6) (C_j the message's),
+    and the noise the peers add (6, 6): sum_j T_j N T_j^T (N ``peer_noise_cov``, None: none)
+    and, for a grasp layout not given, the averaged relative pose's
+    (``NoiseModel.relative_pose_cov`` of ``noise``). Sums run in peer order, from zero (the
+    wrenches, the noise) or act_cov."""
+    wrench, cov, added = np.zeros(6), act_cov, np.zeros((6, 6))
+    if not msgs:
+        return wrench, act_cov.copy(), added
+    transforms = np.array([rel.transform() for rel in rels])
+    turned = transforms.transpose(0, 2, 1)
+    wrenches = (transforms @ np.array([m.wrench_grasp for m in msgs])[:, :, None])[:, :, 0]
+    carried = transforms @ np.array([m.wrench_cov_grasp for m in msgs]) @ turned
+    channel = None if peer_noise_cov is None else transforms @ peer_noise_cov @ turned
+    for k, rel in enumerate(rels):
+        wrench = wrench + wrenches[k]
+        cov = cov + carried[k]
+        if channel is not None:
+            added = added + channel[k]
+        if rel.known is None:
+            added = added + noise.relative_pose_cov(wrenches[k], rel.count)
+    return wrench, cov, added
+
+
+_EMPTY = (np.zeros((6, 0)), np.zeros((3, 0)), np.zeros((0, 3)), np.zeros((0, 6)))
+_NO_TRANSFORMS = np.zeros((0, 6, 6))
