@@ -17,14 +17,17 @@ def test_sandwich_std_is_the_sandwichs_diagonal():
     a = rng.normal(size=(10, 10))
     P = a @ a.T + 0.1 * np.eye(10)
     b = rng.normal(size=(10, 10))
-    X = -0.02 * (b @ b.T)  # the cross terms lower the spread, as the encoders' do
+    # The cross terms lower the spread, as the encoders' do: P + P X P = 0.6 P + 1e-4 P B B^T P.
+    X = -0.4 * np.linalg.inv(P) + 1e-4 * (b @ b.T)
+    expected = np.sqrt(np.diag(sandwich(P, X)))
+    assert np.all(np.isfinite(expected)) and np.all(expected < np.sqrt(np.diag(P)))
     out = np.empty(10)
     sandwich_std(P, X, out)
-    np.testing.assert_allclose(out, np.sqrt(np.diag(sandwich(P, X))), rtol=1e-13)
+    np.testing.assert_allclose(out, expected, rtol=1e-13)
     wide = np.zeros((10, 20))
     wide[:, ::2] = P
     sandwich_std(wide[:, ::2], X, out)
-    np.testing.assert_allclose(out, np.sqrt(np.diag(sandwich(P, X))), rtol=1e-13)
+    np.testing.assert_allclose(out, expected, rtol=1e-13)
 
 
 @pytest.fixture(scope="module")
