@@ -92,7 +92,7 @@ from .prior import (  # noqa: F401 (re-exported)
     prior_covariance,
 )
 from .rne import Balance, RobotDescription, grasp_pose, wrench_transform
-from .ukf import InertialParamUKF, sandwich_std
+from .ukf import InertialParamUKF
 
 # A pure function of four numbers that steps a filter's impulse response: one evaluation per
 # set-up, not one per estimator and reset.
@@ -506,21 +506,19 @@ class CargoEstimator(EstimatorInputs):
         else:
             motion_mean, motion_cov, imu_map = self._over_time_noise(inst, msgs)
         params = self.ukf.params_mean()
-        if self._kept_terms is not None and self._kept_terms[0] is inst:  # b, R of the same call
-            b, meas_cov, modes = self._kept_terms[1][:3]
-            self._kept_terms = None
-            rate_cov = self._rate_square_cov(stamp, params)
-            meas_cov = meas_cov if rate_cov is None else meas_cov + rate_cov
-            measurement = (inst.thrust, inst.regressor, b, meas_cov)
-            return measurement, self._score_bias(inst, msgs, meas_cov, params, modes)
-        peers, cov, peer_noise = self._peer_terms(inst.act_cov, msgs)
-        meas_cov = self.meas_cov + cov / self.update_every + motion_cov + peer_noise
+        kept, self._kept_terms, modes = self._kept_terms, None, None
+        if kept is not None and kept[0] is inst:  # b, R and own modes of the same call
+            b, meas_cov, modes = kept[1][:3]
+        else:
+            peers, cov, peer_noise = self._peer_terms(inst.act_cov, msgs)
+            meas_cov = self.meas_cov + cov / self.update_every + motion_cov + peer_noise
+            b = inst.links - peers - motion_mean
         rate_cov = self._rate_square_cov(stamp, params)
         if rate_cov is not None:
             meas_cov = meas_cov + rate_cov
-        measurement = (inst.thrust, inst.regressor, inst.links - peers - motion_mean, meas_cov)
+        measurement = (inst.thrust, inst.regressor, b, meas_cov)
         if self._window is None:
-            return measurement, self._score_bias(inst, msgs, meas_cov, params)
+            return measurement, self._score_bias(inst, msgs, meas_cov, params, modes)
         return self._window.condition(stamp, *measurement, imu_map)
 
     def _instant_terms(self, inst: Instant, msgs: list):
@@ -671,13 +669,12 @@ class CargoEstimator(EstimatorInputs):
 
     def params_std(self, out: np.ndarray | None = None) -> np.ndarray:
         """sqrt(diag(``params_cov``)) (10,), into ``out`` where given, without its copy of P nor
-        its full product P + P X P (``ukf.sandwich_std``)."""
+        the reports' full product (``DeferredReports.std``)."""
         out = np.empty(10) if out is None else out
-        cross = None if self._reports is None else self._reports.encoder_cov
-        if cross is None:
+        if self._reports is None:
             np.sqrt(self.ukf.P.diagonal(), out=out)
         else:
-            sandwich_std(self.ukf.P, cross.X, out)
+            self._reports.std(self.ukf.P, out)
         return out
 
     @property

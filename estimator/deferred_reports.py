@@ -69,6 +69,13 @@ class DeferredReports:
         """The reported covariance for the filter's P ``cov``."""
         return cov if self.encoder_cov is None else self.encoder_cov.covariance(cov)
 
+    def std(self, cov: np.ndarray, out: np.ndarray) -> None:
+        """sqrt(diag(``covariance(cov)``)) into ``out`` (10,), without the full product."""
+        if self.encoder_cov is None:
+            np.sqrt(cov.diagonal(), out=out)
+        else:
+            self.encoder_cov.std(cov, out)
+
     def state(self) -> tuple:
         """The reports' states, for ``restore`` on a rollback (their arrays shared: the
         reports replace them, never change them in place)."""

@@ -103,6 +103,22 @@ def sandwich(cov, X):
     return 0.5 * (out + out.T)
 
 
+@njit(cache=True)
+def sandwich_std(P, X, out):
+    """Into ``out`` (n,): sqrt of the diagonal of P + P X P (n, n), the standard deviations of
+    the encoders' sandwich (``sandwich``) without the full product:
+    out_i = sqrt(P_ii + sum_j (sum_k P_ik X_kj) P_ji)."""
+    n = P.shape[0]
+    for i in range(n):
+        total = 0.0
+        for j in range(n):
+            row = 0.0
+            for k in range(n):
+                row += P[i, k] * X[k, j]
+            total += row * P[j, i]
+        out[i] = np.sqrt(P[i, i] + total)
+
+
 class EncoderCovariance:
     """The cross terms X (10, 10) of the encoders' noise over the used updates (module
     docstring), with the last updates' (index, V) in a ring to pair with the next.
@@ -145,6 +161,10 @@ class EncoderCovariance:
     def covariance(self, cov: np.ndarray) -> np.ndarray:
         """P + P X P (10, 10), symmetric, for the filter's P ``cov``."""
         return sandwich(np.ascontiguousarray(cov, dtype=float), self.X)
+
+    def std(self, cov: np.ndarray, out: np.ndarray) -> None:
+        """sqrt(diag(P + P X P)) (10,) into ``out`` (``sandwich_std``), for the filter's P."""
+        sandwich_std(cov, self.X, out)
 
     def state(self) -> tuple[np.ndarray, int]:
         """(X, count): what ``restore`` needs, X shared (never changed in place)."""

@@ -492,9 +492,7 @@ def estimate_errors(
     for a, name in ((pi_est, "pi_est"), (pi_true, "pi_true")):
         if a.ndim < 1 or a.shape[-1] != 10:
             raise ValueError(f"{name} must have shape (..., 10), got shape {a.shape}")
-    shape = pi_est.shape
-    if pi_true.shape != shape:
-        shape = np.broadcast_shapes(shape, pi_true.shape)
+    shape = np.broadcast_shapes(pi_est.shape, pi_true.shape)
     rows_est, rows_true = (
         (a if a.shape == shape else np.broadcast_to(a, shape)).reshape(-1, 10)
         for a in (pi_est, pi_true)

@@ -65,7 +65,6 @@ from typing import NamedTuple
 import numpy as np
 from filterpy.kalman import MerweScaledSigmaPoints
 from filterpy.kalman import unscented_transform as filterpy_unscented_transform
-from numba import njit
 
 from . import unscented
 from .constrained import cholesky_lower, constrained_mode
@@ -500,22 +499,6 @@ class InertialParamUKF(BatchedUKF):
         jac = (values[1:11] - values[11:21]).T / (2.0 * step)
         var = np.einsum("ij,jk,ik->i", jac, self.P if cov is None else cov, jac)
         return values[0], np.sqrt(np.maximum(var, 0.0))
-
-
-@njit(cache=True)
-def sandwich_std(P, X, out):
-    """Into ``out`` (n,): sqrt of the diagonal of P + P X P (n, n), the standard deviations of
-    the encoders' sandwich (``encoder_covariance.sandwich``) without the full product:
-    out_i = sqrt(P_ii + sum_j (sum_k P_ik X_kj) P_ji)."""
-    n = P.shape[0]
-    for i in range(n):
-        total = 0.0
-        for j in range(n):
-            row = 0.0
-            for k in range(n):
-                row += P[i, k] * X[k, j]
-            total += row * P[j, i]
-        out[i] = np.sqrt(P[i, i] + total)
 
 
 # Prior standard deviations for `LogCholeskyUKF` in log-Cholesky coordinates (alpha, d1..3, s12,

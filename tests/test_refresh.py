@@ -6,9 +6,8 @@ import numpy as np
 import pytest
 
 from astrocargo.envs import astrobee_cargo_v0
-from astrocargo.estimator.encoder_covariance import sandwich
+from astrocargo.estimator.encoder_covariance import sandwich, sandwich_std
 from astrocargo.estimator.inertia import estimate_errors
-from astrocargo.estimator.ukf import sandwich_std
 
 
 def test_sandwich_std_is_the_sandwichs_diagonal():
