@@ -97,6 +97,7 @@ from .ukf import InertialParamUKF
 # A pure function of four numbers that steps a filter's impulse response: one evaluation per
 # set-up, not one per estimator and reset.
 _cached_rate_square_var = functools.lru_cache(maxsize=16)(rate_square_var)
+_NO_MESSAGES: dict = {}  # the peers' messages of a stamp none has arrived for (never written)
 
 
 class CargoEstimator(EstimatorInputs):
@@ -167,8 +168,6 @@ class CargoEstimator(EstimatorInputs):
             follows the smoother's error spectrum. ``localization_every``: control steps
             between fixes (the spectrum's schedule; used only with a lag).
     """
-
-    _kept_terms: tuple | None = None  # (Instant, instant_terms) of the last _motion_noise
 
     def __init__(
         self,
@@ -342,7 +341,7 @@ class CargoEstimator(EstimatorInputs):
         self._tainted_until = -1
         self._pending: dict[int, Instant] = {}
         self._own_fix: dict[int, tuple[np.ndarray, np.ndarray]] = {}
-        self._peer_msgs: dict[tuple[int, int], WrenchMessage] = {}
+        self._peer_msgs: dict[int, dict[int, WrenchMessage]] = {}  # stamp -> sender -> message
         self._oldest_peer_msg = math.inf  # a lower bound of the stamps in _peer_msgs
         self._changed = False  # an instant or a message arrived, or the peers changed
         self._relative: dict[int, RelativeGrasp] = {p: RelativeGrasp() for p in self.peers}
@@ -426,7 +425,7 @@ class CargoEstimator(EstimatorInputs):
         if message.stamp < self.stamp - self.history_steps:
             self.n_stale_messages += 1
             return
-        self._peer_msgs[(message.sender, message.stamp)] = message
+        self._peer_msgs.setdefault(message.stamp, {})[message.sender] = message
         self._oldest_peer_msg = min(self._oldest_peer_msg, message.stamp)
         self._changed = True
         if self._relative[message.sender].known is not None:
@@ -452,7 +451,8 @@ class CargoEstimator(EstimatorInputs):
         done = 0
         for stamp in sorted(self._pending):
             inst = self._pending[stamp]
-            msgs = [self._peer_msgs.get((p, stamp)) for p in self.peers]
+            held = self._peer_msgs.get(stamp, _NO_MESSAGES)
+            msgs = [held.get(p) for p in self.peers]
             ready = all(m is not None for m in msgs) and all(
                 rel.known is not None or rel.count >= self.min_relative_fixes
                 for rel in (self._relative[p] for p in self.peers)
@@ -498,21 +498,15 @@ class CargoEstimator(EstimatorInputs):
     def _measurement(self, stamp: int, inst: Instant, msgs: list):
         """The update's (z, Y, b, R): thrust_G = links_G + Y pi - sum_j T_ij W_j with
         z = thrust, b = links - peers' wrenches - the motion noise's mean, R its covariance
-        (floors, actuation, motion, peers' noise, squared rates); with ``over_time_window``
-        conditioned on the window's updates (``over_time``), and the window's entry for it."""
-        imu_map = None
-        if self._window is None:
-            motion_mean, motion_cov = self._motion_noise(inst, msgs)
-        else:
-            motion_mean, motion_cov, imu_map = self._over_time_noise(inst, msgs)
+        (floors, actuation, motion, peers' noise, squared rates; ``_balance_terms``); with
+        ``over_time_window`` conditioned on the window's updates (``over_time``), and the
+        window's entry for it."""
         params = self.ukf.params_mean()
-        kept, self._kept_terms, modes = self._kept_terms, None, None
-        if kept is not None and kept[0] is inst:  # b, R and own modes of the same call
-            b, meas_cov, modes = kept[1][:3]
+        if self._window is None:
+            b, meas_cov, modes, *_ = self._balance_terms(inst, msgs, params)
         else:
-            peers, cov, peer_noise = self._peer_terms(inst.act_cov, msgs)
-            meas_cov = self.meas_cov + cov / self.update_every + motion_cov + peer_noise
-            b = inst.links - peers - motion_mean
+            mean, cov, imu_map = self._over_time_noise(inst, msgs)
+            b, meas_cov = self._peer_balance(inst, msgs, mean, cov)
         rate_cov = self._rate_square_cov(stamp, params)
         if rate_cov is not None:
             meas_cov = meas_cov + rate_cov
@@ -521,21 +515,48 @@ class CargoEstimator(EstimatorInputs):
             return measurement, self._score_bias(inst, msgs, meas_cov, params, modes)
         return self._window.condition(stamp, *measurement, imu_map)
 
-    def _instant_terms(self, inst: Instant, msgs: list):
-        """``instant_terms``' (b, R without squared rate terms, own modes, motion mean and
-        covariance) in one compiled call, where the grasp layout is known and neither a window
-        nor the peers' noise enters; else None."""
+    def _balance_terms(self, inst: Instant, msgs: list, params: np.ndarray):
+        """An instant's (b, R without squared-rate terms, own modes or None, E[n], Cov[n]) at
+        ``params``, n the balance's motion noise (``NoiseModel.motion_noise``): one compiled
+        call (``instant_terms``) where the grasp layout is known and neither a window nor the
+        peers' noise enters; else the noise model's and ``_peer_balance``."""
         rels = [self._relative[p] for p in self.peers]
-        if (
-            self._window is not None or self._peer_noise or self.motion_fusion == "none"
-            or inst.motion_jac is None or any(r.known is None for r in rels)
+        if not (
+            self._peer_noise or self.motion_fusion == "none" or inst.motion_jac is None
+            or any(r.known is None for r in rels)
             or any(m.motion_links_jac is None for m in msgs)
         ):  # fmt: skip
-            return None
-        transforms, params = [r.known for r in rels], self.ukf.params_mean()
-        condition = self.motion_fusion == "team" and bool(msgs)
-        return instant_terms(self.noise, condition, params, inst, transforms, msgs, self.ukf.P,
-                             self.meas_cov, self.update_every)  # fmt: skip
+            condition = self.motion_fusion == "team" and bool(msgs)
+            terms = instant_terms(self.noise, condition, params, inst, [r.known for r in rels],
+                                  msgs, self.ukf.P, self.meas_cov, self.update_every)  # fmt: skip
+            if terms is not None:
+                return terms
+        mean, cov = self.noise.motion_noise(
+            self.motion_fusion, params, inst.motion_jac, inst.regressor, self._peer_motion(msgs),
+            self._grasp_lever, own=self.noise.momentum_motion, params_cov=self.ukf.P,
+        )  # fmt: skip
+        return (*self._peer_balance(inst, msgs, mean, cov), None, mean, cov)
+
+    def _peer_balance(self, inst: Instant, msgs: list, motion_mean, motion_cov):
+        """b = links - sum_j T_j w_j - E[n] and R = floor + (act_cov + sum_j T_j C_j T_j^T) /
+        update_every + Cov[n] + the peers' noise (``instant_terms.peer_terms``)."""
+        peers, cov, added = self._peer_terms(inst.act_cov, msgs)
+        meas_cov = self.meas_cov + cov / self.update_every + motion_cov + added
+        return inst.links - peers - motion_mean, meas_cov
+
+    def _peer_terms(self, act_cov: np.ndarray, msgs: list):
+        """The peers' side of an instant's balance (``instant_terms.peer_terms``)."""
+        rels = [self._relative[p] for p in self.peers]
+        noise_cov = self._peer_noise_cov if self._peer_noise else None
+        return peer_terms(act_cov, rels, msgs, noise_cov, self.noise)
+
+    def _over_time_noise(self, inst: Instant, msgs: list):
+        """The motion noise's mean, covariance and the team's IMU map, with the window
+        (``NoiseModel.over_time_noise``)."""
+        return self.noise.over_time_noise(
+            self.motion_fusion, self.ukf.params_mean(), inst.motion_jac, inst.regressor,
+            self._peer_motion(msgs), self._grasp_lever, params_cov=self.ukf.P,
+        )  # fmt: skip
 
     def _score_bias(self, inst: Instant, msgs: list, cov, params, own=None):
         """``DeferredReports.modes`` of this update at ``params`` (None without the reports;
@@ -545,37 +566,9 @@ class CargoEstimator(EstimatorInputs):
         peers = self._peer_motion(msgs)
         return self._reports.modes(self.motion_fusion, params, inst, peers, cov, own)
 
-    def _peer_terms(self, act_cov: np.ndarray, msgs: list):
-        """The peers' side of an instant's balance (``instant_terms.peer_terms``)."""
-        rels = [self._relative[p] for p in self.peers]
-        noise_cov = self._peer_noise_cov if self._peer_noise else None
-        return peer_terms(act_cov, rels, msgs, noise_cov, self.noise)
-
     def _peer_motion(self, msgs: list) -> list:
         """Per peer, its wrench transform G_j -> G and its message (the noise model's peers)."""
         return [(self._relative[p].transform(), m) for p, m in zip(self.peers, msgs, strict=True)]
-
-    def _motion_noise(self, inst: Instant, msgs: list) -> tuple[np.ndarray, np.ndarray]:
-        """Mean and covariance of the balance's motion noise at this instant
-        (``NoiseModel.motion_noise``); where ``_instant_terms`` applies, from its one call, whose
-        b, R and own modes are kept for ``_measurement`` (``_kept_terms``: (inst, terms))."""
-        fused = self._instant_terms(inst, msgs)
-        if fused is not None:
-            self._kept_terms = (inst, fused)
-            return fused[3], fused[4]
-        peers = self._peer_motion(msgs)
-        return self.noise.motion_noise(
-            self.motion_fusion, self.ukf.params_mean(), inst.motion_jac, inst.regressor, peers,
-            self._grasp_lever, own=self.noise.momentum_motion, params_cov=self.ukf.P,
-        )  # fmt: skip
-
-    def _over_time_noise(self, inst: Instant, msgs: list):
-        """``_motion_noise`` and the team's IMU map (``NoiseModel.over_time_noise``)."""
-        peers = self._peer_motion(msgs)
-        return self.noise.over_time_noise(
-            self.motion_fusion, self.ukf.params_mean(), inst.motion_jac, inst.regressor, peers,
-            self._grasp_lever, params_cov=self.ukf.P,
-        )  # fmt: skip
 
     def _rate_square_cov(self, stamp: int, params: np.ndarray) -> np.ndarray | None:
         """Covariance (6, 6) of the encoders' squared rate noise in this instant's own balance
@@ -594,9 +587,9 @@ class CargoEstimator(EstimatorInputs):
         for key in [k for k in self._rate_terms if k < horizon]:
             del self._rate_terms[key]
         if self._oldest_peer_msg < horizon:
-            for key in [k for k in self._peer_msgs if k[1] < horizon]:
-                del self._peer_msgs[key]
-            self._oldest_peer_msg = min((k[1] for k in self._peer_msgs), default=math.inf)
+            for stamp in [s for s in self._peer_msgs if s < horizon]:
+                del self._peer_msgs[stamp]
+            self._oldest_peer_msg = min(self._peer_msgs, default=math.inf)
         # Own fixes are stored in increasing stamp order.
         while self._own_fix and next(iter(self._own_fix)) < horizon:
             del self._own_fix[next(iter(self._own_fix))]

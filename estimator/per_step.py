@@ -670,8 +670,9 @@ class EstimatorInputs:
         pos_wg = self._pos_world_base + rot_wb @ pos_bg
         if fix:
             self._own_fix[stamp] = (rot_wg, pos_wg)
+            held = self._peer_msgs.get(stamp, {})
             for p in self.peers:
-                msg = self._peer_msgs.get((p, stamp))
+                msg = held.get(p)
                 if msg is not None and msg.fix and self._relative[p].known is None:
                     self._accumulate_relative(p, msg)
         rot_world = np.zeros((6, 6))

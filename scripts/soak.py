@@ -93,7 +93,7 @@ def buffer_sizes(env) -> dict[str, int]:
     }
     for i, est in enumerate(sim.estimators):
         sizes[f"est{i}_pending"] = len(est._pending)
-        sizes[f"est{i}_peer_msgs"] = len(est._peer_msgs)
+        sizes[f"est{i}_peer_msgs"] = sum(len(m) for m in est._peer_msgs.values())
         sizes[f"est{i}_own_fix"] = len(est._own_fix)
         sizes[f"est{i}_snapshots"] = len(est._snapshots)
         sizes[f"est{i}_log"] = len(est.log)

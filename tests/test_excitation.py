@@ -257,7 +257,7 @@ def _team_estimators(n_robots: int, fusion: str):
 @pytest.mark.parametrize("n_robots, fusion", [(1, "team"), (2, "team"), (3, "team"), (2, "own")])
 def test_motion_covariance_is_the_estimators(n_robots, fusion):
     """At a configuration, ``estimator_noise_terms``'s motion covariance equals the one the
-    estimator itself builds (``CargoEstimator._motion_noise``) from instants and messages of
+    estimator itself builds (``CargoEstimator._balance_terms``) from instants and messages of
     robots moving arbitrarily (the covariance does not depend on the rates, the accelerations or
     the observed mismatch), and it is not the scalar model of ``motion_fusion="none"``."""
     from astrocargo.agents.excitation_design import model_for_world

@@ -149,19 +149,21 @@ def test_team_fusion_in_the_env(noise):
     ctl = ObservationController.for_env(env, "estimate")
     est = env.sim.estimators[0]
     seen = []
-    original = est._motion_noise
+    original = est._balance_terms
 
-    def spy(inst, msgs):
-        out = original(inst, msgs)
+    def spy(inst, msgs, params):
+        out = original(inst, msgs, params)
         seen.append((inst, msgs, out))
         return out
 
-    est._motion_noise = spy
+    est._balance_terms = spy
     while env.agents:
         actions, _ = ctl.predict(obs)
         obs, *_ = env.step(actions)
     assert est.counters["updates"] > 0 and seen
-    inst, msgs, (mean, cov) = seen[-1]
+    inst, msgs, (_, _, modes, mean, cov) = seen[-1]
+    # The known grasp layout takes the one compiled call, which gives this robot's modes too.
+    assert modes is not None and modes.shape == (6, inst.motion_jac[1].shape[0])
     # The momentum chain's noise modes, sent as the 9 that carry their links' and grasp
     # acceleration's joint covariance (``NoiseModel.message_modes``).
     assert msgs[0].grasp_acc is not None and msgs[0].motion_links_jac.shape == (6, 9)
