@@ -90,7 +90,7 @@ def freeze_arrays(message: Any) -> Any:
     for name in _init_fields(type(message)):
         value = getattr(message, name)
         if isinstance(value, np.ndarray):
-            value.flags.writeable = False
+            value.setflags(write=False)
     return message
 
 

@@ -77,7 +77,7 @@ import numpy as np
 from .arguments import check_arguments, motion_lag_steps, nis_gate
 from .deferred_reports import DeferredReports
 from .fused_motion import FusedMotion, Reading
-from .instant_terms import instant_terms, peer_terms
+from .instant_terms import instant_terms, known_transforms, peer_terms
 from .messages import Instant, RelativeGrasp, WrenchMessage  # noqa: F401 (re-exported)
 from .momentum import SIZE as MOMENTUM_SIZE
 from .momentum import cargo_regressor_parts
@@ -343,8 +343,10 @@ class CargoEstimator(EstimatorInputs):
         self._own_fix: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self._peer_msgs: dict[int, dict[int, WrenchMessage]] = {}  # stamp -> sender -> message
         self._oldest_peer_msg = math.inf  # a lower bound of the stamps in _peer_msgs
+        self._next_expiry = math.inf  # the oldest stamp held after a full process (_expiring)
         self._changed = False  # an instant or a message arrived, or the peers changed
         self._relative: dict[int, RelativeGrasp] = {p: RelativeGrasp() for p in self.peers}
+        self._layout = (None, None)  # (peers, their known transforms stacked: _balance_terms)
         for p, (rot, pos) in (relative_grasps or {}).items():
             if p not in self._relative:
                 raise ValueError(f"relative_grasps names robot {p}, which is not a peer")
@@ -420,19 +422,21 @@ class CargoEstimator(EstimatorInputs):
     def receive(self, message: WrenchMessage) -> None:
         """Store a peer's message (messages from robots that are not peers are ignored; one
         older than the history, whose instant is already given up, is counted as stale)."""
-        if message.sender not in self._relative:
+        sender, stamp = message.sender, message.stamp
+        rel = self._relative.get(sender)
+        if rel is None:
             return
-        if message.stamp < self.stamp - self.history_steps:
+        if stamp < self.stamp - self.history_steps:
             self.n_stale_messages += 1
             return
-        self._peer_msgs.setdefault(message.stamp, {})[message.sender] = message
-        self._oldest_peer_msg = min(self._oldest_peer_msg, message.stamp)
+        self._peer_msgs.setdefault(stamp, {})[sender] = message
+        if stamp < self._oldest_peer_msg:
+            self._oldest_peer_msg = stamp
         self._changed = True
-        if self._relative[message.sender].known is not None:
+        if rel.known is not None:
             return  # the grasp layout is given: no relative pose to average
-        own = self._own_fix.get(message.stamp)
-        if message.fix and own is not None:
-            self._accumulate_relative(message.sender, message)
+        if message.fix and stamp in self._own_fix:
+            self._accumulate_relative(sender, message)
 
     def _accumulate_relative(self, peer: int, msg: WrenchMessage) -> None:
         rot_wi, pos_wi = self._own_fix[msg.stamp]
@@ -516,19 +520,19 @@ class CargoEstimator(EstimatorInputs):
         return self._window.condition(stamp, *measurement, imu_map)
 
     def _balance_terms(self, inst: Instant, msgs: list, params: np.ndarray):
-        """An instant's (b, R without squared-rate terms, own modes or None, E[n], Cov[n]) at
-        ``params``, n the balance's motion noise (``NoiseModel.motion_noise``): one compiled
-        call (``instant_terms``) where the grasp layout is known and neither a window nor the
-        peers' noise enters; else the noise model's and ``_peer_balance``."""
-        rels = [self._relative[p] for p in self.peers]
+        """(b, R without squared-rate terms, own modes or None, E[n], Cov[n]) at ``params``, n
+        the motion noise (``NoiseModel.motion_noise``): one compiled call (``instant_terms``)
+        for a known grasp layout without the peers' noise; else ``_peer_balance``'s."""
+        if self._layout[0] is not self.peers:  # ``known`` is set at construction only
+            self._layout = (self.peers, known_transforms([self._relative[p] for p in self.peers]))
+        transforms = self._layout[1]
         if not (
             self._peer_noise or self.motion_fusion == "none" or inst.motion_jac is None
-            or any(r.known is None for r in rels)
-            or any(m.motion_links_jac is None for m in msgs)
+            or transforms is None or any(m.motion_links_jac is None for m in msgs)
         ):  # fmt: skip
             condition = self.motion_fusion == "team" and bool(msgs)
-            terms = instant_terms(self.noise, condition, params, inst, [r.known for r in rels],
-                                  msgs, self.ukf.P, self.meas_cov, self.update_every)  # fmt: skip
+            terms = instant_terms(self.noise, condition, params, inst, transforms, msgs,
+                                  self.ukf.P, self.meas_cov, self.update_every)  # fmt: skip
             if terms is not None:
                 return terms
         mean, cov = self.noise.motion_noise(
@@ -560,10 +564,10 @@ class CargoEstimator(EstimatorInputs):
 
     def _score_bias(self, inst: Instant, msgs: list, cov, params, own=None):
         """``DeferredReports.modes`` of this update at ``params`` (None without the reports;
-        ``own`` the own modes where already made)."""
+        ``own`` the own modes where already made; the peers' motion made only if needed)."""
         if self._reports is None:
             return None
-        peers = self._peer_motion(msgs)
+        peers = functools.partial(self._peer_motion, msgs)
         return self._reports.modes(self.motion_fusion, params, inst, peers, cov, own)
 
     def _peer_motion(self, msgs: list) -> list:
@@ -583,16 +587,19 @@ class CargoEstimator(EstimatorInputs):
         return self._rate_square_var * (b.T * weights) @ b
 
     def _forget_before(self, horizon: int) -> None:
-        """Drop the peers' messages and own fixes of stamps before ``horizon``."""
+        """Drop the peers' messages and own fixes of stamps before ``horizon``; keep the oldest
+        stamp still held (``_next_expiry``)."""
         for key in [k for k in self._rate_terms if k < horizon]:
             del self._rate_terms[key]
         if self._oldest_peer_msg < horizon:
             for stamp in [s for s in self._peer_msgs if s < horizon]:
                 del self._peer_msgs[stamp]
             self._oldest_peer_msg = min(self._peer_msgs, default=math.inf)
-        # Own fixes are stored in increasing stamp order.
+        # Own fixes, pending instants, squared-rate terms: in increasing stamp order.
         while self._own_fix and next(iter(self._own_fix)) < horizon:
             del self._own_fix[next(iter(self._own_fix))]
+        held = (self._pending, self._rate_terms, self._own_fix)
+        self._next_expiry = min([self._oldest_peer_msg] + [next(iter(h)) for h in held if h])
 
     def _roll_back(self, gated_stamp: int) -> int:
         """Undo the updates of the instants within the filters' memory before ``gated_stamp``;

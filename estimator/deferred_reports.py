@@ -44,11 +44,12 @@ class DeferredReports:
     def modes(self, fusion, params, inst, peers, cov, own=None):
         """(this update's own modes (E, dY) at ``params`` (``own_modes``), its R ``cov``,
         ``params``), or None where the motion noise has no modes; ``own`` E where the motion
-        noise's call has already made it (``instant_terms``)."""
+        noise's call has already made it (``instant_terms``). ``peers()`` gives the peers'
+        [(T_j, message_j)], asked for only where the modes are made here."""
         slope = self.compensation is not None  # dY: the compensation's alone
         if own is not None and not slope:
             return (own, None), cov, params
-        args = (inst.motion_jac, inst.regressor, peers)
+        args = (inst.motion_jac, inst.regressor, peers())
         modes = own_modes(self.noise, fusion, params, *args, slope=slope, known=own)
         return None if modes is None else (modes, cov, params)
 

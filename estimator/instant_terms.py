@@ -68,15 +68,22 @@ def _stacked(arrays: list, axis: int | None) -> np.ndarray:
     return np.concatenate(arrays, axis=axis) if axis is not None else np.array(arrays)
 
 
+def known_transforms(rels: list) -> np.ndarray | None:
+    """The peers' given wrench transforms G_k -> G (``RelativeGrasp.known``) stacked in peer
+    order (P, 6, 6); None where a peer's grasp layout is not given."""
+    if any(r.known is None for r in rels):
+        return None
+    return np.array([r.known for r in rels]) if rels else _NO_TRANSFORMS
+
+
 def instant_terms(noise, condition, params, inst, transforms, msgs, params_cov, floor_cov,
                   update_every):  # fmt: skip
     """(b, R, own modes, E[n], Cov[n]) of ``instant_terms_kernel`` for an ``Instant``
-    ``inst``, the peers' transforms [(6, 6)] and messages ``msgs`` (P each), at ``params``
+    ``inst``, the peers' transforms (P, 6, 6) and messages ``msgs`` (P each), at ``params``
     (10,) with its spread ``params_cov`` (10, 10) and ``noise``'s ``momentum_motion``; None
     where the messages' motion arrays do not match their Jacobians (the general path raises)."""
     own, (d_links, d_y) = noise.momentum_motion, inst.motion_jac
     if msgs:
-        transforms = _stacked(transforms, None)
         var = _stacked([m.motion_var for m in msgs], 0)
         band = _stacked([m.motion_band for m in msgs], 0)
         peer_links = _stacked([m.motion_links_jac for m in msgs], 1)
@@ -89,7 +96,7 @@ def instant_terms(noise, condition, params, inst, transforms, msgs, params_cov, 
         sizes, var = [], _EMPTY[0][0]
         band = var
         peer_links, peer_grasp, acc, wrenches = _EMPTY
-        covs = transforms = _NO_TRANSFORMS
+        covs = _NO_TRANSFORMS
     n_own, n_peer = d_y.shape[0], peer_links.shape[1]
     n_var = (own.var.size, own.band.size, var.size, band.size, peer_grasp.shape[1])
     if n_var != (n_own, n_own, n_peer, n_peer, n_peer):

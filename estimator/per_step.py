@@ -625,15 +625,10 @@ class EstimatorInputs:
 
     def _expiring(self) -> bool:
         """Does anything held (pending instants, squared-rate terms, peers' messages, own fixes)
-        fall before the history's horizon, so that ``process`` has to give it up? (The dicts
-        keyed by own stamps hold them in increasing order: the first is the oldest.)"""
-        horizon = self.stamp - self.history_steps
-        if self._oldest_peer_msg < horizon:
-            return True
-        for held in (self._pending, self._rate_terms, self._own_fix):
-            if held and next(iter(held)) < horizon:
-                return True
-        return False
+        fall before the history's horizon, so that ``process`` has to give it up? Asked only
+        while nothing arrived (``_changed`` False), so the oldest stamp held as ``process`` last
+        left it (``_next_expiry``) still bounds them: whatever arrives sets ``_changed``."""
+        return self._next_expiry < self.stamp - self.history_steps
 
     def _record_instant(self, stamp: int, q_raw: np.ndarray, fix: bool) -> WrenchMessage | None:
         # H[Z] = H'[P] + H[Q] from the slow filter's value and derivative (``momentum``).
@@ -652,10 +647,10 @@ class EstimatorInputs:
             if rate_terms is not None:
                 self._rate_terms[stamp] = rate_terms
         self._changed = True
-        self._pending[stamp] = Instant(
-            thrust=b.thrust.copy(),
-            links=b.links.copy(),
-            regressor=b.regressor.copy(),
+        self._pending[stamp] = Instant(  # b's arrays are new (``balance_from_filtered``)
+            thrust=b.thrust,
+            links=b.links,
+            regressor=b.regressor,
             act_cov=act_cov,
             tainted=tainted,
             motion_jac=jac,
