@@ -85,7 +85,8 @@ def instant_terms(noise, condition, params, inst, transforms, msgs, params_cov, 
     own, (d_links, d_y) = noise.momentum_motion, inst.motion_jac
     if msgs:
         var = _stacked([m.motion_var for m in msgs], 0)
-        band = _stacked([m.motion_band for m in msgs], 0)
+        same = all(m.motion_band is m.motion_var for m in msgs)  # one array each: stacked once
+        band = var if same else _stacked([m.motion_band for m in msgs], 0)
         peer_links = _stacked([m.motion_links_jac for m in msgs], 1)
         peer_grasp = _stacked([m.motion_grasp_jac for m in msgs], 1)
         sizes = [m.motion_links_jac.shape[1] for m in msgs]
