@@ -247,7 +247,6 @@ class CommChannel:
         extra = sum(d.extra_steps for d in self._delays if d.robot == sender and d.active(step))
         due = step + self.latency_steps + extra
         shared = not self._noisy and _is_frozen(message)  # then every receiver gets it as is
-        queued = []
         for receiver in range(self.n_robots):
             if receiver == sender or receiver in self.disconnected:
                 continue
@@ -262,10 +261,8 @@ class CommChannel:
             if extra:
                 self.fault_stats["delayed_sent"][sender] += 1
                 self.fault_stats["delayed_received"][receiver] += 1
-            queued.append((receiver, copy))
-        if queued:
-            self._queue[due].extend(queued)
-            self.stats["in_flight"] += len(queued)
+            self._queue[due].append((receiver, copy))
+            self.stats["in_flight"] += 1
 
     def _copy(self, message: Any) -> Any:
         """A copy of ``message`` with this copy's wrench noise added: its class called with its
