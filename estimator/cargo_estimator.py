@@ -459,7 +459,7 @@ class CargoEstimator(EstimatorInputs):
             msgs = [held.get(p) for p in self.peers]
             ready = all(m is not None for m in msgs) and all(
                 rel.known is not None or rel.count >= self.min_relative_fixes
-                for rel in (self._relative[p] for p in self.peers)
+                for rel in self._relative.values()  # one per peer
             )
             if ready:
                 del self._pending[stamp]
