@@ -222,10 +222,10 @@ def _lower_inverse_into(lower: np.ndarray, inverse: np.ndarray) -> None:
 @njit(cache=True)
 def _congruence_into(w: np.ndarray, b: np.ndarray, half: np.ndarray, packed: np.ndarray) -> None:
     """The upper triangle of M = W B W^T for a lower-triangular W and a symmetric B (4, 4), row by
-    row into packed (10,) (M_00, M_01, M_02, M_03, M_11, ...): half = B W^T, then
-    M_ab = sum_c W_ac half_cb."""
-    for c in range(4):
-        for a in range(4):
+    row into packed (10,) (M_00, M_01, M_02, M_03, M_11, ...): half = B W^T (the entries c <= a
+    that M's upper triangle reads), then M_ab = sum_c W_ac half_cb."""
+    for a in range(4):
+        for c in range(a + 1):
             entry = 0.0
             for d in range(a + 1):
                 entry += b[c, d] * w[a, d]
