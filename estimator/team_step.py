@@ -50,21 +50,22 @@ _OWNERS = tuple(
 
 
 @njit(cache=True)
-def team_step(constants, states, stepped, accel, gyro, q, thrust, fix_pos, fix_quat, has_fix,
-              do_balance, target_rate, with_ripple, accel_out, outcome, lever) -> None:  # fmt: skip
-    """``per_step.estimator_step`` for each robot i with ``stepped[i]``, on row i of the
-    ``constants`` (N,) (``estimator_constants``' rows) and of the ``states`` (N,) (fields
-    ``STATE_FIELDS``), with row i of the readings (accel, gyro (N, 3) IMU axes; q (N, n_joints)
-    rad; thrust (N, 6) N and N m; the fix fix_pos (N, 3) m, fix_quat (N, 4) where has_fix), the
-    servo targets' rate ``target_rate`` (N, n_joints) rad/s taken off where ``with_ripple``.
-    Writes its outcome and lever (m) into ``outcome`` and ``lever`` (N,) (NOT_USABLE and NaN
-    for the other rows) and the accelerometer reading it used into ``accel_out`` (N, 3)."""
+def team_step(constants, states, ready, has_imu, accel, gyro, q, thrust, fix_pos, fix_quat,
+              has_fix, do_balance, target_rate, accel_out, outcome, lever) -> None:  # fmt: skip
+    """``per_step.estimator_step`` for each robot i ``ready`` with an IMU frame (``has_imu``),
+    on row i of the ``constants`` (N,) (``estimator_constants``' rows) and of the ``states``
+    (N,) (fields ``STATE_FIELDS``), with row i of the readings (accel, gyro (N, 3) IMU axes;
+    q (N, n_joints) rad; thrust (N, 6) N and N m; the fix fix_pos (N, 3) m, fix_quat (N, 4)
+    where has_fix), the servos' ripple taken off with their targets' rate ``target_rate``
+    (N, n_joints) rad/s. Writes its outcome and lever (m) into ``outcome`` and ``lever`` (N,)
+    (NOT_USABLE and NaN for the other rows) and the accelerometer reading it used into
+    ``accel_out`` (N, 3)."""
     # The readings' rows go through one buffer of each, contiguous whatever their layout.
     a, g, qi, t = np.empty(3), np.empty(3), np.empty(q.shape[1]), np.empty(6)
     pos, quat, rate = np.empty(3), np.empty(4), np.empty(target_rate.shape[1])
     for i in range(states.shape[0]):
         outcome[i], lever[i] = NOT_USABLE, np.nan
-        if not stepped[i]:
+        if not (ready[i] and has_imu[i]):
             continue
         a[:], g[:], qi[:], t[:] = accel[i], gyro[i], q[i], thrust[i]
         pos[:], quat[:], rate[:] = fix_pos[i], fix_quat[i], target_rate[i]
@@ -73,8 +74,7 @@ def team_step(constants, states, stepped, accel, gyro, q, thrust, fix_pos, fix_q
             constants[i : i + 1], s.pre_state[:], s.pre_u_prev[:], s.rate_state[:],
             s.rate_u_prev[:], s.prod_state[:], s.prod_u_prev[:], s.bal_state[:], s.bal_u_prev[:],
             s.act_cov_sum[:], s.rot_world_base[:], s.pos_world_base[:], a, g, qi, t, pos, quat,
-            has_fix[i], do_balance, s.ripple_map[:], rate, s.ripple_prev[:], accel_out[i],
-            with_ripple[i],
+            has_fix[i], do_balance, s.ripple_map[:], rate, s.ripple_prev[:], accel_out[i], True,
         )  # fmt: skip
 
 
@@ -96,8 +96,9 @@ class TeamStep:
         self._rows: list[tuple[np.ndarray, ...]] = []  # each robot's views of its row
         self._ready = np.zeros(n, dtype=bool)  # robots whose attributes are their row's views
         self._unchecked = set(range(n))  # robots whose attributes may have been rebound
-        self._holding: tuple = ()
-        self._holding_mask = np.zeros(n, dtype=bool)
+        self._holding: tuple | None = None
+        self._stepping = np.zeros(n, dtype=bool)  # the robots ready and holding
+        self._outcome, self._lever = np.empty(n, dtype=np.int64), np.empty(n)  # team_step's
         self._last_k = -1
         self._update_every = estimators[0].update_every if estimators else 1
         self._regressor_every = estimators[0].regressor_every if estimators else 1
@@ -128,42 +129,43 @@ class TeamStep:
             self._last_k = max(self._last_k, k)
             return list(holding)
         self._last_k = k
-        for i in self._unchecked:
-            self._ready[i] = self._bind(i, k)
-        self._unchecked.clear()
-        if holding != self._holding:
-            self._holding = tuple(holding)
-            self._holding_mask[:] = False
-            self._holding_mask[list(holding)] = True
-        stepped = self._ready & self._holding_mask & readings.has_imu
+        if self._unchecked:
+            for i in self._unchecked:
+                self._ready[i] = self._bind(i, k)
+            self._unchecked.clear()
+            self._holding = None
         if self._states is None:  # no robot could take the team call yet
             self._unchecked.update(holding)
             return list(holding)
-        n = stepped.shape[0]
-        accel_used, outcome, lever = np.empty((n, 3)), np.empty(n, dtype=np.int64), np.empty(n)
-        r = readings
+        if holding != self._holding:  # the robots ready and holding
+            self._holding = tuple(holding)
+            self._stepping[:] = False
+            self._stepping[list(holding)] = True
+            self._stepping &= self._ready
+        r, accel_used = readings, np.empty((len(self.estimators), 3))
         do_balance = k % self._regressor_every == 0
         team_step(
-            self._constants, self._states, stepped, r.accel_imu, r.gyro_imu, r.joint_pos_rad,
-            commands, r.base_pos_world, r.base_quat_world, r.has_fix, do_balance, arm_rates,
-            stepped, accel_used, outcome, lever,
+            self._constants, self._states, self._stepping, r.has_imu, r.accel_imu, r.gyro_imu,
+            r.joint_pos_rad, commands, r.base_pos_world, r.base_quat_world, r.has_fix,
+            do_balance, arm_rates, accel_used, self._outcome, self._lever,
         )  # fmt: skip
-        return self._after_step(k, holding, outcome, lever, do_balance, accel_used, r, commands)
+        return self._after_step(k, holding, do_balance, accel_used, r, commands)
 
-    def _after_step(self, k, holding, outcome, lever, do_balance, accel_used, r,
-                    commands) -> list[int]:  # fmt: skip
-        """The counters of the robots stepped (``EstimatorInputs._compiled_step``'s); the
-        others returned."""
+    def _after_step(self, k, holding, do_balance, accel_used, r, commands) -> list[int]:
+        """The stamps and counters of the robots stepped, and the readings they used
+        (``EstimatorInputs._count_compiled_step``); the others returned."""
         others = []
-        outcomes, levers = outcome.tolist(), lever.tolist()
+        outcomes, levers = self._outcome.tolist(), self._lever.tolist()
+        accel, gyro = list(accel_used), list(r.gyro_imu)  # row views, one per robot
+        q, thrust = list(r.joint_pos_rad), list(commands)
         for i in holding:
             o = outcomes[i]
             if o == NOT_USABLE:
                 others.append(i)
                 self._unchecked.add(i)
                 continue
-            readings = (accel_used[i], r.gyro_imu[i], r.joint_pos_rad[i], commands[i])
-            self.estimators[i]._count_compiled_step(k, o, levers[i], do_balance, readings)
+            used = (accel[i], gyro[i], q[i], thrust[i])
+            self.estimators[i]._count_compiled_step(k, o, levers[i], do_balance, used)
         return others
 
     def _bind(self, i: int, k: int) -> bool:
