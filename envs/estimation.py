@@ -28,6 +28,7 @@ from astrocargo.envs.sensors import SensorReadings
 from astrocargo.estimator.cargo_estimator import CargoEstimator
 from astrocargo.estimator.inertia import errors_given_true, true_principal_moments
 from astrocargo.estimator.rne import RobotDescription
+from astrocargo.estimator.team_step import TeamStep
 
 SENT_ARM_KEPT = 1000  # messages' arm states kept per sender (160 s at one per 10 steps)
 LOG_STD_FLOOR = 1e-12
@@ -124,6 +125,7 @@ class TeamEstimation:
         # `peer_slot_values` apart from the ages, while no message and no ``acting`` changes them.
         self._slot_cache: tuple[bytes, tuple[np.ndarray, ...]] | None = None
         self._slot_ages = np.zeros((n, n - 1))  # `peer_slot_values`' ages, rewritten per call
+        self._team_step = TeamStep(estimators)  # the common path of every robot in one call
 
     def step(self, readings: SensorReadings, commands: np.ndarray, k: int, holding,
              arm_rates: np.ndarray, channel) -> bool:  # fmt: skip
@@ -131,9 +133,28 @@ class TeamEstimation:
         commands (n_robots, 6); messages are sent (with the sender's arm angles and
         ``arm_rates``) and delivered through ``channel``; every estimator processes its
         complete instants. Returns whether any estimate changed."""
+        estimators = self.estimators
+        # The robots that can go through the team's compiled call, in it; the others one by one.
+        others = self._team_step.step(k, holding, readings, commands, arm_rates)
+        if others:
+            self._step_each(others, readings, commands, k, arm_rates, channel)
+        if channel.due(k):
+            for receiver, msgs in channel.deliver(k).items():
+                for msg in msgs:
+                    estimators[receiver].receive(msg)
+                    self._keep_latest(receiver, msg)
+        updated = False
+        for i in holding:
+            updated |= estimators[i].process() > 0
+        return updated
+
+    def _step_each(self, robots, readings: SensorReadings, commands: np.ndarray, k: int,
+                   arm_rates: np.ndarray, channel) -> None:  # fmt: skip
+        """``CargoEstimator.step`` of each of ``robots`` in turn; the messages they publish go
+        into ``channel``."""
         r = readings  # row i of its arrays, None for a missing IMU frame or fix (``packet``)
         has_imu, has_fix, estimators = r.has_imu.tolist(), r.has_fix.tolist(), self.estimators
-        for i in holding:
+        for i in robots:
             imu, fix, q = has_imu[i], has_fix[i], r.joint_pos_rad[i]
             msg = estimators[i].step(
                 k, r.accel_imu[i] if imu else None, r.gyro_imu[i] if imu else None, q,
@@ -146,15 +167,6 @@ class TeamEstimation:
                 if len(sent) > SENT_ARM_KEPT:
                     del sent[next(iter(sent))]  # the oldest
                 channel.send(freeze_arrays(msg), k)  # its receivers share it
-        if channel.due(k):
-            for receiver, msgs in channel.deliver(k).items():
-                for msg in msgs:
-                    estimators[receiver].receive(msg)
-                    self._keep_latest(receiver, msg)
-        updated = False
-        for i in holding:
-            updated |= estimators[i].process() > 0
-        return updated
 
     def _keep_latest(self, receiver: int, msg) -> None:
         """Keep ``msg`` as the latest one ``receiver`` has from its sender, if it is newer."""

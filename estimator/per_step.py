@@ -481,10 +481,17 @@ class EstimatorInputs:
             )  # fmt: skip
         except TypeError:  # not float64 vectors: the Python path converts them
             return NOT_USABLE
-        if outcome == NOT_USABLE:
-            return outcome
+        if outcome != NOT_USABLE:
+            self._count_compiled_step(
+                stamp, outcome, lever, do_balance, (accel_used, gyro, q, thrust)
+            )
+        return outcome
+
+    def _count_compiled_step(self, stamp, outcome, lever, do_balance, readings) -> None:
+        """The stamp, the counters and the readings kept after a compiled step of ``outcome``
+        (not NOT_USABLE) and ``lever`` that used ``readings`` (accel, gyro, q, thrust)."""
         self.stamp = int(stamp)
-        self._last_input = (accel_used, gyro, q, thrust)
+        self._last_input = readings
         if outcome == FIX:
             self.n_fixes += 1
         elif outcome == BAD_FIX:
@@ -492,7 +499,6 @@ class EstimatorInputs:
         if do_balance:
             self._act_cov_n += 1
             self._grasp_lever = lever
-        return outcome
 
     @staticmethod
     def _check_imu_frame(accel_imu, gyro_imu) -> None:

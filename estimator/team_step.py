@@ -1,0 +1,227 @@
+"""One control step of a whole team's estimators in one compiled call.
+
+On a step that is not an update instant, each holding robot's estimator does the common path of
+``per_step`` (``estimator_step``: the pre-, rate, product and balance filters' steps, the
+attitude, the actuation covariance). ``TeamStep`` does it for every robot of the team that can
+take that path in one call of ``team_step``, which runs ``per_step.estimator_step`` on each
+robot's row: the same compiled arithmetic as the per-robot call, bit for bit.
+
+The states that step changes in place (``STATE_FIELDS``: the four filters' states and previous
+inputs, the actuation covariance sum, the attitude R_WB and p_WB, the servos' ripple map and last
+ripple) live in one record of N rows (``records``); each estimator's attributes are views of its
+row, so the per-robot path (``EstimatorInputs.step``) and the team call update the same memory.
+The per-robot path may rebind an attribute to a new array (a fix on the Python path, the ripple
+map's refresh and the covariance's restart at an update instant); after any step a robot took
+that path, its row is checked again (``_bind``): a rebound attribute is copied into the row and
+viewed again. Nothing else may step the estimators of a team between its steps.
+"""
+
+from __future__ import annotations
+
+import operator
+
+import numpy as np
+from numba import njit
+
+from .per_step import NOT_USABLE, estimator_step
+from .records import as_interned
+
+# The per-step states: record field, the estimator's attribute that is a view of it.
+STATE_FIELDS = (
+    ("pre_state", "pre.filter.state"),
+    ("pre_u_prev", "pre.filter._u_prev"),
+    ("rate_state", "pre.rate_filter.state"),
+    ("rate_u_prev", "pre.rate_filter._u_prev"),
+    ("prod_state", "pre.product_filter.state"),
+    ("prod_u_prev", "pre.product_filter._u_prev"),
+    ("bal_state", "balance_filter.state"),
+    ("bal_u_prev", "balance_filter._u_prev"),
+    ("act_cov_sum", "_act_cov_sum"),
+    ("rot_world_base", "_rot_world_base"),
+    ("pos_world_base", "_pos_world_base"),
+    ("ripple_map", "_servo_ripple_map"),
+    ("ripple_prev", "_servo_ripple_prev"),
+)
+# For each field: the object that holds the attribute, and the attribute's name.
+_OWNERS = tuple(
+    (operator.attrgetter(path.rpartition(".")[0]) if "." in path else None, path.rpartition(".")[2])
+    for _, path in STATE_FIELDS
+)
+
+
+@njit(cache=True)
+def team_step(constants, states, ready, has_imu, accel, gyro, q, thrust, fix_pos, fix_quat,
+              has_fix, do_balance, target_rate, accel_out, outcome, lever) -> None:  # fmt: skip
+    """``per_step.estimator_step`` for each robot i ``ready`` with an IMU frame (``has_imu``),
+    on row i of the ``constants`` (N,) (``estimator_constants``' rows) and of the ``states``
+    (N,) (fields ``STATE_FIELDS``), with row i of the readings (accel, gyro (N, 3) IMU axes;
+    q (N, n_joints) rad; thrust (N, 6) N and N m; the fix fix_pos (N, 3) m, fix_quat (N, 4)
+    where has_fix), the servos' ripple taken off with their targets' rate ``target_rate``
+    (N, n_joints) rad/s. Writes its outcome and lever (m) into ``outcome`` and ``lever`` (N,)
+    (NOT_USABLE and NaN for the other rows) and the accelerometer reading it used into
+    ``accel_out`` (N, 3)."""
+    # The readings' rows go through one buffer of each, contiguous whatever their layout.
+    a, g, qi, t = np.empty(3), np.empty(3), np.empty(q.shape[1]), np.empty(6)
+    pos, quat, rate = np.empty(3), np.empty(4), np.empty(target_rate.shape[1])
+    for i in range(states.shape[0]):
+        outcome[i], lever[i] = NOT_USABLE, np.nan
+        if not (ready[i] and has_imu[i]):
+            continue
+        a[:], g[:], qi[:], t[:] = accel[i], gyro[i], q[i], thrust[i]
+        pos[:], quat[:], rate[:] = fix_pos[i], fix_quat[i], target_rate[i]
+        s = states[i]
+        outcome[i], lever[i] = estimator_step(
+            constants[i : i + 1], s.pre_state[:], s.pre_u_prev[:], s.rate_state[:],
+            s.rate_u_prev[:], s.prod_state[:], s.prod_u_prev[:], s.bal_state[:], s.bal_u_prev[:],
+            s.act_cov_sum[:], s.rot_world_base[:], s.pos_world_base[:], a, g, qi, t, pos, quat,
+            has_fix[i], do_balance, s.ripple_map[:], rate, s.ripple_prev[:], accel_out[i], True,
+        )  # fmt: skip
+
+
+class TeamStep:
+    """The common path of a team's ``estimators`` (``CargoEstimator``, robot index order) in one
+    call per control step (module docstring). The team call is taken only when every estimator
+    shares one constants layout and one schedule (else never: ``step`` hands every robot back);
+    per robot, only on a step that is not an update instant, with an IMU frame, its filters
+    started and its attitude known, no fused motion, its servos' ripple map made, the stamp
+    increasing. ``enabled`` False: every robot takes the per-robot path."""
+
+    enabled = True
+
+    def __init__(self, estimators: list) -> None:
+        self.estimators = estimators
+        self._constants = _stacked_constants(estimators)
+        n = len(estimators)
+        self._states: np.ndarray | None = None  # the record of the states, made at first use
+        self._rows: list[tuple[np.ndarray, ...]] = []  # each robot's views of its row
+        self._ready = np.zeros(n, dtype=bool)  # robots whose attributes are their row's views
+        self._unchecked = set(range(n))  # robots whose attributes may have been rebound
+        self._holding: tuple | None = None
+        self._stepping = np.zeros(n, dtype=bool)  # the robots ready and holding
+        self._outcome, self._lever = np.empty(n, dtype=np.int64), np.empty(n)  # team_step's
+        self._last_k = -1
+        self._update_every = estimators[0].update_every if estimators else 1
+        self._regressor_every = estimators[0].regressor_every if estimators else 1
+
+    # A copy (deepcopy, pickle) has detached arrays: its rows are made again at its next step.
+    def __getstate__(self) -> dict:
+        state = dict(self.__dict__)
+        state.update(_states=None, _rows=[], _unchecked=set(range(len(self.estimators))))
+        state["_ready"] = np.zeros(len(self.estimators), dtype=bool)
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        if self._constants is not None:
+            self._constants = as_interned(self._constants)
+
+    def step(self, k: int, holding, readings, commands: np.ndarray,
+             arm_rates: np.ndarray) -> list[int]:  # fmt: skip
+        """Control step ``k`` of the robots ``holding`` (indices, increasing) with their
+        ``readings`` (``envs.sensors.SensorReadings``' arrays, one row per robot), thrust
+        ``commands`` (N, 6) and servo targets' ``arm_rates`` (N, n_joints): the robots that can
+        take the team call are stepped in it, as their ``EstimatorInputs.step`` would (no
+        message: not an update instant). Returns the others, in ``holding``'s order, for the
+        per-robot path (and whose reading the compiled step refused)."""
+        off = self._constants is None or not self.enabled
+        if off or k <= self._last_k or k % self._update_every == 0:
+            self._unchecked.update(holding)
+            self._last_k = max(self._last_k, k)
+            return list(holding)
+        self._last_k = k
+        if self._unchecked:
+            for i in self._unchecked:
+                self._ready[i] = self._bind(i, k)
+            self._unchecked.clear()
+            self._holding = None
+        if self._states is None:  # no robot could take the team call yet
+            self._unchecked.update(holding)
+            return list(holding)
+        if holding != self._holding:  # the robots ready and holding
+            self._holding = tuple(holding)
+            self._stepping[:] = False
+            self._stepping[list(holding)] = True
+            self._stepping &= self._ready
+        r, accel_used = readings, np.empty((len(self.estimators), 3))
+        do_balance = k % self._regressor_every == 0
+        team_step(
+            self._constants, self._states, self._stepping, r.has_imu, r.accel_imu, r.gyro_imu,
+            r.joint_pos_rad, commands, r.base_pos_world, r.base_quat_world, r.has_fix,
+            do_balance, arm_rates, accel_used, self._outcome, self._lever,
+        )  # fmt: skip
+        return self._after_step(k, holding, do_balance, accel_used, r, commands)
+
+    def _after_step(self, k, holding, do_balance, accel_used, r, commands) -> list[int]:
+        """The stamps and counters of the robots stepped, and the readings they used
+        (``EstimatorInputs._count_compiled_step``); the others returned."""
+        others = []
+        outcomes, levers = self._outcome.tolist(), self._lever.tolist()
+        accel, gyro = list(accel_used), list(r.gyro_imu)  # row views, one per robot
+        q, thrust = list(r.joint_pos_rad), list(commands)
+        for i in holding:
+            o = outcomes[i]
+            if o == NOT_USABLE:
+                others.append(i)
+                self._unchecked.add(i)
+                continue
+            used = (accel[i], gyro[i], q[i], thrust[i])
+            self.estimators[i]._count_compiled_step(k, o, levers[i], do_balance, used)
+        return others
+
+    def _bind(self, i: int, k: int) -> bool:
+        """Can robot i take the team call at step ``k``? If so, its attributes are views of its
+        row (a rebound one copied in and viewed again)."""
+        est = self.estimators[i]
+        if est._fused is not None or not est._filters_ready or est.stamp >= k:
+            return False
+        if est._servo_ripple_map is None or est._servo_ripple_prev is None:
+            return False
+        if self._states is None:
+            self._make_rows()
+        rebound, fits = False, True
+        for (owner_of, name), view in zip(_OWNERS, self._rows[i], strict=True):
+            owner = est if owner_of is None else owner_of(est)
+            value = getattr(owner, name)
+            if value is view:
+                continue
+            if np.shape(value) != view.shape:
+                fits = False
+                break
+            view[...] = value
+            setattr(owner, name, view)
+            rebound = True
+        if rebound:  # the filters' states may be new views: the compiled step's tuple of them
+            est._step_states = est._filter_states()
+        return fits
+
+    def _make_rows(self) -> None:
+        """The states' record (fields ``STATE_FIELDS``, shapes of the first estimator's) and each
+        robot's views of its row."""
+        est = self.estimators[0]
+        shapes = {
+            "act_cov_sum": (6, 6), "rot_world_base": (3, 3), "pos_world_base": (3,),
+            "ripple_map": (3, est.robot.n_joints), "ripple_prev": (3,),
+        }  # fmt: skip
+        fields = []
+        for (field, _), (owner_of, name) in zip(STATE_FIELDS, _OWNERS, strict=True):
+            shape = shapes.get(field) or getattr(owner_of(est), name).shape
+            fields.append((field, np.float64, shape))
+        self._states = as_interned(np.zeros(len(self.estimators), dtype=np.dtype(fields)))
+        self._rows = [
+            tuple(self._states[field][i] for field, _ in STATE_FIELDS)
+            for i in range(len(self.estimators))
+        ]
+
+
+def _stacked_constants(estimators: list) -> np.ndarray | None:
+    """The estimators' constants records (``estimator_constants``) as one (N,) record, or None
+    when their layouts or schedules differ (or there are none)."""
+    if not estimators:
+        return None
+    first = estimators[0]
+    for est in estimators:
+        if est._step_constants.dtype is not first._step_constants.dtype:
+            return None
+        if (est.update_every, est.regressor_every) != (first.update_every, first.regressor_every):
+            return None
+    return as_interned(np.concatenate([est._step_constants for est in estimators]))
