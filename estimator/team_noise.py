@@ -11,7 +11,7 @@ import operator
 import numpy as np
 from numba import njit
 
-from .motion import balance_noise_map_kernel, conditioned_noise, grasp_acc_map_kernel
+from .motion import balance_noise_map_kernel, conditioned_noise, grasp_acc_h_rows
 
 _NO_COV = np.zeros((10, 10))  # ``team_noise`` without the posterior's spread
 
@@ -34,15 +34,19 @@ def team_maps(params, d_links, d_y, regressor, transforms, peer_links, peer_gras
     n_map[:, :n_own] = balance_noise_map_kernel(d_links, d_y, params)
     acc_g = regressor[:3, 0].copy()
     ang_g = np.ascontiguousarray(regressor[:3, 1:4])  # skew(wd) + skew(w)^2
+    h_rows = grasp_acc_h_rows(d_y)  # once for all peers
     for k in range(n_peers):
         rot = np.ascontiguousarray(transforms[k, :3, :3])
-        lever = np.ascontiguousarray(transforms[k, 3:, :3]) @ np.ascontiguousarray(rot.T)
+        lever = np.ascontiguousarray(transforms[k, 3:, :3]) @ rot.T
         pos = np.array([lever[2, 1], lever[0, 2], lever[1, 0]])
         cols = slice(n_own + peer_start[k], n_own + peer_start[k + 1])
         peer = slice(peer_start[k], peer_start[k + 1])
         rows = slice(3 * k, 3 * k + 3)
         n_map[:, cols] = transforms[k] @ np.ascontiguousarray(peer_links[:, peer])
-        d_map[rows, :n_own] = -grasp_acc_map_kernel(d_y, pos)
+        h_p = h_rows @ pos  # -G_i(p) = -(d a_G + d h p), as ``motion.grasp_acc_map_kernel``
+        for c in range(n_own):
+            for i in range(3):
+                d_map[3 * k + i, c] = -(d_y[c, i, 0] + h_p[3 * c + i])
         d_map[rows, cols] = rot @ np.ascontiguousarray(peer_grasp[:, peer])
         mismatch[rows] = rot @ peer_acc[k] - (acc_g + ang_g @ pos)
     return n_map, d_map, mismatch
