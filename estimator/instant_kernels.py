@@ -17,7 +17,8 @@ from __future__ import annotations
 
 from numba import njit
 
-from .motion import _add_regressor, instant_noise_modes
+from .chain_modes import instant_noise_modes
+from .motion import _add_regressor
 from .team_noise import message_map
 
 
@@ -72,8 +73,9 @@ def record_modes(arrays, imu_pos, n_joints, step_s, factors, point_factor, rate_
        (``nearest_motion``);
     2. with ``add``, the ``regressor`` (6, 10) of update ``index`` into the autocorrelation's
        sums (cross, power, ring, ring_power, ring_index) (``motion._add_regressor``);
-    3. the modes d links - d thrust (6, n), d Y (n, 6, 10) at x (``motion.instant_noise_modes``,
-       with the channels' ``factors`` (6, 4, 4) and ``point_factor`` (8, 8));
+    3. the modes d links - d thrust (6, n), d Y (n, 6, 10) at x
+       (``chain_modes.instant_noise_modes``, with the channels' ``factors`` (6, 4, 4) and
+       ``point_factor`` (8, 8));
     4. the message's map M = ``team_noise.message_map`` (9, n) of the modes scaled by
        ``mode_std`` (its factor F F^T = M M^T: ``NoiseModel.instant_modes``).
     Returns (d links, d Y, M)."""

@@ -24,10 +24,14 @@ def peer_sums(act_cov, transforms, wrenches, covs):
     and the actuation covariance act_cov + sum_k T_k C_k T_k^T (6, 6) (``covs`` (P, 6, 6)),
     summed in peer order from zero and ``act_cov``."""
     wrench, cov = np.zeros(6), act_cov.copy()
+    moved, half, carried = np.empty(6), np.empty((6, 6)), np.empty((6, 6))  # the products
     for k in range(transforms.shape[0]):
         t = transforms[k]
-        wrench = wrench + t @ wrenches[k]
-        cov = cov + t @ covs[k] @ t.T
+        np.dot(t, wrenches[k], moved)
+        np.dot(t, covs[k], half)
+        np.dot(half, t.T, carried)
+        wrench += moved
+        cov += carried
     return wrench, cov
 
 

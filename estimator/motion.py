@@ -51,21 +51,13 @@ from collections.abc import Callable
 import numpy as np
 from numba import njit
 
-from .momentum import (
-    CARGO_P,
-    CARGO_P_MAP,
-    CARGO_Q,
-    CARGO_Q_MAP,
-    LINKS_P,
-    LINKS_Q,
-    SIZE,
-    THRUST,
-    link_geometry,
-    momentum_at,
+from .chain_modes import (  # noqa: F401 (their home before ``chain_modes``: re-exported)
+    drifting_sample_jacobian,
+    instant_noise_modes,
+    momentum_noise_modes,
+    sample_jacobian,
 )
 from .preprocess import StateVariableFilter
-
-_CARGO_Q_MAP_T = np.ascontiguousarray(CARGO_Q_MAP.T)  # ``instant_noise_modes``' squared rates
 
 
 def motion_jacobians(
@@ -94,11 +86,12 @@ def motion_jacobians(
 @njit(cache=True)
 def balance_noise_map_kernel(d_links, d_y, params) -> np.ndarray:
     """E (6, n): column k is d links / dxi_k + (d Y / dxi_k) pi (``balance_noise_map``, compiled
-    and unchecked, for compiled callers)."""
-    out = d_links.copy()
+    and unchecked, for compiled callers; the products (d Y / dxi_k) pi into one preallocated
+    (n, 6), the same BLAS calls as ``@`` without an array per call)."""
+    moved = np.empty((d_y.shape[0], 6))
     for k in range(d_y.shape[0]):
-        out[:, k] += d_y[k] @ params
-    return out
+        np.dot(d_y[k], params, moved[k])
+    return d_links + moved.T
 
 
 @njit(cache=True)
@@ -106,8 +99,15 @@ def grasp_acc_map_kernel(d_y: np.ndarray, point_g: np.ndarray) -> np.ndarray:
     """G (3, n): column k is the force rows' a column plus their h columns times the point
     (``grasp_acc_map``, compiled and unchecked, for compiled callers)."""
     n = d_y.shape[0]
-    lever = np.ascontiguousarray(d_y[:, :3, 1:4]).reshape(3 * n, 3) @ point_g  # one product
+    lever = grasp_acc_h_rows(d_y) @ point_g  # one product
     return np.ascontiguousarray(d_y[:, :3, 0].T) + np.ascontiguousarray(lever.reshape(n, 3).T)
+
+
+@njit(cache=True)
+def grasp_acc_h_rows(d_y: np.ndarray) -> np.ndarray:
+    """The force rows' h columns of every d Y_k stacked (3 n, 3), row 3 k + i: d Y_k[i, 1:4]
+    (``grasp_acc_map_kernel``'s lever is this times the point)."""
+    return np.ascontiguousarray(d_y[:, :3, 1:4]).reshape(3 * d_y.shape[0], 3)
 
 
 @njit(cache=True)
@@ -123,7 +123,7 @@ def pinv_symmetric(a: np.ndarray, rcond: float = 1e-15) -> np.ndarray:
     for k in range(s.shape[0]):
         if abs(s[k]) > cutoff:
             inv[k] = 1.0 / s[k]
-    return (u * inv) @ np.ascontiguousarray(u.T)
+    return (u * inv) @ u.T
 
 
 @njit(cache=True)
@@ -141,14 +141,14 @@ def conditioned_maps(n_map, d_map, level, mismatch, mismatch_model_var):
 
     K = S_nd S_dd^+,  S_nd = N diag(level) D^T,  S_dd = D diag(level) D^T + var I,
     E[n | d] = K d,   Cov[n | d] = (N - K D) diag(level) (N - K D)^T + var K K^T."""
-    d_map_t = np.ascontiguousarray(d_map.T)
+    d_map_t = d_map.T
     s_nd = (n_map * level) @ d_map_t
     s_dd = (d_map * level) @ d_map_t + mismatch_model_var * np.eye(d_map.shape[0])
     # Pseudo-inverse: noiseless motion coordinates (perfect sensors) make S_dd singular.
     gain = s_nd @ pinv_symmetric(s_dd)
     remaining = n_map - gain @ d_map
-    cov = (remaining * level) @ np.ascontiguousarray(remaining.T)
-    cov += (mismatch_model_var * gain) @ np.ascontiguousarray(gain.T)
+    cov = (remaining * level) @ remaining.T
+    cov += (mismatch_model_var * gain) @ gain.T
     return gain @ mismatch, 0.5 * (cov + cov.T), remaining
 
 
@@ -180,7 +180,7 @@ def posterior_spread(d_y, level, params_cov):
     spread = (scaled.reshape(6 * n, 10) @ params_cov).reshape(n, 6, 10)
     rows = np.ascontiguousarray(scaled.transpose(1, 0, 2)).reshape(6, 10 * n)
     spread_rows = np.ascontiguousarray(spread.transpose(1, 0, 2)).reshape(6, 10 * n)
-    return spread_rows @ np.ascontiguousarray(rows.T)
+    return spread_rows @ rows.T  # F-ordered: BLAS reads it transposed, no copy
 
 
 @njit(cache=True)
@@ -522,175 +522,3 @@ class RegressorAutocorrelation:
         last = np.maximum.accumulate(np.where(counted > 0, np.arange(self.n_lags + 1), 0))
         rho[1:] = mean[last][1:]
         return rho
-
-
-@njit(cache=True)
-def sample_jacobian(arrays, imu_pos, w_base, acc_imu, q, qd, thrust_base, step=1e-6):
-    """d sample / dx (``momentum.SIZE``, 6 + 2 nj) of the momentum-form sample
-    (``momentum.momentum_pass``, here ``momentum_at`` with the joint angles' geometry computed
-    once and again only for their own steps) with respect to the rate filter's outputs
-    x = (gyro (3) rad/s, the IMU point's acceleration (3) m/s^2, q (nj) rad, qd (nj) rad/s), base
-    frame, by forward differences of ``step``: the sample is quadratic in the rates and the
-    acceleration, so the error is ``step`` times the quadratic coefficient (relative 1e-6 at the
-    robot's scale), O(step) for the angles."""
-    nj = q.shape[0]
-    x = np.concatenate((w_base, acc_imu, q, qd))
-    n_x = x.shape[0]
-    # Row 0: x; row 1 + k: x with its entry k stepped. One batch at the angles' geometry, then
-    # the angles' own rows again at theirs.
-    xs = np.empty((1 + n_x, n_x))
-    xs[:] = x
-    for k in range(n_x):
-        xs[1 + k, k] += step
-    geo = link_geometry(arrays, q)
-    rates = xs[:, 6 + nj :]
-    samples = momentum_at(arrays, imu_pos, geo, xs[:, 0:3], xs[:, 3:6], rates, thrust_base)
-    for k in range(6, 6 + nj):
-        row = xs[1 + k : 2 + k]
-        geo_k = link_geometry(arrays, np.ascontiguousarray(row[0, 6 : 6 + nj]))
-        samples[1 + k] = momentum_at(arrays, imu_pos, geo_k, row[:, 0:3], row[:, 3:6],
-                                     row[:, 6 + nj :], thrust_base)[0]  # fmt: skip
-    return np.ascontiguousarray(((samples[1:] - samples[0]) / step).T)
-
-
-@njit(cache=True)
-def drifting_sample_jacobian(arrays, imu_pos, state, n_joints, step_s):
-    """``sample_jacobian`` J (``SIZE``, 6 + 2 nj) at the rate filter's motion x and its time
-    derivative dJ/dt (1/s), from the pre-filter's state (3, 12 + nj) over [gyro_B (rad/s), the
-    IMU point's acceleration_B (m/s^2), q (rad), thrust_B] (value, derivative, second
-    derivative): x = (gyro, acceleration, q, qd = q's derivative, thrust) at the state, and from
-    J+- = J(x +- step_s x' / 2) along the state's derivatives, J = (J+ + J-) / 2 and
-    dJ/dt = (J+ - J-) / step_s (central, second order in step_s)."""
-    jacs = _drifting_jacobians(arrays, imu_pos, state, n_joints, step_s)
-    return jacs[0], jacs[1]
-
-
-@njit(cache=True)
-def _drifting_jacobians(arrays, imu_pos, state, n_joints, step_s):
-    """``drifting_sample_jacobian``'s J and dJ/dt stacked (2, ``SIZE``, 6 + 2 nj)."""
-    nj = n_joints
-    out = np.empty((2, SIZE, 6 + 2 * nj))
-    for k, sign in enumerate((-0.5, 0.5)):
-        value = state[0] + sign * step_s * state[1]
-        rate = state[1] + sign * step_s * state[2]
-        out[k] = sample_jacobian(arrays, imu_pos, value[0:3], value[3:6], value[6 : 6 + nj],
-                                 rate[6 : 6 + nj], value[6 + nj :])  # fmt: skip
-    jacs = np.empty_like(out)
-    jacs[0] = 0.5 * (out[0] + out[1])
-    jacs[1] = (out[1] - out[0]) / step_s
-    return jacs
-
-
-@njit(cache=True)
-def _readout_columns(jacs, p_map, q_map):
-    """The balance's model-side noise n = d(links + Y pi - thrust) from the sample noise of each
-    of ``jacs`` (2, ``SIZE``, c) (the Jacobian and its rate) read out of the slow filter's value
-    (its thrust and Q channels) and derivative (its P channels;
-    ``momentum.balance_from_filtered``): d links - d thrust (4, 6, c) and d Y (4, 60, c), the
-    read-outs m = 2 j + (0 value, 1 derivative) of ``jacs[j]``; ``p_map``, ``q_map`` the
-    regressor's maps ``momentum.CARGO_P_MAP``, ``CARGO_Q_MAP``."""
-    n = jacs.shape[2]
-    links = np.empty((4, 6, n))
-    y = np.empty((4, 60, n))
-    for j in range(2):
-        jac = jacs[j]
-        links[2 * j] = jac[LINKS_Q] - jac[THRUST]
-        links[2 * j + 1] = jac[LINKS_P]
-        y[2 * j] = q_map @ np.ascontiguousarray(jac[CARGO_Q])
-        y[2 * j + 1] = p_map @ np.ascontiguousarray(jac[CARGO_P])
-    return links, y
-
-
-@njit(cache=True)
-def _factored_into(out_links, out_y, start, links, y, columns, factor):
-    """One channel's read-out columns (``columns`` (m, 2): motion coordinate x, read-out m of
-    ``_readout_columns``' links (4, 6, c) and y (4, 60, c)) times its factor F (m, m), written
-    into the modes start ... start + m - 1 of ``out_links`` (6, n) and ``out_y`` (n, 60)."""
-    m = columns.shape[0]
-    chan_links = np.empty((6, m))
-    chan_y = np.empty((60, m))
-    for a in range(m):
-        chan_links[:, a] = links[columns[a, 1], :, columns[a, 0]]
-        chan_y[:, a] = y[columns[a, 1], :, columns[a, 0]]
-    out_links[:, start : start + m] = chan_links @ factor
-    out_y[start : start + m] = (chan_y @ factor).T
-
-
-@njit(cache=True)
-def _noise_modes_into(out_links, out_y, jacs, n_joints, held_factors, point_factor, p_map,
-                      q_map):  # fmt: skip
-    """``_noise_modes`` written into the first 24 + 8 nj modes of ``out_links`` (6, n) and
-    ``out_y`` (n, 60)."""
-    nj = n_joints
-    links, y = _readout_columns(jacs, p_map, q_map)
-    held = np.empty((4, 2), dtype=np.int64)
-    held[:, 1] = np.arange(4)
-    for c in range(6):  # gyro x, y, z, accelerometer x, y, z: read-outs 0 ... 3
-        held[:, 0] = c
-        _factored_into(out_links, out_y, 4 * c, links, y, held, held_factors[c])
-    point = np.empty((8, 2), dtype=np.int64)
-    for i in range(nj):  # per encoder: (q, 0), (q, 1), (qd, 0), (qd, 1), then read-outs 2, 3
-        for k in range(4):
-            point[2 * k : 2 * k + 2, 0] = 6 + i + (k % 2) * nj
-            point[2 * k, 1], point[2 * k + 1, 1] = 2 * (k // 2), 2 * (k // 2) + 1
-        _factored_into(out_links, out_y, 24 + 8 * i, links, y, point, point_factor)
-
-
-@njit(cache=True)
-def _noise_modes(jacs, n_joints, held_factors, point_factor, p_map, q_map):
-    """``momentum_noise_modes`` with the factors given: one per held channel (6, 4, 4), gyro
-    x, y, z then accelerometer x, y, z, and one for every encoder (8, 8)."""
-    n = 24 + 8 * n_joints
-    links, y = np.empty((6, n)), np.empty((n, 60))
-    _noise_modes_into(links, y, jacs, n_joints, held_factors, point_factor, p_map, q_map)
-    return links, y.reshape(n, 6, 10)
-
-
-@njit(cache=True)
-def instant_noise_modes(arrays, imu_pos, state, n_joints, step_s, held_factors, point_factor,
-                        rate_terms, rate_var, n_rate):  # fmt: skip
-    """An update instant's sensor-noise modes (``NoiseModel.momentum_jacobians``) in one
-    compiled call: d links - d thrust (6, n) and d Y (n, 6, 10) with n = 24 + 8 nj + ``n_rate``.
-
-    The sample's Jacobian J and its drift dJ/dt at the pre-filter's ``state``
-    (``drifting_sample_jacobian``, step ``step_s`` s) give the IMU's and the encoders' modes
-    (``_noise_modes``: the chain's read-out columns times each channel's factor); then one mode
-    per squared-rate term k of ``rate_terms`` (k, ``SIZE``) with variance v_k (``rate_var``):
-    sqrt(v_k) (Q_links, M_Q Q_Y) (``momentum.CARGO_Q_MAP``). ``n_rate`` such modes always
-    (zero columns without terms: k = 0), so that the count stays that of the variances."""
-    jacs = _drifting_jacobians(arrays, imu_pos, state, n_joints, step_s)
-    n_modes = 24 + 8 * n_joints
-    if rate_terms.shape[0] != 0 and rate_terms.shape[0] != n_rate:
-        raise ValueError("rate_terms must have 0 or n_rate rows")
-    links = np.zeros((6, n_modes + n_rate))
-    y = np.zeros((n_modes + n_rate, 60))
-    _noise_modes_into(links, y, jacs, n_joints, held_factors, point_factor, CARGO_P_MAP,
-                      CARGO_Q_MAP)  # fmt: skip
-    if rate_terms.shape[0]:
-        scaled = rate_terms * np.sqrt(rate_var).reshape(-1, 1)
-        links[:, n_modes:] = np.ascontiguousarray(scaled[:, LINKS_Q]).T
-        y[n_modes:] = np.ascontiguousarray(scaled[:, CARGO_Q]) @ _CARGO_Q_MAP_T
-    return links, y.reshape(n_modes + n_rate, 6, 10)
-
-
-def momentum_noise_modes(
-    jac: np.ndarray,
-    jac_rate: np.ndarray,
-    n_joints: int,
-    held_factor: np.ndarray | None = None,
-    point_factor: np.ndarray | None = None,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Per sensor channel, the balance noise's columns per chain kernel and twin
-    (``CHAIN_KERNELS``, ``time_weighted_kernels``), times the channel kind's factor F (F F^T
-    the kernels' lag-weighted covariance; None: the identity, the columns themselves):
-    (d links - d thrust (6, 24 + 8 nj), d Y (24 + 8 nj, 6, 10)) from the sample's Jacobian
-    ``jac`` (``sample_jacobian``) and its time derivative ``jac_rate`` (1/s) (both from
-    ``drifting_sample_jacobian``). Channel order:
-    gyro (3), accelerometer (3) (held, 4 columns each: value->value, value->derivative, the same
-    of ``jac_rate``), encoders (nj) (point, 8 each: q's two, qd's two, then the same of
-    ``jac_rate``). Compiled (``_noise_modes``)."""
-    held = np.eye(4) if held_factor is None else _float(held_factor)
-    point = np.eye(8) if point_factor is None else _float(point_factor)
-    jacs = np.stack((_float(jac), _float(jac_rate)))
-    held_factors = np.ascontiguousarray(np.broadcast_to(held, (6, 4, 4)))
-    return _noise_modes(jacs, int(n_joints), held_factors, point, CARGO_P_MAP, CARGO_Q_MAP)

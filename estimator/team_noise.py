@@ -11,7 +11,7 @@ import operator
 import numpy as np
 from numba import njit
 
-from .motion import balance_noise_map_kernel, conditioned_noise, grasp_acc_map_kernel
+from .motion import balance_noise_map_kernel, conditioned_noise, grasp_acc_h_rows
 
 _NO_COV = np.zeros((10, 10))  # ``team_noise`` without the posterior's spread
 
@@ -34,17 +34,26 @@ def team_maps(params, d_links, d_y, regressor, transforms, peer_links, peer_gras
     n_map[:, :n_own] = balance_noise_map_kernel(d_links, d_y, params)
     acc_g = regressor[:3, 0].copy()
     ang_g = np.ascontiguousarray(regressor[:3, 1:4])  # skew(wd) + skew(w)^2
+    h_rows = grasp_acc_h_rows(d_y)  # once for all peers
+    # The products' outputs, reused over the peers (np.dot(a, b, out): the same BLAS calls as @).
+    lever, pos, h_p = np.empty((3, 3)), np.empty(3), np.empty(3 * n_own)
+    turned_acc, lever_acc = np.empty(3), np.empty(3)
     for k in range(n_peers):
         rot = np.ascontiguousarray(transforms[k, :3, :3])
-        lever = np.ascontiguousarray(transforms[k, 3:, :3]) @ np.ascontiguousarray(rot.T)
-        pos = np.array([lever[2, 1], lever[0, 2], lever[1, 0]])
+        np.dot(np.ascontiguousarray(transforms[k, 3:, :3]), rot.T, lever)
+        pos[0], pos[1], pos[2] = lever[2, 1], lever[0, 2], lever[1, 0]
         cols = slice(n_own + peer_start[k], n_own + peer_start[k + 1])
         peer = slice(peer_start[k], peer_start[k + 1])
         rows = slice(3 * k, 3 * k + 3)
         n_map[:, cols] = transforms[k] @ np.ascontiguousarray(peer_links[:, peer])
-        d_map[rows, :n_own] = -grasp_acc_map_kernel(d_y, pos)
+        np.dot(h_rows, pos, h_p)  # -G_i(p) = -(d a_G + d h p), as ``motion.grasp_acc_map_kernel``
+        for c in range(n_own):
+            for i in range(3):
+                d_map[3 * k + i, c] = -(d_y[c, i, 0] + h_p[3 * c + i])
         d_map[rows, cols] = rot @ np.ascontiguousarray(peer_grasp[:, peer])
-        mismatch[rows] = rot @ peer_acc[k] - (acc_g + ang_g @ pos)
+        np.dot(rot, peer_acc[k], turned_acc)
+        np.dot(ang_g, pos, lever_acc)
+        mismatch[rows] = turned_acc - (acc_g + lever_acc)
     return n_map, d_map, mismatch
 
 
