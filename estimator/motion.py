@@ -51,12 +51,6 @@ from collections.abc import Callable
 import numpy as np
 from numba import njit
 
-from .chain_modes import (  # noqa: F401 (their home before ``chain_modes``: re-exported)
-    drifting_sample_jacobian,
-    instant_noise_modes,
-    momentum_noise_modes,
-    sample_jacobian,
-)
 from .preprocess import StateVariableFilter
 
 

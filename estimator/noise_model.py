@@ -55,6 +55,7 @@ from typing import Protocol
 
 import numpy as np
 
+from .chain_modes import instant_noise_modes
 from .fused_motion import coloured_lag_covariances
 from .instant_kernels import keep_motion, nearest_motion, record_modes
 from .momentum import SIZE
@@ -67,7 +68,6 @@ from .motion import (
     conditioned_noise,
     conditioned_own_modes,
     filtered_motion_gains,
-    instant_noise_modes,
     kernel_lag_covariances,
     lag_weighted_covariance,
     psd_factor,

@@ -186,7 +186,8 @@ def test_momentum_chain_noise_matches_a_monte_carlo_of_the_chain():
     # The noise-free chain's steady state (rates constant): its pre-filter state is the motion.
     pre_state = np.zeros((3, 12 + nj))
     pre_state[0] = np.concatenate((w, acc, q, np.asarray(robot.thrust_to_base) @ thrust))
-    from astrocargo.estimator.motion import chain_kernels, momentum_noise_modes, sample_jacobian
+    from astrocargo.estimator.chain_modes import momentum_noise_modes, sample_jacobian
+    from astrocargo.estimator.motion import chain_kernels
 
     jac = sample_jacobian(robot.arrays, np.asarray(robot.imu_pos, dtype=float), w, acc, q,
                           np.zeros(nj), pre_state[0, 6 + nj :])  # fmt: skip
@@ -273,7 +274,7 @@ def test_noise_modes_carry_each_channel_s_factor():
     factor of their channel kind (4 per IMU axis, 8 per joint)."""
     import scipy.linalg
 
-    from astrocargo.estimator.motion import momentum_noise_modes
+    from astrocargo.estimator.chain_modes import momentum_noise_modes
 
     rng = np.random.default_rng(2)
     nj = 2

@@ -133,18 +133,18 @@ def test_motion_noise_equals_the_list_assembly(n_peers, fusion):
 
 
 def test_instant_noise_modes_are_the_modes_of_their_parts():
-    """``motion.instant_noise_modes`` (one compiled call per update instant) equals its parts:
+    """``chain_modes.instant_noise_modes`` (one compiled call per update instant) equals its parts:
     the drifting Jacobian's modes (``momentum_noise_modes``) with the gyro's and the
     accelerometer's own factors, then one mode per squared-rate term, sqrt(v_k) (Q_links,
     M_Q Q_Y), or as many zero columns without terms."""
     import scipy.linalg
 
-    from astrocargo.estimator.momentum import CARGO_Q, CARGO_Q_MAP, LINKS_Q, SIZE
-    from astrocargo.estimator.motion import (
+    from astrocargo.estimator.chain_modes import (
         drifting_sample_jacobian,
         instant_noise_modes,
         momentum_noise_modes,
     )
+    from astrocargo.estimator.momentum import CARGO_Q, CARGO_Q_MAP, LINKS_Q, SIZE
 
     robot = _robot()
     nj = robot.n_joints
