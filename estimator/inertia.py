@@ -596,9 +596,7 @@ def pseudo_inertia_distance(pi_a: np.ndarray, pi_b: np.ndarray) -> np.ndarray:
     """
     pi_a = _as_array(pi_a, (10,), "pi_a")
     pi_b = _as_array(pi_b, (10,), "pi_b")
-    j_a = _pseudo_inertia(pi_a)
-    j_b = _pseudo_inertia(pi_b)
-    j_a, j_b = np.broadcast_arrays(j_a, j_b)
+    j_a, j_b = np.broadcast_arrays(_pseudo_inertia(pi_a), _pseudo_inertia(pi_b))
     try:
         lower_a = np.linalg.cholesky(j_a)
     except np.linalg.LinAlgError:

@@ -123,22 +123,21 @@ def peer_terms(act_cov, rels, msgs, peer_noise_cov, noise):
     and the noise the peers add (6, 6): sum_j T_j N T_j^T (N ``peer_noise_cov``, None: none)
     and, for a grasp layout not given, the averaged relative pose's
     (``NoiseModel.relative_pose_cov`` of ``noise``). Sums run in peer order, from zero (the
-    wrenches, the noise) or act_cov."""
-    wrench, cov, added = np.zeros(6), act_cov, np.zeros((6, 6))
+    wrenches, the noise) or act_cov; the first two are ``peer_sums``, as on the compiled path."""
+    added = np.zeros((6, 6))
     if not msgs:
-        return wrench, act_cov.copy(), added
+        return np.zeros(6), act_cov.copy(), added
     transforms = np.array([rel.transform() for rel in rels])
-    turned = transforms.transpose(0, 2, 1)
-    wrenches = (transforms @ np.array([m.wrench_grasp for m in msgs])[:, :, None])[:, :, 0]
-    carried = transforms @ np.array([m.wrench_cov_grasp for m in msgs]) @ turned
-    channel = None if peer_noise_cov is None else transforms @ peer_noise_cov @ turned
+    wrench, cov = peer_sums(
+        act_cov, transforms, np.array([m.wrench_grasp for m in msgs]),
+        np.array([m.wrench_cov_grasp for m in msgs]),
+    )  # fmt: skip
     for k, rel in enumerate(rels):
-        wrench = wrench + wrenches[k]
-        cov = cov + carried[k]
-        if channel is not None:
-            added = added + channel[k]
+        t = transforms[k]
+        if peer_noise_cov is not None:
+            added = added + t @ peer_noise_cov @ t.T
         if rel.known is None:
-            added = added + noise.relative_pose_cov(wrenches[k], rel.count)
+            added = added + noise.relative_pose_cov(t @ msgs[k].wrench_grasp, rel.count)
     return wrench, cov, added
 
 
