@@ -587,17 +587,16 @@ class CargoEstimator(EstimatorInputs):
         return self._rate_square_var * (b.T * weights) @ b
 
     def _forget_before(self, horizon: int) -> None:
-        """Drop the peers' messages and own fixes of stamps before ``horizon``; keep the oldest
-        stamp still held (``_next_expiry``)."""
-        for key in [k for k in self._rate_terms if k < horizon]:
-            del self._rate_terms[key]
+        """Drop the peers' messages, own fixes and squared-rate terms of stamps before
+        ``horizon``; keep the oldest stamp still held (``_next_expiry``)."""
         if self._oldest_peer_msg < horizon:
             for stamp in [s for s in self._peer_msgs if s < horizon]:
                 del self._peer_msgs[stamp]
             self._oldest_peer_msg = min(self._peer_msgs, default=math.inf)
         # Own fixes, pending instants, squared-rate terms: in increasing stamp order.
-        while self._own_fix and next(iter(self._own_fix)) < horizon:
-            del self._own_fix[next(iter(self._own_fix))]
+        for old in (self._rate_terms, self._own_fix):
+            while old and next(iter(old)) < horizon:
+                del old[next(iter(old))]
         held = (self._pending, self._rate_terms, self._own_fix)
         self._next_expiry = min([self._oldest_peer_msg] + [next(iter(h)) for h in held if h])
 

@@ -153,9 +153,10 @@ class EncoderCovariance:
     def add(self, index: int, regressor, cov, balance_map) -> None:
         """Take in a used update: its count ``index``, Y (6, 10), R (6, 6) and own modes' map
         E (6, n) (``own_modes``): V = Y^T R^-1 E's encoder columns (``take_in``)."""
-        ring = (self.ring, self.ring_index, self.ring_count, self.count, int(index))
-        columns = (self.columns.start, self.columns.stop)
-        self.X = take_in(self.X, *ring, regressor, cov, balance_map, *columns, self.lag_cov)
+        self.X = take_in(
+            self.X, self.ring, self.ring_index, self.ring_count, self.count, int(index),
+            regressor, cov, balance_map, self.columns.start, self.columns.stop, self.lag_cov,
+        )  # fmt: skip
         self.count += 1
 
     def covariance(self, cov: np.ndarray) -> np.ndarray:

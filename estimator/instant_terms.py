@@ -8,6 +8,7 @@ and the general path's peer terms (``peer_terms``)."""
 from __future__ import annotations
 
 import itertools
+import operator
 
 import numpy as np
 from numba import njit
@@ -88,31 +89,47 @@ def instant_terms(noise, condition, params, inst, transforms, msgs, params_cov, 
     where the messages' motion arrays do not match their Jacobians (the general path raises)."""
     own, (d_links, d_y) = noise.momentum_motion, inst.motion_jac
     if msgs:
-        var = _stacked([m.motion_var for m in msgs], 0)
-        same = all(m.motion_band is m.motion_var for m in msgs)  # one array each: stacked once
-        band = var if same else _stacked([m.motion_band for m in msgs], 0)
-        peer_links = _stacked([m.motion_links_jac for m in msgs], 1)
-        peer_grasp = _stacked([m.motion_grasp_jac for m in msgs], 1)
-        sizes = [m.motion_links_jac.shape[1] for m in msgs]
-        acc = _stacked([m.grasp_acc for m in msgs], None)
-        wrenches = _stacked([m.wrench_grasp for m in msgs], None)
-        covs = _stacked([m.wrench_cov_grasp for m in msgs], None)
+        var, band, peer_links, peer_grasp, acc, wrenches, covs, starts = _peer_stacks(msgs)
     else:
-        sizes, var = [], _EMPTY[0][0]
-        band = var
+        var = band = _EMPTY[0][0]
         peer_links, peer_grasp, acc, wrenches = _EMPTY
-        covs = _NO_TRANSFORMS
+        covs, starts = _NO_TRANSFORMS, _NO_STARTS
     n_own, n_peer = d_y.shape[0], peer_links.shape[1]
     n_var = (own.var.size, own.band.size, var.size, band.size, peer_grasp.shape[1])
     if n_var != (n_own, n_own, n_peer, n_peer, n_peer):
         return None
-    starts = np.array([0, *itertools.accumulate(sizes)])
     spread = params_cov is not None
     cov = params_cov if spread else _NO_COV
     return instant_terms_kernel(
         params, d_links, d_y, inst.regressor, transforms, peer_links, peer_grasp, acc, starts,
         (own.var, var), (own.band, band), condition, noise.mismatch_model_var, cov, spread,
         inst.act_cov, wrenches, covs, floor_cov, float(update_every), inst.links,
+    )  # fmt: skip
+
+
+def _peer_stacks(msgs: list) -> tuple:
+    """The peers' message arrays as ``instant_terms_kernel`` takes them, from one pass over
+    ``msgs``: variances, bands, links and grasp Jacobians side by side (``_stacked``), the grasp
+    accelerations, wrenches and covariances stacked, and each peer's first coordinate."""
+    fields = [[] for _ in range(7)]
+    var, band, links, grasp, acc, wrench, cov = fields
+    for m in msgs:
+        var.append(m.motion_var)
+        band.append(m.motion_band)
+        links.append(m.motion_links_jac)
+        grasp.append(m.motion_grasp_jac)
+        acc.append(m.grasp_acc)
+        wrench.append(m.wrench_grasp)
+        cov.append(m.wrench_cov_grasp)
+    sizes = tuple([jac.shape[1] for jac in links])
+    starts = _STARTS.get(sizes)
+    if starts is None:
+        starts = _STARTS.setdefault(sizes, np.array([0, *itertools.accumulate(sizes)]))
+    same = all(map(operator.is_, band, var))  # one array each: stacked once
+    var = _stacked(var, 0)
+    return (
+        var, var if same else _stacked(band, 0), _stacked(links, 1), _stacked(grasp, 1),
+        _stacked(acc, None), _stacked(wrench, None), _stacked(cov, None), starts,
     )  # fmt: skip
 
 
@@ -143,3 +160,5 @@ def peer_terms(act_cov, rels, msgs, peer_noise_cov, noise):
 
 _EMPTY = (np.zeros((6, 0)), np.zeros((3, 0)), np.zeros((0, 3)), np.zeros((0, 6)))
 _NO_TRANSFORMS = np.zeros((0, 6, 6))
+_NO_STARTS = np.zeros(1, dtype=np.int64)
+_STARTS: dict[tuple, np.ndarray] = {}  # each peers' sizes' first coordinates, made once
