@@ -17,6 +17,7 @@ slots read them (``peer_slot_values``).
 from __future__ import annotations
 
 import copy
+import math
 from collections.abc import Callable
 from typing import Any
 
@@ -126,6 +127,9 @@ class TeamEstimation:
         self._slot_cache: tuple[bytes, tuple[np.ndarray, ...]] | None = None
         self._slot_ages = np.zeros((n, n - 1))  # `peer_slot_values`' ages, rewritten per call
         self._team_step = TeamStep(estimators)  # the common path of every robot in one call
+        # The robots that held at the last ``process`` of all of them, and the last step through
+        # which all their ``process`` return 0 while nothing reaches them (``_process``).
+        self._quiet: tuple[tuple, float] = ((), -math.inf)
 
     def step(self, readings: SensorReadings, commands: np.ndarray, k: int, holding,
              arm_rates: np.ndarray, channel) -> bool:  # fmt: skip
@@ -138,14 +142,28 @@ class TeamEstimation:
         others = self._team_step.step(k, holding, readings, commands, arm_rates)
         if others:
             self._step_each(others, readings, commands, k, arm_rates, channel)
-        if channel.due(k):
+        delivered = channel.due(k)
+        if delivered:
             for receiver, msgs in channel.deliver(k).items():
                 for msg in msgs:
                     estimators[receiver].receive(msg)
                     self._keep_latest(receiver, msg)
-        updated = False
+        return self._process(k, holding, reached=bool(others) or delivered)
+
+    def _process(self, k: int, holding, reached: bool) -> bool:
+        """``process`` of every ``holding`` estimator at step ``k``; whether any estimate
+        changed. Not called when it would change nothing: when no robot took its own step nor
+        received (not ``reached``: each one's stamp alone changed, in the team's call), the
+        robots are those of the last call and ``k`` is within the steps through which all of
+        them stay quiet (``EstimatorInputs.quiet_through``, asked after that call)."""
+        held, quiet_until = self._quiet
+        if not reached and k <= quiet_until and holding == held:
+            return False
+        estimators, updated = self.estimators, False
         for i in holding:
             updated |= estimators[i].process() > 0
+        quiet = min((estimators[i].quiet_through() for i in holding), default=-math.inf)
+        self._quiet = (tuple(holding), quiet)
         return updated
 
     def _step_each(self, robots, readings: SensorReadings, commands: np.ndarray, k: int,
@@ -182,6 +200,7 @@ class TeamEstimation:
     def forget(self, receiver: int, sender: int) -> None:
         """``receiver`` no longer counts messages from ``sender`` (it let go of the cargo)."""
         self._slot_cache = None
+        self._quiet = ((), -math.inf)  # the peers change: every holding robot processes
         self.peer_msgs[receiver].pop(sender, None)
         self.latest_stamp[receiver, sender] = -1
         self.latest_wrench[receiver, sender] = 0.0

@@ -31,6 +31,8 @@ those that refresh it (update instants) and on the Python path.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numba import boolean, float64, int64, njit, typeof, types
 
@@ -482,16 +484,14 @@ class EstimatorInputs:
         except TypeError:  # not float64 vectors: the Python path converts them
             return NOT_USABLE
         if outcome != NOT_USABLE:
-            self._count_compiled_step(
-                stamp, outcome, lever, do_balance, (accel_used, gyro, q, thrust)
-            )
+            self._last_input = (accel_used, gyro, q, thrust)
+            self._count_compiled_step(stamp, outcome, lever, do_balance)
         return outcome
 
-    def _count_compiled_step(self, stamp, outcome, lever, do_balance, readings) -> None:
-        """The stamp, the counters and the readings kept after a compiled step of ``outcome``
-        (not NOT_USABLE) and ``lever`` that used ``readings`` (accel, gyro, q, thrust)."""
+    def _count_compiled_step(self, stamp, outcome, lever, do_balance) -> None:
+        """The stamp and the counters after a compiled step of ``outcome`` (not NOT_USABLE) and
+        ``lever``."""
         self.stamp = int(stamp)
-        self._last_input = readings
         if outcome == FIX:
             self.n_fixes += 1
         elif outcome == BAD_FIX:
@@ -635,6 +635,13 @@ class EstimatorInputs:
         while nothing arrived (``_changed`` False), so the oldest stamp held as ``process`` last
         left it (``_next_expiry``) still bounds them: whatever arrives sets ``_changed``."""
         return self._next_expiry < self.stamp - self.history_steps
+
+    def quiet_through(self) -> float:
+        """The last stamp through which ``process`` returns 0 (changes nothing) as long as
+        nothing arrives and nothing changes but the stamp (no ``receive``, no instant recorded,
+        the same peers): -inf when something has (``_changed``), else the last stamp at which
+        nothing held falls before the history's horizon (``_expiring`` False)."""
+        return -math.inf if self._changed else self._next_expiry + self.history_steps
 
     def _record_instant(self, stamp: int, q_raw: np.ndarray, fix: bool) -> WrenchMessage | None:
         # H[Z] = H'[P] + H[Q] from the slow filter's value and derivative (``momentum``).

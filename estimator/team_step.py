@@ -13,7 +13,11 @@ row, so the per-robot path (``EstimatorInputs.step``) and the team call update t
 The per-robot path may rebind an attribute to a new array (a fix on the Python path, the ripple
 map's refresh and the covariance's restart at an update instant); after any step a robot took
 that path, its row is checked again (``_bind``): a rebound attribute is copied into the row and
-viewed again. Nothing else may step the estimators of a team between its steps.
+viewed again. The readings a robot's step used (``EstimatorInputs._last_input``: the
+accelerometer's, less the servos' ripple, the gyro's, the joint angles and the thrust command,
+which the Python path holds when a reading is missing) are copied into its row too
+(``LAST_INPUT_FIELDS``) and its ``_last_input`` is the tuple of their views. Nothing else may
+step the estimators of a team between its steps.
 """
 
 from __future__ import annotations
@@ -42,6 +46,8 @@ STATE_FIELDS = (
     ("ripple_map", "_servo_ripple_map"),
     ("ripple_prev", "_servo_ripple_prev"),
 )
+# The readings the last step used (``EstimatorInputs._last_input``'s order): record fields.
+LAST_INPUT_FIELDS = ("last_accel", "last_gyro", "last_q", "last_thrust")
 # For each field: the object that holds the attribute, and the attribute's name.
 _OWNERS = tuple(
     (operator.attrgetter(path.rpartition(".")[0]) if "." in path else None, path.rpartition(".")[2])
@@ -51,15 +57,15 @@ _OWNERS = tuple(
 
 @njit(cache=True)
 def team_step(constants, states, ready, has_imu, accel, gyro, q, thrust, fix_pos, fix_quat,
-              has_fix, do_balance, target_rate, accel_out, outcome, lever) -> None:  # fmt: skip
+              has_fix, do_balance, target_rate, outcome, lever) -> None:  # fmt: skip
     """``per_step.estimator_step`` for each robot i ``ready`` with an IMU frame (``has_imu``),
     on row i of the ``constants`` (N,) (``estimator_constants``' rows) and of the ``states``
-    (N,) (fields ``STATE_FIELDS``), with row i of the readings (accel, gyro (N, 3) IMU axes;
-    q (N, n_joints) rad; thrust (N, 6) N and N m; the fix fix_pos (N, 3) m, fix_quat (N, 4)
-    where has_fix), the servos' ripple taken off with their targets' rate ``target_rate``
-    (N, n_joints) rad/s. Writes its outcome and lever (m) into ``outcome`` and ``lever`` (N,)
-    (NOT_USABLE and NaN for the other rows) and the accelerometer reading it used into
-    ``accel_out`` (N, 3)."""
+    (N,) (fields ``STATE_FIELDS`` and ``LAST_INPUT_FIELDS``), with row i of the readings
+    (accel, gyro (N, 3) IMU axes; q (N, n_joints) rad; thrust (N, 6) N and N m; the fix
+    fix_pos (N, 3) m, fix_quat (N, 4) where has_fix), the servos' ripple taken off with their
+    targets' rate ``target_rate`` (N, n_joints) rad/s. Writes its outcome and lever (m) into
+    ``outcome`` and ``lever`` (N,) (NOT_USABLE and NaN for the other rows) and, for a step
+    taken, the readings it used into the row's ``LAST_INPUT_FIELDS``."""
     # The readings' rows go through one buffer of each, contiguous whatever their layout.
     a, g, qi, t = np.empty(3), np.empty(3), np.empty(q.shape[1]), np.empty(6)
     pos, quat, rate = np.empty(3), np.empty(4), np.empty(target_rate.shape[1])
@@ -74,8 +80,10 @@ def team_step(constants, states, ready, has_imu, accel, gyro, q, thrust, fix_pos
             constants[i : i + 1], s.pre_state[:], s.pre_u_prev[:], s.rate_state[:],
             s.rate_u_prev[:], s.prod_state[:], s.prod_u_prev[:], s.bal_state[:], s.bal_u_prev[:],
             s.act_cov_sum[:], s.rot_world_base[:], s.pos_world_base[:], a, g, qi, t, pos, quat,
-            has_fix[i], do_balance, s.ripple_map[:], rate, s.ripple_prev[:], accel_out[i], True,
+            has_fix[i], do_balance, s.ripple_map[:], rate, s.ripple_prev[:], s.last_accel[:], True,
         )  # fmt: skip
+        if outcome[i] != NOT_USABLE:  # the accelerometer's reading used is in last_accel
+            s.last_gyro[:], s.last_q[:], s.last_thrust[:] = g, qi, t
 
 
 class TeamStep:
@@ -94,6 +102,7 @@ class TeamStep:
         n = len(estimators)
         self._states: np.ndarray | None = None  # the record of the states, made at first use
         self._rows: list[tuple[np.ndarray, ...]] = []  # each robot's views of its row
+        self._last_inputs: list[tuple[np.ndarray, ...]] = []  # and of its LAST_INPUT_FIELDS
         self._ready = np.zeros(n, dtype=bool)  # robots whose attributes are their row's views
         self._unchecked = set(range(n))  # robots whose attributes may have been rebound
         self._holding: tuple | None = None
@@ -106,7 +115,8 @@ class TeamStep:
     # A copy (deepcopy, pickle) has detached arrays: its rows are made again at its next step.
     def __getstate__(self) -> dict:
         state = dict(self.__dict__)
-        state.update(_states=None, _rows=[], _unchecked=set(range(len(self.estimators))))
+        state.update(_states=None, _rows=[], _last_inputs=[])
+        state["_unchecked"] = set(range(len(self.estimators)))
         state["_ready"] = np.zeros(len(self.estimators), dtype=bool)
         return state
 
@@ -142,30 +152,28 @@ class TeamStep:
             self._stepping[:] = False
             self._stepping[list(holding)] = True
             self._stepping &= self._ready
-        r, accel_used = readings, np.empty((len(self.estimators), 3))
+        r = readings
         do_balance = k % self._regressor_every == 0
         team_step(
             self._constants, self._states, self._stepping, r.has_imu, r.accel_imu, r.gyro_imu,
             r.joint_pos_rad, commands, r.base_pos_world, r.base_quat_world, r.has_fix,
-            do_balance, arm_rates, accel_used, self._outcome, self._lever,
+            do_balance, arm_rates, self._outcome, self._lever,
         )  # fmt: skip
-        return self._after_step(k, holding, do_balance, accel_used, r, commands)
+        return self._after_step(k, holding, do_balance)
 
-    def _after_step(self, k, holding, do_balance, accel_used, r, commands) -> list[int]:
-        """The stamps and counters of the robots stepped, and the readings they used
-        (``EstimatorInputs._count_compiled_step``); the others returned."""
+    def _after_step(self, k, holding, do_balance) -> list[int]:
+        """The stamps and counters of the robots stepped
+        (``EstimatorInputs._count_compiled_step``; the readings they used are in their rows);
+        the others returned."""
         others = []
         outcomes, levers = self._outcome.tolist(), self._lever.tolist()
-        accel, gyro = list(accel_used), list(r.gyro_imu)  # row views, one per robot
-        q, thrust = list(r.joint_pos_rad), list(commands)
         for i in holding:
             o = outcomes[i]
             if o == NOT_USABLE:
                 others.append(i)
                 self._unchecked.add(i)
                 continue
-            used = (accel[i], gyro[i], q[i], thrust[i])
-            self.estimators[i]._count_compiled_step(k, o, levers[i], do_balance, used)
+            self.estimators[i]._count_compiled_step(k, o, levers[i], do_balance)
         return others
 
     def _bind(self, i: int, k: int) -> bool:
@@ -178,6 +186,8 @@ class TeamStep:
             return False
         if self._states is None:
             self._make_rows()
+        if not self._bind_last_input(est, self._last_inputs[i]):
+            return False
         rebound, fits = False, True
         for (owner_of, name), view in zip(_OWNERS, self._rows[i], strict=True):
             owner = est if owner_of is None else owner_of(est)
@@ -194,22 +204,40 @@ class TeamStep:
             est._step_states = est._filter_states()
         return fits
 
+    @staticmethod
+    def _bind_last_input(est, views: tuple[np.ndarray, ...]) -> bool:
+        """``est._last_input`` made ``views`` (its row's ``LAST_INPUT_FIELDS``), its readings
+        copied in; False (nothing changed) when it has none or of other shapes."""
+        last = est._last_input
+        if last is views:
+            return True
+        if last is None or any(np.shape(x) != v.shape for x, v in zip(last, views, strict=True)):
+            return False
+        for view, value in zip(views, last, strict=True):
+            view[...] = value
+        est._last_input = views
+        return True
+
     def _make_rows(self) -> None:
-        """The states' record (fields ``STATE_FIELDS``, shapes of the first estimator's) and each
-        robot's views of its row."""
+        """The states' record (fields ``STATE_FIELDS`` and ``LAST_INPUT_FIELDS``, shapes of the
+        first estimator's) and each robot's views of its row."""
         est = self.estimators[0]
+        nj = est.robot.n_joints
         shapes = {
             "act_cov_sum": (6, 6), "rot_world_base": (3, 3), "pos_world_base": (3,),
-            "ripple_map": (3, est.robot.n_joints), "ripple_prev": (3,),
+            "ripple_map": (3, nj), "ripple_prev": (3,), "last_accel": (3,), "last_gyro": (3,),
+            "last_q": (nj,), "last_thrust": (6,),
         }  # fmt: skip
         fields = []
         for (field, _), (owner_of, name) in zip(STATE_FIELDS, _OWNERS, strict=True):
             shape = shapes.get(field) or getattr(owner_of(est), name).shape
             fields.append((field, np.float64, shape))
+        fields += [(field, np.float64, shapes[field]) for field in LAST_INPUT_FIELDS]
         self._states = as_interned(np.zeros(len(self.estimators), dtype=np.dtype(fields)))
-        self._rows = [
-            tuple(self._states[field][i] for field, _ in STATE_FIELDS)
-            for i in range(len(self.estimators))
+        n = len(self.estimators)
+        self._rows = [tuple(self._states[field][i] for field, _ in STATE_FIELDS) for i in range(n)]
+        self._last_inputs = [
+            tuple(self._states[field][i] for field in LAST_INPUT_FIELDS) for i in range(n)
         ]
 
 
