@@ -139,16 +139,19 @@ class TeamEstimation:
         complete instants. Returns whether any estimate changed."""
         estimators = self.estimators
         # The robots that can go through the team's compiled call, in it; the others one by one.
-        others = self._team_step.step(k, holding, readings, commands, arm_rates)
+        others, published = self._team_step.step(k, holding, readings, commands, arm_rates)
         if others:
-            self._step_each(others, readings, commands, k, arm_rates, channel)
+            published += self._step_each(others, readings, commands, k, arm_rates)
+            published.sort(key=lambda sent: sent[0])  # sent in robot order, as stepped alone
+        for i, msg in published:
+            self._send(i, msg, readings.joint_pos_rad[i], arm_rates[i], channel, k)
         delivered = channel.due(k)
         if delivered:
             for receiver, msgs in channel.deliver(k).items():
                 for msg in msgs:
                     estimators[receiver].receive(msg)
                     self._keep_latest(receiver, msg)
-        return self._process(k, holding, reached=bool(others) or delivered)
+        return self._process(k, holding, reached=bool(others or published) or delivered)
 
     def _process(self, k: int, holding, reached: bool) -> bool:
         """``process`` of every ``holding`` estimator at step ``k``; whether any estimate
@@ -167,24 +170,31 @@ class TeamEstimation:
         return updated
 
     def _step_each(self, robots, readings: SensorReadings, commands: np.ndarray, k: int,
-                   arm_rates: np.ndarray, channel) -> None:  # fmt: skip
-        """``CargoEstimator.step`` of each of ``robots`` in turn; the messages they publish go
-        into ``channel``."""
+                   arm_rates: np.ndarray) -> list[tuple[int, Any]]:  # fmt: skip
+        """``CargoEstimator.step`` of each of ``robots`` in turn; the messages they publish,
+        (robot, message)."""
         r = readings  # row i of its arrays, None for a missing IMU frame or fix (``packet``)
         has_imu, has_fix, estimators = r.has_imu.tolist(), r.has_fix.tolist(), self.estimators
+        published = []
         for i in robots:
-            imu, fix, q = has_imu[i], has_fix[i], r.joint_pos_rad[i]
+            imu, fix = has_imu[i], has_fix[i]
             msg = estimators[i].step(
-                k, r.accel_imu[i] if imu else None, r.gyro_imu[i] if imu else None, q,
-                commands[i], r.base_pos_world[i] if fix else None,
+                k, r.accel_imu[i] if imu else None, r.gyro_imu[i] if imu else None,
+                r.joint_pos_rad[i], commands[i], r.base_pos_world[i] if fix else None,
                 r.base_quat_world[i] if fix else None, servo_target_rate=arm_rates[i],
             )  # fmt: skip
             if msg is not None:
-                sent = self.sent_arm[i]
-                sent[msg.stamp] = np.concatenate((q, arm_rates[i]))
-                if len(sent) > SENT_ARM_KEPT:
-                    del sent[next(iter(sent))]  # the oldest
-                channel.send(freeze_arrays(msg), k)  # its receivers share it
+                published.append((i, msg))
+        return published
+
+    def _send(self, i: int, msg, q: np.ndarray, arm_rate: np.ndarray, channel, k: int) -> None:
+        """Robot i's message ``msg`` into ``channel`` at step k; its arm angles ``q`` and
+        rates kept for the peer slots."""
+        sent = self.sent_arm[i]
+        sent[msg.stamp] = np.concatenate((q, arm_rate))
+        if len(sent) > SENT_ARM_KEPT:
+            del sent[next(iter(sent))]  # the oldest
+        channel.send(freeze_arrays(msg), k)  # its receivers share it
 
     def _keep_latest(self, receiver: int, msg) -> None:
         """Keep ``msg`` as the latest one ``receiver`` has from its sender, if it is newer."""

@@ -1,10 +1,12 @@
 """One control step of a whole team's estimators in one compiled call.
 
-On a step that is not an update instant, each holding robot's estimator does the common path of
-``per_step`` (``estimator_step``: the pre-, rate, product and balance filters' steps, the
-attitude, the actuation covariance). ``TeamStep`` does it for every robot of the team that can
-take that path in one call of ``team_step``, which runs ``per_step.estimator_step`` on each
-robot's row: the same compiled arithmetic as the per-robot call, bit for bit.
+At each control step, each holding robot's estimator does the common path of ``per_step``
+(``estimator_step``: the pre-, rate, product and balance filters' steps, the attitude, the
+actuation covariance). ``TeamStep`` does it for every robot of the team that can take that path
+in one call of ``team_step``, which runs ``per_step.estimator_step`` on each robot's row: the
+same compiled arithmetic as the per-robot call, bit for bit. At an update instant the per-robot
+parts around it stay per robot, in ``EstimatorInputs.step``'s order: the servos' ripple map
+refreshed before the call, the instant recorded and its message made after it.
 
 The states that step changes in place (``STATE_FIELDS``: the four filters' states and previous
 inputs, the actuation covariance sum, the attitude R_WB and p_WB, the servos' ripple map and last
@@ -12,12 +14,12 @@ ripple) live in one record of N rows (``records``); each estimator's attributes 
 row, so the per-robot path (``EstimatorInputs.step``) and the team call update the same memory.
 The per-robot path may rebind an attribute to a new array (a fix on the Python path, the ripple
 map's refresh and the covariance's restart at an update instant); after any step a robot took
-that path, its row is checked again (``_bind``): a rebound attribute is copied into the row and
-viewed again. The readings a robot's step used (``EstimatorInputs._last_input``: the
-accelerometer's, less the servos' ripple, the gyro's, the joint angles and the thrust command,
-which the Python path holds when a reading is missing) are copied into its row too
-(``LAST_INPUT_FIELDS``) and its ``_last_input`` is the tuple of their views. Nothing else may
-step the estimators of a team between its steps.
+that path, and after an instant it recorded, its row is checked again (``_bind``): a rebound
+attribute is copied into the row and viewed again. The readings a robot's step used
+(``EstimatorInputs._last_input``: the accelerometer's, less the servos' ripple, the gyro's, the
+joint angles and the thrust command, which the Python path holds when a reading is missing) are
+copied into its row too (``LAST_INPUT_FIELDS``) and its ``_last_input`` is the tuple of their
+views. Nothing else may step the estimators of a team between its steps.
 """
 
 from __future__ import annotations
@@ -48,6 +50,7 @@ STATE_FIELDS = (
 )
 # The readings the last step used (``EstimatorInputs._last_input``'s order): record fields.
 LAST_INPUT_FIELDS = ("last_accel", "last_gyro", "last_q", "last_thrust")
+_RIPPLE_MAP = [field for field, _ in STATE_FIELDS].index("ripple_map")
 # For each field: the object that holds the attribute, and the attribute's name.
 _OWNERS = tuple(
     (operator.attrgetter(path.rpartition(".")[0]) if "." in path else None, path.rpartition(".")[2])
@@ -90,9 +93,9 @@ class TeamStep:
     """The common path of a team's ``estimators`` (``CargoEstimator``, robot index order) in one
     call per control step (module docstring). The team call is taken only when every estimator
     shares one constants layout and one schedule (else never: ``step`` hands every robot back);
-    per robot, only on a step that is not an update instant, with an IMU frame, its filters
-    started and its attitude known, no fused motion, its servos' ripple map made, the stamp
-    increasing. ``enabled`` False: every robot takes the per-robot path."""
+    per robot, only with an IMU frame, its filters started and its attitude known, no fused
+    motion, its servos' ripple map made, the stamp increasing. ``enabled`` False: every robot
+    takes the per-robot path."""
 
     enabled = True
 
@@ -126,18 +129,20 @@ class TeamStep:
             self._constants = as_interned(self._constants)
 
     def step(self, k: int, holding, readings, commands: np.ndarray,
-             arm_rates: np.ndarray) -> list[int]:  # fmt: skip
+             arm_rates: np.ndarray) -> tuple[list[int], list[tuple[int, object]]]:  # fmt: skip
         """Control step ``k`` of the robots ``holding`` (indices, increasing) with their
         ``readings`` (``envs.sensors.SensorReadings``' arrays, one row per robot), thrust
         ``commands`` (N, 6) and servo targets' ``arm_rates`` (N, n_joints): the robots that can
-        take the team call are stepped in it, as their ``EstimatorInputs.step`` would (no
-        message: not an update instant). Returns the others, in ``holding``'s order, for the
-        per-robot path (and whose reading the compiled step refused)."""
+        take the team call are stepped in it, as their ``EstimatorInputs.step`` would; at an
+        update instant each one's servo ripple map is refreshed first and its instant recorded
+        after (``EstimatorInputs.instant_after_compiled_step``). Returns the others, in
+        ``holding``'s order, for the per-robot path (and whose reading the compiled step
+        refused), and the messages published, (robot, message) in ``holding``'s order."""
         off = self._constants is None or not self.enabled
-        if off or k <= self._last_k or k % self._update_every == 0:
+        if off or k <= self._last_k:
             self._unchecked.update(holding)
             self._last_k = max(self._last_k, k)
-            return list(holding)
+            return list(holding), []
         self._last_k = k
         if self._unchecked:
             for i in self._unchecked:
@@ -146,20 +151,65 @@ class TeamStep:
             self._holding = None
         if self._states is None:  # no robot could take the team call yet
             self._unchecked.update(holding)
-            return list(holding)
+            return list(holding), []
         if holding != self._holding:  # the robots ready and holding
             self._holding = tuple(holding)
             self._stepping[:] = False
             self._stepping[list(holding)] = True
             self._stepping &= self._ready
-        r = readings
+        r, stepping = readings, self._stepping
+        instant = k % self._update_every == 0
+        if instant:
+            stepping = self._refresh_ripple_maps(holding, r, arm_rates)
         do_balance = k % self._regressor_every == 0
         team_step(
-            self._constants, self._states, self._stepping, r.has_imu, r.accel_imu, r.gyro_imu,
+            self._constants, self._states, stepping, r.has_imu, r.accel_imu, r.gyro_imu,
             r.joint_pos_rad, commands, r.base_pos_world, r.base_quat_world, r.has_fix,
             do_balance, arm_rates, self._outcome, self._lever,
         )  # fmt: skip
-        return self._after_step(k, holding, do_balance)
+        others = self._after_step(k, holding, do_balance)
+        if not instant:
+            return others, []
+        return others, self._record_instants(k, holding, others, r.joint_pos_rad)
+
+    def _refresh_ripple_maps(self, holding, readings, arm_rates) -> np.ndarray:
+        """At an update instant, the servos' ripple map of each robot to step refreshed
+        (``EstimatorInputs._refresh_servo_ripple_map``, as its ``step`` does first) into its
+        row; returns the robots to step (those whose map is gone are left to their own path)."""
+        stepping = self._stepping.copy()
+        q = readings.joint_pos_rad
+        for i in holding:
+            if not (stepping[i] and readings.has_imu[i]):
+                continue
+            est = self.estimators[i]
+            est._refresh_servo_ripple_map(q[i], arm_rates[i])
+            view = self._rows[i][_RIPPLE_MAP]
+            value = est._servo_ripple_map
+            if value is view:
+                continue
+            if value is None or value.shape != view.shape:
+                stepping[i] = False  # its own path steps it (a refresh there is the same)
+                self._unchecked.add(i)
+                continue
+            view[...] = value
+            est._servo_ripple_map = view
+        return stepping
+
+    def _record_instants(self, k, holding, others, joint_pos_rad) -> list[tuple[int, object]]:
+        """At an update instant, each robot stepped in the team call records its instant
+        (``EstimatorInputs.instant_after_compiled_step``, at its joint angles ``joint_pos_rad``
+        (N, n_joints)); their messages, (robot, message). Recording rebinds the actuation
+        covariance: the robot's row is checked again at its next step."""
+        published = []
+        outcomes = self._outcome.tolist()
+        for i in holding:
+            if i in others:
+                continue
+            msg = self.estimators[i].instant_after_compiled_step(k, outcomes[i], joint_pos_rad[i])
+            self._unchecked.add(i)
+            if msg is not None:
+                published.append((i, msg))
+        return published
 
     def _after_step(self, k, holding, do_balance) -> list[int]:
         """The stamps and counters of the robots stepped
