@@ -24,6 +24,7 @@ FAULTS = {
     300: (0, "no_imu"),
     333: (1, "nan_accel"),
     341: (0, "nan_gyro"),
+    350: (0, "nan_accel"),  # at an update instant: refused by the team call after its refresh
     360: (1, "no_fix"),
     380: (1, "no_fix"),
     401: (0, "no_imu"),
