@@ -17,6 +17,7 @@ slots read them (``peer_slot_values``).
 from __future__ import annotations
 
 import copy
+import math
 from collections.abc import Callable
 from typing import Any
 
@@ -126,6 +127,9 @@ class TeamEstimation:
         self._slot_cache: tuple[bytes, tuple[np.ndarray, ...]] | None = None
         self._slot_ages = np.zeros((n, n - 1))  # `peer_slot_values`' ages, rewritten per call
         self._team_step = TeamStep(estimators)  # the common path of every robot in one call
+        # The robots that held at the last ``process`` of all of them, and the last step through
+        # which all their ``process`` return 0 while nothing reaches them (``_process``).
+        self._quiet: tuple[tuple, float] = ((), -math.inf)
 
     def step(self, readings: SensorReadings, commands: np.ndarray, k: int, holding,
              arm_rates: np.ndarray, channel) -> bool:  # fmt: skip
@@ -135,38 +139,62 @@ class TeamEstimation:
         complete instants. Returns whether any estimate changed."""
         estimators = self.estimators
         # The robots that can go through the team's compiled call, in it; the others one by one.
-        others = self._team_step.step(k, holding, readings, commands, arm_rates)
+        others, published = self._team_step.step(k, holding, readings, commands, arm_rates)
         if others:
-            self._step_each(others, readings, commands, k, arm_rates, channel)
-        if channel.due(k):
+            published += self._step_each(others, readings, commands, k, arm_rates)
+            published.sort(key=lambda sent: sent[0])  # sent in robot order, as stepped alone
+        for i, msg in published:
+            self._send(i, msg, readings.joint_pos_rad[i], arm_rates[i], channel, k)
+        delivered = channel.due(k)
+        if delivered:
             for receiver, msgs in channel.deliver(k).items():
                 for msg in msgs:
                     estimators[receiver].receive(msg)
                     self._keep_latest(receiver, msg)
-        updated = False
+        return self._process(k, holding, reached=bool(others or published) or delivered)
+
+    def _process(self, k: int, holding, reached: bool) -> bool:
+        """``process`` of every ``holding`` estimator at step ``k``; whether any estimate
+        changed. Not called when it would change nothing: when no robot took its own step nor
+        received (not ``reached``: each one's stamp alone changed, in the team's call), the
+        robots are those of the last call and ``k`` is within the steps through which all of
+        them stay quiet (``EstimatorInputs.quiet_through``, asked after that call)."""
+        held, quiet_until = self._quiet
+        if not reached and k <= quiet_until and holding == held:
+            return False
+        estimators, updated = self.estimators, False
         for i in holding:
             updated |= estimators[i].process() > 0
+        quiet = min((estimators[i].quiet_through() for i in holding), default=-math.inf)
+        self._quiet = (tuple(holding), quiet)
         return updated
 
     def _step_each(self, robots, readings: SensorReadings, commands: np.ndarray, k: int,
-                   arm_rates: np.ndarray, channel) -> None:  # fmt: skip
-        """``CargoEstimator.step`` of each of ``robots`` in turn; the messages they publish go
-        into ``channel``."""
+                   arm_rates: np.ndarray) -> list[tuple[int, Any]]:  # fmt: skip
+        """``CargoEstimator.step`` of each of ``robots`` in turn; the messages they publish,
+        (robot, message)."""
         r = readings  # row i of its arrays, None for a missing IMU frame or fix (``packet``)
         has_imu, has_fix, estimators = r.has_imu.tolist(), r.has_fix.tolist(), self.estimators
+        published = []
         for i in robots:
-            imu, fix, q = has_imu[i], has_fix[i], r.joint_pos_rad[i]
+            imu, fix = has_imu[i], has_fix[i]
             msg = estimators[i].step(
-                k, r.accel_imu[i] if imu else None, r.gyro_imu[i] if imu else None, q,
-                commands[i], r.base_pos_world[i] if fix else None,
+                k, r.accel_imu[i] if imu else None, r.gyro_imu[i] if imu else None,
+                r.joint_pos_rad[i], commands[i], r.base_pos_world[i] if fix else None,
                 r.base_quat_world[i] if fix else None, servo_target_rate=arm_rates[i],
             )  # fmt: skip
             if msg is not None:
-                sent = self.sent_arm[i]
-                sent[msg.stamp] = np.concatenate((q, arm_rates[i]))
-                if len(sent) > SENT_ARM_KEPT:
-                    del sent[next(iter(sent))]  # the oldest
-                channel.send(freeze_arrays(msg), k)  # its receivers share it
+                published.append((i, msg))
+        return published
+
+    def _send(self, i: int, msg, q: np.ndarray, arm_rate: np.ndarray, channel, k: int) -> None:
+        """Robot i's message ``msg`` into ``channel`` at step k; its arm angles ``q`` and
+        rates kept for the peer slots."""
+        sent = self.sent_arm[i]
+        sent[msg.stamp] = np.concatenate((q, arm_rate))
+        if len(sent) > SENT_ARM_KEPT:
+            del sent[next(iter(sent))]  # the oldest
+        channel.send(freeze_arrays(msg), k)  # its receivers share it
 
     def _keep_latest(self, receiver: int, msg) -> None:
         """Keep ``msg`` as the latest one ``receiver`` has from its sender, if it is newer."""
@@ -182,6 +210,7 @@ class TeamEstimation:
     def forget(self, receiver: int, sender: int) -> None:
         """``receiver`` no longer counts messages from ``sender`` (it let go of the cargo)."""
         self._slot_cache = None
+        self._quiet = ((), -math.inf)  # the peers change: every holding robot processes
         self.peer_msgs[receiver].pop(sender, None)
         self.latest_stamp[receiver, sender] = -1
         self.latest_wrench[receiver, sender] = 0.0

@@ -7,7 +7,7 @@ through ``FusedMotion`` before its own pipeline (``per_step.EstimatorInputs.step
 2. a fixed-lag smoother (``smoother.FixedLagSmoother``) of the IMU point's world acceleration
    runs forward on them: the accelerometer's period mean turned into world axes with this
    robot's own attitude at mid-period, u_W = R_WB(t - dt/2) R_BI a_I (R_WB from the fixes,
-   propagated with the gyro between them, ``per_step.update_attitude``), and the fix of the IMU
+   propagated with the gyro between them, ``step_parts.update_attitude``), and the fix of the IMU
    point p_WI = p_WB + R_WB p_BI (the IMU's lever taken in the fix itself, so nothing about the
    angular motion enters; its attitude error adds |p_BI| sigma_theta per axis, 0.5 mm against
    5 mm at ``nominal``, to the fix's variance);
@@ -43,8 +43,8 @@ from typing import NamedTuple
 import numpy as np
 
 from .geometry import exp_so3
-from .per_step import FIX, update_attitude
 from .smoother import FixedLagSmoother, lagged_error_psd_ratio
+from .step_parts import FIX, update_attitude
 
 # Frequencies (Hz) at which the smoother's error ratio is tabulated (interpolated in log f
 # between them; 1 above the last, where it is 1 within 1e-3 at any lag).

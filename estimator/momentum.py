@@ -348,6 +348,14 @@ def momentum_pass(arrays, imu_pos, w_base, acc_imu, q, qd, thrust_base, qd_var):
     [thrust_G, P_links, Q_links, cargo P arguments, cargo Q arguments], less the expectation of
     the joint-rate noise's square in Q (variances ``qd_var`` (nj,), ``momentum_sample``), and
     G's pose in B (rotation, origin)."""
+    out, geo = momentum_pass_geometry(arrays, imu_pos, w_base, acc_imu, q, qd, thrust_base, qd_var)
+    return out, geo.grasp_rot, geo.grasp_pos
+
+
+@njit(cache=True)
+def momentum_pass_geometry(arrays, imu_pos, w_base, acc_imu, q, qd, thrust_base, qd_var):
+    """``momentum_pass``'s sample, with the link geometry of ``q`` (``link_geometry``) it
+    used."""
     nj = q.shape[0]
     geo = link_geometry(arrays, q)
     # E[Q(n)] of zero-mean rate noise n: Q is quadratic in the rates (P linear), so it is
@@ -362,7 +370,7 @@ def momentum_pass(arrays, imu_pos, w_base, acc_imu, q, qd, thrust_base, qd_var):
         if qd_var[j] > 0.0:
             out[LINKS_Q] -= qd_var[j] * rows[1 + j, LINKS_Q]
             out[CARGO_Q] -= qd_var[j] * rows[1 + j, CARGO_Q]
-    return out, geo.grasp_rot, geo.grasp_pos
+    return out, geo
 
 
 @njit(cache=True)
@@ -370,9 +378,17 @@ def sample_from_rate_filter(arrays, imu_pos, rate_state, qd_var):
     """``momentum_pass`` of the rate filter's state (3, 12 + nj) over [gyro_B; the IMU point's
     acceleration in B; q; thrust_B] (``preprocess.Preprocessor``): its values, and the joint
     rates from its first derivative."""
+    out, geo = sample_geometry_from_rate_filter(arrays, imu_pos, rate_state, qd_var)
+    return out, geo.grasp_rot, geo.grasp_pos
+
+
+@njit(cache=True)
+def sample_geometry_from_rate_filter(arrays, imu_pos, rate_state, qd_var):
+    """``sample_from_rate_filter``'s sample, with the link geometry (``link_geometry``) it
+    used."""
     nj = rate_state.shape[1] - 12
     y, yd = rate_state[0], rate_state[1]
-    return momentum_pass(
+    return momentum_pass_geometry(
         arrays, imu_pos, np.ascontiguousarray(y[0:3]), np.ascontiguousarray(y[3:6]),
         np.ascontiguousarray(y[6 : 6 + nj]), np.ascontiguousarray(yd[6 : 6 + nj]),
         np.ascontiguousarray(y[6 + nj : 12 + nj]), qd_var,

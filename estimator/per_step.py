@@ -31,123 +31,36 @@ those that refresh it (update instants) and on the Python path.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numba import boolean, float64, int64, njit, typeof, types
 
 from .geometry import exp_so3, quat_to_mat
 from .messages import Instant, WrenchMessage
-from .momentum import (
-    balance_from_filtered,
-    rate_square_terms,
-    sample_from_rate_filter,
-    servo_ripple_velocities,
-)
+from .momentum import balance_from_filtered, rate_square_terms, servo_ripple_velocities
 from .preprocess import first_order_hold_step
 from .records import as_interned, record_of
-from .rne import RobotArrays, grasp_from_base_kernel
+from .rne import RobotArrays
+from .step_parts import (
+    BAD_FIX,
+    FIX,
+    NOT_USABLE,
+    RIPPLE_MOVING,
+    actuation_cov_into,
+    actuation_cov_step,
+    all_finite,
+    momentum_step,
+    readings_usable,
+    ripple_case,
+    servo_ripple_step,
+    update_attitude,
+)
 
-# Outcomes of `estimator_step` (its first return value).
-NOT_USABLE, NO_FIX, FIX, BAD_FIX = range(4)
 # What the compiled step reads as the fix when there is none (it is not used).
 _NO_POS, _NO_QUAT = np.zeros(3), np.zeros(4)
 # What it reads as the servo ripple's map, rate and last ripple without one (not used).
 _NO_MAP, _NO_RATE, _UNUSED_ACCEL = np.zeros((3, 0)), np.zeros(0), np.zeros(3)
-
-
-@njit(cache=True)
-def _all_finite(a: np.ndarray) -> bool:
-    for value in a.flat:
-        if not np.isfinite(value):
-            return False
-    return True
-
-
-@njit(cache=True)
-def _any_nonzero(a: np.ndarray) -> bool:
-    """Whether any entry is nonzero (NaN counts), as ``a.any()``."""
-    for value in a.flat:
-        if value != 0.0:
-            return True
-    return False
-
-
-# ``_ripple_case``'s outcomes.
-RIPPLE_AT_REST, RIPPLE_UNUSABLE, RIPPLE_MOVING = range(3)
-
-
-@njit(cache=True)
-def _ripple_case(rate, previous, q) -> int:
-    """Whether the servos' ripple changes this step: RIPPLE_AT_REST when the targets' ``rate``
-    and the ``previous`` ripple are zero (a NaN counts as nonzero), RIPPLE_UNUSABLE when the
-    joint angles ``q`` or the rate are not finite, else RIPPLE_MOVING."""
-    if not (_any_nonzero(rate) or _any_nonzero(previous)):
-        return RIPPLE_AT_REST
-    if not (_all_finite(q) and _all_finite(rate)):
-        return RIPPLE_UNUSABLE
-    return RIPPLE_MOVING
-
-
-@njit(cache=True)
-def servo_ripple_step(ripple_map, rate, previous, imu_rot, dt_s, accel):
-    """The IMU point's ripple v_r = V rate (3,) m/s (B axes; V (3, n_joints) of
-    ``momentum.servo_ripple_velocities``, ``rate`` rad/s) and the accelerometer's period mean
-    less its change since the ``previous`` ripple, a - R_BI^T (v_r - v_r,prev) / dt (IMU axes,
-    m/s^2)."""
-    ripple = ripple_map @ rate
-    return ripple, accel - imu_rot.T @ ((ripple - previous) / dt_s)
-
-
-@njit(cache=True)
-def _usable(nj, accel, gyro, q, thrust, fix_pos, fix_quat, has_fix) -> bool:
-    """Every reading of the right shape and finite (the fix's shape too, when given)."""
-    if accel.shape[0] != 3 or gyro.shape[0] != 3 or q.shape[0] != nj or thrust.shape[0] != 6:
-        return False
-    if has_fix and (fix_pos.shape[0] != 3 or fix_quat.shape[0] != 4):
-        return False
-    return _all_finite(accel) and _all_finite(gyro) and _all_finite(q) and _all_finite(thrust)
-
-
-@njit(cache=True)
-def update_attitude(rot_world_base, pos_world_base, imu_rot, gyro, dt_s, fix_pos, fix_quat,
-                    has_fix) -> int:  # fmt: skip
-    """R_WB and p_WB in place from a usable fix (finite, |quat| > 0), else R_WB propagated by
-    the gyro (rad/s, IMU axes) over dt_s; returns FIX, BAD_FIX or NO_FIX."""
-    if has_fix:
-        if _all_finite(fix_quat) and _all_finite(fix_pos) and np.linalg.norm(fix_quat) > 0:
-            rot_world_base[:] = quat_to_mat(fix_quat)
-            pos_world_base[:] = fix_pos
-            return FIX
-    rot_world_base[:] = rot_world_base @ exp_so3(dt_s * (imu_rot @ gyro))
-    return BAD_FIX if has_fix else NO_FIX
-
-
-@njit(cache=True)
-def momentum_step(arrays, imu_pos, qd_var, rate_ad, rate_b_value, rate_b_slope, rate_held,
-                  rate_state, rate_u_prev, prod_ad, prod_b_value, prod_b_slope, prod_held,
-                  prod_state, prod_u_prev, u) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
-    """One step of the momentum form's chain in place (``preprocess.Preprocessor``): the rate
-    filter on the pre-filter's input ``u``, one momentum-form sample of its outputs
-    (``momentum.sample_from_rate_filter``) into the product filter. Returns G's pose in B
-    (rotation, origin m) at the rate filter's joint angles."""
-    first_order_hold_step(
-        rate_ad, rate_b_value, rate_b_slope, rate_held, rate_state, rate_u_prev, u
-    )
-    sample, grasp_rot, grasp_pos = sample_from_rate_filter(arrays, imu_pos, rate_state, qd_var)
-    first_order_hold_step(
-        prod_ad, prod_b_value, prod_b_slope, prod_held, prod_state, prod_u_prev, sample
-    )
-    return grasp_rot, grasp_pos
-
-
-@njit(cache=True)
-def actuation_cov_step(grasp_rot, grasp_pos, thrust_to_base, act_abs, act_rel, act_cov_sum,
-                       thrust_command) -> float:  # fmt: skip
-    """Add this step's actuation covariance, carried into G, to ``act_cov_sum``:
-    T_GB T_BS diag(std^2) T_BS^T T_GB^T, std = abs + rel |command|; returns the lever |p_BG| m."""
-    to_grasp = grasp_from_base_kernel(grasp_rot, grasp_pos) @ thrust_to_base
-    std = act_abs + act_rel * np.abs(thrust_command)
-    act_cov_sum += (to_grasp * std**2) @ to_grasp.T
-    return np.sqrt(grasp_pos @ grasp_pos)
 
 
 _V, _M, _T3 = float64[::1], float64[:, ::1], float64[:, :, ::1]
@@ -186,18 +99,18 @@ def estimator_step_arrays(
     ``accel_out``. Returns (outcome, lever |p_BG| m or NaN when no balance was filtered);
     outcome NOT_USABLE leaves everything unchanged."""
     nj = parent.shape[0] - 1
-    if not _usable(nj, accel, gyro, q, thrust, fix_pos, fix_quat, has_fix):
+    if not readings_usable(nj, accel, gyro, q, thrust, fix_pos, fix_quat, has_fix):
         return NOT_USABLE, np.nan
     moving = (
         with_ripple
         and target_rate.shape[0] == nj
-        and _ripple_case(target_rate, ripple_prev, q) == RIPPLE_MOVING
+        and ripple_case(target_rate, ripple_prev, q) == RIPPLE_MOVING
     )
     if moving:
         ripple, accel = servo_ripple_step(
             ripple_map, target_rate, ripple_prev, imu_rot, dt_s, accel
         )
-        if not _all_finite(accel):
+        if not all_finite(accel):
             return NOT_USABLE, np.nan
         ripple_prev[:] = ripple
     accel_out[:] = accel
@@ -207,7 +120,7 @@ def estimator_step_arrays(
     )  # fmt: skip
     u = pre_to_input @ np.concatenate((gyro, accel, q, thrust))
     first_order_hold_step(pre_ad, pre_b_value, pre_b_slope, pre_held, pre_state, pre_u_prev, u)
-    rot_bg, pos_bg = momentum_step(
+    grasp_from_base, pos_bg = momentum_step(
         arrays, imu_pos, qd_var, rate_ad, rate_b_value, rate_b_slope, rate_held, rate_state,
         rate_u_prev, prod_ad, prod_b_value, prod_b_slope, prod_held, prod_state, prod_u_prev, u,
     )  # fmt: skip
@@ -216,8 +129,8 @@ def estimator_step_arrays(
     )
     if not do_balance:
         return outcome, np.nan
-    lever = actuation_cov_step(
-        rot_bg, pos_bg, thrust_to_base, act_abs, act_rel, act_cov_sum, thrust
+    lever = actuation_cov_into(
+        grasp_from_base, pos_bg, thrust_to_base, act_abs, act_rel, act_cov_sum, thrust
     )
     sample = np.ascontiguousarray(prod_state[0])
     first_order_hold_step(bal_ad, bal_b_value, bal_b_slope, bal_held, bal_state, bal_u_prev, sample)
@@ -268,6 +181,12 @@ def packed_ready(constants: np.ndarray) -> np.ndarray:
     return constants
 
 
+@njit(cache=True, inline="always")
+def _bools(stored: np.ndarray) -> np.ndarray:
+    """A record's bool field (stored as uint8 0 or 1, ``records``) viewed as bool."""
+    return stored[:].view(np.bool_)
+
+
 @njit(cache=True)
 def estimator_step(
     constants, pre_state, pre_u_prev, rate_state, rate_u_prev, prod_state, prod_u_prev,
@@ -282,10 +201,10 @@ def estimator_step(
     return estimator_step_arrays(
         c.parent[:], c.joint_axis[:], c.rot_in_parent[:], c.pos_in_parent[:], c.mass[:],
         c.com[:], c.inertia_com[:], c.grasp_link[0], c.grasp_rot[:], c.grasp_pos[:],
-        c.pre_to_input[:], c.pre_ad[:], c.pre_b_value[:], c.pre_b_slope[:], c.pre_held[:] != 0,
-        c.rate_ad[:], c.rate_b_value[:], c.rate_b_slope[:], c.rate_held[:] != 0, c.prod_ad[:],
-        c.prod_b_value[:], c.prod_b_slope[:], c.prod_held[:] != 0, c.imu_pos[:], c.qd_var[:],
-        c.bal_ad[:], c.bal_b_value[:], c.bal_b_slope[:], c.bal_held[:] != 0, c.imu_rot[:],
+        c.pre_to_input[:], c.pre_ad[:], c.pre_b_value[:], c.pre_b_slope[:], _bools(c.pre_held),
+        c.rate_ad[:], c.rate_b_value[:], c.rate_b_slope[:], _bools(c.rate_held), c.prod_ad[:],
+        c.prod_b_value[:], c.prod_b_slope[:], _bools(c.prod_held), c.imu_pos[:], c.qd_var[:],
+        c.bal_ad[:], c.bal_b_value[:], c.bal_b_slope[:], _bools(c.bal_held), c.imu_rot[:],
         c.thrust_to_base[:], c.act_abs[:], c.act_rel[:], c.dt_s[0], pre_state, pre_u_prev,
         rate_state, rate_u_prev, prod_state, prod_u_prev, bal_state, bal_u_prev, act_cov_sum,
         rot_world_base, pos_world_base, accel, gyro, q, thrust, fix_pos, fix_quat, has_fix,
@@ -366,9 +285,7 @@ class EstimatorInputs:
                 base_quat_world, ripple_rate,
             )  # fmt: skip
             if outcome != NOT_USABLE:
-                if not instant or stamp < self.warmup_steps:
-                    return None
-                return self._record_instant(stamp, joint_pos_rad, outcome == FIX)
+                return self.instant_after_compiled_step(stamp, outcome, joint_pos_rad)
         if ripple_rate is not None:  # the compiled call changed nothing: the ripple here
             accel_imu = self._without_servo_ripple(stamp, accel_imu, joint_pos_rad, ripple_rate)
         return self._python_step(
@@ -406,7 +323,7 @@ class EstimatorInputs:
 
     def _ripple_inputs(self, joint_pos_rad, target_rate):
         """The targets' rate and the joint angles (float arrays) when the ripple changes this
-        step (``_ripple_case`` RIPPLE_MOVING, both of n_joints), else (None, None); the last
+        step (``ripple_case`` RIPPLE_MOVING, both of n_joints), else (None, None); the last
         ripple made zero if there is none yet."""
         rate = np.asarray(target_rate, dtype=float)
         q = np.asarray(joint_pos_rad, dtype=float)
@@ -415,7 +332,7 @@ class EstimatorInputs:
             self._servo_ripple_prev = np.zeros(3)
         if rate.shape != nj or q.shape != nj:
             return None, None
-        if _ripple_case(rate, self._servo_ripple_prev, q) != RIPPLE_MOVING:
+        if ripple_case(rate, self._servo_ripple_prev, q) != RIPPLE_MOVING:
             return None, None
         return rate, q
 
@@ -482,16 +399,22 @@ class EstimatorInputs:
         except TypeError:  # not float64 vectors: the Python path converts them
             return NOT_USABLE
         if outcome != NOT_USABLE:
-            self._count_compiled_step(
-                stamp, outcome, lever, do_balance, (accel_used, gyro, q, thrust)
-            )
+            self._last_input = (accel_used, gyro, q, thrust)
+            self._count_compiled_step(stamp, outcome, lever, do_balance)
         return outcome
 
-    def _count_compiled_step(self, stamp, outcome, lever, do_balance, readings) -> None:
-        """The stamp, the counters and the readings kept after a compiled step of ``outcome``
-        (not NOT_USABLE) and ``lever`` that used ``readings`` (accel, gyro, q, thrust)."""
+    def instant_after_compiled_step(self, stamp, outcome, joint_pos_rad) -> WrenchMessage | None:
+        """After a compiled step of ``outcome`` (not NOT_USABLE) at ``stamp``: at an update
+        instant past the warm-up, the instant recorded (``_record_instant``, with the joint
+        angles ``joint_pos_rad``) and its message; else None."""
+        if stamp % self.update_every or stamp < self.warmup_steps:
+            return None
+        return self._record_instant(stamp, joint_pos_rad, outcome == FIX)
+
+    def _count_compiled_step(self, stamp, outcome, lever, do_balance) -> None:
+        """The stamp and the counters after a compiled step of ``outcome`` (not NOT_USABLE) and
+        ``lever``."""
         self.stamp = int(stamp)
-        self._last_input = readings
         if outcome == FIX:
             self.n_fixes += 1
         elif outcome == BAD_FIX:
@@ -635,6 +558,13 @@ class EstimatorInputs:
         while nothing arrived (``_changed`` False), so the oldest stamp held as ``process`` last
         left it (``_next_expiry``) still bounds them: whatever arrives sets ``_changed``."""
         return self._next_expiry < self.stamp - self.history_steps
+
+    def quiet_through(self) -> float:
+        """The last stamp through which ``process`` returns 0 (changes nothing) as long as
+        nothing arrives and nothing changes but the stamp (no ``receive``, no instant recorded,
+        the same peers): -inf when something has (``_changed``), else the last stamp at which
+        nothing held falls before the history's horizon (``_expiring`` False)."""
+        return -math.inf if self._changed else self._next_expiry + self.history_steps
 
     def _record_instant(self, stamp: int, q_raw: np.ndarray, fix: bool) -> WrenchMessage | None:
         # H[Z] = H'[P] + H[Q] from the slow filter's value and derivative (``momentum``).

@@ -11,6 +11,7 @@ import pytest
 
 import astrocargo.estimator.team_step as team_step_module
 from astrocargo.envs.transport import CargoTransport
+from astrocargo.estimator.cargo_estimator import CargoEstimator
 
 
 def _actions(n: int, k: int) -> np.ndarray:
@@ -23,6 +24,7 @@ FAULTS = {
     300: (0, "no_imu"),
     333: (1, "nan_accel"),
     341: (0, "nan_gyro"),
+    350: (0, "nan_accel"),  # at an update instant: refused by the team call after its refresh
     360: (1, "no_fix"),
     380: (1, "no_fix"),
     401: (0, "no_imu"),
@@ -99,21 +101,41 @@ def team_calls(monkeypatch):
     return stepped_counts
 
 
+@pytest.fixture
+def processed(monkeypatch):
+    """The estimators whose ``process`` ran, one entry per call."""
+    calls: list[CargoEstimator] = []
+    process = CargoEstimator.process
+
+    def counted(self):
+        calls.append(self)
+        return process(self)
+
+    monkeypatch.setattr(CargoEstimator, "process", counted)
+    return calls
+
+
+# A late, lossy channel and a short history: instants wait for lost messages and expire.
+LOSSY = {"comm_latency": 0.05, "comm_drop": 0.5, "estimator_kwargs": {"history_s": 0.5}}
+
+
 @pytest.mark.parametrize(
-    "n_robots, release_at",
-    [(2, None), (3, [(2, 6.5)])],
-    ids=["2-robots", "3-robots-one-lets-go"],
+    "n_robots, release_at, channel",
+    [(2, None, {}), (3, [(2, 6.5)], {}), (2, None, LOSSY)],
+    ids=["2-robots", "3-robots-one-lets-go", "2-robots-lossy"],
 )
-def test_team_call_equals_the_per_robot_path(n_robots, release_at, team_calls):
-    kwargs = {"n_robots": n_robots, "noise": "nominal", "release_at": release_at}
+def test_team_call_equals_the_per_robot_path(n_robots, release_at, channel, team_calls,
+                                             processed):  # fmt: skip
+    kwargs = {"n_robots": n_robots, "noise": "nominal", "release_at": release_at, **channel}
     team, alone = CargoTransport(**kwargs), CargoTransport(**kwargs)
     for sim in (team, alone):
         sim.reset(np.random.default_rng(5))
         _with_faults(sim)
     alone.estimation._team_step.enabled = False
-    released = False
+    released, robot_steps = False, 0
     for k in range(460):
         actions = _actions(n_robots, k)
+        robot_steps += len(alone.holding)
         results = [sim.step(actions) for sim in (team, alone)]
         released |= bool(results[0].released)
         np.testing.assert_array_equal(
@@ -123,12 +145,20 @@ def test_team_call_equals_the_per_robot_path(n_robots, release_at, team_calls):
             _assert_same(_estimator_arrays(a), _estimator_arrays(b), (k, i))
         np.testing.assert_array_equal(team.state(), alone.state())
     # The team call stepped robots on most steps, the per-robot path took the faults.
-    assert len(team_calls) > 350 and sum(c == n_robots for c in team_calls) > 250
+    # Every step once the filters run, update instants included (46 of the 460 steps).
+    assert len(team_calls) > 450 and sum(c == n_robots for c in team_calls) > 250
     assert team.estimators[0].n_missing_imu == 2
     assert team.estimators[1].n_bad_readings >= 1
     assert released == (release_at is not None)
     if release_at is not None:
         assert max(team_calls[-20:]) == n_robots - 1
+    # The per-robot path processed every holding robot at every step; the team, with the same
+    # estimates, only on the steps where something reached its robots or fell out of the history.
+    team_processed = sum(any(e is t for t in team.estimators) for e in processed)
+    assert len(processed) - team_processed >= robot_steps
+    assert 0 < team_processed < robot_steps / 2
+    if channel:  # instants expired: on steps where nothing reached the robots
+        assert min(est.n_skipped_missing for est in team.estimators) > 0
 
 
 @pytest.mark.parametrize("how", ["deepcopy", "pickle"])
