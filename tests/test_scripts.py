@@ -366,6 +366,31 @@ def test_same_results_compare_flags_a_change_beyond_rounding(tmp_path, capsys):
         same.main(["compare", a, str(tmp_path / "missing.npz")])
 
 
+def test_same_results_per_quantity_measure_scales_by_the_quantity_not_the_entry(tmp_path):
+    """An estimate passing near zero: a rounding-level absolute change there is huge per entry
+    but not per quantity; a change beyond rounding is flagged by both measures."""
+    same = load("same_results")
+    est = np.linspace(-0.003, 0.003, 5)[:, None] * np.ones((5, 10))
+    est[2] = -3.7e-6  # within 1/1000 of the quantity's size of zero
+    rounding = est + 1e-14
+    changed = est * (1 + 1e-6)
+    assert same.relative_difference(est, rounding) > 1e-9
+    assert same.quantity_difference(est, rounding) < 1e-10
+    assert same.quantity_difference(est, changed) > 1e-7
+    assert same.quantity_difference(np.zeros((3, 2)), np.zeros((3, 2))) == 0.0
+    # Each quantity (last axis) has its own scale: a large one does not hide a small one's change.
+    two = np.stack([np.full(4, 1e3), np.full(4, 1e-3)], axis=-1)
+    moved = two.copy()
+    moved[0, 1] += 1e-9
+    assert same.quantity_difference(two, moved) == pytest.approx(1e-9 / (1e-3 + 1e-9))
+    for name, arrays in (("a", est), ("b", rounding), ("c", changed)):
+        np.savez(tmp_path / f"{name}.npz", **{"s/est": arrays})
+    a, b, c = (str(tmp_path / f"{x}.npz") for x in "abc")
+    assert same.main(["compare", a, b]) == 1
+    assert same.main(["compare", a, b, "--measure", "quantity", "--rtol", "1e-10"]) == 0
+    assert same.main(["compare", a, c, "--measure", "quantity", "--rtol", "1e-10"]) == 1
+
+
 def test_same_results_open_loop_keeps_the_estimates_out_of_the_physics(monkeypatch):
     """Open loop: a change in the estimator moves the estimates but not one bit of the flight;
     closed loop (the default), the same change moves the flight too."""
