@@ -10,25 +10,26 @@ the change, record again after, compare:
 
 Scenarios: the scripted controller with live estimates (``ObservationController``, cargo model
 "estimate") flying each trajectory under ``nominal`` noise from a fixed seed, 1, 2, 3 and 8
-robots. ``compare`` prints the largest relative difference per array and exits 1 when one
-exceeds ``--rtol`` (default 1e-9) or the shapes differ.
+robots. ``compare`` prints the largest relative difference per array (both measures below) and
+exits 1 when one exceeds ``--rtol`` (default 1e-10, per quantity) or the shapes differ.
 
 Closed or open loop. By default the controller flies on the estimates, so the estimator's
 rounding feeds back into the physics. ``record --open-loop`` flies the same scenarios with the
 controller on the true cargo model (arrays named ``<scenario>_open/...``): the estimates no
 longer steer the robots, and only the estimates and what is built from them can move.
 
-Two measures (``--measure``). ``element`` (the default): |a - b| / max(|a|, |b|) per entry. It
-is large wherever a quantity passes near zero: on r2_excite_open robot 1's I_xy estimate is
--3.7e-6 kg m^2 at step 669 (its posterior std 5.7e-3), so one unit in the last place of every
-update's R moves that entry by 8e-15 absolute, 2.2e-9 relative, while the other scenarios stay
-at 1e-11..1e-10. ``quantity``: |a - b| / the largest |value| of that quantity (the array's last
+Two measures (``--measure``). ``element``: |a - b| / max(|a|, |b|) per entry. It is large
+wherever a quantity passes near zero: on r2_excite_open robot 1's I_xy estimate is -3.7e-6 kg m^2
+at step 669 (its posterior std 5.7e-3), so one unit in the last place of every update's R moves
+that entry by 8e-15 absolute, 2.2e-9 relative, while the other scenarios stay at 1e-11..1e-10.
+``quantity`` (the default): |a - b| / the largest |value| of that quantity (the array's last
 axis) in either run, one scale for all its entries. Against main's recordings, rounding (one unit
 in the last place of every update's R or b, regrouped sums, other BLAS calls) gave at most 4e-12
-open loop, and R scaled by (1 + 1e-9) at every update 3.5e-10..8e-10: ``--measure quantity
---rtol 1e-10`` tells rounding from a change of the arithmetic on every open-loop scenario. Closed
-loop the same rounding reaches 3.3e-10 per quantity (3.7e-7 per entry), as much as that 1e-9
-change of R, so the closed loop tells only bit-equal arithmetic from the rest.
+open loop, and R scaled by (1 + 1e-9) at every update 3.5e-10..8e-10. So the defaults,
+``--measure quantity --rtol 1e-10`` on open-loop recordings, tell rounding from a change of the
+arithmetic on every scenario: that is the project's same-results rule. Closed loop the same
+rounding reaches 3.3e-10 per quantity (3.7e-7 per entry), as much as that 1e-9 change of R, so
+the closed loop tells only bit-equal arithmetic from the rest.
 """
 
 from __future__ import annotations
@@ -117,7 +118,7 @@ def quantity_difference(a: np.ndarray, b: np.ndarray) -> float:
 MEASURES = {"element": relative_difference, "quantity": quantity_difference}
 
 
-def compare(path_a: Path, path_b: Path, rtol: float, measure: str = "element") -> bool:
+def compare(path_a: Path, path_b: Path, rtol: float, measure: str = "quantity") -> bool:
     a, b = np.load(path_a), np.load(path_b)
     same = set(a.files) == set(b.files)
     if not same:
@@ -152,9 +153,9 @@ def main(argv: list[str] | None = None) -> int:
     cmp_ = sub.add_parser("compare", help="compare two recordings")
     cmp_.add_argument("a", type=Path)
     cmp_.add_argument("b", type=Path)
-    cmp_.add_argument("--rtol", type=cli.nonnegative_float, default=1e-9)
+    cmp_.add_argument("--rtol", type=cli.nonnegative_float, default=1e-10)
     cmp_.add_argument(
-        "--measure", choices=sorted(MEASURES), default="element",
+        "--measure", choices=sorted(MEASURES), default="quantity",
         help="judge per entry or per quantity (see the module docstring)",
     )  # fmt: skip
     args = parser.parse_args(argv)
