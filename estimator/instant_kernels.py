@@ -8,6 +8,9 @@ the persistent state kept in preallocated arrays:
 - the ring of recorded pre-filter states (``keep_motion``, ``nearest_motion``): stamps (K,),
   states (K, 3, 12 + nj), span [first slot, count] (2,);
 - the autocorrelation's sums and ring (``motion.RegressorAutocorrelation``), in place.
+``record_instant`` is that call with the robot's constants as one record (``record_constants``:
+numba checks and unboxes each argument of a call, a record at once) and the encoders' squared
+rate noise's terms (``momentum.rate_square_terms``) computed inside it.
 The arithmetic is the same as the pieces' one by one, bit for bit. M M^T stays numpy's (a syrk:
 a loop or numba's gemm rounds differently, and the message's factor, an eigendecomposition of
 it, carries that into the team's conditioning: 2e-9 in open loop, past the same-results rule).
@@ -15,10 +18,14 @@ it, carries that into the team's conditioning: 2e-9 in open loop, past the same-
 
 from __future__ import annotations
 
+import numpy as np
 from numba import njit
 
 from .chain_modes import instant_noise_modes
+from .momentum import _rate_square_terms
 from .motion import _add_regressor
+from .records import record_of
+from .rne import RobotArrays
 from .team_noise import message_map
 
 
@@ -88,3 +95,46 @@ def record_modes(arrays, imu_pos, n_joints, step_s, factors, point_factor, rate_
     links, y = instant_noise_modes(arrays, imu_pos, x, n_joints, step_s, factors, point_factor,
                                    rate_terms, rate_var, n_rate)  # fmt: skip
     return links, y, message_map(links, y, mode_std)
+
+
+def record_constants(arrays: RobotArrays, imu_pos, point_factor, mode_std, n_joints: int,
+                     n_rate: int, step_s: float, dt_s: float) -> np.ndarray:  # fmt: skip
+    """``record_modes``' constant arguments as one record (``records.record_of``) for
+    ``record_instant``: the robot's ``arrays`` by their names, ``imu_pos``, ``point_factor``,
+    ``mode_std``, ``counts`` = (n_joints, n_rate) and ``times`` = (step_s, dt_s) s."""
+    fields = {name: np.atleast_1d(value) for name, value in arrays._asdict().items()}
+    fields.update(
+        imu_pos=np.asarray(imu_pos, dtype=float),
+        point_factor=np.asarray(point_factor, dtype=float),
+        mode_std=np.asarray(mode_std, dtype=float),
+        counts=np.array([n_joints, n_rate], dtype=np.int64),
+        times=np.array([step_s, dt_s], dtype=float),
+    )
+    return record_of(fields)
+
+
+@njit(cache=True)
+def record_instant(constants, factors, rate_terms, rate_var, rate_q, rate_scale, motion_ring,
+                   autocorrelation, stamp, pre_state, target, horizon, index, regressor,
+                   add):  # fmt: skip
+    """``record_modes`` with its constants from ``constants`` (``record_constants``). The
+    squared rate noise's terms: ``rate_terms`` (k, ``SIZE``) with variances ``rate_var`` (k,)
+    as given or, with joint angles ``rate_q`` (n_joints,) rad (empty: none), computed here,
+    ``momentum.rate_square_terms`` at ``rate_q`` with variances ``rate_scale`` w_k (w_k 2 for a
+    square, 1 for a product of two joints). Returns (d links, d Y, M) as ``record_modes``."""
+    c = constants[0]
+    fields = (
+        c.parent[:], c.joint_axis[:], c.rot_in_parent[:], c.pos_in_parent[:], c.mass[:],
+        c.com[:], c.inertia_com[:], c.grasp_link[0], c.grasp_rot[:], c.grasp_pos[:],
+    )  # fmt: skip
+    arrays = RobotArrays(*fields)
+    imu_pos, n_joints, n_rate = c.imu_pos[:], c.counts[0], c.counts[1]
+    if rate_q.shape[0] != 0 and n_rate != 0:
+        rate_terms = _rate_square_terms(*fields, imu_pos, rate_q)
+        weights = np.ones(rate_terms.shape[0])
+        weights[:n_joints] = 2.0
+        rate_var = rate_scale * weights
+    return record_modes(arrays, imu_pos, n_joints, c.times[0], factors, c.point_factor[:],
+                        rate_terms, rate_var, n_rate, c.mode_std[:], motion_ring,
+                        autocorrelation, stamp, pre_state, target, horizon, c.times[1], index,
+                        regressor, add)  # fmt: skip

@@ -57,8 +57,8 @@ import numpy as np
 
 from .chain_modes import instant_noise_modes
 from .fused_motion import coloured_lag_covariances
-from .instant_kernels import keep_motion, nearest_motion, record_modes
-from .momentum import SIZE
+from .instant_kernels import keep_motion, nearest_motion, record_constants, record_instant
+from .momentum import SIZE, _rate_square_terms
 from .motion import (
     HELD_EXTENDED,
     POINT_EXTENDED,
@@ -75,7 +75,7 @@ from .motion import (
 )
 from .over_time import IMU_MODES, MODES_PER_CHANNEL, conditioning_gain, mode_lag_covariances
 from .preprocess import DEFAULT_RATE_CUTOFF_HZ, StateVariableFilter
-from .rne import RobotDescription
+from .rne import RobotDescription, as_single
 from .team_noise import excitation_snr_kernel, message_map, same_key, team_maps_of, team_noise
 
 # Ways the motion's sensor noise enters the measurement (``NoiseModel.motion_noise``).
@@ -85,6 +85,7 @@ MOTION_FUSION = ("none", "own", "team")
 FACTOR_REFRESH_UPDATES = 8
 # ``momentum_jacobians`` without the squared rate noise's terms.
 _NO_RATE_TERMS = (np.zeros((0, SIZE)), np.zeros(0))
+_NO_RATE_AT = (np.zeros(0), 0.0)  # ``instant_modes`` without joint angles for them
 _NO_COV = np.zeros((10, 10))  # ``_conditioned`` without the posterior's spread
 
 
@@ -420,12 +421,17 @@ class NoiseModel:
         regressor: np.ndarray,
         pre_state: np.ndarray,
         rate_terms: tuple[np.ndarray, np.ndarray] | None = None,
+        rate_at: tuple[np.ndarray, float] | None = None,
     ) -> tuple[tuple[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]]:
         """``momentum_jacobians`` then ``message_modes`` of its modes: ((d links, d Y), (F's
-        links rows, its grasp rows, ones)). Not over time, one compiled call
-        (``instant_kernels.record_modes``; the factors' refresh, every
-        ``FACTOR_REFRESH_UPDATES`` updates, before it)."""
+        links rows, its grasp rows, ones)). The squared rate noise: ``rate_terms`` as
+        ``momentum_jacobians`` takes them, or ``rate_at`` = (joint angles q (n_joints,) rad,
+        scale v): ``momentum.rate_square_terms`` at q with variances v w_k, made here. Not over
+        time, one compiled call (``instant_kernels.record_instant``; the factors' refresh,
+        every ``FACTOR_REFRESH_UPDATES`` updates, before it)."""
         if self.over_time:
+            if rate_at is not None:
+                rate_terms = self._rate_terms_at(*rate_at)
             jac = self.momentum_jacobians(stamp, regressor, pre_state, rate_terms)
             return jac, self.message_modes(*jac)
         index = stamp // self.update_every
@@ -434,19 +440,45 @@ class NoiseModel:
         if not add:
             self.autocorrelation.add(index, regressor)
             self._refresh_factors()
-        none = rate_terms is None or not self._n_rate_modes
-        terms, variances = _NO_RATE_TERMS if none else rate_terms
+        none = not self._n_rate_modes
+        terms, variances = _NO_RATE_TERMS if none or rate_terms is None else rate_terms
+        rate_q, rate_scale = _NO_RATE_AT if none or rate_at is None else rate_at
         target = stamp - self._jacobian_lag_steps
         auto = self.autocorrelation
-        links, y, stacked = record_modes(
-            self._robot_arrays, self._imu_pos, self._n_joints, self._jacobian_rate_step_s,
-            self._channel_factors(), self._point_factor, terms, variances, self._n_rate_modes,
-            self._mode_std, self._ring_with_room(pre_state), (auto._cross, auto._power,
+        links, y, stacked = record_instant(
+            self._record_constants(), self._channel_factors(), terms, variances, rate_q,
+            float(rate_scale), self._ring_with_room(pre_state), (auto._cross, auto._power,
             auto._ring, auto._ring_power, auto._ring_index), int(stamp), pre_state, target,
-            target - 2 * self.update_every, self._dt_s, index, regressor, add,
+            target - 2 * self.update_every, index, regressor, add,
         )  # fmt: skip
         factor = psd_factor(stacked @ stacked.T)  # numpy's syrk, as ``message_modes``
         return (links, y), (factor[:6], factor[6:], np.ones(9))
+
+    def _rate_terms_at(self, q, scale: float) -> tuple[np.ndarray, np.ndarray] | None:
+        """``instant_modes``' ``rate_at`` as ``rate_terms``: (``momentum.rate_square_terms`` at
+        joint angles ``q``, ``scale`` times their weights); None without such modes."""
+        if not self._n_rate_modes or len(q) == 0:
+            return None
+        q = as_single(q, (self._n_joints,), "q")
+        terms = _rate_square_terms(*self._robot_arrays, self._imu_pos, q)
+        weights = np.array([2.0] * self._n_joints + [1.0] * (len(terms) - self._n_joints))
+        return terms, scale * weights
+
+    def _record_constants(self) -> np.ndarray:
+        """``instant_kernels.record_constants`` of this model, made once (again after a copy:
+        ``__getstate__``)."""
+        if self._record is None:
+            self._record = record_constants(
+                self._robot_arrays, self._imu_pos, self._point_factor, self._mode_std,
+                self._n_joints, self._n_rate_modes, self._jacobian_rate_step_s, self._dt_s,
+            )  # fmt: skip
+        return self._record
+
+    # ``_record_constants``' record (its dtype interned: a copy makes its own).
+    _record: np.ndarray | None = None
+
+    def __getstate__(self) -> dict:
+        return {**self.__dict__, "_record": None}
 
     def message_modes(
         self, d_links: np.ndarray, d_y: np.ndarray

@@ -585,40 +585,36 @@ class EstimatorInputs:
             self._rot_world_base = self._rot_world_base @ exp_so3(self.dt_s * w_base)
         return False
 
-    def _rate_square_terms(self) -> tuple[np.ndarray, np.ndarray] | None:
-        """The encoders' squared rate noise (``noise_model.rate_square_var``) at this instant:
-        ``momentum.rate_square_terms`` at the rate filter's joint rates, None when that noise is
-        off."""
+    def _rate_square_q(self) -> np.ndarray | None:
+        """The rate filter's joint angles (n_joints,) rad, where the encoders' squared rate noise
+        (``noise_model.rate_square_var``) is taken at this instant; None when it is off."""
         if self._rate_square_var <= 0:
             return None
-        q_rate = self.pre.rate_filter.state[0, 6 : 6 + self.robot.n_joints]
-        return rate_square_terms(self.robot, q_rate)
+        return self.pre.rate_filter.state[0, 6 : 6 + self.robot.n_joints]
 
     def _rate_square_links_cov(self, rate_terms: tuple | None) -> np.ndarray:
         """The links' part (6, 6) of the squared rate noise ``rate_terms``
-        (``_rate_square_terms``): it goes with the message as the actuation's does (per step:
-        the receiver divides by update_every)."""
+        (``momentum.rate_square_terms`` at ``_rate_square_q``): it goes with the message as the
+        actuation's does (per step: the receiver divides by update_every)."""
         if rate_terms is None:
             return np.zeros((6, 6))
         terms, weights = rate_terms
         links = terms[:, 12:18]
         return self.update_every * self._rate_square_var * ((links.T * weights) @ links)
 
-    def _motion_fields(self, b, stamp: int, rate_terms: tuple | None) -> tuple[tuple | None, dict]:
+    def _motion_fields(self, b, stamp: int, q_rate) -> tuple[tuple | None, dict]:
         """The instant's sensor-noise modes in the momentum chain
-        (``NoiseModel.momentum_jacobians``, with the squared rate noise ``rate_terms``; None
-        without motion fusion) and the message's motion fields (``NoiseModel.message_modes``),
-        both from ``NoiseModel.instant_modes``."""
+        (``NoiseModel.momentum_jacobians``, with the squared rate noise at joint angles
+        ``q_rate``, ``_rate_square_q``; None without motion fusion) and the message's motion fields
+        (``NoiseModel.message_modes``), both from ``NoiseModel.instant_modes``."""
         if self.motion_fusion == "none":
             return None, {}
         # The squared rate noise joins the modes (``NoiseModel.momentum_jacobians``): it enters
         # the team's mismatch too, and neither the message's covariance nor
         # ``_rate_square_cov`` carries it then.
-        rate = (
-            None if rate_terms is None else (rate_terms[0], self._rate_square_var * rate_terms[1])
-        )
+        rate_at = None if q_rate is None else (q_rate, self._rate_square_var)
         jac, (links, grasp, var) = self.noise.instant_modes(
-            stamp, b.regressor, self.pre.filter.state, rate
+            stamp, b.regressor, self.pre.filter.state, rate_at=rate_at
         )
         motion = {
             "grasp_acc": b.regressor[:3, 0].copy(),
@@ -644,11 +640,12 @@ class EstimatorInputs:
         act_cov = self._act_cov_sum / max(self._act_cov_n, 1)
         self._act_cov_sum = np.zeros((6, 6))
         self._act_cov_n = 0
-        rate_terms = self._rate_square_terms()
         tainted = stamp <= self._tainted_until
-        jac, motion = self._motion_fields(b, stamp, rate_terms)
+        q_rate = self._rate_square_q()
+        jac, motion = self._motion_fields(b, stamp, q_rate)
         sent_cov = act_cov
         if jac is None:  # the regressor's part waits with the instant (``_rate_square_cov``)
+            rate_terms = None if q_rate is None else rate_square_terms(self.robot, q_rate)
             sent_cov = act_cov + self._rate_square_links_cov(rate_terms)
             if rate_terms is not None:
                 self._rate_terms[stamp] = rate_terms
