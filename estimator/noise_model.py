@@ -58,7 +58,7 @@ import numpy as np
 from .chain_modes import instant_noise_modes
 from .fused_motion import coloured_lag_covariances
 from .instant_kernels import keep_motion, nearest_motion, record_constants, record_instant
-from .momentum import SIZE, _rate_square_terms
+from .momentum import SIZE, rate_square_terms
 from .motion import (
     HELD_EXTENDED,
     POINT_EXTENDED,
@@ -75,7 +75,7 @@ from .motion import (
 )
 from .over_time import IMU_MODES, MODES_PER_CHANNEL, conditioning_gain, mode_lag_covariances
 from .preprocess import DEFAULT_RATE_CUTOFF_HZ, StateVariableFilter
-from .rne import RobotDescription, as_single
+from .rne import RobotDescription
 from .team_noise import excitation_snr_kernel, message_map, same_key, team_maps_of, team_noise
 
 # Ways the motion's sensor noise enters the measurement (``NoiseModel.motion_noise``).
@@ -112,24 +112,6 @@ def decorrelation_updates(slow_delay_s: float, update_s: float) -> float:
     w = 3 / delay; a slowly varying residual of rms s enters each update as c s^2."""
     w = 3.0 / slow_delay_s
     return max(1.0, (16.0 / (3.0 * w)) / update_s)
-
-
-def rate_square_var(
-    dt_s: float, rate_cutoff_hz: float, encoder_std_rad: float, update_every: int
-) -> float:
-    """Per-update white-equivalent variance (rad/s)^4 of n^2 - E n^2, n the encoders' white
-    noise (std s per sample) through the momentum form's rate filter's derivative (``momentum``:
-    Q's products of joint rates square it). With h the filter's derivative impulse response and
-    r(d) = sum_m h_m h_m+d, n^2 has the autocovariance 2 s^4 r(d)^2 (Gaussian), flat in the
-    band below the slow filter's cutoff, where the chain's gain is 1: per update
-    S(0) / (2 dt_update) = s^4 sum_d r(d)^2 / update_every (times 2 for a square, 1 for a
-    product of two joints' noises: ``momentum.rate_square_terms``)."""
-    rate = StateVariableFilter(1, dt_s, rate_cutoff_hz)
-    rate.step(np.zeros(1))
-    n = int(np.ceil(40 * rate.delay_s / dt_s)) + 8
-    h = np.array([rate.step(np.array([float(k == 0)]))[1][0] for k in range(n)])
-    r = np.correlate(h, h, mode="full")
-    return float(encoder_std_rad**4 * np.sum(r**2) / update_every)
 
 
 def _nonnegative(value, size: int, name: str) -> np.ndarray:
@@ -320,7 +302,7 @@ class NoiseModel:
                         [12, 12, 8 * nj, self._n_rate_modes])  # fmt: skip
         self.momentum_motion = MotionNoiseSpec(var=var, band=np.ones(var.size))
         self._mode_std = np.sqrt(var)  # ``message_modes``' scale, once
-        self._robot_arrays = robot.arrays
+        self._robot, self._robot_arrays = robot, robot.arrays
         self._imu_pos = np.ascontiguousarray(robot.imu_pos, dtype=float)
         self._n_joints = nj
         self._dt_s = dt_s
@@ -455,13 +437,11 @@ class NoiseModel:
         return (links, y), (factor[:6], factor[6:], np.ones(9))
 
     def _rate_terms_at(self, q, scale: float) -> tuple[np.ndarray, np.ndarray] | None:
-        """``instant_modes``' ``rate_at`` as ``rate_terms``: (``momentum.rate_square_terms`` at
-        joint angles ``q``, ``scale`` times their weights); None without such modes."""
-        if not self._n_rate_modes or len(q) == 0:
+        """``instant_modes``' ``rate_at`` as ``rate_terms``: ``momentum.rate_square_terms`` at
+        joint angles ``q`` and ``scale`` times their weights; None without such modes."""
+        if not self._n_rate_modes:
             return None
-        q = as_single(q, (self._n_joints,), "q")
-        terms = _rate_square_terms(*self._robot_arrays, self._imu_pos, q)
-        weights = np.array([2.0] * self._n_joints + [1.0] * (len(terms) - self._n_joints))
+        terms, weights = rate_square_terms(self._robot, q)
         return terms, scale * weights
 
     def _record_constants(self) -> np.ndarray:

@@ -169,3 +169,35 @@ def test_held_channels_that_share_a_factor_take_the_products_of_each_alone(kinds
         _factored_into(ref_links, ref_y, np.array([4 * c]), readout, columns, factors[c])
     np.testing.assert_array_equal(links, ref_links)
     np.testing.assert_array_equal(y, ref_y)
+
+
+def test_message_pose_and_servo_ripple_from_the_robot_record_equal_their_python_forms():
+    """``message_pose`` (the grasp pose at the encoders' angles, then in world axes, and the
+    wrench turned into world axes) and ``servo_ripple_of`` equal, bit for bit,
+    ``rne.grasp_pose`` with numpy's products and ``momentum.servo_ripple_velocities``, from
+    one record of the robot (``robot_record``)."""
+    from astrocargo.estimator.geometry import quat_to_mat
+    from astrocargo.estimator.instant_kernels import message_pose, robot_record, servo_ripple_of
+    from astrocargo.estimator.momentum import servo_ripple_velocities
+    from astrocargo.estimator.rne import grasp_pose
+
+    robot = _robot()
+    assert robot.servo_gain is not None
+    record = robot_record(robot)
+    rng = np.random.default_rng(9)
+    cargo = np.array([2.0, 0.1, -0.05, 0.2, 0.3, 0.25, 0.2, 0.01, -0.02, 0.005])
+    for _ in range(20):
+        q = rng.uniform(-1.5, 1.5, robot.n_joints)
+        rot_wb = np.ascontiguousarray(quat_to_mat(rng.normal(size=4) + [2.0, 0.0, 0.0, 0.0]))
+        pos_wb, wrench = rng.normal(size=3), rng.normal(size=6) * [1, 1, 1, 0.1, 0.1, 0.1]
+        rot_wg, pos_wg, wrench_world = message_pose(record, q, rot_wb, pos_wb, wrench)
+        rot_bg, pos_bg = grasp_pose(robot, q)
+        turn = np.zeros((6, 6))
+        turn[:3, :3] = turn[3:, 3:] = rot_wb @ rot_bg
+        np.testing.assert_array_equal(rot_wg, rot_wb @ rot_bg)
+        np.testing.assert_array_equal(pos_wg, pos_wb + rot_wb @ pos_bg)
+        np.testing.assert_array_equal(wrench_world, turn @ wrench)
+        np.testing.assert_array_equal(
+            servo_ripple_of(record, q, cargo, 0.016),
+            servo_ripple_velocities(robot, q, cargo, 0.016),
+        )
