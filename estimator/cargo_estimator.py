@@ -81,7 +81,7 @@ from .instant_terms import instant_terms, known_transforms, peer_terms
 from .messages import Instant, RelativeGrasp, WrenchMessage  # noqa: F401 (re-exported)
 from .momentum import SIZE as MOMENTUM_SIZE
 from .momentum import cargo_regressor_parts
-from .noise_model import NoiseModel, rate_square_var
+from .noise_model import NoiseModel
 from .over_time import UpdateWindow
 from .per_step import EstimatorInputs
 from .preprocess import Preprocessor, StateVariableFilter
@@ -91,6 +91,7 @@ from .prior import (  # noqa: F401 (re-exported)
     default_prior,
     prior_covariance,
 )
+from .rate_square import rate_square_var
 from .rne import Balance, RobotDescription, grasp_pose, wrench_transform
 from .ukf import InertialParamUKF
 

@@ -132,17 +132,33 @@ def _factored_into(out_links, out_y, starts, readout, columns, factor):
 
 
 @njit(cache=True)
+def _same_factor_end(factors, first):
+    """The end of the run of factors (c, m, m) from ``first`` that are bit for bit
+    ``factors[first]`` (such channels take one product in ``_factored_into``)."""
+    bits = factors.view(np.int64)
+    end = first + 1
+    while end < factors.shape[0] and np.all(bits[end] == bits[first]):
+        end += 1
+    return end
+
+
+@njit(cache=True)
 def _noise_modes_into(out_links, out_y, jacs, n_joints, held_factors, point_factor, p_map,
                       q_map):  # fmt: skip
     """``_noise_modes`` written into the first 24 + 8 nj modes of ``out_links`` (6, n) and
-    ``out_y`` (n, 60)."""
+    ``out_y`` (n, 60); the held channels that share a factor in one product."""
     nj = n_joints
     readout = _readout_columns(jacs, p_map, q_map)
-    held = np.empty((1, 4, 2), dtype=np.int64)
-    held[0, :, 1] = np.arange(4)
-    for c in range(6):  # gyro x, y, z, accelerometer x, y, z: read-outs 0 ... 3
-        held[0, :, 0] = c
-        _factored_into(out_links, out_y, np.array([4 * c]), readout, held, held_factors[c])
+    first = 0
+    while first < 6:  # gyro x, y, z, accelerometer x, y, z: read-outs 0 ... 3
+        end = _same_factor_end(held_factors, first)
+        held = np.empty((end - first, 4, 2), dtype=np.int64)
+        for c in range(first, end):
+            held[c - first, :, 0] = c
+            held[c - first, :, 1] = np.arange(4)
+        starts = 4 * np.arange(first, end)
+        _factored_into(out_links, out_y, starts, readout, held, held_factors[first])
+        first = end
     point = np.empty((nj, 8, 2), dtype=np.int64)
     for i in range(nj):  # per encoder: (q, 0), (q, 1), (qd, 0), (qd, 1), then read-outs 2, 3
         for k in range(4):

@@ -57,8 +57,8 @@ import numpy as np
 
 from .chain_modes import instant_noise_modes
 from .fused_motion import coloured_lag_covariances
-from .instant_kernels import keep_motion, nearest_motion, record_modes
-from .momentum import SIZE
+from .instant_kernels import keep_motion, nearest_motion, record_constants, record_instant
+from .momentum import SIZE, rate_square_terms
 from .motion import (
     HELD_EXTENDED,
     POINT_EXTENDED,
@@ -85,6 +85,7 @@ MOTION_FUSION = ("none", "own", "team")
 FACTOR_REFRESH_UPDATES = 8
 # ``momentum_jacobians`` without the squared rate noise's terms.
 _NO_RATE_TERMS = (np.zeros((0, SIZE)), np.zeros(0))
+_NO_RATE_AT = (np.zeros(0), 0.0)  # ``instant_modes`` without joint angles for them
 _NO_COV = np.zeros((10, 10))  # ``_conditioned`` without the posterior's spread
 
 
@@ -111,24 +112,6 @@ def decorrelation_updates(slow_delay_s: float, update_s: float) -> float:
     w = 3 / delay; a slowly varying residual of rms s enters each update as c s^2."""
     w = 3.0 / slow_delay_s
     return max(1.0, (16.0 / (3.0 * w)) / update_s)
-
-
-def rate_square_var(
-    dt_s: float, rate_cutoff_hz: float, encoder_std_rad: float, update_every: int
-) -> float:
-    """Per-update white-equivalent variance (rad/s)^4 of n^2 - E n^2, n the encoders' white
-    noise (std s per sample) through the momentum form's rate filter's derivative (``momentum``:
-    Q's products of joint rates square it). With h the filter's derivative impulse response and
-    r(d) = sum_m h_m h_m+d, n^2 has the autocovariance 2 s^4 r(d)^2 (Gaussian), flat in the
-    band below the slow filter's cutoff, where the chain's gain is 1: per update
-    S(0) / (2 dt_update) = s^4 sum_d r(d)^2 / update_every (times 2 for a square, 1 for a
-    product of two joints' noises: ``momentum.rate_square_terms``)."""
-    rate = StateVariableFilter(1, dt_s, rate_cutoff_hz)
-    rate.step(np.zeros(1))
-    n = int(np.ceil(40 * rate.delay_s / dt_s)) + 8
-    h = np.array([rate.step(np.array([float(k == 0)]))[1][0] for k in range(n)])
-    r = np.correlate(h, h, mode="full")
-    return float(encoder_std_rad**4 * np.sum(r**2) / update_every)
 
 
 def _nonnegative(value, size: int, name: str) -> np.ndarray:
@@ -319,7 +302,7 @@ class NoiseModel:
                         [12, 12, 8 * nj, self._n_rate_modes])  # fmt: skip
         self.momentum_motion = MotionNoiseSpec(var=var, band=np.ones(var.size))
         self._mode_std = np.sqrt(var)  # ``message_modes``' scale, once
-        self._robot_arrays = robot.arrays
+        self._robot, self._robot_arrays = robot, robot.arrays
         self._imu_pos = np.ascontiguousarray(robot.imu_pos, dtype=float)
         self._n_joints = nj
         self._dt_s = dt_s
@@ -420,12 +403,17 @@ class NoiseModel:
         regressor: np.ndarray,
         pre_state: np.ndarray,
         rate_terms: tuple[np.ndarray, np.ndarray] | None = None,
+        rate_at: tuple[np.ndarray, float] | None = None,
     ) -> tuple[tuple[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]]:
         """``momentum_jacobians`` then ``message_modes`` of its modes: ((d links, d Y), (F's
-        links rows, its grasp rows, ones)). Not over time, one compiled call
-        (``instant_kernels.record_modes``; the factors' refresh, every
-        ``FACTOR_REFRESH_UPDATES`` updates, before it)."""
+        links rows, its grasp rows, ones)). The squared rate noise: ``rate_terms`` as
+        ``momentum_jacobians`` takes them, or ``rate_at`` = (joint angles q (n_joints,) rad,
+        scale v): ``momentum.rate_square_terms`` at q with variances v w_k, made here. Not over
+        time, one compiled call (``instant_kernels.record_instant``; the factors' refresh,
+        every ``FACTOR_REFRESH_UPDATES`` updates, before it)."""
         if self.over_time:
+            if rate_at is not None:
+                rate_terms = self._rate_terms_at(*rate_at)
             jac = self.momentum_jacobians(stamp, regressor, pre_state, rate_terms)
             return jac, self.message_modes(*jac)
         index = stamp // self.update_every
@@ -434,19 +422,43 @@ class NoiseModel:
         if not add:
             self.autocorrelation.add(index, regressor)
             self._refresh_factors()
-        none = rate_terms is None or not self._n_rate_modes
-        terms, variances = _NO_RATE_TERMS if none else rate_terms
+        none = not self._n_rate_modes
+        terms, variances = _NO_RATE_TERMS if none or rate_terms is None else rate_terms
+        rate_q, rate_scale = _NO_RATE_AT if none or rate_at is None else rate_at
         target = stamp - self._jacobian_lag_steps
         auto = self.autocorrelation
-        links, y, stacked = record_modes(
-            self._robot_arrays, self._imu_pos, self._n_joints, self._jacobian_rate_step_s,
-            self._channel_factors(), self._point_factor, terms, variances, self._n_rate_modes,
-            self._mode_std, self._ring_with_room(pre_state), (auto._cross, auto._power,
+        links, y, stacked = record_instant(
+            self._record_constants(), self._channel_factors(), terms, variances, rate_q,
+            float(rate_scale), self._ring_with_room(pre_state), (auto._cross, auto._power,
             auto._ring, auto._ring_power, auto._ring_index), int(stamp), pre_state, target,
-            target - 2 * self.update_every, self._dt_s, index, regressor, add,
+            target - 2 * self.update_every, index, regressor, add,
         )  # fmt: skip
         factor = psd_factor(stacked @ stacked.T)  # numpy's syrk, as ``message_modes``
         return (links, y), (factor[:6], factor[6:], np.ones(9))
+
+    def _rate_terms_at(self, q, scale: float) -> tuple[np.ndarray, np.ndarray] | None:
+        """``instant_modes``' ``rate_at`` as ``rate_terms``: ``momentum.rate_square_terms`` at
+        joint angles ``q`` and ``scale`` times their weights; None without such modes."""
+        if not self._n_rate_modes:
+            return None
+        terms, weights = rate_square_terms(self._robot, q)
+        return terms, scale * weights
+
+    def _record_constants(self) -> np.ndarray:
+        """``instant_kernels.record_constants`` of this model, made once (again after a copy:
+        ``__getstate__``)."""
+        if self._record is None:
+            self._record = record_constants(
+                self._robot_arrays, self._imu_pos, self._point_factor, self._mode_std,
+                self._n_joints, self._n_rate_modes, self._jacobian_rate_step_s, self._dt_s,
+            )  # fmt: skip
+        return self._record
+
+    # ``_record_constants``' record (its dtype interned: a copy makes its own).
+    _record: np.ndarray | None = None
+
+    def __getstate__(self) -> dict:
+        return {**self.__dict__, "_record": None}
 
     def message_modes(
         self, d_links: np.ndarray, d_y: np.ndarray

@@ -37,9 +37,11 @@ import numpy as np
 from numba import boolean, float64, int64, njit, typeof, types
 
 from .geometry import exp_so3, quat_to_mat
+from .instant_kernels import message_pose, robot_record, servo_ripple_of
 from .messages import Instant, WrenchMessage
-from .momentum import balance_from_filtered, rate_square_terms, servo_ripple_velocities
+from .momentum import balance_from_filtered, rate_square_terms
 from .preprocess import first_order_hold_step
+from .rate_square import rate_square_links_cov
 from .records import as_interned, record_of
 from .rne import RobotArrays
 from .step_parts import (
@@ -223,6 +225,7 @@ class EstimatorInputs:
         self.__dict__.update(state)
         if "_step_constants" in state:
             self._step_constants = packed_ready(self._step_constants)
+        self._robot_record = None  # ``_record_instant``'s, made again (its dtype interned)
 
     def _compiled_step_constants(self) -> np.ndarray:
         """The constant arguments of ``estimator_step_arrays`` as one record
@@ -338,8 +341,20 @@ class EstimatorInputs:
 
     def _servo_ripple_map_at(self, q: np.ndarray) -> np.ndarray | None:
         """``momentum.servo_ripple_velocities`` at joint angles ``q`` (n_joints,) rad and the
-        current cargo estimate; None when the servos' gains are unknown."""
-        return servo_ripple_velocities(self.robot, q, self.ukf.params_mean(), self.dt_s)
+        current cargo estimate (``instant_kernels.servo_ripple_of``); None when the servos'
+        gains are unknown."""
+        if self.robot.servo_gain is None:
+            return None
+        cargo, q = self.ukf.params_mean(), np.ascontiguousarray(q, dtype=float)
+        return servo_ripple_of(self._robot_constants(), q, cargo, float(self.dt_s))
+
+    _robot_record: np.ndarray | None = None  # ``_robot_constants``
+
+    def _robot_constants(self) -> np.ndarray:
+        """``instant_kernels.robot_record`` of the robot, made once (a copy makes its own)."""
+        if self._robot_record is None:
+            self._robot_record = robot_record(self.robot)
+        return self._robot_record
 
     def _refresh_servo_ripple_map(self, joint_pos_rad, target_rate) -> None:
         """At an update instant, the servos' ripple map refreshed (``_servo_ripple_map_at``) if
@@ -508,40 +523,26 @@ class EstimatorInputs:
             self._rot_world_base = self._rot_world_base @ exp_so3(self.dt_s * w_base)
         return False
 
-    def _rate_square_terms(self) -> tuple[np.ndarray, np.ndarray] | None:
-        """The encoders' squared rate noise (``noise_model.rate_square_var``) at this instant:
-        ``momentum.rate_square_terms`` at the rate filter's joint rates, None when that noise is
-        off."""
+    def _rate_square_q(self) -> np.ndarray | None:
+        """The rate filter's joint angles (n_joints,) rad, where the encoders' squared rate noise
+        (``rate_square.rate_square_var``) is taken at this instant; None when it is off."""
         if self._rate_square_var <= 0:
             return None
-        q_rate = self.pre.rate_filter.state[0, 6 : 6 + self.robot.n_joints]
-        return rate_square_terms(self.robot, q_rate)
+        return self.pre.rate_filter.state[0, 6 : 6 + self.robot.n_joints]
 
-    def _rate_square_links_cov(self, rate_terms: tuple | None) -> np.ndarray:
-        """The links' part (6, 6) of the squared rate noise ``rate_terms``
-        (``_rate_square_terms``): it goes with the message as the actuation's does (per step:
-        the receiver divides by update_every)."""
-        if rate_terms is None:
-            return np.zeros((6, 6))
-        terms, weights = rate_terms
-        links = terms[:, 12:18]
-        return self.update_every * self._rate_square_var * ((links.T * weights) @ links)
-
-    def _motion_fields(self, b, stamp: int, rate_terms: tuple | None) -> tuple[tuple | None, dict]:
+    def _motion_fields(self, b, stamp: int, q_rate) -> tuple[tuple | None, dict]:
         """The instant's sensor-noise modes in the momentum chain
-        (``NoiseModel.momentum_jacobians``, with the squared rate noise ``rate_terms``; None
-        without motion fusion) and the message's motion fields (``NoiseModel.message_modes``),
-        both from ``NoiseModel.instant_modes``."""
+        (``NoiseModel.momentum_jacobians``, with the squared rate noise at joint angles
+        ``q_rate``, ``_rate_square_q``; None without motion fusion) and the message's motion fields
+        (``NoiseModel.message_modes``), both from ``NoiseModel.instant_modes``."""
         if self.motion_fusion == "none":
             return None, {}
         # The squared rate noise joins the modes (``NoiseModel.momentum_jacobians``): it enters
         # the team's mismatch too, and neither the message's covariance nor
         # ``_rate_square_cov`` carries it then.
-        rate = (
-            None if rate_terms is None else (rate_terms[0], self._rate_square_var * rate_terms[1])
-        )
+        rate_at = None if q_rate is None else (q_rate, self._rate_square_var)
         jac, (links, grasp, var) = self.noise.instant_modes(
-            stamp, b.regressor, self.pre.filter.state, rate
+            stamp, b.regressor, self.pre.filter.state, rate_at=rate_at
         )
         motion = {
             "grasp_acc": b.regressor[:3, 0].copy(),
@@ -574,12 +575,14 @@ class EstimatorInputs:
         act_cov = self._act_cov_sum / max(self._act_cov_n, 1)
         self._act_cov_sum = np.zeros((6, 6))
         self._act_cov_n = 0
-        rate_terms = self._rate_square_terms()
         tainted = stamp <= self._tainted_until
-        jac, motion = self._motion_fields(b, stamp, rate_terms)
+        q_rate = self._rate_square_q()
+        jac, motion = self._motion_fields(b, stamp, q_rate)
         sent_cov = act_cov
         if jac is None:  # the regressor's part waits with the instant (``_rate_square_cov``)
-            sent_cov = act_cov + self._rate_square_links_cov(rate_terms)
+            rate_terms = None if q_rate is None else rate_square_terms(self.robot, q_rate)
+            rate_cov = rate_square_links_cov(rate_terms, self._rate_square_var, self.update_every)
+            sent_cov = act_cov + rate_cov
             if rate_terms is not None:
                 self._rate_terms[stamp] = rate_terms
         self._changed = True
@@ -595,10 +598,10 @@ class EstimatorInputs:
             return None  # no attitude yet: nothing meaningful to publish
         # The grasp pose for the relative-grasp average uses the current encoders, not the
         # filtered (delayed) angles, so that it matches the fix in time.
-        rot_bg, pos_bg = self.robot_grasp_pose(q_raw)
-        rot_wb = self._rot_world_base
-        rot_wg = rot_wb @ rot_bg
-        pos_wg = self._pos_world_base + rot_wb @ pos_bg
+        rot_wg, pos_wg, wrench_world = message_pose(
+            self._robot_constants(), np.ascontiguousarray(q_raw, dtype=float), self._rot_world_base,
+            self._pos_world_base, wrench_grasp,
+        )  # fmt: skip
         if fix:
             self._own_fix[stamp] = (rot_wg, pos_wg)
             held = self._peer_msgs.get(stamp, {})
@@ -606,13 +609,11 @@ class EstimatorInputs:
                 msg = held.get(p)
                 if msg is not None and msg.fix and self._relative[p].known is None:
                     self._accumulate_relative(p, msg)
-        rot_world = np.zeros((6, 6))
-        rot_world[:3, :3] = rot_world[3:, 3:] = rot_wg
         return WrenchMessage(
             sender=self.index,
             stamp=stamp,
             wrench_grasp=wrench_grasp,
-            wrench_world=rot_world @ wrench_grasp,
+            wrench_world=wrench_world,
             grasp_pos_world=pos_wg,
             grasp_rot_world=rot_wg,
             fix=fix,

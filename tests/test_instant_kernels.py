@@ -116,3 +116,88 @@ def test_a_full_ring_raises_instead_of_overwriting():
         keep_motion(stamps, states, span, 30, pre_state, 0.0)
     keep_motion(stamps, states, span, 30, pre_state, 15.0)  # the oldest dropped: room again
     np.testing.assert_array_equal(span, [1, 2])
+
+
+@pytest.mark.parametrize("over_time_window", [0, 24])
+def test_rate_square_terms_made_in_the_call_equal_those_given(over_time_window):
+    """``instant_modes`` with ``rate_at`` (the joint angles and the scale: the terms made in the
+    call, ``instant_kernels.record_instant``) gives the modes and message factor, bit for bit,
+    of the same call given ``momentum.rate_square_terms`` and the scaled weights; over time too
+    (``momentum_jacobians``)."""
+    robot = _robot()
+    model = CargoEstimator(
+        robot, 0, [1], DT, sensor_noise=(1e-3, 2e-4, 1e-3), over_time_window=over_time_window
+    ).noise
+    twin = copy.deepcopy(model)
+    rng = np.random.default_rng(4)
+    nj = model._n_joints
+    for stamp in range(10, 200, 10):
+        pre_state, regressor = _pre_state(rng, nj), rng.normal(size=(6, 10))
+        q = pre_state[0, 6 : 6 + nj]
+        terms, weights = rate_square_terms(robot, q)
+        got = model.instant_modes(stamp, regressor, pre_state, rate_at=(q, 3e-5))
+        expected = twin.instant_modes(stamp, regressor, pre_state, (terms, 3e-5 * weights))
+        for a, b in zip((*got[0], *got[1]), (*expected[0], *expected[1]), strict=True):
+            np.testing.assert_array_equal(a, b)
+    assert np.any(got[0][0][:, -terms.shape[0] :])  # the terms' modes are there
+
+
+@pytest.mark.parametrize("kinds", ["gggaaa", "ggaagg", "gagaga"])
+def test_held_channels_that_share_a_factor_take_the_products_of_each_alone(kinds):
+    """``chain_modes._noise_modes_into`` multiplies each run of held channels with one factor in
+    one product; every mode equals, bit for bit, that channel's product alone."""
+    from astrocargo.estimator.chain_modes import (
+        _factored_into,
+        _noise_modes_into,
+        _readout_columns,
+    )
+    from astrocargo.estimator.momentum import CARGO_P_MAP, CARGO_Q_MAP
+
+    rng = np.random.default_rng(8)
+    nj = 2
+    jacs = rng.normal(size=(2, 33, 6 + 2 * nj)) * 10.0 ** rng.uniform(-6, 2, size=(2, 33, 1))
+    gyro, accel, point = rng.normal(size=(4, 4)), rng.normal(size=(4, 4)), rng.normal(size=(8, 8))
+    factors = np.ascontiguousarray(np.stack([gyro if k == "g" else accel for k in kinds]))
+    n = 24 + 8 * nj
+    links, y = np.zeros((6, n)), np.zeros((n, 60))
+    _noise_modes_into(links, y, jacs, nj, factors, point, CARGO_P_MAP, CARGO_Q_MAP)
+    ref_links, ref_y = links.copy(), y.copy()
+    ref_links[:, :24], ref_y[:24] = np.nan, np.nan
+    readout = _readout_columns(jacs, CARGO_P_MAP, CARGO_Q_MAP)
+    for c in range(6):
+        columns = np.stack([np.full(4, c), np.arange(4)], axis=1)[None].astype(np.int64)
+        _factored_into(ref_links, ref_y, np.array([4 * c]), readout, columns, factors[c])
+    np.testing.assert_array_equal(links, ref_links)
+    np.testing.assert_array_equal(y, ref_y)
+
+
+def test_message_pose_and_servo_ripple_from_the_robot_record_equal_their_python_forms():
+    """``message_pose`` (the grasp pose at the encoders' angles, then in world axes, and the
+    wrench turned into world axes) and ``servo_ripple_of`` equal, bit for bit,
+    ``rne.grasp_pose`` with numpy's products and ``momentum.servo_ripple_velocities``, from
+    one record of the robot (``robot_record``)."""
+    from astrocargo.estimator.geometry import quat_to_mat
+    from astrocargo.estimator.instant_kernels import message_pose, robot_record, servo_ripple_of
+    from astrocargo.estimator.momentum import servo_ripple_velocities
+    from astrocargo.estimator.rne import grasp_pose
+
+    robot = _robot()
+    assert robot.servo_gain is not None
+    record = robot_record(robot)
+    rng = np.random.default_rng(9)
+    cargo = np.array([2.0, 0.1, -0.05, 0.2, 0.3, 0.25, 0.2, 0.01, -0.02, 0.005])
+    for _ in range(20):
+        q = rng.uniform(-1.5, 1.5, robot.n_joints)
+        rot_wb = np.ascontiguousarray(quat_to_mat(rng.normal(size=4) + [2.0, 0.0, 0.0, 0.0]))
+        pos_wb, wrench = rng.normal(size=3), rng.normal(size=6) * [1, 1, 1, 0.1, 0.1, 0.1]
+        rot_wg, pos_wg, wrench_world = message_pose(record, q, rot_wb, pos_wb, wrench)
+        rot_bg, pos_bg = grasp_pose(robot, q)
+        turn = np.zeros((6, 6))
+        turn[:3, :3] = turn[3:, 3:] = rot_wb @ rot_bg
+        np.testing.assert_array_equal(rot_wg, rot_wb @ rot_bg)
+        np.testing.assert_array_equal(pos_wg, pos_wb + rot_wb @ pos_bg)
+        np.testing.assert_array_equal(wrench_world, turn @ wrench)
+        np.testing.assert_array_equal(
+            servo_ripple_of(record, q, cargo, 0.016),
+            servo_ripple_velocities(robot, q, cargo, 0.016),
+        )
