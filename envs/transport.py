@@ -468,7 +468,7 @@ class CargoTransport:
         data = mujoco.MjData(world.model)
         world.load_state(self.world, self.data, data)
         self._bind_world(world, data)
-        self.sensors = SensorSuite(world, self.profile, self.sensors.rng)
+        self.sensors = SensorSuite(world, self.profile, self.sensors.normals)
         self._bind_step_record()
         self._kinematics_done()
         for i in released:
