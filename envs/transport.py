@@ -331,7 +331,7 @@ class CargoTransport:
         self.navigator.reset(readings)
         self.readings = readings
         self._refresh_estimates()
-        self._log_std_sum = self._estimate_log_std_sums()
+        self._log_std_sum, self._gain_due = self._estimate_log_std_sums(), False
         obs = self._get_obs(self._acting_mask)
         zero_terms = np.zeros((len(REWARD_TERMS), self.n_robots))
         none = np.zeros(self.n_robots, dtype=int)
@@ -557,6 +557,7 @@ class CargoTransport:
             self._estimates = np.zeros((self.n_robots, 0))
             return
         self.est_mean, self.est_std, self.est_errors = self.estimation.refresh()
+        self._gain_due = True  # the log std sums are new (``_info_gain``)
         # The observation's estimate blocks (N, 20), or none (N, 0).
         observed = (self.est_mean, self.est_std) if self.observe_estimates else ()
         self._estimates = np.concatenate((*observed, np.zeros((self.n_robots, 0))), axis=1)
@@ -644,9 +645,11 @@ class CargoTransport:
 
     def _info_gain(self) -> np.ndarray:
         """The info term per robot: this step's decrease of each estimate's sum of log standard
-        deviations (zeros without estimators, or when it is not finite)."""
-        if not self.estimators:  # without estimators: no information gained
+        deviations (zeros without estimators, or when it is not finite). Without a refresh since
+        the last step the sums are those of the last step: x - x, zeros (``_no_info``)."""
+        if not self.estimators or not self._gain_due:
             return self._no_info
+        self._gain_due = False
         log_std = self._estimate_log_std_sums()
         gain = self._log_std_sum - log_std
         self._log_std_sum = log_std
