@@ -29,12 +29,13 @@ def step_infos(
     """Infos of ``robots`` (None for the others); ``terms`` (4, N): the weighted, mixed
     reward terms in ``REWARD_TERMS`` order, each per robot; ``released``: those letting go now;
     ``saturated`` (n_robots,): ``thrust_saturation`` of this step (zeros at reset)."""
-    infos: list[dict[str, Any] | None] = [None] * sim.n_robots
+    n = sim.n_robots
+    infos: list[dict[str, Any] | None] = [None] * n
     comm = dict(sim.channel.stats)
-    per_robot = terms.T.tolist()
+    track, effort, gain, contact = terms.tolist()
     k_track, k_effort, k_info, k_contact = REWARD_KEYS
     n_clipped, wall_contacts = n_clipped.tolist(), wall_contacts.tolist()
-    saturated = [0.0] * sim.n_robots if saturated is None else saturated.tolist()
+    saturated = [0.0] * n if saturated is None else saturated.tolist()
     faults = sim.fault_schedule.infos(sim.step_count, sim.channel.fault_stats)
     time_s, releases, holding = float(sim.data.time), len(sim.released_at_s), sim.holding
     estimators = sim.estimators
@@ -43,12 +44,11 @@ def step_infos(
     if estimators:
         est_mean, est_std = sim.est_mean.copy(), sim.est_std.copy()
     for i in robots:
-        r = per_robot[i]
         info: dict[str, Any] = {
-            k_track: r[0],
-            k_effort: r[1],
-            k_info: r[2],
-            k_contact: r[3],
+            k_track: track[i],
+            k_effort: effort[i],
+            k_info: gain[i],
+            k_contact: contact[i],
             "termination_reason": reason or ("released" if i in released else None),
             "releases": releases,
             "holding": list(holding),

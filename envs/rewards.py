@@ -1,7 +1,8 @@
 """The reward terms (the env docstring's section Rewards): per robot, the team's and its own
 (individual) value of each term, mixed as shared * team + (1 - shared) * individual and
 weighted; the reward is their sum. ``observe_and_reward`` is the step's one compiled call after
-the physics, sensing and navigation: the observations (``envs.observations``), then the rewards.
+the physics, sensing and navigation (without estimators, in the same call as them:
+``step_kernels``): the observations (``envs.observations``), then the rewards.
 
 Tracking term: -(|p - p_ref| + ROTATION_WEIGHT_M_PER_RAD |log(R_ref^T R)|) of the true cargo
 frame pose (p, R) against the reference (p_ref, R_ref), m and rad."""

@@ -370,18 +370,44 @@ _NOISE_DRAWS = (("accel", 3), ("gyro", 3), ("joints", 2))
 _FIX_DRAWS = (("position", 3), ("attitude", 3))
 
 
+class NormalStream:
+    """A generator's standard normals, drawn ahead in blocks of ``block`` and handed out in
+    order: the same numbers as drawing each request from the generator itself (NumPy's
+    ``standard_normal`` keeps no state between calls but the bit generator's). The generator is
+    ahead of what was handed out, so nothing else may draw from it."""
+
+    def __init__(self, rng: np.random.Generator, block: int = 2048) -> None:
+        self.rng, self.block = rng, block
+        self._normals, self._next = np.empty(0), 0
+
+    def take(self, n: int) -> np.ndarray:
+        """The next ``n`` standard normals (n,), a view that no later call overwrites."""
+        start = self._next
+        if start + n > self._normals.shape[0]:
+            left = self._normals[start:]
+            self._normals = np.empty(max(self.block, n))
+            self._normals[: left.shape[0]] = left
+            self.rng.standard_normal(out=self._normals[left.shape[0] :])
+            start = 0
+        self._next = start + n
+        return self._normals[start : start + n]
+
+
 class SensorSuite:
     """Reads every robot's sensors from ``data`` and adds the profile's noise.
 
     The robots' noise is drawn in one call, robot after robot in the order of ``_NOISE_DRAWS``
     (then ``_FIX_DRAWS`` at a localization fix): the same stream of numbers as one draw per
-    reading.
+    reading. Every draw comes from ``normals``, the stream of the generator ``rng`` (or the
+    ``NormalStream`` given: a suite rebuilt after a release continues its predecessor's).
     """
 
-    def __init__(self, world: World, profile: NoiseProfile, rng: np.random.Generator) -> None:
+    def __init__(
+        self, world: World, profile: NoiseProfile, rng: np.random.Generator | NormalStream
+    ) -> None:
         self.world = world
         self.profile = profile
-        self.rng = rng
+        self.normals = rng if isinstance(rng, NormalStream) else NormalStream(rng)
         robots = world.robots
         model = world.model
         self._imu_sites = np.array([h.imu_site for h in robots], dtype=np.int64)
@@ -401,9 +427,9 @@ class SensorSuite:
         )
         self._n_draws = sum(size for _, size in _NOISE_DRAWS)
         self._n_draws_fix = sum(size for _, size in draws)
-        # draw_step's buffers, without and with a fix (the step reads one before the next draw).
-        self._normals = {
-            fix: np.empty(len(self._imu_sites) * (6 + n))
+        # draw_step's count, without and with a fix.
+        self._step_draws = {
+            fix: len(self._imu_sites) * (6 + n)
             for fix, n in ((False, self._n_draws), (True, self._n_draws_fix))
         }
         self._actuation_abs = np.repeat([p.force_std_n, p.torque_std_nm], 3)
@@ -435,17 +461,14 @@ class SensorSuite:
         localization fix, ``_FIX_DRAWS``: standard deviation times a standard normal."""
         n_draws = self._n_draws_fix if fix else self._n_draws
         n = len(self._imu_sites)
-        return self.noise_std[:n_draws] * self.rng.standard_normal((n, n_draws))
+        return self.noise_std[:n_draws] * self.normals.take(n * n_draws).reshape(n, n_draws)
 
     def draw_step(self, fix: bool) -> np.ndarray:
         """One control step's standard normals in one draw (n (6 + draws),): the propulsion's
         (n, 6) (``command_period``'s, drawn as ``actuate`` draws them), then the readings'
         (n, draws) that ``draw_noise(fix)`` scales by ``noise_std``; the same stream as the two
-        draws in that order. Drawn into the same array at every call with the same ``fix``: it is
-        valid until the next such call."""
-        out = self._normals[fix]
-        self.rng.standard_normal(out=out)
-        return out
+        draws in that order."""
+        return self.normals.take(self._step_draws[fix])
 
     def read_into(self, views: tuple, time_s: float, fix: bool, start: tuple,
                   rows: np.ndarray, out: SensorReadings) -> None:  # fmt: skip
@@ -491,4 +514,4 @@ class SensorSuite:
         absolute and command-proportional white noise (the robot knows only the command)."""
         command = np.asarray(command, dtype=float)
         std = self._actuation_abs + self._actuation_rel * np.abs(command)
-        return command + std * self.rng.standard_normal(command.shape)
+        return command + std * self.normals.take(command.size).reshape(command.shape)

@@ -1,12 +1,15 @@
 """A control step's compiled calls, each over the arrays of the step's record (``world``, bound
 once per world: ``transport.CargoTransport._bind_step_record``, ``estimator.records``):
 
-- ``commands``, before the physics: the period's commands (``actions.command_period``);
+- ``commands``, before the physics: the period's commands (``actions.command_period``) and
+  whether qpos and qvel are as the last period left them (``physics.same_state``);
 - ``sense_and_navigate``, after it: the physics state's check (``physics.state_finite``), every
   robot's sensor readings (``sensors.read_into``) with the faults' masks of the step, and the
   robots' navigation filters (``navigation.navigate``);
 - ``observe_and_reward``, after the estimators: the reference at the step's end
-  (``trajectories.evaluate_into``), the observations and rewards (``rewards.observe_and_reward``).
+  (``trajectories.evaluate_into``), the observations and rewards (``rewards.observe_and_reward``);
+- ``sense_observe_and_reward``: the last two in one call, for a step without estimators
+  (nothing between them, and no peer slots or estimates to pass) and without a release.
 
 Each runs the same kernels the separate calls would, with the same arithmetic; the record
 passes their arrays across the Python boundary as one argument (numba checks and unboxes every
@@ -15,28 +18,32 @@ argument at every call, which costs more than the arithmetic of two robots).
 
 from __future__ import annotations
 
+import numpy as np
 from numba import njit
 
 from astrocargo.agents.trajectories import evaluate_into
 from astrocargo.envs.actions import command_period
 from astrocargo.envs.navigation import navigate
-from astrocargo.envs.physics import state_finite
+from astrocargo.envs.physics import same_state, state_finite
 from astrocargo.envs.rewards import observe_and_reward as observe_and_reward_arrays
 from astrocargo.envs.sensors import read_into
 
 
 @njit(cache=True)
-def commands(actions, normals, thrust_scale, ctrl, max_move_rad, dt_s, world):
+def commands(actions, normals, thrust_scale, ctrl, max_move_rad, dt_s, world, qpos, qvel,
+             saved_qpos, saved_qvel):  # fmt: skip
     """``command_period`` of ``actions`` (N, 8) with the step's standard ``normals``, the
     faults' ``thrust_scale`` (H,) and MuJoCo's ``ctrl``; the record ``world`` gives the limits,
     the actuators, the arms' targets and rates and the step's clipping, effort and saturation
-    (written in place). Returns the thrust commands (N, 6)."""
+    (written in place). Returns the thrust commands (N, 6) and whether ``qpos`` and ``qvel``
+    are still those saved (``same_state``: the period may skip the stages the last one left)."""
     w = world[0]
-    return command_period(
+    thrust = command_period(
         actions, w.acting, w.thrust_limits, w.joint_low, w.joint_high, max_move_rad, dt_s,
         w.arm_targets, w.arm_rates, normals, w.actuation_std, thrust_scale, w.rows, w.thrust_ctrl,
         w.arm_ctrl, ctrl, w.n_clipped, w.effort, w.saturation,
     )  # fmt: skip
+    return thrust, same_state(qpos, qvel, saved_qpos, saved_qvel)
 
 
 @njit(cache=True)
@@ -95,3 +102,35 @@ def sense_and_navigate(
         r.has_fix[i] = r.has_fix[i] and w.fix_ok[i]
     navigate(filters, dt_s, r.gyro, r.accel, r.has_imu, r.pos, r.quat, r.has_fix, w.acting)
     return finite
+
+
+@njit(cache=True)
+def no_peer_slots(n):
+    """The peer slots' (wrench, age, valid, arm) of ``n`` robots while no message is ever sent
+    (no estimators): zeros (n, n - 1, 6), (n, n - 1), (n, n - 1), (n, n - 1, 4)."""
+    return (
+        np.zeros((n, n - 1, 6)), np.zeros((n, n - 1)), np.zeros((n, n - 1)),
+        np.zeros((n, n - 1, 4)),
+    )  # fmt: skip
+
+
+@njit(cache=True)
+def sense_observe_and_reward(
+    qpos, qvel, warnings, saved_qpos, saved_qvel, cvel, site_xpos, site_xmat, subtree_com,
+    sensordata, period_s, normals, fix, world, readings, filters, dt_s, obs, rewards, arms, xpos,
+    xmat, robot_contacts, cargo_contacts, shapes, time_s,
+):  # fmt: skip
+    """``sense_and_navigate`` then ``observe_and_reward`` of the robots the record ``world``
+    counts as acting, in one call (the arguments are theirs), for a step with nothing between
+    them: no estimators (no peer message, no estimate, no information gained: zeros) and no
+    release. Returns whether the state and the observations are finite."""
+    finite = sense_and_navigate(
+        qpos, qvel, warnings, saved_qpos, saved_qvel, cvel, site_xpos, site_xmat, subtree_com,
+        sensordata, period_s, normals, fix, world, readings, filters, dt_s,
+    )  # fmt: skip
+    n = obs.shape[0]
+    return observe_and_reward(
+        obs, rewards, world[0].acting, world, readings, filters, arms, xpos, xmat,
+        no_peer_slots(n), np.zeros((n, 0)), np.zeros(n), robot_contacts, cargo_contacts, finite,
+        shapes, time_s,
+    )  # fmt: skip

@@ -54,7 +54,12 @@ from astrocargo.envs.sensors import (
 )
 from astrocargo.envs.sensors import noise_profile as get_noise_profile
 from astrocargo.envs.step_kernels import commands as step_commands
-from astrocargo.envs.step_kernels import observe_and_reward, sense_and_navigate
+from astrocargo.envs.step_kernels import (
+    no_peer_slots,
+    observe_and_reward,
+    sense_and_navigate,
+    sense_observe_and_reward,
+)
 from astrocargo.envs.world import ARM_DEPLOYED_RAD, MAX_TIMESTEP_S, World
 from astrocargo.estimator.cargo_estimator import CargoEstimator
 from astrocargo.estimator.geometry import mat_to_quat, quat_to_mat
@@ -184,11 +189,7 @@ class CargoTransport:
         # ones (an estimator may keep a reading).
         self._readings = SensorReadings.empty_record(n)
         self._fresh_readings = FreshReadings(n)
-        # Peer slots without estimators: no message is ever sent.
-        self._no_peers = (
-            np.zeros((n, n - 1, 6)), np.zeros((n, n - 1)), np.zeros((n, n - 1)),
-            np.zeros((n, n - 1, 4)),
-        )  # fmt: skip
+        self._no_peers = no_peer_slots(n)  # peer slots without estimators
 
     def _make_estimators(self) -> list[CargoEstimator]:
         return self._fresh_estimators(self.world.relative_grasp)
@@ -330,7 +331,7 @@ class CargoTransport:
         self.navigator.reset(readings)
         self.readings = readings
         self._refresh_estimates()
-        self._log_std_sum = self._estimate_log_std_sums()
+        self._log_std_sum, self._gain_due = self._estimate_log_std_sums(), False
         obs = self._get_obs(self._acting_mask)
         zero_terms = np.zeros((len(REWARD_TERMS), self.n_robots))
         none = np.zeros(self.n_robots, dtype=int)
@@ -375,7 +376,6 @@ class CargoTransport:
         if not self._ready:
             raise RuntimeError("call reset() before step(), and again after the episode ended")
         acting = self.holding  # the robots of this step, those letting go at its end included
-        acting_mask = self._acting_mask
         self.step_count = k = self.step_count + 1
         fix = k % self.profile.localization_every == 0
         normals = self.sensors.draw_step(fix)
@@ -383,26 +383,15 @@ class CargoTransport:
         commands = self._apply_commands(actions, normals)
         self._physics.integrate(self._kinematics_current)
         time_s = float(self.data.time)  # the step's end
-        finite, readings, readings_record = self._sense_and_navigate(fix, normals, time_s)
-        if self.estimators:
-            self._update_estimators(readings, commands, k)
-        self.readings = readings
-
         robot_contacts, cargo_contacts, n_contacts = self._wall_contacts()
-        # A release due with a non-finite state does not happen: the episode ends (non_finite).
-        released = ()
-        if self.release_steps and finite:
-            released = tuple(i for i in acting if self.release_steps.get(i) == k)
-        if released:
-            self._release(released)
         obs, rewards = np.empty((self.n_robots, self.obs_dim)), np.empty(self.n_robots)
-        finite = observe_and_reward(
-            obs, rewards, acting_mask, self._step_record, readings_record, self.navigator.filters,
-            self._observations.arms, self._xpos, self._xmat,
-            self._peer_observations(acting_mask),
-            self._estimates, self._info_gain(), robot_contacts, cargo_contacts, finite,
-            self._reference_shapes(time_s), time_s,
-        )  # fmt: skip
+        contacts = robot_contacts, cargo_contacts
+        if self.estimators or self.release_steps:
+            finite, released = self._sense_estimate_observe(
+                obs, rewards, fix, normals, commands, time_s, contacts
+            )
+        else:
+            finite, released = self._sense_observe(obs, rewards, fix, normals, time_s, contacts), ()
         self._ref_cache = [time_s, self._ref_arrays, None]  # the step's record holds them
         reason = None
         if not finite:
@@ -418,6 +407,55 @@ class CargoTransport:
             self._ready = False
         return StepResult(obs, rewards, reason is not None, reason, infos, released)
 
+    def _sense_estimate_observe(
+        self, obs: np.ndarray, rewards: np.ndarray, fix: bool, normals: np.ndarray,
+        commands: np.ndarray, time_s: float, contacts: tuple[np.ndarray, int],
+    ) -> tuple[bool, tuple[int, ...]]:  # fmt: skip
+        """After the physics, at the step's end ``time_s`` (s): the readings and navigation, the
+        estimators of the thrust ``commands``, the releases due (when the state is finite), then
+        the observations and rewards of the robots acting at the step's start into ``obs`` and
+        ``rewards``; ``contacts``: the wall contacts per robot and of the cargo. Returns whether
+        the state and observations are finite, and the robots released."""
+        acting, acting_mask, k = self.holding, self._acting_mask, self.step_count
+        finite, readings, readings_record = self._sense_and_navigate(fix, normals, time_s)
+        if self.estimators:
+            self._update_estimators(readings, commands, k)
+        self.readings = readings
+        # A release due with a non-finite state does not happen: the episode ends (non_finite).
+        released = ()
+        if self.release_steps and finite:
+            released = tuple(i for i in acting if self.release_steps.get(i) == k)
+        if released:
+            self._release(released)
+        finite = observe_and_reward(
+            obs, rewards, acting_mask, self._step_record, readings_record, self.navigator.filters,
+            self._observations.arms, self._xpos, self._xmat,
+            self._peer_observations(acting_mask),
+            self._estimates, self._info_gain(), *contacts, finite,
+            self._reference_shapes(time_s), time_s,
+        )  # fmt: skip
+        return finite, released
+
+    def _sense_observe(
+        self, obs: np.ndarray, rewards: np.ndarray, fix: bool, normals: np.ndarray,
+        time_s: float, contacts: tuple[np.ndarray, int],
+    ) -> bool:  # fmt: skip
+        """``_sense_estimate_observe`` of a step with no estimators and no release due: the
+        readings (the same arrays every step), the navigation, the observations and rewards in
+        one compiled call (``step_kernels.sense_observe_and_reward``). Returns finite."""
+        r, record = self._readings
+        r.time_s = time_s
+        self.readings = r
+        cvel, site_xpos, site_xmat, subtree_com, sensordata = self._sensor_views
+        p = self._physics
+        return sense_observe_and_reward(
+            p.qpos, p.qvel, p.warnings, p.saved_qpos, p.saved_qvel, cvel, site_xpos, site_xmat,
+            subtree_com, sensordata, time_s - self._period_start_s, normals, fix,
+            self._step_record, record, self.navigator.filters, self.navigator.dt_s, obs, rewards,
+            self._observations.arms, self._xpos, self._xmat, *contacts,
+            self._reference_shapes(time_s), time_s,
+        )  # fmt: skip
+
     def _release(self, released: tuple[int, ...]) -> None:
         """The robots ``released`` let go of the cargo now (end of a control step): the world is
         rebuilt without them, the others' state carried over unchanged (``World.load_state``);
@@ -430,7 +468,7 @@ class CargoTransport:
         data = mujoco.MjData(world.model)
         world.load_state(self.world, self.data, data)
         self._bind_world(world, data)
-        self.sensors = SensorSuite(world, self.profile, self.sensors.rng)
+        self.sensors = SensorSuite(world, self.profile, self.sensors.normals)
         self._bind_step_record()
         self._kinematics_done()
         for i in released:
@@ -447,14 +485,15 @@ class CargoTransport:
         cargo: the thrust commands with actuation noise (the first 6 H of the step's standard
         ``normals``, ``SensorSuite.draw_step``) and the servo targets; start the period. Returns the
         thrust commands (N, 6)."""
-        commands = step_commands(
+        p = self._physics
+        # The IMU states that started the period: kept from the last reading while qpos and
+        # qvel are as the last step (or reset) left them (``PeriodStepper.unchanged``).
+        commands, self._kinematics_current = step_commands(
             actions, normals,
             self.fault_schedule.thrust_scale(self.step_count, self.holding, self._unit_scale),
-            self._ctrl, ARM_SPEED_RADPS * self.dt_s, self.dt_s, self._step_record,
+            self._ctrl, ARM_SPEED_RADPS * self.dt_s, self.dt_s, self._step_record, p.qpos, p.qvel,
+            p.saved_qpos, p.saved_qvel,
         )  # fmt: skip
-        # The IMU states that started the period: kept from the last reading while qpos and
-        # qvel are as the last step (or reset) left them.
-        self._kinematics_current = self._physics.unchanged()
         if not self._kinematics_current:
             self._imu_period_start()
         self._period_start_s = float(self.data.time)
@@ -518,6 +557,7 @@ class CargoTransport:
             self._estimates = np.zeros((self.n_robots, 0))
             return
         self.est_mean, self.est_std, self.est_errors = self.estimation.refresh()
+        self._gain_due = True  # the log std sums are new (``_info_gain``)
         # The observation's estimate blocks (N, 20), or none (N, 0).
         observed = (self.est_mean, self.est_std) if self.observe_estimates else ()
         self._estimates = np.concatenate((*observed, np.zeros((self.n_robots, 0))), axis=1)
@@ -605,9 +645,11 @@ class CargoTransport:
 
     def _info_gain(self) -> np.ndarray:
         """The info term per robot: this step's decrease of each estimate's sum of log standard
-        deviations (zeros without estimators, or when it is not finite)."""
-        if not self.estimators:  # without estimators: no information gained
+        deviations (zeros without estimators, or when it is not finite). Without a refresh since
+        the last step the sums are those of the last step: x - x, zeros (``_no_info``)."""
+        if not self.estimators or not self._gain_due:
             return self._no_info
+        self._gain_due = False
         log_std = self._estimate_log_std_sums()
         gain = self._log_std_sum - log_std
         self._log_std_sum = log_std

@@ -5,7 +5,7 @@ import mujoco
 import numpy as np
 import pytest
 
-from astrocargo.envs.sensors import NOISE_PROFILES, SensorSuite, noise_profile
+from astrocargo.envs.sensors import NOISE_PROFILES, NormalStream, SensorSuite, noise_profile
 from astrocargo.envs.world import World
 
 CONTROL_PERIOD_S = 0.016
@@ -168,6 +168,20 @@ def test_actuation_noise():
     )
     ideal = SensorSuite(world, NOISE_PROFILES["ideal"], np.random.default_rng(2))
     np.testing.assert_array_equal(ideal.actuate(command), command)
+
+
+def test_normal_stream_hands_out_the_generator_stream_in_order():
+    """Requests of any size, across block ends and larger than a block, get the numbers that
+    drawing each request from the generator gives; a view handed out never changes later."""
+    stream = NormalStream(np.random.default_rng(4), block=16)
+    direct = np.random.default_rng(4)
+    kept = []
+    for n in [3, 5, 7, 1, 0, 16, 40, 2, 9, 9, 9, 33]:
+        taken = stream.take(n)
+        np.testing.assert_array_equal(taken, direct.standard_normal(n))
+        kept.append((taken, taken.copy()))
+    for taken, copy in kept:
+        np.testing.assert_array_equal(taken, copy)
 
 
 def test_unknown_profile():
