@@ -119,7 +119,7 @@ from .rne import (
     RobotDescription,
     as_single,
     body_regressor_kernel,
-    grasp_from_base_kernel,
+    grasp_from_base_into,
 )
 
 # Layout of the momentum-form sample (``momentum_sample``'s vector), all in G.
@@ -156,17 +156,18 @@ def _regressor_maps() -> tuple[np.ndarray, np.ndarray]:
 CARGO_P_MAP, CARGO_Q_MAP = _regressor_maps()
 
 
-@njit(cache=True)
-def _link_frames(arrays, q):
-    """The link frames in B at joint angles ``q`` (``rne``'s first pass without the rates, in
-    3x3 loops): rotations (n_links, 3, 3), origins (n_links, 3) m, and G's rotation and
-    origin."""
-    n_links = arrays.parent.shape[0]
-    rot = np.empty((n_links, 3, 3))
-    pos = np.empty((n_links, 3))
-    rot[0], pos[0] = np.eye(3), 0.0
-    rotvec, joint, to_joint, offset = np.empty(3), np.empty((3, 3)), np.empty((3, 3)), np.empty(3)
-    for k in range(1, n_links):
+@njit(cache=True, inline="always")
+def _link_frames_into(geo, arrays, q, vec, mat):
+    """The link frames in B at joint angles ``q`` into ``geo``'s rot (n_links, 3, 3), pos
+    (n_links, 3) m, grasp_rot and grasp_pos (``rne``'s first pass without the rates, in 3x3
+    loops); ``vec`` (2, 3) and ``mat`` (2, 3, 3) are scratch."""
+    rot, pos = geo.rot, geo.pos
+    for i in range(3):
+        for j in range(3):
+            rot[0, i, j] = 1.0 if i == j else 0.0
+        pos[0, i] = 0.0
+    rotvec, offset, joint, to_joint = vec[0], vec[1], mat[0], mat[1]
+    for k in range(1, arrays.parent.shape[0]):
         p = arrays.parent[k]
         for i in range(3):
             rotvec[i] = arrays.joint_axis[k, i] * q[k - 1]
@@ -177,61 +178,57 @@ def _link_frames(arrays, q):
         for i in range(3):
             pos[k, i] = pos[p, i] + offset[i]
     g = arrays.grasp_link
-    return rot, pos, matmul3(rot[g], arrays.grasp_rot), pos[g] + matvec3(rot[g], arrays.grasp_pos)
+    matmul3_into(geo.grasp_rot, rot[g], arrays.grasp_rot)
+    matvec3_into(offset, rot[g], arrays.grasp_pos)
+    for i in range(3):
+        geo.grasp_pos[i] = pos[g, i] + offset[i]
 
 
-@njit(cache=True)
-def _link_rates(arrays, rot, w_base, qd):
-    """Angular velocities (n, n_links, 3) of the links in B at the link frames ``rot``, for n
-    rows of base rates ``w_base`` (n, 3) and joint rates ``qd`` (n, nj):
-    w_k = w_parent + qd_k R_k axis_k."""
-    n_links = arrays.parent.shape[0]
-    w = np.empty((w_base.shape[0], n_links, 3))
+@njit(cache=True, inline="always")
+def _mass_geometry_into(geo, arrays, turned):
+    """The links' mass distribution in B at ``geo``'s link frames into its com_b (centres of
+    mass relative to the link origins, m), inertia_b (about them, R_k I_k R_k^T, kg m^2) and
+    first_moment (sum m_k rho_k about G's origin, kg m); returns the total mass kg. ``turned``
+    (3, 3) is scratch."""
+    rot, pos, com_b, inertia_b = geo.rot, geo.pos, geo.com_b, geo.inertia_b
+    geo.first_moment[:] = 0.0
+    total_mass = 0.0
+    for k in range(arrays.parent.shape[0]):
+        matvec3_into(com_b[k], rot[k], arrays.com[k])
+        matmul3_into(turned, rot[k], arrays.inertia_com[k])
+        matmul3_into(inertia_b[k], turned, rot[k].T)
+        for i in range(3):
+            geo.first_moment[i] += arrays.mass[k] * (pos[k, i] + com_b[k, i] - geo.grasp_pos[i])
+        total_mass += arrays.mass[k]
+    return total_mass
+
+
+@njit(cache=True, inline="always")
+def _link_rates_into(w, arrays, rot, w_base, qd, axis):
+    """Angular velocities into ``w`` (n, n_links, 3) of the links in B at the link frames
+    ``rot``, for n rows of base rates ``w_base`` (n, 3) and joint rates ``qd`` (n, nj):
+    w_k = w_parent + qd_k R_k axis_k. ``axis`` (3,) is scratch."""
     w[:, 0] = w_base
-    axis = np.empty(3)
-    for k in range(1, n_links):
+    for k in range(1, arrays.parent.shape[0]):
         matvec3_into(axis, rot[k], arrays.joint_axis[k])
         p = arrays.parent[k]
         for r in range(w.shape[0]):
             for i in range(3):
                 w[r, k, i] = w[r, p, i] + qd[r, k - 1] * axis[i]
-    return w
 
 
-@njit(cache=True)
-def _mass_geometry(arrays, rot, pos, grasp_pos):
-    """The links' mass distribution in B at the link frames ``rot``, ``pos``: centres of mass
-    relative to the link origins (n_links, 3) m, inertias about them R_k I_k R_k^T
-    (n_links, 3, 3) kg m^2, the total mass kg and the first moment about G's origin
-    sum m_k rho_k (3,) kg m."""
-    n_links = arrays.parent.shape[0]
-    com_b = np.empty((n_links, 3))
-    inertia_b = np.empty((n_links, 3, 3))
-    turned = np.empty((3, 3))
-    first_moment = np.zeros(3)
-    total_mass = 0.0
-    for k in range(n_links):
-        matvec3_into(com_b[k], rot[k], arrays.com[k])
-        matmul3_into(turned, rot[k], arrays.inertia_com[k])
-        matmul3_into(inertia_b[k], turned, rot[k].T)
-        for i in range(3):
-            first_moment[i] += arrays.mass[k] * (pos[k, i] + com_b[k, i] - grasp_pos[i])
-        total_mass += arrays.mass[k]
-    return com_b, inertia_b, total_mass, first_moment
-
-
-@njit(cache=True)
-def _momentum_terms(arrays, imu_pos, geo, w, acc_imu, out):
+@njit(cache=True, inline="always")
+def _momentum_terms(arrays, imu_pos, geo, w, acc_imu, out, work):
     """Fill out[:, 6:SIZE] (n rows of P_links, Q_links, the cargo's P and Q arguments; module
     docstring) from the links' positions and mass distribution at the link geometry ``geo``,
     their angular velocities ``w`` (n, n_links, 3) and the IMU point's acceleration (n, 3), all
-    in B; row by row (``_momentum_row``), with the levers between the links' points once."""
+    in B; row by row (``_momentum_row``), with the levers between the links' points once, in
+    ``work``'s (``MomentumWork``) levers, rho and vel."""
     n_links = arrays.parent.shape[0]
     pos, com_b, grasp_pos, g = geo.pos, geo.com_b, geo.grasp_pos, arrays.grasp_link
     # levers[0]: the base origin from the IMU point; levers[k]: link k's origin from its
     # parent's; levers[n_links]: G's origin from its link's.
-    levers = np.empty((n_links + 1, 3))
-    rho = np.empty((n_links, 3))  # the links' centres of mass from G's origin
+    levers, rho = work.levers, work.rho  # rho: the links' centres of mass from G's origin
     for i in range(3):
         levers[0, i] = -imu_pos[i]
         levers[n_links, i] = grasp_pos[i] - pos[g, i]
@@ -239,9 +236,8 @@ def _momentum_terms(arrays, imu_pos, geo, w, acc_imu, out):
             if k > 0:
                 levers[k, i] = pos[k, i] - pos[arrays.parent[k], i]
             rho[k, i] = pos[k, i] + com_b[k, i] - grasp_pos[i]
-    vel, work = np.empty((n_links, 3)), np.empty((12, 3))
     for r in range(w.shape[0]):
-        _momentum_row(arrays, geo, levers, rho, w[r], acc_imu[r], out[r], vel, work)
+        _momentum_row(arrays, geo, levers, rho, w[r], acc_imu[r], out[r], work.vel, work.vec)
 
 
 @njit(cache=True, inline="always")
@@ -318,15 +314,73 @@ class LinkGeometry(NamedTuple):
     first_moment: np.ndarray  # (3,) sum m_k rho_k about G's origin, kg m
 
 
+class MomentumWork(NamedTuple):
+    """Scratch of a momentum pass over n rows of motion (``momentum_work``), so that
+    ``momentum_at_into`` and ``momentum_pass_into`` allocate nothing."""
+
+    w_rows: np.ndarray  # (n, 3) base rates, rad/s
+    acc_rows: np.ndarray  # (n, 3) the IMU point's accelerations, m/s^2
+    qd_rows: np.ndarray  # (n, nj) joint rates, rad/s
+    w: np.ndarray  # (n, n_links, 3) the links' angular velocities, rad/s
+    rows: np.ndarray  # (n, SIZE) the samples
+    levers: np.ndarray  # (n_links + 1, 3) m
+    rho: np.ndarray  # (n_links, 3) m
+    vel: np.ndarray  # (n_links, 3) m/s
+    vec: np.ndarray  # (12, 3) 3-vectors
+    mat: np.ndarray  # (2, 3, 3) 3x3 matrices
+
+
+@njit(cache=True)
+def momentum_work(n_links, n, nj):
+    """A ``MomentumWork`` for n rows of a robot of n_links links and nj joints."""
+    return MomentumWork(
+        np.empty((n, 3)), np.empty((n, 3)), np.empty((n, nj)), np.empty((n, n_links, 3)),
+        np.empty((n, SIZE)), np.empty((n_links + 1, 3)), np.empty((n_links, 3)),
+        np.empty((n_links, 3)), np.empty((12, 3)), np.empty((2, 3, 3)),
+    )  # fmt: skip
+
+
+@njit(cache=True)
+def geometry_work(n_links):
+    """The arrays of a ``LinkGeometry`` of n_links links, for ``link_geometry_into``."""
+    return LinkGeometry(
+        np.empty((n_links, 3, 3)), np.empty((n_links, 3)), np.empty((3, 3)), np.empty(3),
+        np.empty((6, 6)), np.empty((n_links, 3)), np.empty((n_links, 3, 3)), 0.0, np.empty(3),
+    )  # fmt: skip
+
+
+@njit(cache=True, inline="always")
+def link_geometry_into(geo, arrays, q, vec, mat):
+    """``link_geometry`` written into the arrays of ``geo`` (``geometry_work``), ``vec``
+    (2, 3) and ``mat`` (2, 3, 3) as scratch: the same ``LinkGeometry``, its total mass set."""
+    _link_frames_into(geo, arrays, q, vec, mat)
+    total_mass = _mass_geometry_into(geo, arrays, mat[0])
+    grasp_from_base_into(geo.grasp_from_base, geo.grasp_rot, geo.grasp_pos)
+    return LinkGeometry(geo.rot, geo.pos, geo.grasp_rot, geo.grasp_pos, geo.grasp_from_base,
+                        geo.com_b, geo.inertia_b, total_mass, geo.first_moment)  # fmt: skip
+
+
 @njit(cache=True)
 def link_geometry(arrays, q):
     """The link frames and mass distribution at joint angles ``q`` (``LinkGeometry``): the part
     of ``momentum_pass`` that the rates, the acceleration and the thrust leave unchanged."""
-    rot, pos, grasp_rot, grasp_pos = _link_frames(arrays, q)
-    com_b, inertia_b, total_mass, first_moment = _mass_geometry(arrays, rot, pos, grasp_pos)
-    to_grasp = grasp_from_base_kernel(grasp_rot, grasp_pos)
-    return LinkGeometry(rot, pos, grasp_rot, grasp_pos, to_grasp, com_b, inertia_b, total_mass,
-                        first_moment)  # fmt: skip
+    geo = geometry_work(arrays.parent.shape[0])
+    return link_geometry_into(geo, arrays, q, np.empty((2, 3)), np.empty((2, 3, 3)))
+
+
+@njit(cache=True, inline="always")
+def momentum_at_into(out, arrays, imu_pos, geo, w_base, acc_imu, qd, thrust_base, work):
+    """``momentum_at`` into ``out`` (n, ``SIZE``), ``work`` (``MomentumWork`` of n rows or
+    more) as scratch; the thrust's rows T_GB thrust_B in loops."""
+    w = work.w[: w_base.shape[0]]
+    _link_rates_into(w, arrays, geo.rot, w_base, qd, work.vec[0])
+    for r in range(w_base.shape[0]):
+        for i in range(6):
+            total = 0.0
+            for k in range(6):
+                total += geo.grasp_from_base[i, k] * thrust_base[k]
+            out[r, i] = total
+    _momentum_terms(arrays, imu_pos, geo, w, acc_imu, out, work)
 
 
 @njit(cache=True)
@@ -335,10 +389,10 @@ def momentum_at(arrays, imu_pos, geo, w_base, acc_imu, qd, thrust_base):
     (``link_geometry`` of the joint angles), for n rows of motion at once (base rates
     ``w_base`` (n, 3), the IMU point's acceleration ``acc_imu`` (n, 3), joint rates ``qd``
     (n, nj)) and one thrust (6,): the samples (n, ``SIZE``)."""
-    w = _link_rates(arrays, geo.rot, w_base, qd)
-    out = np.empty((w_base.shape[0], SIZE))
-    out[:, 0:6] = geo.grasp_from_base @ thrust_base
-    _momentum_terms(arrays, imu_pos, geo, w, acc_imu, out)
+    n = w_base.shape[0]
+    out = np.empty((n, SIZE))
+    work = momentum_work(arrays.parent.shape[0], n, qd.shape[1])
+    momentum_at_into(out, arrays, imu_pos, geo, w_base, acc_imu, qd, thrust_base, work)
     return out
 
 
@@ -356,20 +410,37 @@ def momentum_pass(arrays, imu_pos, w_base, acc_imu, q, qd, thrust_base, qd_var):
 def momentum_pass_geometry(arrays, imu_pos, w_base, acc_imu, q, qd, thrust_base, qd_var):
     """``momentum_pass``'s sample, with the link geometry of ``q`` (``link_geometry``) it
     used."""
+    n_links, nj = arrays.parent.shape[0], q.shape[0]
+    work = momentum_work(n_links, 1 + nj, nj)
+    return momentum_pass_into(
+        work, geometry_work(n_links), arrays, imu_pos, w_base, acc_imu, q, qd, thrust_base, qd_var
+    )
+
+
+@njit(cache=True)
+def momentum_pass_into(work, geo_work, arrays, imu_pos, w_base, acc_imu, q, qd, thrust_base,
+                       qd_var):  # fmt: skip
+    """``momentum_pass_geometry`` in the arrays of ``work`` (``MomentumWork`` of 1 + nj rows)
+    and ``geo_work`` (``geometry_work``): the sample is a view of work.rows[0]."""
     nj = q.shape[0]
-    geo = link_geometry(arrays, q)
+    geo = link_geometry_into(geo_work, arrays, q, work.vec, work.mat)
     # E[Q(n)] of zero-mean rate noise n: Q is quadratic in the rates (P linear), so it is
     # sum_j var_j Q(e_j), e_j = 1 rad/s on joint j alone, base at rest, no acceleration: the
     # rows 1 + j beside the sample's row 0.
-    w_rows, acc_rows, qd_rows = np.zeros((1 + nj, 3)), np.zeros((1 + nj, 3)), np.zeros((1 + nj, nj))
+    w_rows, acc_rows, qd_rows = work.w_rows, work.acc_rows, work.qd_rows
+    w_rows[:], acc_rows[:], qd_rows[:] = 0.0, 0.0, 0.0
     w_rows[0], acc_rows[0], qd_rows[0] = w_base, acc_imu, qd
-    qd_rows[1:] = np.eye(nj)
-    rows = momentum_at(arrays, imu_pos, geo, w_rows, acc_rows, qd_rows, thrust_base)
+    for j in range(nj):
+        qd_rows[1 + j, j] = 1.0
+    rows = work.rows
+    momentum_at_into(rows, arrays, imu_pos, geo, w_rows, acc_rows, qd_rows, thrust_base, work)
     out = rows[0]
     for j in range(nj):
         if qd_var[j] > 0.0:
-            out[LINKS_Q] -= qd_var[j] * rows[1 + j, LINKS_Q]
-            out[CARGO_Q] -= qd_var[j] * rows[1 + j, CARGO_Q]
+            for c in range(LINKS_Q.start, LINKS_Q.stop):
+                out[c] -= qd_var[j] * rows[1 + j, c]
+            for c in range(CARGO_Q.start, CARGO_Q.stop):
+                out[c] -= qd_var[j] * rows[1 + j, c]
     return out, geo
 
 
@@ -389,10 +460,8 @@ def sample_geometry_from_rate_filter(arrays, imu_pos, rate_state, qd_var):
     nj = rate_state.shape[1] - 12
     y, yd = rate_state[0], rate_state[1]
     return momentum_pass_geometry(
-        arrays, imu_pos, np.ascontiguousarray(y[0:3]), np.ascontiguousarray(y[3:6]),
-        np.ascontiguousarray(y[6 : 6 + nj]), np.ascontiguousarray(yd[6 : 6 + nj]),
-        np.ascontiguousarray(y[6 + nj : 12 + nj]), qd_var,
-    )  # fmt: skip
+        arrays, imu_pos, y[0:3], y[3:6], y[6 : 6 + nj], yd[6 : 6 + nj], y[6 + nj : 12 + nj], qd_var
+    )
 
 
 @njit(cache=True)
@@ -551,8 +620,9 @@ def generalised_inertia(arrays, q, cargo):
     (standard parameters ``cargo`` (10,) in G about G's origin), for u = [v_B; w_B; qd] in B:
     H = sum_k J_k^T M_k J_k over the links (about their centres of mass) and the cargo (about
     G's origin, rigid with the grasp link)."""
-    rot, pos, grasp_rot, grasp_pos = _link_frames(arrays, q)
-    com_b, inertia_b, _, _ = _mass_geometry(arrays, rot, pos, grasp_pos)
+    geo = link_geometry(arrays, q)
+    rot, pos, com_b, inertia_b = geo.rot, geo.pos, geo.com_b, geo.inertia_b
+    grasp_rot, grasp_pos = geo.grasp_rot, geo.grasp_pos
     n_links = arrays.parent.shape[0]
     h = np.zeros((5 + n_links, 5 + n_links))
     zero3 = np.zeros(3)

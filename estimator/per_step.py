@@ -53,6 +53,7 @@ from .step_parts import (
     actuation_cov_step,
     all_finite,
     momentum_step,
+    pre_filter_input,
     readings_usable,
     ripple_case,
     servo_ripple_step,
@@ -120,7 +121,7 @@ def estimator_step_arrays(
         parent, joint_axis, rot_in_parent, pos_in_parent, mass, com, inertia_com, grasp_link,
         grasp_rot, grasp_pos,
     )  # fmt: skip
-    u = pre_to_input @ np.concatenate((gyro, accel, q, thrust))
+    u = pre_filter_input(pre_to_input, gyro, accel, q, thrust)
     first_order_hold_step(pre_ad, pre_b_value, pre_b_slope, pre_held, pre_state, pre_u_prev, u)
     grasp_from_base, pos_bg = momentum_step(
         arrays, imu_pos, qd_var, rate_ad, rate_b_value, rate_b_slope, rate_held, rate_state,

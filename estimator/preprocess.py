@@ -57,11 +57,13 @@ def first_order_hold_step(ad, b_value, b_slope, held, state, u_prev, u) -> None:
     """One step of every channel (column) in place: x_k+1 = Ad x_k + b_value u_k +
     b_slope (u_k+1 - u_k) into ``state`` (3, n), then u_prev <- u_k+1. A ``held`` channel
     passes u_k = u_k+1: x_k+1 = Ad x_k + b_value u_k+1 (zero-order hold of the new sample)."""
-    free = ad @ state
+    free = np.empty(3)  # Ad x_k of one channel, in loops (a BLAS call costs more)
     for c in range(state.shape[1]):
         prev = u[c] if held[c] else u_prev[c]
         for i in range(3):
-            state[i, c] = free[i, c] + b_value[i] * prev + b_slope[i] * (u[c] - prev)
+            free[i] = ad[i, 0] * state[0, c] + ad[i, 1] * state[1, c] + ad[i, 2] * state[2, c]
+        for i in range(3):
+            state[i, c] = free[i] + b_value[i] * prev + b_slope[i] * (u[c] - prev)
         u_prev[c] = u[c]
 
 

@@ -63,7 +63,7 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit
 
-from .geometry import exp_so3_into, matmul3_into, matvec3_into, skew
+from .geometry import cross3_into, exp_so3_into, matmul3_into, matvec3_into, skew
 
 
 @dataclass(frozen=True)
@@ -310,16 +310,25 @@ def _wrench_transform(rot: np.ndarray, pos: np.ndarray) -> np.ndarray:
     return t
 
 
+@njit(cache=True, inline="always")
+def grasp_from_base_into(out: np.ndarray, rot: np.ndarray, pos: np.ndarray) -> None:
+    """``grasp_from_base`` (6, 6) into ``out``, in loops: f_G = R^T f, n_G = R^T (n - pos x f),
+    whose lower-left block -R^T [pos]x has the rows pos x r_i (r_i the i-th column of R)."""
+    out[:] = 0.0
+    for i in range(3):
+        for j in range(3):
+            out[i, j] = rot[j, i]
+            out[3 + i, 3 + j] = rot[j, i]
+        cross3_into(out[3 + i, 0:3], pos, rot[:, i])
+
+
 @njit(cache=True)
 def grasp_from_base_kernel(rot: np.ndarray, pos: np.ndarray) -> np.ndarray:
-    """``grasp_from_base`` (6, 6) compiled and unchecked, for compiled callers: f_G = R^T f,
-    n_G = R^T (n - pos x f)."""
-    rot_t = np.ascontiguousarray(rot.T)
-    t = np.zeros((6, 6))
-    t[:3, :3] = rot_t
-    t[3:, 3:] = rot_t
-    t[3:, :3] = -rot_t @ skew(pos)
-    return t
+    """``grasp_from_base`` (6, 6) compiled and unchecked, for compiled callers
+    (``grasp_from_base_into``)."""
+    out = np.empty((6, 6))
+    grasp_from_base_into(out, rot, pos)
+    return out
 
 
 # Entry points called from Python take the fields of ``RobotArrays`` as separate arguments, in

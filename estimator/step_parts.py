@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from .geometry import exp_so3, quat_to_mat
+from .geometry import exp_so3, matmul3, matvec3, quat_to_mat
 from .momentum import sample_geometry_from_rate_filter
 from .preprocess import first_order_hold_step
 from .rne import grasp_from_base_kernel
@@ -56,8 +56,12 @@ def servo_ripple_step(ripple_map, rate, previous, imu_rot, dt_s, accel):
     ``momentum.servo_ripple_velocities``, ``rate`` rad/s) and the accelerometer's period mean
     less its change since the ``previous`` ripple, a - R_BI^T (v_r - v_r,prev) / dt (IMU axes,
     m/s^2)."""
-    ripple = ripple_map @ rate
-    return ripple, accel - imu_rot.T @ ((ripple - previous) / dt_s)
+    ripple = np.zeros(3)
+    for i in range(3):
+        for j in range(rate.shape[0]):
+            ripple[i] += ripple_map[i, j] * rate[j]
+    change = (ripple - previous) / dt_s
+    return ripple, accel - matvec3(imu_rot.T, change)
 
 
 @njit(cache=True)
@@ -71,6 +75,24 @@ def readings_usable(nj, accel, gyro, q, thrust, fix_pos, fix_quat, has_fix) -> b
 
 
 @njit(cache=True)
+def pre_filter_input(pre_to_input, gyro, accel, q, thrust):
+    """The pre-filter's input u = M [gyro; accel; q; thrust] (``pre_to_input`` M), the product
+    in loops over the four readings (no stacked copy, no BLAS call)."""
+    u = np.zeros(pre_to_input.shape[0])
+    nj = q.shape[0]
+    for i in range(u.shape[0]):
+        for j in range(3):
+            u[i] += pre_to_input[i, j] * gyro[j]
+        for j in range(3):
+            u[i] += pre_to_input[i, 3 + j] * accel[j]
+        for j in range(nj):
+            u[i] += pre_to_input[i, 6 + j] * q[j]
+        for j in range(6):
+            u[i] += pre_to_input[i, 6 + nj + j] * thrust[j]
+    return u
+
+
+@njit(cache=True)
 def update_attitude(rot_world_base, pos_world_base, imu_rot, gyro, dt_s, fix_pos, fix_quat,
                     has_fix) -> int:  # fmt: skip
     """R_WB and p_WB in place from a usable fix (finite, |quat| > 0), else R_WB propagated by
@@ -80,7 +102,10 @@ def update_attitude(rot_world_base, pos_world_base, imu_rot, gyro, dt_s, fix_pos
             rot_world_base[:] = quat_to_mat(fix_quat)
             pos_world_base[:] = fix_pos
             return FIX
-    rot_world_base[:] = rot_world_base @ exp_so3(dt_s * (imu_rot @ gyro))
+    rotvec = matvec3(imu_rot, gyro)
+    for i in range(3):
+        rotvec[i] *= dt_s
+    rot_world_base[:] = matmul3(rot_world_base, exp_so3(rotvec))
     return BAD_FIX if has_fix else NO_FIX
 
 
@@ -117,8 +142,25 @@ def actuation_cov_step(grasp_rot, grasp_pos, thrust_to_base, act_abs, act_rel, a
 @njit(cache=True)
 def actuation_cov_into(grasp_from_base, grasp_pos, thrust_to_base, act_abs, act_rel, act_cov_sum,
                        thrust_command) -> float:  # fmt: skip
-    """``actuation_cov_step`` given T_GB (``grasp_from_base`` (6, 6)) and p_BG (m)."""
-    to_grasp = grasp_from_base @ thrust_to_base
-    std = act_abs + act_rel * np.abs(thrust_command)
-    act_cov_sum += (to_grasp * std**2) @ to_grasp.T
-    return np.sqrt(grasp_pos @ grasp_pos)
+    """``actuation_cov_step`` given T_GB (``grasp_from_base`` (6, 6)) and p_BG (m):
+    act_cov_sum_ij += sum_s A_is std_s^2 A_js with A = T_GB T_BS, in loops (a BLAS call costs
+    more than these 6x6 products; equal to the matrix form to rounding)."""
+    n_sites = thrust_to_base.shape[1]
+    to_grasp = np.zeros((6, n_sites))
+    for i in range(6):
+        for k in range(6):
+            for s in range(n_sites):
+                to_grasp[i, s] += grasp_from_base[i, k] * thrust_to_base[k, s]
+    var = np.empty(n_sites)
+    for s in range(n_sites):
+        var[s] = (act_abs[s] + act_rel[s] * abs(thrust_command[s])) ** 2
+    for i in range(6):
+        for j in range(6):
+            total = 0.0
+            for s in range(n_sites):
+                total += to_grasp[i, s] * var[s] * to_grasp[j, s]
+            act_cov_sum[i, j] += total
+    lever_sq = 0.0
+    for i in range(3):
+        lever_sq += grasp_pos[i] ** 2
+    return np.sqrt(lever_sq)
