@@ -12,7 +12,7 @@ import numpy as np
 from numba import njit
 
 from .geometry import matmul3_into, matvec3_into
-from .motion import balance_noise_map_kernel, conditioned_noise
+from .motion import balance_noise_map_kernel, conditioned_noise, psd_factor
 
 _NO_COV = np.zeros((10, 10))  # ``team_noise`` without the posterior's spread
 
@@ -180,3 +180,12 @@ def message_map(d_links, d_y, mode_std):
     for k in range(n):
         out[6:, k] = d_y[k, :3, 0] * mode_std[k]
     return out
+
+
+@njit(cache=True)
+def message_factor(d_links, d_y, mode_std):
+    """F (9, 9) with F F^T = M M^T, M the modes' map a peer sees (``message_map``), M M^T by
+    numba's product and F by ``motion.psd_factor``: what ``NoiseModel.message_modes`` sends
+    and ``instant_kernels.record_modes`` makes in its call, the same arithmetic in both."""
+    stacked = message_map(d_links, d_y, mode_std)
+    return psd_factor(stacked @ stacked.T)
