@@ -13,9 +13,8 @@ numba checks and unboxes each argument of a call, a record at once) and the enco
 rate noise's terms (``momentum.rate_square_terms``) computed inside it. Two more calls of an
 instant take the robot's constants as one record (``robot_record``): the message's grasp pose
 and wrench in world axes (``message_pose``) and the servos' ripple map (``servo_ripple_of``).
-The arithmetic is the same as the pieces' one by one, bit for bit. M M^T stays numpy's (a syrk:
-a loop or numba's gemm rounds differently, and the message's factor, an eigendecomposition of
-it, carries that into the team's conditioning: 2e-9 in open loop, past the same-results rule).
+The arithmetic is the same as the pieces' one by one, bit for bit, the message's factor
+F F^T = M M^T included (``team_noise.message_factor``, as in ``NoiseModel.message_modes``).
 """
 
 from __future__ import annotations
@@ -28,7 +27,7 @@ from .momentum import _rate_square_terms, servo_ripple_map
 from .motion import _add_regressor
 from .records import record_of
 from .rne import RobotArrays, RobotDescription, grasp_pose_into
-from .team_noise import message_map
+from .team_noise import message_factor
 
 
 @njit(cache=True)
@@ -85,9 +84,9 @@ def record_modes(arrays, imu_pos, n_joints, step_s, factors, point_factor, rate_
     3. the modes d links - d thrust (6, n), d Y (n, 6, 10) at x
        (``chain_modes.instant_noise_modes``, with the channels' ``factors`` (6, 4, 4) and
        ``point_factor`` (8, 8));
-    4. the message's map M = ``team_noise.message_map`` (9, n) of the modes scaled by
-       ``mode_std`` (its factor F F^T = M M^T: ``NoiseModel.instant_modes``).
-    Returns (d links, d Y, M)."""
+    4. the message's factor F (9, 9), F F^T = M M^T, M = ``team_noise.message_map`` (9, n)
+       of the modes scaled by ``mode_std`` (``team_noise.message_factor``).
+    Returns (d links, d Y, F)."""
     stamps, states, span = motion_ring
     keep_motion(stamps, states, span, stamp, pre_state, horizon)
     x = nearest_motion(stamps, states, span, target, dt_s)
@@ -96,7 +95,7 @@ def record_modes(arrays, imu_pos, n_joints, step_s, factors, point_factor, rate_
         _add_regressor(cross, power, ring, ring_power, ring_index, index, regressor)
     links, y = instant_noise_modes(arrays, imu_pos, x, n_joints, step_s, factors, point_factor,
                                    rate_terms, rate_var, n_rate)  # fmt: skip
-    return links, y, message_map(links, y, mode_std)
+    return links, y, message_factor(links, y, mode_std)
 
 
 def robot_record(robot: RobotDescription) -> np.ndarray:
@@ -173,7 +172,7 @@ def record_instant(constants, factors, rate_terms, rate_var, rate_q, rate_scale,
     squared rate noise's terms: ``rate_terms`` (k, ``SIZE``) with variances ``rate_var`` (k,)
     as given or, with joint angles ``rate_q`` (n_joints,) rad (empty: none), computed here,
     ``momentum.rate_square_terms`` at ``rate_q`` with variances ``rate_scale`` w_k (w_k 2 for a
-    square, 1 for a product of two joints). Returns (d links, d Y, M) as ``record_modes``."""
+    square, 1 for a product of two joints). Returns (d links, d Y, F) as ``record_modes``."""
     c = constants[0]
     fields = (
         c.parent[:], c.joint_axis[:], c.rot_in_parent[:], c.pos_in_parent[:], c.mass[:],

@@ -80,12 +80,15 @@ def motion_jacobians(
 @njit(cache=True)
 def balance_noise_map_kernel(d_links, d_y, params) -> np.ndarray:
     """E (6, n): column k is d links / dxi_k + (d Y / dxi_k) pi (``balance_noise_map``, compiled
-    and unchecked, for compiled callers; the products (d Y / dxi_k) pi into one preallocated
-    (n, 6), the same BLAS calls as ``@`` without an array per call)."""
-    moved = np.empty((d_y.shape[0], 6))
-    for k in range(d_y.shape[0]):
-        np.dot(d_y[k], params, moved[k])
-    return d_links + moved.T
+    and unchecked, for compiled callers), each entry's sum over pi's 10 entries as one loop."""
+    n_map = np.empty((6, d_y.shape[0]))
+    for r in range(6):
+        for k in range(d_y.shape[0]):
+            moved = 0.0
+            for p in range(10):
+                moved += d_y[k, r, p] * params[p]
+            n_map[r, k] = d_links[r, k] + moved
+    return n_map
 
 
 @njit(cache=True)
@@ -121,6 +124,33 @@ def pinv_symmetric(a: np.ndarray, rcond: float = 1e-15) -> np.ndarray:
 
 
 @njit(cache=True)
+def gain_of(cross, sym, floor, rcond=1e-15):
+    """K = C A^+ (m, n) for a symmetric A (n, n) = ``sym`` whose eigenvalues are known to be at
+    least ``floor`` (A = B + floor I, B positive semi-definite) and C (m, n) = ``cross``.
+
+    Where floor > 100 rcond tr(A) no eigenvalue falls under pinv's cut (rcond max |s| <=
+    rcond tr(A), with room for rounding), so A^+ = A^-1 and each row k of K solves A k = c by
+    Cholesky, A = L L^T: L y = c, then L^T k = y. Otherwise K = C ``pinv_symmetric``(A)."""
+    n = sym.shape[0]
+    if n == 0 or not floor > 100.0 * rcond * np.trace(sym):
+        return cross @ pinv_symmetric(sym, rcond)
+    lower = np.linalg.cholesky(sym)
+    gain = np.empty(cross.shape)
+    for r in range(cross.shape[0]):
+        for i in range(n):  # forward: L y = c
+            total = cross[r, i]
+            for j in range(i):
+                total -= lower[i, j] * gain[r, j]
+            gain[r, i] = total / lower[i, i]
+        for i in range(n - 1, -1, -1):  # backward: L^T k = y
+            total = gain[r, i]
+            for j in range(i + 1, n):
+                total -= lower[j, i] * gain[r, j]
+            gain[r, i] = total / lower[i, i]
+    return gain
+
+
+@njit(cache=True)
 def noise_cov(n_map: np.ndarray, level: np.ndarray) -> np.ndarray:
     """N diag(level) N^T (6, 6), symmetrised: the unconditioned balance noise."""
     s_nn = (n_map * level) @ np.ascontiguousarray(n_map.T)
@@ -138,8 +168,9 @@ def conditioned_maps(n_map, d_map, level, mismatch, mismatch_model_var):
     d_map_t = d_map.T
     s_nd = (n_map * level) @ d_map_t
     s_dd = (d_map * level) @ d_map_t + mismatch_model_var * np.eye(d_map.shape[0])
-    # Pseudo-inverse: noiseless motion coordinates (perfect sensors) make S_dd singular.
-    gain = s_nd @ pinv_symmetric(s_dd)
+    # Pseudo-inverse where noiseless motion coordinates (perfect sensors) and no mismatch
+    # model make S_dd singular; its inverse, by Cholesky, where var bounds it away (``gain_of``).
+    gain = gain_of(s_nd, s_dd, mismatch_model_var)
     remaining = n_map - gain @ d_map
     cov = (remaining * level) @ remaining.T
     cov += (mismatch_model_var * gain) @ gain.T
@@ -166,15 +197,23 @@ def conditioned_own_modes(n_map, d_map, level, condition, mismatch_model_var, n_
 
 @njit(cache=True)
 def posterior_spread(d_y, level, params_cov):
-    """sum_k level_k dY_k P dY_k^T (6, 6): the regressor noise's spread over the posterior P
-    (10, 10), for the (n, 6, 10) d Y and the first n entries of ``level``, as one product over
-    the stacked (6, 10 n) rows."""
+    """sum_k level_k dY_k P dY_k^T (6, 6), exactly symmetric: the regressor noise's spread over
+    the posterior P (10, 10), for the (n, 6, 10) d Y and the first n entries of ``level``;
+    dY_k P for every k as one product over the stacked (6 n, 10) rows, then the lower
+    triangle's sums over k and P's index as one loop, mirrored."""
     n = d_y.shape[0]
-    scaled = np.sqrt(level[:n]).reshape(n, 1, 1) * d_y
-    spread = (scaled.reshape(6 * n, 10) @ params_cov).reshape(n, 6, 10)
-    rows = np.ascontiguousarray(scaled.transpose(1, 0, 2)).reshape(6, 10 * n)
-    spread_rows = np.ascontiguousarray(spread.transpose(1, 0, 2)).reshape(6, 10 * n)
-    return spread_rows @ rows.T  # F-ordered: BLAS reads it transposed, no copy
+    moved = (np.ascontiguousarray(d_y).reshape(6 * n, 10) @ params_cov).reshape(n, 6, 10)
+    spread = np.empty((6, 6))
+    for i in range(6):
+        for j in range(i + 1):
+            total = 0.0
+            for k in range(n):
+                term = 0.0
+                for p in range(10):
+                    term += moved[k, i, p] * d_y[k, j, p]
+                total += level[k] * term
+            spread[i, j] = spread[j, i] = total
+    return spread
 
 
 @njit(cache=True)

@@ -76,7 +76,14 @@ from .motion import (
 from .over_time import IMU_MODES, MODES_PER_CHANNEL, conditioning_gain, mode_lag_covariances
 from .preprocess import DEFAULT_RATE_CUTOFF_HZ, StateVariableFilter
 from .rne import RobotDescription
-from .team_noise import excitation_snr_kernel, message_map, same_key, team_maps_of, team_noise
+from .team_noise import (
+    excitation_snr_kernel,
+    message_factor,
+    message_map,
+    same_key,
+    team_maps_of,
+    team_noise,
+)
 
 # Ways the motion's sensor noise enters the measurement (``NoiseModel.motion_noise``).
 MOTION_FUSION = ("none", "own", "team")
@@ -427,13 +434,12 @@ class NoiseModel:
         rate_q, rate_scale = _NO_RATE_AT if none or rate_at is None else rate_at
         target = stamp - self._jacobian_lag_steps
         auto = self.autocorrelation
-        links, y, stacked = record_instant(
+        links, y, factor = record_instant(
             self._record_constants(), self._channel_factors(), terms, variances, rate_q,
             float(rate_scale), self._ring_with_room(pre_state), (auto._cross, auto._power,
             auto._ring, auto._ring_power, auto._ring_index), int(stamp), pre_state, target,
             target - 2 * self.update_every, index, regressor, add,
         )  # fmt: skip
-        factor = psd_factor(stacked @ stacked.T)  # numpy's syrk, as ``message_modes``
         return (links, y), (factor[:6], factor[6:], np.ones(9))
 
     def _rate_terms_at(self, q, scale: float) -> tuple[np.ndarray, np.ndarray] | None:
@@ -473,10 +479,10 @@ class NoiseModel:
         With ``over_time``: the 24 IMU modes as they are (scaled to unit variance), then 9 that
         carry the rest's (6, 33), (3, 33), ones (33,): the receiver weighs the IMU's over time
         (``over_time_noise``)."""
-        stacked = message_map(d_links, d_y, self._mode_std)
         if not self.over_time:
-            factor = psd_factor(stacked @ stacked.T)
+            factor = message_factor(d_links, d_y, self._mode_std)
             return factor[:6], factor[6:], np.ones(9)
+        stacked = message_map(d_links, d_y, self._mode_std)
         # Over time: the IMU's modes as they are (the receiver weighs them across updates),
         # the rest (encoders, squared rates: white across updates) in 9.
         rest = stacked[:, IMU_MODES:]

@@ -11,9 +11,22 @@ import operator
 import numpy as np
 from numba import njit
 
-from .motion import balance_noise_map_kernel, conditioned_noise, grasp_acc_h_rows
+from .geometry import matmul3_into, matvec3_into
+from .motion import balance_noise_map_kernel, conditioned_noise, psd_factor
 
 _NO_COV = np.zeros((10, 10))  # ``team_noise`` without the posterior's spread
+
+
+@njit(cache=True)
+def _product_into(out, a, b):
+    """out = a b (m, n) of an (m, l) and an (l, n) matrix, any strides (views of the team's
+    maps), sum_k a_ik b_kj as one loop: a BLAS call costs more than these few multiply-adds."""
+    for i in range(a.shape[0]):
+        for j in range(b.shape[1]):
+            total = 0.0
+            for k in range(a.shape[1]):
+                total += a[i, k] * b[k, j]
+            out[i, j] = total
 
 
 @njit(cache=True)
@@ -26,34 +39,32 @@ def team_maps(params, d_links, d_y, regressor, transforms, peer_links, peer_gras
     Peer k (T = ``transforms[k]`` G_k -> G, R its rotation, p the peer's grasp point in G, read
     from the moment rows' [p]x R): N's block T L_k; D's rows 3k..3k+2 are -G_i(p) over this
     robot's columns and R G_k over the peer's; d_k = R a_Gk - (a_G + (skew(wd) + skew(w)^2) p),
-    a_G and the h block from the filtered ``regressor``."""
+    a_G and the h block from the filtered ``regressor``. The products are loops
+    (``_product_into``, ``geometry.matmul3_into``, ``geometry.matvec3_into``)."""
     n_own, n_peers = d_y.shape[0], transforms.shape[0]
     n_map = np.zeros((6, n_own + peer_links.shape[1]))
     d_map = np.zeros((3 * n_peers, n_map.shape[1]))
     mismatch = np.empty(3 * n_peers)
     n_map[:, :n_own] = balance_noise_map_kernel(d_links, d_y, params)
-    acc_g = regressor[:3, 0].copy()
-    ang_g = np.ascontiguousarray(regressor[:3, 1:4])  # skew(wd) + skew(w)^2
-    h_rows = grasp_acc_h_rows(d_y)  # once for all peers
-    # The products' outputs, reused over the peers (np.dot(a, b, out): the same BLAS calls as @).
-    lever, pos, h_p = np.empty((3, 3)), np.empty(3), np.empty(3 * n_own)
+    ang_g = regressor[:3, 1:4]  # skew(wd) + skew(w)^2
+    lever, pos = np.empty((3, 3)), np.empty(3)
     turned_acc, lever_acc = np.empty(3), np.empty(3)
     for k in range(n_peers):
-        rot = np.ascontiguousarray(transforms[k, :3, :3])
-        np.dot(np.ascontiguousarray(transforms[k, 3:, :3]), rot.T, lever)
+        rot = transforms[k, :3, :3]
+        matmul3_into(lever, transforms[k, 3:, :3], rot.T)
         pos[0], pos[1], pos[2] = lever[2, 1], lever[0, 2], lever[1, 0]
         cols = slice(n_own + peer_start[k], n_own + peer_start[k + 1])
         peer = slice(peer_start[k], peer_start[k + 1])
-        rows = slice(3 * k, 3 * k + 3)
-        n_map[:, cols] = transforms[k] @ np.ascontiguousarray(peer_links[:, peer])
-        np.dot(h_rows, pos, h_p)  # -G_i(p) = -(d a_G + d h p), as ``motion.grasp_acc_map_kernel``
-        for c in range(n_own):
+        _product_into(n_map[:, cols], transforms[k], peer_links[:, peer])
+        for c in range(n_own):  # -G_i(p) = -(d a_G + d h p), as ``motion.grasp_acc_map_kernel``
             for i in range(3):
-                d_map[3 * k + i, c] = -(d_y[c, i, 0] + h_p[3 * c + i])
-        d_map[rows, cols] = rot @ np.ascontiguousarray(peer_grasp[:, peer])
-        np.dot(rot, peer_acc[k], turned_acc)
-        np.dot(ang_g, pos, lever_acc)
-        mismatch[rows] = turned_acc - (acc_g + lever_acc)
+                lever_c = d_y[c, i, 1] * pos[0] + d_y[c, i, 2] * pos[1] + d_y[c, i, 3] * pos[2]
+                d_map[3 * k + i, c] = -(d_y[c, i, 0] + lever_c)
+        _product_into(d_map[3 * k : 3 * k + 3, cols], rot, peer_grasp[:, peer])
+        matvec3_into(turned_acc, rot, peer_acc[k])
+        matvec3_into(lever_acc, ang_g, pos)
+        for i in range(3):
+            mismatch[3 * k + i] = turned_acc[i] - (regressor[i, 0] + lever_acc[i])
     return n_map, d_map, mismatch
 
 
@@ -169,3 +180,12 @@ def message_map(d_links, d_y, mode_std):
     for k in range(n):
         out[6:, k] = d_y[k, :3, 0] * mode_std[k]
     return out
+
+
+@njit(cache=True)
+def message_factor(d_links, d_y, mode_std):
+    """F (9, 9) with F F^T = M M^T, M the modes' map a peer sees (``message_map``), M M^T by
+    numba's product and F by ``motion.psd_factor``: what ``NoiseModel.message_modes`` sends
+    and ``instant_kernels.record_modes`` makes in its call, the same arithmetic in both."""
+    stacked = message_map(d_links, d_y, mode_std)
+    return psd_factor(stacked @ stacked.T)

@@ -1,6 +1,7 @@
 """The compiled per-update kernels (rne._balance_jacobians, motion's conditioning and
-noise modes, team_noise.team_maps and motion.posterior_spread) against the plain forms they
-replace, and the update path's caches (the relative grasp, process's early return)."""
+noise modes, team_noise.team_maps, motion.posterior_spread and motion.gain_of) against the
+plain forms they replace, and the update path's caches (the relative grasp, process's early
+return)."""
 
 from types import SimpleNamespace
 
@@ -176,8 +177,8 @@ def test_instant_noise_modes_are_the_modes_of_their_parts():
 
 
 def test_posterior_spread_is_the_sum_over_modes():
-    """``motion.posterior_spread`` (one product over the stacked rows, compiled) is
-    sum_k level_k dY_k P dY_k^T over the first n levels."""
+    """``motion.posterior_spread`` (compiled) is sum_k level_k dY_k P dY_k^T over the first n
+    levels, exactly symmetric."""
     from astrocargo.estimator.motion import posterior_spread
 
     rng = np.random.default_rng(6)
@@ -185,8 +186,30 @@ def test_posterior_spread_is_the_sum_over_modes():
     root = rng.normal(size=(10, 10))
     cov = root @ root.T
     ref = sum(level[k] * d_y[k] @ cov @ d_y[k].T for k in range(7))
-    np.testing.assert_allclose(posterior_spread(d_y, level, cov), ref, rtol=1e-12,
-                               atol=1e-12 * np.abs(ref).max())  # fmt: skip
+    spread = posterior_spread(d_y, level, cov)
+    np.testing.assert_allclose(spread, ref, rtol=1e-12, atol=1e-12 * np.abs(ref).max())
+    np.testing.assert_array_equal(spread, spread.T)
+
+
+def test_gain_of_solves_where_the_floor_bounds_the_eigenvalues_else_pinv():
+    """``motion.gain_of``: K = C A^+ for A = B + floor I; by Cholesky where floor is far above
+    pinv's cut (equal to C pinv(A) to rounding: cond(A) eps), by ``pinv_symmetric`` where it
+    is not (no floor, or one under the cut, on a singular B: C pinv(A) bit for bit)."""
+    from astrocargo.estimator.motion import gain_of
+
+    rng = np.random.default_rng(8)
+    for n, floor in ((3, 1e-3), (21, 1e-2), (21, 1e-7), (21, 0.0), (5, 1e-18)):
+        root = rng.normal(size=(n, max(n - 2, 1)))  # B singular: rank n - 2
+        sym = root @ root.T + floor * np.eye(n)
+        cross = rng.normal(size=(6, n))
+        expected = cross @ pinv_symmetric(sym)
+        gain = gain_of(cross, sym, floor)
+        if floor > 1e-13 * np.trace(sym):
+            scale = 1e-14 * np.linalg.cond(sym) * np.abs(expected).max()
+            np.testing.assert_allclose(gain, expected, rtol=0, atol=scale)
+            assert not np.array_equal(gain, expected)  # the solve, not the pseudo-inverse
+        else:
+            np.testing.assert_array_equal(gain, expected)
 
 
 def test_relative_grasp_transform_follows_each_new_fix():
