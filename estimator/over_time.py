@@ -48,7 +48,7 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit
 
-from .motion import pinv_symmetric
+from .motion import gain_of
 
 # Updates of the window: for the default chain the modes' lag covariance Gm(L) has fallen to
 # 1.3e-2 of Gm(0) at 25 updates (4 s at 6.25 Hz) and 2e-3 at 30 (``mode_lag_covariances``);
@@ -81,11 +81,13 @@ def mode_lag_covariances(held_lag_cov: np.ndarray) -> tuple[np.ndarray, np.ndarr
 
 @njit(cache=True)
 def conditioning_gain(n_map, d_map, level, mismatch_model_var):
-    """K = S_nd S_dd^+ (6, 3 P) of ``motion.conditioned_maps``: the remaining map is N - K D."""
+    """K = S_nd S_dd^+ (6, 3 P) of ``motion.conditioned_maps``: the remaining map is N - K D.
+    S_dd's eigenvalues are at least ``mismatch_model_var``, so K comes from ``motion.gain_of``
+    (S_dd^-1 by Cholesky where that floor keeps pinv's cut away, as ``conditioned_maps``)."""
     d_map_t = np.ascontiguousarray(d_map.T)
     s_nd = (n_map * level) @ d_map_t
     s_dd = (d_map * level) @ d_map_t + mismatch_model_var * np.eye(d_map.shape[0])
-    return s_nd @ pinv_symmetric(s_dd)
+    return gain_of(s_nd, s_dd, mismatch_model_var)
 
 
 @njit(cache=True)
