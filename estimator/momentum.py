@@ -442,18 +442,10 @@ def momentum_pass_into(work, geo_work, arrays, imu_pos, w_base, acc_imu, q, qd, 
 
 
 @njit(cache=True)
-def sample_from_rate_filter(arrays, imu_pos, rate_state, qd_var):
-    """``momentum_pass`` of the rate filter's state (3, 12 + nj) over [gyro_B; the IMU point's
-    acceleration in B; q; thrust_B] (``preprocess.Preprocessor``): its values, and the joint
-    rates from its first derivative."""
-    out, geo = sample_geometry_from_rate_filter(arrays, imu_pos, rate_state, qd_var)
-    return out, geo.grasp_rot, geo.grasp_pos
-
-
-@njit(cache=True)
 def sample_geometry_from_rate_filter(arrays, imu_pos, rate_state, qd_var):
-    """``sample_from_rate_filter``'s sample, with the link geometry (``link_geometry``) it
-    used."""
+    """``momentum_pass_geometry`` of the rate filter's state (3, 12 + nj) over [gyro_B; the IMU
+    point's acceleration in B; q; thrust_B] (``preprocess.Preprocessor``): its values, and the
+    joint rates from its first derivative. Returns the sample and the link geometry it used."""
     nj = rate_state.shape[1] - 12
     y, yd = rate_state[0], rate_state[1]
     return momentum_pass_geometry(
@@ -466,11 +458,13 @@ def _sample_from_rate_filter(
     parent, joint_axis, rot_in_parent, pos_in_parent, mass, com, inertia_com, grasp_link,
     grasp_rot, grasp_pos, imu_pos, rate_state, qd_var,
 ):  # fmt: skip
+    """``sample_geometry_from_rate_filter``'s sample and G's pose in B (rotation, origin)."""
     arrays = RobotArrays(
         parent, joint_axis, rot_in_parent, pos_in_parent, mass, com, inertia_com, grasp_link,
         grasp_rot, grasp_pos,
     )  # fmt: skip
-    return sample_from_rate_filter(arrays, imu_pos, rate_state, qd_var)
+    out, geo = sample_geometry_from_rate_filter(arrays, imu_pos, rate_state, qd_var)
+    return out, geo.grasp_rot, geo.grasp_pos
 
 
 def momentum_sample(
@@ -561,10 +555,16 @@ def cargo_regressor_parts(y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def balance_from_filtered(y: np.ndarray, yd: np.ndarray) -> Balance:
     """The filtered balance H[Z] = H'[P] + H[Q] from the balance filter's value ``y`` and
-    derivative ``yd`` outputs (``SIZE``,) of momentum-form samples."""
-    links = yd[LINKS_P] + y[LINKS_Q]
-    regressor = (CARGO_P_MAP @ yd[CARGO_P] + CARGO_Q_MAP @ y[CARGO_Q]).reshape(6, 10)
-    return Balance(np.array(y[THRUST]), links, regressor)
+    derivative ``yd`` outputs (``SIZE``,) of momentum-form samples (compiled, new arrays)."""
+    y, yd = np.ascontiguousarray(y, dtype=float), np.ascontiguousarray(yd, dtype=float)
+    return Balance(*_filtered_balance(y, yd, CARGO_P_MAP, CARGO_Q_MAP))
+
+
+@njit(cache=True)
+def _filtered_balance(y, yd, p_map, q_map):
+    """(thrust, links = P_links' + Q_links, regressor = M_P P_Y' + M_Q Q_Y (6, 10))."""
+    regressor = p_map @ yd[CARGO_P] + q_map @ y[CARGO_Q]
+    return y[THRUST].copy(), yd[LINKS_P] + y[LINKS_Q], regressor.reshape(6, 10)
 
 
 # ------------------------------------------------------------------ the servos' ripple
