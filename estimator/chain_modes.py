@@ -5,7 +5,8 @@ The momentum-form sample (``momentum``) is differentiated with respect to the ra
 outputs by forward differences (``sample_jacobian``), at two points along the pre-filter's
 derivatives for its drift (``drifting_sample_jacobian``); its columns, read out of the slow
 filter's value and derivative, times each sensor channel's factor give the modes
-(``momentum_noise_modes``, ``instant_noise_modes``)."""
+(``momentum_noise_modes``, ``instant_noise_modes``). The differences are taken in one scratch
+per instant (``jacobian_work``) on ``momentum``'s ``_into`` forms, which allocate nothing."""
 
 from __future__ import annotations
 
