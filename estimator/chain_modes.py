@@ -5,9 +5,12 @@ The momentum-form sample (``momentum``) is differentiated with respect to the ra
 outputs by forward differences (``sample_jacobian``), at two points along the pre-filter's
 derivatives for its drift (``drifting_sample_jacobian``); its columns, read out of the slow
 filter's value and derivative, times each sensor channel's factor give the modes
-(``momentum_noise_modes``, ``instant_noise_modes``)."""
+(``momentum_noise_modes``, ``instant_noise_modes``). The differences are taken in one scratch
+per instant (``jacobian_work``) on ``momentum``'s ``_into`` forms, which allocate nothing."""
 
 from __future__ import annotations
+
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
@@ -21,11 +24,39 @@ from .momentum import (
     LINKS_Q,
     SIZE,
     THRUST,
-    link_geometry,
-    momentum_at,
+    LinkGeometry,
+    MomentumWork,
+    geometry_work,
+    link_geometry_into,
+    momentum_at_into,
+    momentum_work,
 )
 
 _CARGO_Q_MAP_T = np.ascontiguousarray(CARGO_Q_MAP.T)  # ``instant_noise_modes``' squared rates
+
+
+class JacobianWork(NamedTuple):
+    """Scratch of the sample's Jacobians (``jacobian_work``), so that ``sample_jacobian_into``
+    and ``drifting_jacobians_into`` allocate nothing."""
+
+    xs: np.ndarray  # (1 + n_x, n_x): x (row 0), x with its entry k stepped (row 1 + k)
+    samples: np.ndarray  # (1 + n_x, SIZE): the sample at each row of xs
+    momentum: MomentumWork  # of 1 + n_x rows (the rows at the angles' geometry)
+    geo: LinkGeometry  # the arrays of the angles' geometry (``momentum.geometry_work``)
+    value: np.ndarray  # (12 + nj,) the pre-filter's value moved along its derivative
+    rate: np.ndarray  # (12 + nj,) and its derivative
+    sides: np.ndarray  # (2, SIZE, n_x): J- and J+ (``drifting_jacobians_into``)
+
+
+@njit(cache=True)
+def jacobian_work(n_links, n_joints):
+    """A ``JacobianWork`` for a robot of ``n_links`` links and ``n_joints`` joints."""
+    n_x = 6 + 2 * n_joints
+    return JacobianWork(
+        np.empty((1 + n_x, n_x)), np.empty((1 + n_x, SIZE)),
+        momentum_work(n_links, 1 + n_x, n_joints), geometry_work(n_links),
+        np.empty(12 + n_joints), np.empty(12 + n_joints), np.empty((2, SIZE, n_x)),
+    )  # fmt: skip
 
 
 @njit(cache=True)
@@ -36,29 +67,63 @@ def sample_jacobian(arrays, imu_pos, w_base, acc_imu, q, qd, thrust_base, step=1
     x = (gyro (3) rad/s, the IMU point's acceleration (3) m/s^2, q (nj) rad, qd (nj) rad/s), base
     frame, by forward differences of ``step``: the sample is quadratic in the rates and the
     acceleration, so the error is ``step`` times the quadratic coefficient (relative 1e-6 at the
-    robot's scale), O(step) for the angles."""
+    robot's scale), O(step) for the angles. In the scratch of ``jacobian_work``
+    (``sample_jacobian_into``)."""
     nj = q.shape[0]
-    x = np.concatenate((w_base, acc_imu, q, qd))
-    n_x = x.shape[0]
-    # Row 0: x; row 1 + k: x with its entry k stepped. One batch of the rows at the angles'
-    # geometry, then the angles' own rows at theirs.
-    xs = np.empty((1 + n_x, n_x))
-    xs[:] = x
-    for k in range(n_x):
-        xs[1 + k, k] += step
-    at_q = np.concatenate((np.arange(7), np.arange(7 + nj, 1 + n_x)))
-    batch = xs[at_q]
-    at_geo = momentum_at(arrays, imu_pos, link_geometry(arrays, q), batch[:, 0:3],
-                         batch[:, 3:6], batch[:, 6 + nj :], thrust_base)  # fmt: skip
-    samples = np.empty((1 + n_x, SIZE))
-    for r in range(at_q.shape[0]):
-        samples[at_q[r]] = at_geo[r]
+    jac = np.empty((SIZE, 6 + 2 * nj))
+    work = jacobian_work(arrays.parent.shape[0], nj)
+    sample_jacobian_into(jac, work, arrays, imu_pos, w_base, acc_imu, q, qd, thrust_base, step)
+    return jac
+
+
+@njit(cache=True, inline="always")
+def _motion_rows_into(work, xs, rows):
+    """The motion of ``rows`` of ``xs`` (gyro, acceleration, q, qd) into ``work``'s
+    (``MomentumWork``) first rows of base rates, accelerations and joint rates."""
+    nj = (xs.shape[1] - 6) // 2
+    for r in range(rows.shape[0]):
+        x = xs[rows[r]]
+        for i in range(3):
+            work.w_rows[r, i] = x[i]
+            work.acc_rows[r, i] = x[3 + i]
+        for j in range(nj):
+            work.qd_rows[r, j] = x[6 + nj + j]
+
+
+@njit(cache=True, inline="always")
+def sample_jacobian_into(jac, work, arrays, imu_pos, w_base, acc_imu, q, qd, thrust_base, step):
+    """``sample_jacobian`` into ``jac`` (``SIZE``, 6 + 2 nj), ``work`` (``jacobian_work``) as
+    scratch: J[:, k] = (sample(x + step e_k) - sample(x)) / step."""
+    nj = q.shape[0]
+    n_x = 6 + 2 * nj
+    xs, samples, mw = work.xs, work.samples, work.momentum
+    for i in range(3):
+        xs[0, i], xs[0, 3 + i] = w_base[i], acc_imu[i]
+    for j in range(nj):
+        xs[0, 6 + j], xs[0, 6 + nj + j] = q[j], qd[j]
+    for r in range(1, 1 + n_x):
+        xs[r] = xs[0]
+        xs[r, r - 1] += step
+    # One batch of the rows at the angles' geometry (x and the steps of all but the angles),
+    # then the angles' own rows at theirs.
+    at_q = np.arange(7 + nj)
+    at_q[7:] += nj
+    geo = link_geometry_into(work.geo, arrays, q, mw.vec, mw.mat)
+    _motion_rows_into(mw, xs, at_q)
+    n = at_q.shape[0]
+    momentum_at_into(mw.rows[:n], arrays, imu_pos, geo, mw.w_rows[:n], mw.acc_rows[:n],
+                     mw.qd_rows[:n], thrust_base, mw)  # fmt: skip
+    for r in range(n):
+        samples[at_q[r]] = mw.rows[r]
     for k in range(6, 6 + nj):
-        row = xs[1 + k : 2 + k]
-        geo_k = link_geometry(arrays, np.ascontiguousarray(row[0, 6 : 6 + nj]))
-        samples[1 + k] = momentum_at(arrays, imu_pos, geo_k, row[:, 0:3], row[:, 3:6],
-                                     row[:, 6 + nj :], thrust_base)[0]  # fmt: skip
-    return np.ascontiguousarray(((samples[1:] - samples[0]) / step).T)
+        geo_k = link_geometry_into(work.geo, arrays, xs[1 + k, 6 : 6 + nj], mw.vec, mw.mat)
+        _motion_rows_into(mw, xs, np.array([1 + k]))
+        momentum_at_into(mw.rows[:1], arrays, imu_pos, geo_k, mw.w_rows[:1], mw.acc_rows[:1],
+                         mw.qd_rows[:1], thrust_base, mw)  # fmt: skip
+        samples[1 + k] = mw.rows[0]
+    for c in range(SIZE):
+        for k in range(n_x):
+            jac[c, k] = (samples[1 + k, c] - samples[0, c]) / step
 
 
 @njit(cache=True)
@@ -76,17 +141,32 @@ def drifting_sample_jacobian(arrays, imu_pos, state, n_joints, step_s):
 @njit(cache=True)
 def _drifting_jacobians(arrays, imu_pos, state, n_joints, step_s):
     """``drifting_sample_jacobian``'s J and dJ/dt stacked (2, ``SIZE``, 6 + 2 nj)."""
-    nj = n_joints
-    out = np.empty((2, SIZE, 6 + 2 * nj))
-    for k, sign in enumerate((-0.5, 0.5)):
-        value = state[0] + sign * step_s * state[1]
-        rate = state[1] + sign * step_s * state[2]
-        out[k] = sample_jacobian(arrays, imu_pos, value[0:3], value[3:6], value[6 : 6 + nj],
-                                 rate[6 : 6 + nj], value[6 + nj :])  # fmt: skip
-    jacs = np.empty_like(out)
-    jacs[0] = 0.5 * (out[0] + out[1])
-    jacs[1] = (out[1] - out[0]) / step_s
+    jacs = np.empty((2, SIZE, 6 + 2 * n_joints))
+    work = jacobian_work(arrays.parent.shape[0], n_joints)
+    drifting_jacobians_into(jacs, work, arrays, imu_pos, state, n_joints, step_s)
     return jacs
+
+
+@njit(cache=True)
+def drifting_jacobians_into(jacs, work, arrays, imu_pos, state, n_joints, step_s):
+    """``_drifting_jacobians`` into ``jacs`` (2, ``SIZE``, 6 + 2 nj), ``work``
+    (``jacobian_work``) as scratch: J+- at the state moved by +- step_s / 2 along its
+    derivatives (value x + s x', derivative x' + s x''), J = (J+ + J-) / 2,
+    dJ/dt = (J+ - J-) / step_s."""
+    nj = n_joints
+    value, rate, sides = work.value, work.rate, work.sides
+    for k in range(2):
+        sign = -0.5 if k == 0 else 0.5
+        for i in range(value.shape[0]):
+            value[i] = state[0, i] + sign * step_s * state[1, i]
+            rate[i] = state[1, i] + sign * step_s * state[2, i]
+        q, qd, thrust = value[6 : 6 + nj], rate[6 : 6 + nj], value[6 + nj :]
+        sample_jacobian_into(sides[k], work, arrays, imu_pos, value[0:3], value[3:6], q, qd,
+                             thrust, 1e-6)  # fmt: skip
+    for c in range(SIZE):
+        for k in range(sides.shape[2]):
+            jacs[0, c, k] = 0.5 * (sides[0, c, k] + sides[1, c, k])
+            jacs[1, c, k] = (sides[1, c, k] - sides[0, c, k]) / step_s
 
 
 @njit(cache=True)

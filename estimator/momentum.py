@@ -104,14 +104,11 @@ import numpy as np
 from numba import njit
 
 from .geometry import (
-    cross3,
     cross3_into,
     exp_so3_into,
-    matmul3,
     matmul3_into,
-    matvec3,
     matvec3_into,
-    skew,
+    skew_into,
 )
 from .rne import (
     Balance,
@@ -445,18 +442,10 @@ def momentum_pass_into(work, geo_work, arrays, imu_pos, w_base, acc_imu, q, qd, 
 
 
 @njit(cache=True)
-def sample_from_rate_filter(arrays, imu_pos, rate_state, qd_var):
-    """``momentum_pass`` of the rate filter's state (3, 12 + nj) over [gyro_B; the IMU point's
-    acceleration in B; q; thrust_B] (``preprocess.Preprocessor``): its values, and the joint
-    rates from its first derivative."""
-    out, geo = sample_geometry_from_rate_filter(arrays, imu_pos, rate_state, qd_var)
-    return out, geo.grasp_rot, geo.grasp_pos
-
-
-@njit(cache=True)
 def sample_geometry_from_rate_filter(arrays, imu_pos, rate_state, qd_var):
-    """``sample_from_rate_filter``'s sample, with the link geometry (``link_geometry``) it
-    used."""
+    """``momentum_pass_geometry`` of the rate filter's state (3, 12 + nj) over [gyro_B; the IMU
+    point's acceleration in B; q; thrust_B] (``preprocess.Preprocessor``): its values, and the
+    joint rates from its first derivative. Returns the sample and the link geometry it used."""
     nj = rate_state.shape[1] - 12
     y, yd = rate_state[0], rate_state[1]
     return momentum_pass_geometry(
@@ -469,23 +458,13 @@ def _sample_from_rate_filter(
     parent, joint_axis, rot_in_parent, pos_in_parent, mass, com, inertia_com, grasp_link,
     grasp_rot, grasp_pos, imu_pos, rate_state, qd_var,
 ):  # fmt: skip
+    """``sample_geometry_from_rate_filter``'s sample and G's pose in B (rotation, origin)."""
     arrays = RobotArrays(
         parent, joint_axis, rot_in_parent, pos_in_parent, mass, com, inertia_com, grasp_link,
         grasp_rot, grasp_pos,
     )  # fmt: skip
-    return sample_from_rate_filter(arrays, imu_pos, rate_state, qd_var)
-
-
-@njit(cache=True)
-def _momentum_sample(
-    parent, joint_axis, rot_in_parent, pos_in_parent, mass, com, inertia_com, grasp_link,
-    grasp_rot, grasp_pos, imu_pos, w_base, acc_imu, q, qd, thrust_base, qd_var,
-):  # fmt: skip
-    arrays = RobotArrays(
-        parent, joint_axis, rot_in_parent, pos_in_parent, mass, com, inertia_com, grasp_link,
-        grasp_rot, grasp_pos,
-    )  # fmt: skip
-    return momentum_pass(arrays, imu_pos, w_base, acc_imu, q, qd, thrust_base, qd_var)
+    out, geo = sample_geometry_from_rate_filter(arrays, imu_pos, rate_state, qd_var)
+    return out, geo.grasp_rot, geo.grasp_pos
 
 
 def momentum_sample(
@@ -513,7 +492,7 @@ def momentum_sample(
         (thrust_base, (6,), "thrust_base"), (var, nj, "qd_var"),
     )]  # fmt: skip
     imu_pos = np.ascontiguousarray(robot.imu_pos, dtype=float)
-    return _momentum_sample(*robot.arrays, imu_pos, *args)
+    return momentum_pass(robot.arrays, imu_pos, *args)
 
 
 def rate_square_terms(robot: RobotDescription, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -576,42 +555,68 @@ def cargo_regressor_parts(y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def balance_from_filtered(y: np.ndarray, yd: np.ndarray) -> Balance:
     """The filtered balance H[Z] = H'[P] + H[Q] from the balance filter's value ``y`` and
-    derivative ``yd`` outputs (``SIZE``,) of momentum-form samples."""
-    links = yd[LINKS_P] + y[LINKS_Q]
-    regressor = (CARGO_P_MAP @ yd[CARGO_P] + CARGO_Q_MAP @ y[CARGO_Q]).reshape(6, 10)
-    return Balance(np.array(y[THRUST]), links, regressor)
+    derivative ``yd`` outputs (``SIZE``,) of momentum-form samples (compiled, new arrays)."""
+    y, yd = np.ascontiguousarray(y, dtype=float), np.ascontiguousarray(yd, dtype=float)
+    return Balance(*_filtered_balance(y, yd, CARGO_P_MAP, CARGO_Q_MAP))
+
+
+@njit(cache=True)
+def _filtered_balance(y, yd, p_map, q_map):
+    """(thrust, links = P_links' + Q_links, regressor = M_P P_Y' + M_Q Q_Y (6, 10))."""
+    regressor = p_map @ yd[CARGO_P] + q_map @ y[CARGO_Q]
+    return y[THRUST].copy(), yd[LINKS_P] + y[LINKS_Q], regressor.reshape(6, 10)
 
 
 # ------------------------------------------------------------------ the servos' ripple
-@njit(cache=True)
-def _body_jacobian(arrays, rot, pos, link, point):
-    """The map (6, 6 + n_joints) from the generalised velocity u = [v_B (velocity of B's origin);
-    w_B; qd] (B coordinates) to [velocity of ``point``; angular velocity] of a body rigid with
-    link ``link`` (``point`` in B, m)."""
-    n_links = arrays.parent.shape[0]
-    jac = np.zeros((6, 5 + n_links))
-    jac[0:3, 0:3] = np.eye(3)
-    jac[0:3, 3:6] = -skew(point)  # w x point = -point x w
-    jac[3:6, 3:6] = np.eye(3)
+@njit(cache=True, inline="always")
+def _body_jacobian_into(jac, arrays, rot, pos, link, point, axis):
+    """The map ``jac`` (6, 6 + n_joints) from the generalised velocity u = [v_B (velocity of B's
+    origin); w_B; qd] (B coordinates) to [velocity of ``point``; angular velocity] of a body rigid
+    with link ``link`` (``point`` in B, m): [1, -[point]x, (axis_k x (point - pos_k))_k;
+    0, 1, (axis_k)_k] over the joints k between the base and the link. ``axis`` (2, 3) scratch."""
+    jac[:] = 0.0
+    for i in range(3):
+        jac[i, i] = jac[3 + i, 3 + i] = 1.0
+    skew_into(jac[0:3, 3:6], point)  # w x point = -point x w
+    for i in range(3):
+        for j in range(3):
+            jac[i, 3 + j] = -jac[i, 3 + j]
     k = link
     while k > 0:  # the joints between the base and the body
-        axis = matvec3(rot[k], arrays.joint_axis[k])
-        jac[0:3, 5 + k] = cross3(axis, point - pos[k])
-        jac[3:6, 5 + k] = axis
+        matvec3_into(axis[0], rot[k], arrays.joint_axis[k])
+        for i in range(3):
+            axis[1, i] = point[i] - pos[k, i]
+        cross3_into(jac[0:3, 5 + k], axis[0], axis[1])
+        jac[3:6, 5 + k] = axis[0]
         k = arrays.parent[k]
-    return jac
 
 
-@njit(cache=True)
-def _spatial_inertia(mass, first_moment, inertia):
-    """[[m 1, -[h]x], [[h]x, I_o]] (6, 6) of a body about a point o (first moment h about o,
-    inertia I_o about o): its kinetic energy is 1/2 [v_o; w]^T M [v_o; w]."""
-    out = np.zeros((6, 6))
-    out[0:3, 0:3] = mass * np.eye(3)
-    out[0:3, 3:6] = -skew(first_moment)
-    out[3:6, 0:3] = skew(first_moment)
-    out[3:6, 3:6] = inertia
-    return out
+@njit(cache=True, inline="always")
+def _add_body_inertia(h, jac, mass, first_moment, inertia, spatial, moved):
+    """h += J^T M J in loops, M = [[m 1, -[c]x], [[c]x, I_o]] (6, 6) the body's spatial inertia
+    about a point o (first moment c about o, inertia I_o about o; its kinetic energy is
+    1/2 [v_o; w]^T M [v_o; w]), J (6, n) its ``_body_jacobian_into`` at o; ``spatial`` (6, 6)
+    and ``moved`` (6, n) scratch (M, then M J)."""
+    spatial[:] = 0.0
+    skew_into(spatial[3:6, 0:3], first_moment)
+    for i in range(3):
+        spatial[i, i] = mass
+        for j in range(3):
+            spatial[i, 3 + j] = -spatial[3 + i, j]
+            spatial[3 + i, 3 + j] = inertia[i, j]
+    n = jac.shape[1]
+    for a in range(6):
+        for c in range(n):
+            total = 0.0
+            for b in range(6):
+                total += spatial[a, b] * jac[b, c]
+            moved[a, c] = total
+    for c in range(n):
+        for d in range(n):
+            total = 0.0
+            for a in range(6):
+                total += jac[a, c] * moved[a, d]
+            h[c, d] += total
 
 
 @njit(cache=True)
@@ -619,22 +624,24 @@ def generalised_inertia(arrays, q, cargo):
     """The free-floating mass matrix (6 + n_joints, 6 + n_joints) of the robot holding the cargo
     (standard parameters ``cargo`` (10,) in G about G's origin), for u = [v_B; w_B; qd] in B:
     H = sum_k J_k^T M_k J_k over the links (about their centres of mass) and the cargo (about
-    G's origin, rigid with the grasp link)."""
+    G's origin, rigid with the grasp link), in loops (``_add_body_inertia``)."""
     geo = link_geometry(arrays, q)
-    rot, pos, com_b, inertia_b = geo.rot, geo.pos, geo.com_b, geo.inertia_b
-    grasp_rot, grasp_pos = geo.grasp_rot, geo.grasp_pos
-    n_links = arrays.parent.shape[0]
-    h = np.zeros((5 + n_links, 5 + n_links))
-    zero3 = np.zeros(3)
-    for k in range(n_links):
-        point = pos[k] + com_b[k]
-        jac = _body_jacobian(arrays, rot, pos, k, point)
-        h += jac.T @ _spatial_inertia(arrays.mass[k], zero3, inertia_b[k]) @ jac
+    n = 5 + arrays.parent.shape[0]
+    h, jac, moved = np.zeros((n, n)), np.empty((6, n)), np.empty((6, n))
+    spatial, turned = np.empty((6, 6)), np.empty((3, 3))
+    axis, point, first_moment = np.empty((2, 3)), np.empty(3), np.zeros(3)
+    for k in range(arrays.parent.shape[0]):  # about its centre of mass: no first moment
+        for i in range(3):
+            point[i] = geo.pos[k, i] + geo.com_b[k, i]
+        _body_jacobian_into(jac, arrays, geo.rot, geo.pos, k, point, axis)
+        _add_body_inertia(h, jac, arrays.mass[k], first_moment, geo.inertia_b[k], spatial, moved)
     c = cargo
     inertia_g = np.array([[c[4], c[7], c[8]], [c[7], c[5], c[9]], [c[8], c[9], c[6]]])
-    inertia = matmul3(matmul3(grasp_rot, inertia_g), np.ascontiguousarray(grasp_rot.T))
-    jac = _body_jacobian(arrays, rot, pos, arrays.grasp_link, grasp_pos)
-    h += jac.T @ _spatial_inertia(c[0], matvec3(grasp_rot, c[1:4]), inertia) @ jac
+    matmul3_into(turned, geo.grasp_rot, inertia_g)
+    matmul3_into(inertia_g, turned, geo.grasp_rot.T)  # R I_G R^T
+    matvec3_into(first_moment, geo.grasp_rot, c[1:4])
+    _body_jacobian_into(jac, arrays, geo.rot, geo.pos, arrays.grasp_link, geo.grasp_pos, axis)
+    _add_body_inertia(h, jac, c[0], first_moment, inertia_g, spatial, moved)
     return h
 
 
@@ -646,26 +653,16 @@ def servo_ripple_map(arrays, imu_pos, q, cargo, dt_s):
     H = ``generalised_inertia``, J_I u = v_B + w_B x imu_pos."""
     nj = q.shape[0]
     select = np.zeros((6 + nj, nj))  # S^T: the joint torques' place in the generalised force
-    select[6:, :] = np.eye(nj)
-    ripple = -(dt_s / 12.0) * np.linalg.solve(generalised_inertia(arrays, q, cargo), select)
-    out = np.empty((3, nj))
     for j in range(nj):
-        out[:, j] = ripple[0:3, j] + cross3(np.ascontiguousarray(ripple[3:6, j]), imu_pos)
+        select[6 + j, j] = 1.0
+    ripple = np.linalg.solve(generalised_inertia(arrays, q, cargo), select)
+    ripple *= -(dt_s / 12.0)
+    out, turn = np.empty((3, nj)), np.empty(3)
+    for j in range(nj):
+        cross3_into(turn, ripple[3:6, j], imu_pos)
+        for i in range(3):
+            out[i, j] = ripple[i, j] + turn[i]
     return out
-
-
-@njit(cache=True)
-def _servo_ripple_map(
-    parent, joint_axis, rot_in_parent, pos_in_parent, mass, com, inertia_com, grasp_link,
-    grasp_rot, grasp_pos, imu_pos, q, cargo, dt_s, servo_gain,
-):  # fmt: skip
-    """``servo_ripple_velocities`` compiled: ``servo_ripple_map`` times the servos' gains
-    (n_joints,) N m/rad and the period dt_s."""
-    arrays = RobotArrays(
-        parent, joint_axis, rot_in_parent, pos_in_parent, mass, com, inertia_com, grasp_link,
-        grasp_rot, grasp_pos,
-    )  # fmt: skip
-    return servo_ripple_map(arrays, imu_pos, q, cargo, dt_s) * (servo_gain * dt_s)
 
 
 def servo_ripple_velocities(
@@ -681,7 +678,8 @@ def servo_ripple_velocities(
     q, cargo = as_single(q, nj, "q"), as_single(cargo, (10,), "cargo")
     imu_pos = np.ascontiguousarray(robot.imu_pos, dtype=float)
     gain = np.asarray(robot.servo_gain, dtype=float)
-    return _servo_ripple_map(*robot.arrays, imu_pos, q, cargo, float(dt_s), gain)
+    dt_s = float(dt_s)
+    return servo_ripple_map(robot.arrays, imu_pos, q, cargo, dt_s) * (gain * dt_s)
 
 
 def servo_ripple(

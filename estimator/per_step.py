@@ -574,7 +574,7 @@ class EstimatorInputs:
         wrench_grasp = b.thrust - b.links
         # Per-step actuation covariance averaged over this update's window (grasp frame).
         act_cov = self._act_cov_sum / max(self._act_cov_n, 1)
-        self._act_cov_sum = np.zeros((6, 6))
+        self._act_cov_sum[...] = 0.0  # in place: the team record's row stays its view
         self._act_cov_n = 0
         tainted = stamp <= self._tainted_until
         q_rate = self._rate_square_q()

@@ -115,7 +115,7 @@ def momentum_step(arrays, imu_pos, qd_var, rate_ad, rate_b_value, rate_b_slope, 
                   prod_state, prod_u_prev, u) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
     """One step of the momentum form's chain in place (``preprocess.Preprocessor``): the rate
     filter on the pre-filter's input ``u``, one momentum-form sample of its outputs
-    (``momentum.sample_from_rate_filter``) into the product filter. Returns G at the rate
+    (``momentum.sample_geometry_from_rate_filter``) into the product filter. Returns G at the rate
     filter's joint angles: the wrench map B -> G (6, 6) (``rne.grasp_from_base_kernel``) and
     G's origin in B (m)."""
     first_order_hold_step(

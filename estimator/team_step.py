@@ -13,8 +13,8 @@ inputs, the actuation covariance sum, the attitude R_WB and p_WB, the servos' ri
 ripple) live in one record of N rows (``records``); each estimator's attributes are views of its
 row, so the per-robot path (``EstimatorInputs.step``) and the team call update the same memory.
 The per-robot path may rebind an attribute to a new array (a fix on the Python path, the ripple
-map's refresh and the covariance's restart at an update instant); after any step a robot took
-that path, and after an instant it recorded, its row is checked again (``_bind``): a rebound
+map's refresh at an update instant; an instant restarts the actuation covariance in place);
+after any step a robot took that path its row is checked again (``_bind``): a rebound
 attribute is copied into the row and viewed again. The readings a robot's step used
 (``EstimatorInputs._last_input``: the accelerometer's, less the servos' ripple, the gyro's, the
 joint angles and the thrust command, which the Python path holds when a reading is missing) are
@@ -198,15 +198,14 @@ class TeamStep:
     def _record_instants(self, k, holding, others, joint_pos_rad) -> list[tuple[int, object]]:
         """At an update instant, each robot stepped in the team call records its instant
         (``EstimatorInputs.instant_after_compiled_step``, at its joint angles ``joint_pos_rad``
-        (N, n_joints)); their messages, (robot, message). Recording rebinds the actuation
-        covariance: the robot's row is checked again at its next step."""
+        (N, n_joints)); their messages, (robot, message). Recording restarts the actuation
+        covariance in place, so the robot's row needs no check."""
         published = []
         outcomes = self._outcome.tolist()
         for i in holding:
             if i in others:
                 continue
             msg = self.estimators[i].instant_after_compiled_step(k, outcomes[i], joint_pos_rad[i])
-            self._unchecked.add(i)
             if msg is not None:
                 published.append((i, msg))
         return published
