@@ -29,21 +29,24 @@ from typing import Any, NamedTuple
 import numpy as np
 from numba import njit
 
-from astrocargo.estimator.geometry import log_so3
+from astrocargo.estimator.geometry import log_so3, matmul3_into, matvec3
 from astrocargo.estimator.inertia import transform_params
 from astrocargo.estimator.rne import RobotDescription
 
 from .team_dynamics import (
     TeamModel,
     allocate,
+    arm_motion_at,
     arm_motion_wrench,
     body_from_params,
+    body_of_frames,
     composite_body,
     empty_arm_motions,
+    frames_in_grasp,
+    link_frames,
     pd_accelerations,
     place_arm_motion,
     place_body,
-    robot_body,
     store_arm_motion,
     team_commands,
     team_model,
@@ -205,11 +208,13 @@ def _team_views(team: TeamModel, holding: np.ndarray, q: np.ndarray, qd: np.ndar
             while r < used and not np.array_equal(bits[r], bits[used]):
                 r += 1
             row[a, j] = r
-            if r == used:
-                mass, com, inertia, rot_bg, pos_bg = robot_body(team, m, q[a, j])
+            if r == used:  # one forward kinematics at q for the body and the motion
+                rots, poss = link_frames(team, m, q[a, j])
+                mass, com, inertia, rot_bg, pos_bg = body_of_frames(team, m, rots, poss)
                 bodies[0][r], bodies[1][r], bodies[2][r] = mass, com, inertia
                 grasps[0][r], grasps[1][r] = rot_bg, pos_bg
-                store_arm_motion(motions, r, team, m, q[a, j], qd[a, j])
+                at_q = frames_in_grasp(team, m, rots, poss)
+                store_arm_motion(motions, r, arm_motion_at(team, m, at_q, q[a, j], qd[a, j]))
                 used += 1
     return row, bodies, grasps, motions
 
@@ -234,8 +239,8 @@ def _team_in_cargo(
     for idx in range(len(holding)):
         j = holding[idx]
         r = row[j]
-        rot_base[j] = handrail_rot[j] @ grasps[0][r].T
-        pos_base[j] = handrail_pos[j] - rot_base[j] @ grasps[1][r]
+        matmul3_into(rot_base[j], handrail_rot[j], grasps[0][r].T)
+        pos_base[j] = handrail_pos[j] - matvec3(rot_base[j], grasps[1][r])
         masses[idx] = robot_bodies[0][r]
         coms[idx], inertias[idx] = place_body(
             robot_bodies[1][r], robot_bodies[2][r], rot_base[j], pos_base[j]
@@ -288,11 +293,12 @@ def _observation_actions(
             coms[-1], inertias[-1] = place_body(com, inertia, handrail_rot[i], handrail_pos[i])
         base_vel_rel, base_w_rel = arms[7], arms[8]
         r = rot_base[i]
-        w = r @ obs.base_ang_vel[a] - base_w_rel[i]
-        vel_err = r @ obs.base_vel_err[a] - base_vel_rel[i]
+        w = matvec3(r, obs.base_ang_vel[a]) - base_w_rel[i]
+        vel_err = matvec3(r, obs.base_vel_err[a]) - base_vel_rel[i]
         acc, wd = pd_accelerations(
-            gains, -(r @ obs.base_pos_err[a]), -vel_err, -(r @ obs.base_att_err[a]),
-            r @ obs.ref_ang_vel[a] - w, r @ obs.ref_acc[a], r @ obs.ref_ang_acc[a],
+            gains, -matvec3(r, obs.base_pos_err[a]), -vel_err, -matvec3(r, obs.base_att_err[a]),
+            matvec3(r, obs.ref_ang_vel[a]) - w, matvec3(r, obs.ref_acc[a]),
+            matvec3(r, obs.ref_ang_acc[a]),
         )  # fmt: skip
         mass, com, inertia = composite_body(masses, coms, inertias)
         wrench = team_wrench(mass, com, inertia, origin, w, acc, wd)

@@ -37,7 +37,17 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit
 
-from astrocargo.estimator.geometry import exp_so3, log_so3, matmul3, matvec3, skew
+from astrocargo.estimator.geometry import (
+    cross3,
+    cross3_into,
+    exp_so3,
+    log_so3,
+    matmul3,
+    matmul3_into,
+    matvec3,
+    matvec3_into,
+    skew,
+)
 from astrocargo.estimator.rne import RobotDescription
 
 
@@ -123,11 +133,20 @@ def composite_body(
     """Mass, centre of mass and inertia about it of rigidly joined bodies (b,), (b, 3),
     (b, 3, 3) (each about its own centre), by the parallel-axis theorem."""
     mass = masses.sum()
-    com = (masses @ coms) / mass
-    inertia = np.zeros((3, 3))
+    com = np.zeros(3)
     for b in range(len(masses)):
-        r = coms[b] - com
-        inertia += inertias[b] + masses[b] * ((r @ r) * np.eye(3) - np.outer(r, r))
+        for i in range(3):
+            com[i] += masses[b] * coms[b, i]
+    com /= mass
+    inertia, r = np.zeros((3, 3)), np.empty(3)
+    for b in range(len(masses)):
+        for i in range(3):
+            r[i] = coms[b, i] - com[i]
+        r_sq = r[0] * r[0] + r[1] * r[1] + r[2] * r[2]
+        for i in range(3):
+            for j in range(3):
+                shift = (r_sq if i == j else 0.0) - r[i] * r[j]
+                inertia[i, j] += inertias[b, i, j] + masses[b] * shift
     return mass, com, inertia
 
 
@@ -135,7 +154,12 @@ def composite_body(
 def robot_body(team: TeamModel, m: int, q: np.ndarray) -> tuple:
     """A robot of model m at joint angles q, in its base frame: the composite body of its links
     (mass kg, centre m, inertia about it kg m^2) and its grasp frame (rotation, origin m)."""
-    rots, poss = link_frames(team, m, q)
+    return body_of_frames(team, m, *link_frames(team, m, q))
+
+
+@njit(cache=True)
+def body_of_frames(team: TeamModel, m: int, rots: np.ndarray, poss: np.ndarray) -> tuple:
+    """``robot_body`` from model m's link frames in its base (``link_frames``)."""
     n_links = len(rots)
     coms, inertias = np.empty((n_links, 3)), np.empty((n_links, 3, 3))
     for k in range(n_links):
@@ -165,8 +189,12 @@ def body_from_params(params: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]
     mass = params[0]
     com = params[1:4] / mass
     xx, yy, zz, xy, xz, yz = params[4:10]
-    inertia_o = np.array([[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]])
-    return mass, com, inertia_o - mass * ((com @ com) * np.eye(3) - np.outer(com, com))
+    inertia = np.array([[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]])  # I_o, then I_c
+    com_sq = com[0] * com[0] + com[1] * com[1] + com[2] * com[2]
+    for i in range(3):
+        for j in range(3):
+            inertia[i, j] -= mass * ((com_sq if i == j else 0.0) - com[i] * com[j])
+    return mass, com, inertia
 
 
 @njit(cache=True)
@@ -203,9 +231,10 @@ def team_wrench(
     at angular velocity ``w``: F = M (a + w' x r + w x (w x r)), r = com - origin,
     tau = I_c w' + w x I_c w."""
     r = com - origin
-    force = mass * (acc + np.cross(wd, r) + np.cross(w, np.cross(w, r)))
-    torque = matvec3(inertia, wd) + np.cross(w, matvec3(inertia, w))
-    return np.concatenate((force, torque))
+    out = np.empty(6)
+    out[:3] = mass * (acc + cross3(wd, r) + cross3(w, cross3(w, r)))  # F
+    out[3:] = matvec3(inertia, wd) + cross3(w, matvec3(inertia, w))  # tau
+    return out
 
 
 @njit(cache=True)
@@ -236,15 +265,25 @@ def allocate(
     normal = np.zeros((6, 6))
     for idx in range(len(holding)):
         j = holding[idx]
-        maps[idx] = wrench_map(rot_base[j], pos_base[j] - com)
-        normal += (maps[idx] * team.thrust_limit[j] ** 2) @ maps[idx].T
+        g, weight = maps[idx], team.thrust_limit[j] ** 2
+        g[:] = wrench_map(rot_base[j], pos_base[j] - com)
+        for r in range(6):  # normal += G_j W_j G_j^T, summed in loops (6x6: no BLAS call)
+            for c in range(6):
+                term = 0.0
+                for k in range(6):
+                    term += g[r, k] * weight[k] * g[c, k]
+                normal[r, c] += term
     lam = np.linalg.solve(normal, wrench)
     commands = np.zeros((len(rot_base), 6))
     ratio = 0.0
     for idx in range(len(holding)):
         j = holding[idx]
-        commands[j] = team.thrust_limit[j] ** 2 * (maps[idx].T @ lam)
-        ratio = max(ratio, np.max(np.abs(commands[j]) / team.thrust_limit[j]))
+        for k in range(6):  # u_j = W_j G_j^T lambda
+            g_lam = 0.0
+            for r in range(6):
+                g_lam += maps[idx, r, k] * lam[r]
+            commands[j, k] = team.thrust_limit[j, k] ** 2 * g_lam
+            ratio = max(ratio, abs(commands[j, k]) / team.thrust_limit[j, k])
     if ratio > 1.0:
         commands /= ratio
     return commands, ratio
@@ -288,10 +327,15 @@ def links_in_grasp(team: TeamModel, m: int, q: np.ndarray) -> tuple:
     """Model m's links at joint angles q in its grasp frame G: centres of mass (L, 3) m,
     rotations (L, 3, 3) and the link frames' origins (L, 3) m: (R_bg^T R_k, R_bg^T (p_k -
     p_bg)) with (R_bg, p_bg) G in the base."""
-    rots, poss = link_frames(team, m, q)
+    return frames_in_grasp(team, m, *link_frames(team, m, q))
+
+
+@njit(cache=True)
+def frames_in_grasp(team: TeamModel, m: int, rots: np.ndarray, poss: np.ndarray) -> tuple:
+    """``links_in_grasp`` from model m's link frames in its base (``link_frames``)."""
     g = team.grasp_link[m]
-    rot_gb = (rots[g] @ team.grasp_rot[m]).T
-    pos_bg = poss[g] + rots[g] @ team.grasp_pos[m]
+    rot_gb = matmul3(rots[g], team.grasp_rot[m]).T
+    pos_bg = poss[g] + matvec3(rots[g], team.grasp_pos[m])
     n_links = len(rots)
     coms, rots_g, origins = (
         np.empty((n_links, 3)),
@@ -299,9 +343,9 @@ def links_in_grasp(team: TeamModel, m: int, q: np.ndarray) -> tuple:
         np.empty((n_links, 3)),
     )
     for k in range(n_links):
-        rots_g[k] = rot_gb @ rots[k]
-        origins[k] = rot_gb @ (poss[k] - pos_bg)
-        coms[k] = origins[k] + rots_g[k] @ team.link_com[m, k]
+        matmul3_into(rots_g[k], rot_gb, rots[k])
+        matvec3_into(origins[k], rot_gb, poss[k] - pos_bg)
+        coms[k] = origins[k] + matvec3(rots_g[k], team.link_com[m, k])
     return coms, rots_g, origins
 
 
@@ -313,8 +357,14 @@ def arm_motion_in_grasp(team: TeamModel, m: int, q: np.ndarray, qd: np.ndarray) 
     accelerations al_b (L, 3), and the base origin's velocity (3,); by central differences over
     ``ARM_STEP_S``: v = (c(h) - c(-h)) / 2h, a = (c(h) - 2 c(0) + c(-h)) / h^2,
     w(+-h/2) = +-log(R(+-h) R(0)^T)^(+-1) / h, w = mean, al = (w(h/2) - w(-h/2)) / h."""
+    return arm_motion_at(team, m, links_in_grasp(team, m, q), q, qd)
+
+
+@njit(cache=True)
+def arm_motion_at(team: TeamModel, m: int, at_q: tuple, q: np.ndarray, qd: np.ndarray) -> tuple:
+    """``arm_motion_in_grasp`` with ``links_in_grasp`` at q given (``at_q``)."""
     h = ARM_STEP_S
-    c0, r0, o0 = links_in_grasp(team, m, q)
+    c0, r0, o0 = at_q
     cp, rp, op = links_in_grasp(team, m, q + qd * h)
     cm, rm, om = links_in_grasp(team, m, q - qd * h)
     vel = (cp - cm) / (2 * h)
@@ -322,9 +372,9 @@ def arm_motion_in_grasp(team: TeamModel, m: int, q: np.ndarray, qd: np.ndarray) 
     n_links = len(c0)
     w, al, inertias = np.empty((n_links, 3)), np.empty((n_links, 3)), np.empty((n_links, 3, 3))
     for k in range(n_links):
-        inertias[k] = r0[k] @ team.link_inertia[m, k] @ r0[k].T  # about c_b, G axes
-        w_up = log_so3(rp[k] @ r0[k].T) / h
-        w_down = log_so3(r0[k] @ rm[k].T) / h
+        inertias[k] = matmul3(matmul3(r0[k], team.link_inertia[m, k]), r0[k].T)  # about c_b
+        w_up = log_so3(matmul3(rp[k], r0[k].T)) / h
+        w_down = log_so3(matmul3(r0[k], rm[k].T)) / h
         w[k] = 0.5 * (w_up + w_down)
         al[k] = (w_up - w_down) / h
     return c0, inertias, vel, acc, w, al, (op[0] - om[0]) / (2 * h)
@@ -345,18 +395,28 @@ def arm_motion_wrench(
     """The wrench (6,) about ``com`` the arms' motion adds to ``team_wrench`` (section above):
     links b (masses (b,), centres, inertias, relative velocities, accelerations, angular
     velocities and accelerations, one frame's axes) on a cargo turning at ``w``."""
-    out = np.zeros(6)
-    for b in range(len(masses)):
-        force = masses[b] * (acc[b] + 2.0 * np.cross(w, vel[b]))
+    out, force, torque, term = np.zeros(6), np.empty(3), np.empty(3), np.empty(3)
+    inertia_w, inertia_w_rel, lever = np.empty(3), np.empty(3), np.empty(3)
+    for b in range(len(masses)):  # in loops on 3-vectors, written into the scratch above
         inertia = inertias[b]
-        torque = (
-            inertia @ (al_rel[b] + np.cross(w, w_rel[b]))
-            + np.cross(w, inertia @ w_rel[b])
-            + np.cross(w_rel[b], inertia @ w)
-            + np.cross(w_rel[b], inertia @ w_rel[b])
-        )
+        cross3_into(term, w, vel[b])
+        for i in range(3):  # F_b = m_b (a_b + 2 w x v_b)
+            force[i] = masses[b] * (acc[b, i] + 2.0 * term[i])
+        cross3_into(term, w, w_rel[b])
+        term += al_rel[b]
+        matvec3_into(torque, inertia, term)  # I_b (al_b + w x w_b)
+        matvec3_into(inertia_w, inertia, w)
+        matvec3_into(inertia_w_rel, inertia, w_rel[b])
+        cross3_into(term, w, inertia_w_rel)
+        torque += term  # + w x I_b w_b
+        cross3_into(term, w_rel[b], inertia_w)
+        torque += term  # + w_b x I_b w
+        cross3_into(term, w_rel[b], inertia_w_rel)
+        torque += term  # + w_b x I_b w_b
+        lever[:] = coms[b] - com
+        cross3_into(term, lever, force)
         out[:3] += force
-        out[3:] += torque + np.cross(coms[b] - com, force)
+        out[3:] += torque + term
     return out
 
 
@@ -377,12 +437,10 @@ def empty_arm_motions(count: int, n_links: int) -> tuple:
 
 
 @njit(cache=True)
-def store_arm_motion(
-    motions: tuple, r: int, team: TeamModel, m: int, q: np.ndarray, qd: np.ndarray
-) -> None:
-    """Row r of the stacked ``motions`` (``empty_arm_motions``) = ``arm_motion_in_grasp`` of model
-    m at joint angles q (rad) turning at qd (rad/s)."""
-    c, inertia, v, a, w, al, v_base = arm_motion_in_grasp(team, m, q, qd)
+def store_arm_motion(motions: tuple, r: int, motion: tuple) -> None:
+    """Row r of the stacked ``motions`` (``empty_arm_motions``) = ``motion``, a result of
+    ``arm_motion_in_grasp``."""
+    c, inertia, v, a, w, al, v_base = motion
     motions[0][r], motions[1][r], motions[2][r] = c, inertia, v
     motions[3][r], motions[4][r], motions[5][r], motions[6][r] = a, w, al, v_base
 
@@ -413,11 +471,15 @@ def place_arm_motion(
         for k in range(n_links):
             b = idx * n_links + k
             masses[b] = team.link_mass[m, k]
-            coms[b] = rot @ c[k] + grasp_pos[j]
-            inertias[b] = rot @ inertia[k] @ rot.T
-            vel[b], acc[b] = rot @ v[k], rot @ a[k]
-            w_rel[b], al_rel[b] = rot @ w[k], rot @ al[k]
-        base_vel[j], base_w[j] = rot @ motions[6][r], rot @ w[0]
+            matvec3_into(coms[b], rot, c[k])
+            coms[b] += grasp_pos[j]
+            matmul3_into(inertias[b], matmul3(rot, inertia[k]), rot.T)
+            matvec3_into(vel[b], rot, v[k])
+            matvec3_into(acc[b], rot, a[k])
+            matvec3_into(w_rel[b], rot, w[k])
+            matvec3_into(al_rel[b], rot, al[k])
+        matvec3_into(base_vel[j], rot, motions[6][r])
+        matvec3_into(base_w[j], rot, w[0])
     return masses, coms, inertias, vel, acc, w_rel, al_rel, base_vel, base_w
 
 
@@ -439,7 +501,7 @@ def team_arm_motion(
     motions = empty_arm_motions(len(grasp_rot), team.parent.shape[1])
     for idx in range(len(holding)):
         j = holding[idx]
-        store_arm_motion(motions, j, team, team.model_of[j], q[j], qd[j])
+        store_arm_motion(motions, j, arm_motion_in_grasp(team, team.model_of[j], q[j], qd[j]))
     row = np.arange(len(grasp_rot))
     return place_arm_motion(team, holding, grasp_rot, grasp_pos, motions, row)
 
