@@ -182,6 +182,17 @@ class BaseTracking(NamedTuple):
 _OBSERVED_BLOCKS = BaseTracking._fields[2:-1]
 
 
+class ObservedColumns(NamedTuple):
+    """Where ``BaseTracking``'s blocks lie in an observation (the env's layout), as
+    [start, stop) column pairs; (-1, -1) for a block the layout lacks."""
+
+    blocks: np.ndarray  # (8, 2) int64, the ``_OBSERVED_BLOCKS`` in order
+    joint_pos: np.ndarray  # (2,) int64, the robot's own arm angles
+    joint_vel: np.ndarray  # (2,) int64, its servo-target rates ((-1, -1): arms at rest)
+    estimate: np.ndarray  # (2,) int64, its cargo estimate ((-1, -1): fixed parameters)
+    peer_slots: np.ndarray  # (n, n-1, 5) int64, ``ObservationController._peer_slot_columns``
+
+
 @njit(cache=True)
 def _team_views(team: TeamModel, holding: np.ndarray, q: np.ndarray, qd: np.ndarray) -> tuple:
     """The arms of the robots ``holding`` as each acting robot a sees them (q, qd (k, n,
@@ -328,6 +339,61 @@ def _peer_arms(
                     qd[a, j, c] = rate
 
 
+@njit(cache=True)
+def _observed_tracking(
+    obs: np.ndarray,
+    acting: np.ndarray,
+    columns: ObservedColumns,
+    n_robots: int,
+    fixed_params: np.ndarray,
+) -> BaseTracking:
+    """``BaseTracking`` of the robots ``acting`` from their observations obs (k, obs_dim): each
+    block copied from its columns; every robot's arm at the acting robot's own angles and
+    rates (zero rates without joint_vel columns), then each heard peer's from its message
+    (``_peer_arms``); the cargo parameters from the estimate's columns, or ``fixed_params``
+    (n, 10) of each acting robot where the layout gives none."""
+    k, (q_start, q_stop), (qd_start, qd_stop) = len(acting), columns.joint_pos, columns.joint_vel
+    q = np.empty((k, n_robots, q_stop - q_start))
+    qd = np.zeros_like(q)
+    for a in range(k):
+        for j in range(n_robots):
+            q[a, j] = obs[a, q_start:q_stop]
+            if qd_start >= 0:
+                qd[a, j] = obs[a, qd_start:qd_stop]
+    _peer_arms(obs, acting, columns.peer_slots, q, qd)
+    spans = columns.blocks
+    if columns.estimate[0] >= 0:
+        params = np.ascontiguousarray(obs[:, columns.estimate[0] : columns.estimate[1]])
+    else:
+        params = fixed_params[acting]
+    b = [np.ascontiguousarray(obs[:, spans[i, 0] : spans[i, 1]]) for i in range(len(spans))]
+    return BaseTracking(q, qd, b[0], b[1], b[2], b[3], b[4], b[5], b[6], b[7], params)
+
+
+@njit(cache=True)
+def _actions_of_observations(
+    team: TeamModel,
+    handrail_rot: np.ndarray,
+    handrail_pos: np.ndarray,
+    gains: np.ndarray,
+    arm_scale_rad: float,
+    acting: np.ndarray,
+    holding: np.ndarray,
+    obs: np.ndarray,
+    columns: ObservedColumns,
+    fixed_params: np.ndarray,
+    with_cargo: bool,
+    scale_down: bool,
+) -> tuple[np.ndarray, np.ndarray]:
+    """``_observation_actions`` on the ``_observed_tracking`` of the observations obs (k,
+    obs_dim) of the robots ``acting``, in one compiled call."""
+    tracking = _observed_tracking(obs, acting, columns, len(handrail_rot), fixed_params)
+    return _observation_actions(
+        team, handrail_rot, handrail_pos, gains, arm_scale_rad, acting, holding, tracking,
+        with_cargo, scale_down,
+    )  # fmt: skip
+
+
 class ObservationController:
     """The cooperative controller driven by the env's observations only, scored like a policy.
 
@@ -393,7 +459,8 @@ class ObservationController:
         if len(names) != len(self.robots):
             raise ValueError(f"agents must name the {len(self.robots)} robots, got {names!r}")
         self.robot_index = {name: i for i, name in enumerate(names)}
-        self._peer_slots = self._peer_slot_columns()
+        self._columns = self._observed_columns()
+        self._acting: dict[tuple[str, ...], tuple[np.ndarray, np.ndarray]] = {}
 
     @classmethod
     def for_env(cls, env, cargo_model: str = "estimate", **kwargs: Any) -> ObservationController:
@@ -411,18 +478,6 @@ class ObservationController:
             **kwargs,
         )
 
-    def _team_arms(self, acting: np.ndarray, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Every robot's arm angles and rates (k, n, n_joints) as each acting robot sees them:
-        its own from its encoders and servo-target rates; a peer's from the latest message,
-        q + qd * age; its own for a peer not heard from yet (or a layout without peer arms)."""
-        lay, n = self.layout, len(self.robots)
-        q = np.repeat(obs[:, None, lay["joint_pos"]], n, axis=1)
-        qd = np.zeros_like(q)
-        if "joint_vel" in lay:
-            qd = np.repeat(obs[:, None, lay["joint_vel"]], n, axis=1)
-        _peer_arms(obs, acting, self._peer_slots, q, qd)
-        return q, qd
-
     def _peer_slot_columns(self) -> np.ndarray:
         """Per robot i, its peers' arm message slots in the observation (n, n-1, 5): peer j,
         valid column, age column, first joint angle column, first joint rate column, the peers
@@ -438,45 +493,60 @@ class ObservationController:
         ]  # fmt: skip
         return np.array(slots, dtype=np.int64)
 
-    def _tracking(self, acting: np.ndarray, obs: np.ndarray) -> BaseTracking:
-        """The blocks of the observations ``obs`` (k, obs_dim) of the robots ``acting``."""
-        lay = self.layout
-        if self.cargo_model == "estimate":
-            params = obs[:, lay["estimate_mean"]]
-        else:
-            params = self._truth_in_grasp[acting]
-        blocks = [obs[:, lay[name]] for name in _OBSERVED_BLOCKS]
-        arms = self._team_arms(acting, obs)
-        return BaseTracking(*(np.ascontiguousarray(b) for b in (*arms, *blocks, params)))
+    def _observed_columns(self) -> ObservedColumns:
+        """The layout's columns of ``BaseTracking``'s blocks (``ObservedColumns``)."""
+        lay, absent = self.layout, slice(-1, -1)
 
-    def _actions(self, acting: np.ndarray, obs: np.ndarray) -> np.ndarray:
-        """Actions (k, 8) of the robots ``acting`` (all holding the cargo) from their
-        observations (k, obs_dim) (``_observation_actions``); ``last_ratios`` keeps each one's
-        saturation ratio."""
-        actions, self.last_ratios = _observation_actions(
+        def span(name: str) -> np.ndarray:
+            block = lay.get(name, absent)
+            return np.array([block.start, block.stop], dtype=np.int64)
+
+        estimate = span("estimate_mean") if self.cargo_model == "estimate" else span("")
+        return ObservedColumns(
+            np.stack([span(name) for name in _OBSERVED_BLOCKS]),
+            span("joint_pos"),
+            span("joint_vel"),
+            estimate,
+            self._peer_slot_columns(),
+        )
+
+    def _actions(self, acting: np.ndarray, holding: np.ndarray, obs: np.ndarray) -> np.ndarray:
+        """Actions (k, 8) of the robots ``acting`` (all holding the cargo; ``holding``: the same,
+        sorted) from their observations (k, obs_dim) (``_observation_actions``);
+        ``last_ratios`` keeps each one's saturation ratio."""
+        actions, self.last_ratios = _actions_of_observations(
             self.team.team,
             self._handrail_rot,
             self._handrail_pos,
             self.team._gains,
             self.arm_scale,
             acting,
-            np.sort(acting),
-            self._tracking(acting, obs),
+            holding,
+            obs,
+            self._columns,
+            self._truth_in_grasp,
             self.cargo_model != "none",
             self.scale_down,
         )
         return actions
 
+    def _acting_robots(self, agents: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
+        """The robots of the named agents, in their order and sorted (made once per set)."""
+        if agents not in self._acting:
+            unknown = [a for a in agents if a not in self.robot_index]
+            if unknown:
+                raise ValueError(f"unknown agents {unknown}; agents: {list(self.robot_index)}")
+            acting = np.array([self.robot_index[a] for a in agents], dtype=np.int64)
+            self._acting[agents] = acting, np.sort(acting)
+        return self._acting[agents]
+
     def predict(self, observation, state=None, episode_start=None, deterministic=False):
         """SB3's signature: returns (actions, state)."""
         del episode_start, deterministic
         if isinstance(observation, dict):
-            unknown = [a for a in observation if a not in self.robot_index]
-            if unknown:
-                raise ValueError(f"unknown agents {unknown}; agents: {list(self.robot_index)}")
-            acting = np.array([self.robot_index[a] for a in observation], dtype=np.int64)
+            acting, holding = self._acting_robots(tuple(observation))
             obs = np.stack([np.asarray(o, dtype=float) for o in observation.values()])
-            actions = self._actions(acting, obs)
+            actions = self._actions(acting, holding, obs)
             return dict(zip(observation, actions, strict=True)), state
         obs = np.asarray(observation, dtype=float)
         if obs.ndim != 2 or obs.shape[0] != len(self.robots):
@@ -484,4 +554,5 @@ class ObservationController:
                 f"observation must be a dict or an array ({len(self.robots)}, obs_dim), "
                 f"got shape {obs.shape}"
             )
-        return self._actions(np.arange(len(self.robots), dtype=np.int64), obs), state
+        every = np.arange(len(self.robots), dtype=np.int64)
+        return self._actions(every, every, obs), state
