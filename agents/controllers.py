@@ -194,6 +194,54 @@ class ObservedColumns(NamedTuple):
 
 
 @njit(cache=True)
+def _peer_arms(
+    obs: np.ndarray, acting: np.ndarray, slots: np.ndarray, q: np.ndarray, qd: np.ndarray
+) -> None:
+    """Each peer arm heard by the acting robot a (observation obs[a]): q[a, j] = q_j + qd_j age,
+    qd[a, j] = qd_j, from the message slots of robot acting[a] (``slots`` (n, n-1, 5): peer j,
+    valid, age, first joint angle and first joint rate columns); the others left as they are."""
+    for a in range(len(acting)):
+        for p in range(slots.shape[1]):
+            j, valid, age, joint_pos, joint_vel = slots[acting[a], p]
+            if obs[a, valid] > 0:
+                for c in range(q.shape[2]):
+                    rate = obs[a, joint_vel + c]
+                    q[a, j, c] = obs[a, joint_pos + c] + rate * obs[a, age]
+                    qd[a, j, c] = rate
+
+
+@njit(cache=True)
+def _observed_tracking(
+    obs: np.ndarray,
+    acting: np.ndarray,
+    columns: ObservedColumns,
+    n_robots: int,
+    fixed_params: np.ndarray,
+) -> BaseTracking:
+    """``BaseTracking`` of the robots ``acting`` from their observations obs (k, obs_dim): each
+    block copied from its columns; every robot's arm at the acting robot's own angles and
+    rates (zero rates without joint_vel columns), then each heard peer's from its message
+    (``_peer_arms``); the cargo parameters from the estimate's columns, or ``fixed_params``
+    (n, 10) of each acting robot where the layout gives none."""
+    k, (q_start, q_stop), (qd_start, qd_stop) = len(acting), columns.joint_pos, columns.joint_vel
+    q = np.empty((k, n_robots, q_stop - q_start))
+    qd = np.zeros_like(q)
+    for a in range(k):
+        for j in range(n_robots):
+            q[a, j] = obs[a, q_start:q_stop]
+            if qd_start >= 0:
+                qd[a, j] = obs[a, qd_start:qd_stop]
+    _peer_arms(obs, acting, columns.peer_slots, q, qd)
+    spans = columns.blocks
+    if columns.estimate[0] >= 0:
+        params = np.ascontiguousarray(obs[:, columns.estimate[0] : columns.estimate[1]])
+    else:
+        params = fixed_params[acting]
+    b = [np.ascontiguousarray(obs[:, spans[i, 0] : spans[i, 1]]) for i in range(len(spans))]
+    return BaseTracking(q, qd, b[0], b[1], b[2], b[3], b[4], b[5], b[6], b[7], params)
+
+
+@njit(cache=True)
 def _team_views(team: TeamModel, holding: np.ndarray, q: np.ndarray, qd: np.ndarray) -> tuple:
     """The arms of the robots ``holding`` as each acting robot a sees them (q, qd (k, n,
     n_joints)), each distinct (model, q[a, j], qd[a, j]) worked out once (equal bit for bit,
@@ -260,6 +308,36 @@ def _team_in_cargo(
 
 
 @njit(cache=True)
+def _cargo_motion(
+    gains: np.ndarray,
+    obs: BaseTracking,
+    a: int,
+    rot_cb: np.ndarray,
+    base_vel_rel: np.ndarray,
+    base_w_rel: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The cargo's angular velocity w and desired accelerations (``pd_accelerations``) as
+    acting robot a sees them in the cargo frame C (its base axes rotated by R_cb, base a's pose
+    in C at its arm angles): the cargo's twist is the base's less the base's motion relative to
+    the cargo (v_rel, w_rel, ``team_arm_motion``): w = R_cb w_base - w_rel, velocity error at
+    the base point R_cb base_vel_err - v_rel; position and attitude errors are the base's (the
+    grasp is rigid at the measured angles): e_p = -R_cb base_pos_err, e_R = -R_cb
+    base_att_err; the reference acceleration of the cargo origin is ref_acc."""
+    w = matvec3(rot_cb, obs.base_ang_vel[a]) - base_w_rel
+    vel_err = matvec3(rot_cb, obs.base_vel_err[a]) - base_vel_rel
+    acc, wd = pd_accelerations(
+        gains,
+        -matvec3(rot_cb, obs.base_pos_err[a]),
+        -vel_err,
+        -matvec3(rot_cb, obs.base_att_err[a]),
+        matvec3(rot_cb, obs.ref_ang_vel[a]) - w,
+        matvec3(rot_cb, obs.ref_acc[a]),
+        matvec3(rot_cb, obs.ref_ang_acc[a]),
+    )
+    return w, acc, wd
+
+
+@njit(cache=True)
 def _observation_actions(
     team: TeamModel,
     handrail_rot: np.ndarray,
@@ -268,23 +346,22 @@ def _observation_actions(
     arm_scale_rad: float,
     acting: np.ndarray,
     holding: np.ndarray,
-    obs: BaseTracking,
+    observations: np.ndarray,
+    columns: ObservedColumns,
+    fixed_params: np.ndarray,
     with_cargo: bool,
     scale_down: bool,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Actions (k, 8) of the acting robots (all holding the cargo): thrust u / thrust_limit,
-    tilt offset 0, pan offset clip(ref_pan / arm_scale_rad, -1, 1); and each one's saturation
-    ratio (largest |u| / limit of the allocation before scaling). Robot i works in the cargo
-    frame C (its base axes rotated by R_cb, base i's pose in C at its arm angles): every robot
-    at its own arm angles, the cargo's twist is the base's less the base's motion relative to
-    the cargo (``team_arm_motion``): w = R_cb w_base - w_rel,i, velocity error at the base point
-    R_cb base_vel_err - v_rel,i; position and attitude errors are the base's (the grasp is
-    rigid at the measured angles): e_p = -R_cb base_pos_err, e_R = -R_cb base_att_err; the
-    reference acceleration of the cargo origin is ref_acc. The wrench is ``team_wrench`` about
-    the team's centre of mass plus ``arm_motion_wrench`` of the arms' motion, allocated by
-    ``allocate``; with ``scale_down`` False the commands are the allocation's before its
-    scaling (the env then clips each entry to its limit)."""
+    """Actions (k, 8) of the acting robots (all holding the cargo), from their observations
+    (k, obs_dim) read as ``_observed_tracking``: thrust u / thrust_limit, tilt offset 0, pan
+    offset clip(ref_pan / arm_scale_rad, -1, 1); and each one's saturation ratio (largest |u| /
+    limit of the allocation before scaling). Robot i works in the cargo frame C, every robot at
+    the arm angles i sees, the cargo's motion from i's base (``_cargo_motion``). The wrench is
+    ``team_wrench`` about the team's centre of mass plus ``arm_motion_wrench`` of the arms'
+    motion, allocated by ``allocate``; with ``scale_down`` False the commands are the
+    allocation's before its scaling (the env then clips each entry to its limit)."""
     out, ratios, origin = np.zeros((len(acting), 8)), np.zeros(len(acting)), np.zeros(3)
+    obs = _observed_tracking(observations, acting, columns, len(handrail_rot), fixed_params)
     row, robot_bodies, grasps, motions = _team_views(
         team, holding, obs.team_joint_pos, obs.team_joint_vel
     )
@@ -302,15 +379,7 @@ def _observation_actions(
             mass, com, inertia = body_from_params(obs.cargo_params[a])
             masses[-1] = mass
             coms[-1], inertias[-1] = place_body(com, inertia, handrail_rot[i], handrail_pos[i])
-        base_vel_rel, base_w_rel = arms[7], arms[8]
-        r = rot_base[i]
-        w = matvec3(r, obs.base_ang_vel[a]) - base_w_rel[i]
-        vel_err = matvec3(r, obs.base_vel_err[a]) - base_vel_rel[i]
-        acc, wd = pd_accelerations(
-            gains, -matvec3(r, obs.base_pos_err[a]), -vel_err, -matvec3(r, obs.base_att_err[a]),
-            matvec3(r, obs.ref_ang_vel[a]) - w, matvec3(r, obs.ref_acc[a]),
-            matvec3(r, obs.ref_ang_acc[a]),
-        )  # fmt: skip
+        w, acc, wd = _cargo_motion(gains, obs, a, rot_base[i], arms[7][i], arms[8][i])
         mass, com, inertia = composite_body(masses, coms, inertias)
         wrench = team_wrench(mass, com, inertia, origin, w, acc, wd)
         wrench += arm_motion_wrench(*arms[:7], com, w)
@@ -320,78 +389,6 @@ def _observation_actions(
             out[a, :6] *= max(ratios[a], 1.0)
         out[a, 7] = min(max(obs.ref_pan[a, 0] / arm_scale_rad, -1.0), 1.0)
     return out, ratios
-
-
-@njit(cache=True)
-def _peer_arms(
-    obs: np.ndarray, acting: np.ndarray, slots: np.ndarray, q: np.ndarray, qd: np.ndarray
-) -> None:
-    """Each peer arm heard by the acting robot a (observation obs[a]): q[a, j] = q_j + qd_j age,
-    qd[a, j] = qd_j, from the message slots of robot acting[a] (``slots`` (n, n-1, 5): peer j,
-    valid, age, first joint angle and first joint rate columns); the others left as they are."""
-    for a in range(len(acting)):
-        for p in range(slots.shape[1]):
-            j, valid, age, joint_pos, joint_vel = slots[acting[a], p]
-            if obs[a, valid] > 0:
-                for c in range(q.shape[2]):
-                    rate = obs[a, joint_vel + c]
-                    q[a, j, c] = obs[a, joint_pos + c] + rate * obs[a, age]
-                    qd[a, j, c] = rate
-
-
-@njit(cache=True)
-def _observed_tracking(
-    obs: np.ndarray,
-    acting: np.ndarray,
-    columns: ObservedColumns,
-    n_robots: int,
-    fixed_params: np.ndarray,
-) -> BaseTracking:
-    """``BaseTracking`` of the robots ``acting`` from their observations obs (k, obs_dim): each
-    block copied from its columns; every robot's arm at the acting robot's own angles and
-    rates (zero rates without joint_vel columns), then each heard peer's from its message
-    (``_peer_arms``); the cargo parameters from the estimate's columns, or ``fixed_params``
-    (n, 10) of each acting robot where the layout gives none."""
-    k, (q_start, q_stop), (qd_start, qd_stop) = len(acting), columns.joint_pos, columns.joint_vel
-    q = np.empty((k, n_robots, q_stop - q_start))
-    qd = np.zeros_like(q)
-    for a in range(k):
-        for j in range(n_robots):
-            q[a, j] = obs[a, q_start:q_stop]
-            if qd_start >= 0:
-                qd[a, j] = obs[a, qd_start:qd_stop]
-    _peer_arms(obs, acting, columns.peer_slots, q, qd)
-    spans = columns.blocks
-    if columns.estimate[0] >= 0:
-        params = np.ascontiguousarray(obs[:, columns.estimate[0] : columns.estimate[1]])
-    else:
-        params = fixed_params[acting]
-    b = [np.ascontiguousarray(obs[:, spans[i, 0] : spans[i, 1]]) for i in range(len(spans))]
-    return BaseTracking(q, qd, b[0], b[1], b[2], b[3], b[4], b[5], b[6], b[7], params)
-
-
-@njit(cache=True)
-def _actions_of_observations(
-    team: TeamModel,
-    handrail_rot: np.ndarray,
-    handrail_pos: np.ndarray,
-    gains: np.ndarray,
-    arm_scale_rad: float,
-    acting: np.ndarray,
-    holding: np.ndarray,
-    obs: np.ndarray,
-    columns: ObservedColumns,
-    fixed_params: np.ndarray,
-    with_cargo: bool,
-    scale_down: bool,
-) -> tuple[np.ndarray, np.ndarray]:
-    """``_observation_actions`` on the ``_observed_tracking`` of the observations obs (k,
-    obs_dim) of the robots ``acting``, in one compiled call."""
-    tracking = _observed_tracking(obs, acting, columns, len(handrail_rot), fixed_params)
-    return _observation_actions(
-        team, handrail_rot, handrail_pos, gains, arm_scale_rad, acting, holding, tracking,
-        with_cargo, scale_down,
-    )  # fmt: skip
 
 
 class ObservationController:
@@ -514,7 +511,7 @@ class ObservationController:
         """Actions (k, 8) of the robots ``acting`` (all holding the cargo; ``holding``: the same,
         sorted) from their observations (k, obs_dim) (``_observation_actions``);
         ``last_ratios`` keeps each one's saturation ratio."""
-        actions, self.last_ratios = _actions_of_observations(
+        actions, self.last_ratios = _observation_actions(
             self.team.team,
             self._handrail_rot,
             self._handrail_pos,
