@@ -33,21 +33,17 @@ from astrocargo.estimator.geometry import log_so3, matmul3_into, matvec3
 from astrocargo.estimator.inertia import transform_params
 from astrocargo.estimator.rne import RobotDescription
 
+from .arm_kinematics import arm_motion_into, arm_work, empty_arm_motions
 from .team_dynamics import (
     TeamModel,
     allocate,
-    arm_motion_at,
     arm_motion_wrench,
     body_from_params,
     body_of_frames,
     composite_body,
-    empty_arm_motions,
-    frames_in_grasp,
-    link_frames,
     pd_accelerations,
     place_arm_motion,
     place_body,
-    store_arm_motion,
     team_commands,
     team_model,
     team_wrench,
@@ -254,6 +250,7 @@ def _team_views(team: TeamModel, holding: np.ndarray, q: np.ndarray, qd: np.ndar
     bodies = (np.empty(count), np.empty((count, 3)), np.empty((count, 3, 3)))
     grasps = (np.empty((count, 3, 3)), np.empty((count, 3)))
     motions = empty_arm_motions(count, team.parent.shape[1])
+    work = arm_work(team.parent.shape[1])
     row = np.zeros((k, q.shape[1]), dtype=np.int64)
     used = 0
     for a in range(k):
@@ -267,13 +264,11 @@ def _team_views(team: TeamModel, holding: np.ndarray, q: np.ndarray, qd: np.ndar
             while r < used and not np.array_equal(bits[r], bits[used]):
                 r += 1
             row[a, j] = r
-            if r == used:  # one forward kinematics at q for the body and the motion
-                rots, poss = link_frames(team, m, q[a, j])
-                mass, com, inertia, rot_bg, pos_bg = body_of_frames(team, m, rots, poss)
-                bodies[0][r], bodies[1][r], bodies[2][r] = mass, com, inertia
-                grasps[0][r], grasps[1][r] = rot_bg, pos_bg
-                at_q = frames_in_grasp(team, m, rots, poss)
-                store_arm_motion(motions, r, arm_motion_at(team, m, at_q, q[a, j], qd[a, j]))
+            if r == used:  # the body from the motion's link frames at q
+                arm_motion_into(motions, r, team, m, q[a, j], qd[a, j], work)
+                body = body_of_frames(team, m, work.rots[0], work.poss[0])
+                bodies[0][r], bodies[1][r], bodies[2][r] = body[:3]
+                grasps[0][r], grasps[1][r] = body[3:]
                 used += 1
     return row, bodies, grasps, motions
 

@@ -7,7 +7,8 @@ here works in one frame W (the world, or one robot's base frame: the equations a
 vectors in metres, seconds, radians, kilograms, and wrenches [force (N); moment (N m)].
 
 Kinematics of robot j's arm (links k = 1..L-1, parent p, joint angle q_k, unit axis e_k):
-    R_k = R_p R_pk0 exp(e_k q_k),    p_k = p_p + R_p p_pk             (link frames in its base)
+    R_k = R_p R_pk0 exp(e_k q_k),    p_k = p_p + R_p p_pk      (link frames in its base)
+(``arm_kinematics``, with the arms' motion relative to their grasp frames).
 
 Composite body of bodies b (robot links and the cargo), mass m_b, centre c_b and inertia I_b about
 c_b (W axes), by the parallel-axis theorem:
@@ -40,8 +41,6 @@ from numba import njit
 from astrocargo.estimator.geometry import (
     cross3,
     cross3_into,
-    exp_so3,
-    log_so3,
     matmul3,
     matmul3_into,
     matvec3,
@@ -49,6 +48,16 @@ from astrocargo.estimator.geometry import (
     skew,
 )
 from astrocargo.estimator.rne import RobotDescription
+
+from .arm_kinematics import (
+    ARM_STEP_S as ARM_STEP_S,  # the central differences' step, read by the tests
+)
+from .arm_kinematics import (
+    arm_motion_into,
+    arm_work,
+    empty_arm_motions,
+    link_frames,
+)
 
 
 class TeamModel(NamedTuple):
@@ -108,22 +117,6 @@ def team_model(robots: list[RobotDescription]) -> TeamModel:
         model_of=np.array(model_of, dtype=np.int64),
         thrust_limit=np.ascontiguousarray([r.thrust_limit for r in robots], dtype=float),
     )
-
-
-@njit(cache=True)
-def link_frames(team: TeamModel, m: int, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Model m's link frames in its base frame at joint angles q (L-1,) rad: rotations (L, 3, 3)
-    and origins (L, 3) m, R_k = R_p R_pk0 exp(e_k q_k), p_k = p_p + R_p p_pk."""
-    n_links = team.parent.shape[1]
-    rots = np.empty((n_links, 3, 3))
-    poss = np.zeros((n_links, 3))
-    rots[0] = np.eye(3)
-    for k in range(1, n_links):
-        p = team.parent[m, k]
-        joint = exp_so3(team.joint_axis[m, k] * q[k - 1])
-        rots[k] = matmul3(matmul3(rots[p], team.rot_in_parent[m, k]), joint)
-        poss[k] = poss[p] + matvec3(rots[p], team.pos_in_parent[m, k])
-    return rots, poss
 
 
 @njit(cache=True)
@@ -319,65 +312,7 @@ def thrust_commands(
 #     F_b = m_b (a_b + 2 w x v_b),
 #     tau_b = I_b (al_b + w x w_b) + w x I_b w_b + w_b x I_b w + w_b x I_b w_b   (about c_b),
 # and about the team's centre of mass c: [sum F_b; sum tau_b + (c_b - c) x F_b].
-ARM_STEP_S = 0.01  # central-difference step of the arms' relative motion
-
-
-@njit(cache=True)
-def links_in_grasp(team: TeamModel, m: int, q: np.ndarray) -> tuple:
-    """Model m's links at joint angles q in its grasp frame G: centres of mass (L, 3) m,
-    rotations (L, 3, 3) and the link frames' origins (L, 3) m: (R_bg^T R_k, R_bg^T (p_k -
-    p_bg)) with (R_bg, p_bg) G in the base."""
-    return frames_in_grasp(team, m, *link_frames(team, m, q))
-
-
-@njit(cache=True)
-def frames_in_grasp(team: TeamModel, m: int, rots: np.ndarray, poss: np.ndarray) -> tuple:
-    """``links_in_grasp`` from model m's link frames in its base (``link_frames``)."""
-    g = team.grasp_link[m]
-    rot_gb = matmul3(rots[g], team.grasp_rot[m]).T
-    pos_bg = poss[g] + matvec3(rots[g], team.grasp_pos[m])
-    n_links = len(rots)
-    coms, rots_g, origins = (
-        np.empty((n_links, 3)),
-        np.empty((n_links, 3, 3)),
-        np.empty((n_links, 3)),
-    )
-    for k in range(n_links):
-        matmul3_into(rots_g[k], rot_gb, rots[k])
-        matvec3_into(origins[k], rot_gb, poss[k] - pos_bg)
-        coms[k] = origins[k] + matvec3(rots_g[k], team.link_com[m, k])
-    return coms, rots_g, origins
-
-
-@njit(cache=True)
-def arm_motion_in_grasp(team: TeamModel, m: int, q: np.ndarray, qd: np.ndarray) -> tuple:
-    """Motion of model m's links relative to its grasp frame G (G axes) with the joints at q
-    (rad) turning at qd (rad/s), q(t) = q + qd t: centres c_b (L, 3), inertias (L, 3, 3) about
-    them, the centres' velocities v_b and accelerations a_b (L, 3), angular velocities w_b and
-    accelerations al_b (L, 3), and the base origin's velocity (3,); by central differences over
-    ``ARM_STEP_S``: v = (c(h) - c(-h)) / 2h, a = (c(h) - 2 c(0) + c(-h)) / h^2,
-    w(+-h/2) = +-log(R(+-h) R(0)^T)^(+-1) / h, w = mean, al = (w(h/2) - w(-h/2)) / h."""
-    return arm_motion_at(team, m, links_in_grasp(team, m, q), q, qd)
-
-
-@njit(cache=True)
-def arm_motion_at(team: TeamModel, m: int, at_q: tuple, q: np.ndarray, qd: np.ndarray) -> tuple:
-    """``arm_motion_in_grasp`` with ``links_in_grasp`` at q given (``at_q``)."""
-    h = ARM_STEP_S
-    c0, r0, o0 = at_q
-    cp, rp, op = links_in_grasp(team, m, q + qd * h)
-    cm, rm, om = links_in_grasp(team, m, q - qd * h)
-    vel = (cp - cm) / (2 * h)
-    acc = (cp - 2 * c0 + cm) / (h * h)
-    n_links = len(c0)
-    w, al, inertias = np.empty((n_links, 3)), np.empty((n_links, 3)), np.empty((n_links, 3, 3))
-    for k in range(n_links):
-        inertias[k] = matmul3(matmul3(r0[k], team.link_inertia[m, k]), r0[k].T)  # about c_b
-        w_up = log_so3(matmul3(rp[k], r0[k].T)) / h
-        w_down = log_so3(matmul3(r0[k], rm[k].T)) / h
-        w[k] = 0.5 * (w_up + w_down)
-        al[k] = (w_up - w_down) / h
-    return c0, inertias, vel, acc, w, al, (op[0] - om[0]) / (2 * h)
+# (The arms' kinematics and their motion relative to G: ``arm_kinematics``.)
 
 
 @njit(cache=True)
@@ -421,31 +356,6 @@ def arm_motion_wrench(
 
 
 @njit(cache=True)
-def empty_arm_motions(count: int, n_links: int) -> tuple:
-    """Room for ``count`` results of ``arm_motion_in_grasp`` stacked by row (``store_arm_motion``):
-    centres, inertias, velocities, accelerations, angular velocities and accelerations
-    (count, L, ...), base origin velocities (count, 3)."""
-    return (
-        np.empty((count, n_links, 3)),
-        np.empty((count, n_links, 3, 3)),
-        np.empty((count, n_links, 3)),
-        np.empty((count, n_links, 3)),
-        np.empty((count, n_links, 3)),
-        np.empty((count, n_links, 3)),
-        np.empty((count, 3)),
-    )
-
-
-@njit(cache=True)
-def store_arm_motion(motions: tuple, r: int, motion: tuple) -> None:
-    """Row r of the stacked ``motions`` (``empty_arm_motions``) = ``motion``, a result of
-    ``arm_motion_in_grasp``."""
-    c, inertia, v, a, w, al, v_base = motion
-    motions[0][r], motions[1][r], motions[2][r] = c, inertia, v
-    motions[3][r], motions[4][r], motions[5][r], motions[6][r] = a, w, al, v_base
-
-
-@njit(cache=True)
 def place_arm_motion(
     team: TeamModel,
     holding: np.ndarray,
@@ -455,8 +365,9 @@ def place_arm_motion(
     row: np.ndarray,
 ) -> tuple:
     """``team_arm_motion`` from the arms' motions in their grasp frames, robot j's at row[j] of
-    the stacked ``motions`` (``store_arm_motion``), rotated into W (robot j's grasp frame in W:
-    grasp_rot[j], grasp_pos[j]): x_W = R x_G (+ p for the centres), I_W = R I_G R^T."""
+    the stacked ``motions`` (``arm_kinematics.arm_motion_into``), rotated into W (robot j's
+    grasp frame in W: grasp_rot[j], grasp_pos[j]): x_W = R x_G (+ p for the centres),
+    I_W = R I_G R^T."""
     n_links = team.parent.shape[1]
     count = len(holding) * n_links
     masses, coms, inertias = np.empty(count), np.empty((count, 3)), np.empty((count, 3, 3))
@@ -498,10 +409,11 @@ def team_arm_motion(
     velocities and accelerations (``arm_motion_in_grasp`` rotated into W, ``place_arm_motion``),
     and per robot its base origin's velocity (n, 3) and angular velocity (n, 3) relative to the
     cargo (W axes)."""
-    motions = empty_arm_motions(len(grasp_rot), team.parent.shape[1])
+    n_links = team.parent.shape[1]
+    motions, work = empty_arm_motions(len(grasp_rot), n_links), arm_work(n_links)
     for idx in range(len(holding)):
         j = holding[idx]
-        store_arm_motion(motions, j, arm_motion_in_grasp(team, team.model_of[j], q[j], qd[j]))
+        arm_motion_into(motions, j, team, team.model_of[j], q[j], qd[j], work)
     row = np.arange(len(grasp_rot))
     return place_arm_motion(team, holding, grasp_rot, grasp_pos, motions, row)
 
