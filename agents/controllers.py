@@ -238,6 +238,16 @@ def _observed_tracking(
 
 
 @njit(cache=True)
+def _equal_rows(table: np.ndarray, r: int, s: int) -> bool:
+    """Whether rows r and s of the integer table are equal (``np.array_equal`` of the two
+    rows, without its temporary arrays)."""
+    for c in range(table.shape[1]):
+        if table[r, c] != table[s, c]:
+            return False
+    return True
+
+
+@njit(cache=True)
 def _team_views(team: TeamModel, holding: np.ndarray, q: np.ndarray, qd: np.ndarray) -> tuple:
     """The arms of the robots ``holding`` as each acting robot a sees them (q, qd (k, n,
     n_joints)), each distinct (model, q[a, j], qd[a, j]) worked out once (equal bit for bit,
@@ -261,7 +271,7 @@ def _team_views(team: TeamModel, holding: np.ndarray, q: np.ndarray, qd: np.ndar
             keys[used, 1 : 1 + n_joints], keys[used, 1 + n_joints :] = q[a, j], qd[a, j]
             bits = keys[: used + 1].view(np.int64)
             r = 0
-            while r < used and not np.array_equal(bits[r], bits[used]):
+            while r < used and not _equal_rows(bits, r, used):
                 r += 1
             row[a, j] = r
             if r == used:  # the body from the motion's link frames at q
@@ -363,7 +373,7 @@ def _observation_actions(
     placed = -1  # the acting robot whose view of the team is placed in C
     for a in range(len(acting)):
         i = acting[a]
-        if placed < 0 or not np.array_equal(row[a], row[placed]):
+        if placed < 0 or not _equal_rows(row, a, placed):
             rot_base, pos_base, bodies = _team_in_cargo(
                 handrail_rot, handrail_pos, holding, robot_bodies, grasps, row[a]
             )

@@ -154,10 +154,12 @@ def robot_body(team: TeamModel, m: int, q: np.ndarray) -> tuple:
 def body_of_frames(team: TeamModel, m: int, rots: np.ndarray, poss: np.ndarray) -> tuple:
     """``robot_body`` from model m's link frames in its base (``link_frames``)."""
     n_links = len(rots)
-    coms, inertias = np.empty((n_links, 3)), np.empty((n_links, 3, 3))
-    for k in range(n_links):
-        coms[k] = matvec3(rots[k], team.link_com[m, k]) + poss[k]
-        inertias[k] = matmul3(matmul3(rots[k], team.link_inertia[m, k]), rots[k].T)
+    coms, inertias, rotated = np.empty((n_links, 3)), np.empty((n_links, 3, 3)), np.empty((3, 3))
+    for k in range(n_links):  # each link's centre R_k c_k + p_k and inertia R_k I_k R_k^T
+        matvec3_into(coms[k], rots[k], team.link_com[m, k])
+        coms[k] += poss[k]
+        matmul3_into(rotated, rots[k], team.link_inertia[m, k])
+        matmul3_into(inertias[k], rotated, rots[k].T)
     mass, com, inertia = composite_body(team.link_mass[m], coms, inertias)
     g = team.grasp_link[m]
     rot_grasp = matmul3(rots[g], team.grasp_rot[m])
