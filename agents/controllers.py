@@ -547,7 +547,7 @@ class ObservationController:
         del episode_start, deterministic
         if isinstance(observation, dict):
             acting, holding = self._acting_robots(tuple(observation))
-            obs = np.stack([np.asarray(o, dtype=float) for o in observation.values()])
+            obs = np.array(list(observation.values()), dtype=float)  # (k, obs_dim)
             actions = self._actions(acting, holding, obs)
             return dict(zip(observation, actions, strict=True)), state
         obs = np.asarray(observation, dtype=float)
