@@ -29,7 +29,7 @@ from typing import Any, NamedTuple
 import numpy as np
 from numba import njit
 
-from astrocargo.estimator.geometry import log_so3, matmul3_into, matvec3
+from astrocargo.estimator.geometry import log_so3, matmul3_into, matvec3, matvec3_into
 from astrocargo.estimator.inertia import transform_params
 from astrocargo.estimator.rne import RobotDescription
 
@@ -44,6 +44,7 @@ from .team_dynamics import (
     pd_accelerations,
     place_arm_motion,
     place_body,
+    place_body_into,
     team_commands,
     team_model,
     team_wrench,
@@ -300,15 +301,19 @@ def _team_in_cargo(
     n, count = len(handrail_rot), len(holding) + 1
     rot_base, pos_base = np.zeros((n, 3, 3)), np.zeros((n, 3))
     masses, coms, inertias = np.zeros(count), np.zeros((count, 3)), np.zeros((count, 3, 3))
+    scratch = np.empty((3, 3))
     for idx in range(len(holding)):
         j = holding[idx]
         r = row[j]
         matmul3_into(rot_base[j], handrail_rot[j], grasps[0][r].T)
-        pos_base[j] = handrail_pos[j] - matvec3(rot_base[j], grasps[1][r])
+        matvec3_into(pos_base[j], rot_base[j], grasps[1][r])
+        for i in range(3):
+            pos_base[j, i] = handrail_pos[j, i] - pos_base[j, i]
         masses[idx] = robot_bodies[0][r]
-        coms[idx], inertias[idx] = place_body(
-            robot_bodies[1][r], robot_bodies[2][r], rot_base[j], pos_base[j]
-        )
+        place_body_into(
+            coms[idx], inertias[idx], robot_bodies[1][r], robot_bodies[2][r], rot_base[j],
+            pos_base[j], scratch,
+        )  # fmt: skip
     return rot_base, pos_base, (masses, coms, inertias)
 
 

@@ -45,7 +45,7 @@ from astrocargo.estimator.geometry import (
     matmul3_into,
     matvec3,
     matvec3_into,
-    skew,
+    skew_into,
 )
 from astrocargo.estimator.rne import RobotDescription
 
@@ -173,7 +173,27 @@ def place_body(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Centre of mass and inertia about it of a body given in frame A, expressed in W, A's pose
     in W being (rot, pos): c_W = R c + p, I_W = R I R^T."""
-    return matvec3(rot, com) + pos, matmul3(matmul3(rot, inertia), rot.T)
+    com_w, inertia_w = np.empty(3), np.empty((3, 3))
+    place_body_into(com_w, inertia_w, com, inertia, rot, pos, np.empty((3, 3)))
+    return com_w, inertia_w
+
+
+@njit(cache=True)
+def place_body_into(
+    com_w: np.ndarray,
+    inertia_w: np.ndarray,
+    com: np.ndarray,
+    inertia: np.ndarray,
+    rot: np.ndarray,
+    pos: np.ndarray,
+    scratch: np.ndarray,
+) -> None:
+    """com_w (3,), inertia_w (3, 3) = ``place_body`` (scratch: (3, 3))."""
+    matvec3_into(com_w, rot, com)
+    for i in range(3):
+        com_w[i] += pos[i]
+    matmul3_into(scratch, rot, inertia)
+    matmul3_into(inertia_w, scratch, rot.T)
 
 
 @njit(cache=True)
@@ -237,10 +257,19 @@ def wrench_map(rot: np.ndarray, pos: np.ndarray) -> np.ndarray:
     """G (6, 6): a wrench [f; n about A's origin] in frame A to W about W's origin, A's pose in W
     being (rot, pos): f_W = R f, n_W = R n + pos x (R f)."""
     g = np.zeros((6, 6))
-    g[:3, :3] = rot
-    g[3:, 3:] = rot
-    g[3:, :3] = matmul3(skew(pos), rot)
+    wrench_map_into(g, rot, pos, np.empty((3, 3)))
     return g
+
+
+@njit(cache=True)
+def wrench_map_into(g: np.ndarray, rot: np.ndarray, pos: np.ndarray, scratch: np.ndarray) -> None:
+    """g (6, 6) = ``wrench_map`` (scratch: (3, 3))."""
+    skew_into(scratch, pos)
+    for i in range(3):
+        for j in range(3):
+            g[i, j] = g[i + 3, j + 3] = rot[i, j]
+            g[i, j + 3] = 0.0
+    matmul3_into(g[3:, :3], scratch, rot)
 
 
 @njit(cache=True)
@@ -256,12 +285,15 @@ def allocate(
     about ``com``: weighted minimum norm u_j = W_j G_j^T lambda, (sum G W G^T) lambda = wrench,
     W_j = diag(limit_j^2), scaled down together if any exceeds its limit. Also returns the
     largest |u_jk| / limit_jk before scaling."""
-    maps = np.empty((len(holding), 6, 6))
-    normal = np.zeros((6, 6))
+    maps, normal = np.empty((len(holding), 6, 6)), np.zeros((6, 6))
+    weight, lever, scratch = np.empty(6), np.empty(3), np.empty((3, 3))
     for idx in range(len(holding)):
-        j = holding[idx]
-        g, weight = maps[idx], team.thrust_limit[j] ** 2
-        g[:] = wrench_map(rot_base[j], pos_base[j] - com)
+        j, g = holding[idx], maps[idx]
+        for i in range(3):
+            lever[i] = pos_base[j, i] - com[i]
+        wrench_map_into(g, rot_base[j], lever, scratch)
+        for k in range(6):
+            weight[k] = team.thrust_limit[j, k] ** 2
         for r in range(6):  # normal += G_j W_j G_j^T, summed in loops (6x6: no BLAS call)
             for c in range(6):
                 term = 0.0
@@ -317,6 +349,13 @@ def thrust_commands(
 # (The arms' kinematics and their motion relative to G: ``arm_kinematics``.)
 
 
+@njit(cache=True, inline="always")
+def _add_into(out: np.ndarray, v: np.ndarray) -> None:
+    """out += v (3,), elementwise, without a temporary."""
+    for i in range(3):
+        out[i] += v[i]
+
+
 @njit(cache=True)
 def arm_motion_wrench(
     masses: np.ndarray,
@@ -340,20 +379,23 @@ def arm_motion_wrench(
         for i in range(3):  # F_b = m_b (a_b + 2 w x v_b)
             force[i] = masses[b] * (acc[b, i] + 2.0 * term[i])
         cross3_into(term, w, w_rel[b])
-        term += al_rel[b]
+        for i in range(3):
+            term[i] += al_rel[b, i]
         matvec3_into(torque, inertia, term)  # I_b (al_b + w x w_b)
         matvec3_into(inertia_w, inertia, w)
         matvec3_into(inertia_w_rel, inertia, w_rel[b])
         cross3_into(term, w, inertia_w_rel)
-        torque += term  # + w x I_b w_b
+        _add_into(torque, term)  # + w x I_b w_b
         cross3_into(term, w_rel[b], inertia_w)
-        torque += term  # + w_b x I_b w
+        _add_into(torque, term)  # + w_b x I_b w
         cross3_into(term, w_rel[b], inertia_w_rel)
-        torque += term  # + w_b x I_b w_b
-        lever[:] = coms[b] - com
+        _add_into(torque, term)  # + w_b x I_b w_b
+        for i in range(3):
+            lever[i] = coms[b, i] - com[i]
         cross3_into(term, lever, force)
-        out[:3] += force
-        out[3:] += torque + term
+        for i in range(3):
+            out[i] += force[i]
+            out[i + 3] += torque[i] + term[i]
     return out
 
 
