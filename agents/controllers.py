@@ -29,7 +29,7 @@ from typing import Any, NamedTuple
 import numpy as np
 from numba import njit
 
-from astrocargo.estimator.geometry import log_so3, matmul3_into, matvec3, matvec3_into
+from astrocargo.estimator.geometry import log_so3, matmul3_into, matvec3_into
 from astrocargo.estimator.inertia import transform_params
 from astrocargo.estimator.rne import RobotDescription
 
@@ -333,16 +333,15 @@ def _cargo_motion(
     the base point R_cb base_vel_err - v_rel; position and attitude errors are the base's (the
     grasp is rigid at the measured angles): e_p = -R_cb base_pos_err, e_R = -R_cb
     base_att_err; the reference acceleration of the cargo origin is ref_acc."""
-    w = matvec3(rot_cb, obs.base_ang_vel[a]) - base_w_rel
-    vel_err = matvec3(rot_cb, obs.base_vel_err[a]) - base_vel_rel
+    blocks = (obs.base_ang_vel, obs.base_vel_err, obs.base_pos_err, obs.base_att_err,
+              obs.ref_ang_vel, obs.ref_acc, obs.ref_ang_acc)  # fmt: skip
+    rotated = np.empty((len(blocks), 3))  # each block in C's axes
+    for b in range(len(blocks)):
+        matvec3_into(rotated[b], rot_cb, blocks[b][a])
+    w = rotated[0] - base_w_rel
+    vel_err = rotated[1] - base_vel_rel
     acc, wd = pd_accelerations(
-        gains,
-        -matvec3(rot_cb, obs.base_pos_err[a]),
-        -vel_err,
-        -matvec3(rot_cb, obs.base_att_err[a]),
-        matvec3(rot_cb, obs.ref_ang_vel[a]) - w,
-        matvec3(rot_cb, obs.ref_acc[a]),
-        matvec3(rot_cb, obs.ref_ang_acc[a]),
+        gains, -rotated[2], -vel_err, -rotated[3], rotated[4] - w, rotated[5], rotated[6]
     )
     return w, acc, wd
 

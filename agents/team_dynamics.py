@@ -418,6 +418,7 @@ def place_arm_motion(
     vel, acc = np.empty((count, 3)), np.empty((count, 3))
     w_rel, al_rel = np.empty((count, 3)), np.empty((count, 3))
     base_vel, base_w = np.zeros((len(grasp_rot), 3)), np.zeros((len(grasp_rot), 3))
+    rotated = np.empty((3, 3))
     for idx in range(len(holding)):
         j = holding[idx]
         m, r, rot = team.model_of[j], row[j], grasp_rot[j]
@@ -428,7 +429,8 @@ def place_arm_motion(
             masses[b] = team.link_mass[m, k]
             matvec3_into(coms[b], rot, c[k])
             coms[b] += grasp_pos[j]
-            matmul3_into(inertias[b], matmul3(rot, inertia[k]), rot.T)
+            matmul3_into(rotated, rot, inertia[k])
+            matmul3_into(inertias[b], rotated, rot.T)
             matvec3_into(vel[b], rot, v[k])
             matvec3_into(acc[b], rot, a[k])
             matvec3_into(w_rel[b], rot, w[k])
