@@ -29,22 +29,22 @@ from typing import Any, NamedTuple
 import numpy as np
 from numba import njit
 
-from astrocargo.estimator.geometry import log_so3
+from astrocargo.estimator.geometry import log_so3, matmul3_into, matvec3_into
 from astrocargo.estimator.inertia import transform_params
 from astrocargo.estimator.rne import RobotDescription
 
+from .arm_kinematics import arm_motion_into, arm_work, empty_arm_motions
 from .team_dynamics import (
     TeamModel,
     allocate,
     arm_motion_wrench,
     body_from_params,
+    body_of_frames,
     composite_body,
-    empty_arm_motions,
     pd_accelerations,
     place_arm_motion,
     place_body,
-    robot_body,
-    store_arm_motion,
+    place_body_into,
     team_commands,
     team_model,
     team_wrench,
@@ -179,6 +179,75 @@ class BaseTracking(NamedTuple):
 _OBSERVED_BLOCKS = BaseTracking._fields[2:-1]
 
 
+class ObservedColumns(NamedTuple):
+    """Where ``BaseTracking``'s blocks lie in an observation (the env's layout), as
+    [start, stop) column pairs; (-1, -1) for a block the layout lacks."""
+
+    blocks: np.ndarray  # (8, 2) int64, the ``_OBSERVED_BLOCKS`` in order
+    joint_pos: np.ndarray  # (2,) int64, the robot's own arm angles
+    joint_vel: np.ndarray  # (2,) int64, its servo-target rates ((-1, -1): arms at rest)
+    estimate: np.ndarray  # (2,) int64, its cargo estimate ((-1, -1): fixed parameters)
+    peer_slots: np.ndarray  # (n, n-1, 5) int64, ``ObservationController._peer_slot_columns``
+
+
+@njit(cache=True)
+def _peer_arms(
+    obs: np.ndarray, acting: np.ndarray, slots: np.ndarray, q: np.ndarray, qd: np.ndarray
+) -> None:
+    """Each peer arm heard by the acting robot a (observation obs[a]): q[a, j] = q_j + qd_j age,
+    qd[a, j] = qd_j, from the message slots of robot acting[a] (``slots`` (n, n-1, 5): peer j,
+    valid, age, first joint angle and first joint rate columns); the others left as they are."""
+    for a in range(len(acting)):
+        for p in range(slots.shape[1]):
+            j, valid, age, joint_pos, joint_vel = slots[acting[a], p]
+            if obs[a, valid] > 0:
+                for c in range(q.shape[2]):
+                    rate = obs[a, joint_vel + c]
+                    q[a, j, c] = obs[a, joint_pos + c] + rate * obs[a, age]
+                    qd[a, j, c] = rate
+
+
+@njit(cache=True)
+def _observed_tracking(
+    obs: np.ndarray,
+    acting: np.ndarray,
+    columns: ObservedColumns,
+    n_robots: int,
+    fixed_params: np.ndarray,
+) -> BaseTracking:
+    """``BaseTracking`` of the robots ``acting`` from their observations obs (k, obs_dim): each
+    block copied from its columns; every robot's arm at the acting robot's own angles and
+    rates (zero rates without joint_vel columns), then each heard peer's from its message
+    (``_peer_arms``); the cargo parameters from the estimate's columns, or ``fixed_params``
+    (n, 10) of each acting robot where the layout gives none."""
+    k, (q_start, q_stop), (qd_start, qd_stop) = len(acting), columns.joint_pos, columns.joint_vel
+    q = np.empty((k, n_robots, q_stop - q_start))
+    qd = np.zeros_like(q)
+    for a in range(k):
+        for j in range(n_robots):
+            q[a, j] = obs[a, q_start:q_stop]
+            if qd_start >= 0:
+                qd[a, j] = obs[a, qd_start:qd_stop]
+    _peer_arms(obs, acting, columns.peer_slots, q, qd)
+    spans = columns.blocks
+    if columns.estimate[0] >= 0:
+        params = np.ascontiguousarray(obs[:, columns.estimate[0] : columns.estimate[1]])
+    else:
+        params = fixed_params[acting]
+    b = [np.ascontiguousarray(obs[:, spans[i, 0] : spans[i, 1]]) for i in range(len(spans))]
+    return BaseTracking(q, qd, b[0], b[1], b[2], b[3], b[4], b[5], b[6], b[7], params)
+
+
+@njit(cache=True)
+def _equal_rows(table: np.ndarray, r: int, s: int) -> bool:
+    """Whether rows r and s of the integer table are equal (``np.array_equal`` of the two
+    rows, without its temporary arrays)."""
+    for c in range(table.shape[1]):
+        if table[r, c] != table[s, c]:
+            return False
+    return True
+
+
 @njit(cache=True)
 def _team_views(team: TeamModel, holding: np.ndarray, q: np.ndarray, qd: np.ndarray) -> tuple:
     """The arms of the robots ``holding`` as each acting robot a sees them (q, qd (k, n,
@@ -192,6 +261,7 @@ def _team_views(team: TeamModel, holding: np.ndarray, q: np.ndarray, qd: np.ndar
     bodies = (np.empty(count), np.empty((count, 3)), np.empty((count, 3, 3)))
     grasps = (np.empty((count, 3, 3)), np.empty((count, 3)))
     motions = empty_arm_motions(count, team.parent.shape[1])
+    work = arm_work(team.parent.shape[1])
     row = np.zeros((k, q.shape[1]), dtype=np.int64)
     used = 0
     for a in range(k):
@@ -202,14 +272,14 @@ def _team_views(team: TeamModel, holding: np.ndarray, q: np.ndarray, qd: np.ndar
             keys[used, 1 : 1 + n_joints], keys[used, 1 + n_joints :] = q[a, j], qd[a, j]
             bits = keys[: used + 1].view(np.int64)
             r = 0
-            while r < used and not np.array_equal(bits[r], bits[used]):
+            while r < used and not _equal_rows(bits, r, used):
                 r += 1
             row[a, j] = r
-            if r == used:
-                mass, com, inertia, rot_bg, pos_bg = robot_body(team, m, q[a, j])
-                bodies[0][r], bodies[1][r], bodies[2][r] = mass, com, inertia
-                grasps[0][r], grasps[1][r] = rot_bg, pos_bg
-                store_arm_motion(motions, r, team, m, q[a, j], qd[a, j])
+            if r == used:  # the body from the motion's link frames at q
+                arm_motion_into(motions, r, team, m, q[a, j], qd[a, j], work)
+                body = body_of_frames(team, m, work.rots[0], work.poss[0])
+                bodies[0][r], bodies[1][r], bodies[2][r] = body[:3]
+                grasps[0][r], grasps[1][r] = body[3:]
                 used += 1
     return row, bodies, grasps, motions
 
@@ -231,16 +301,49 @@ def _team_in_cargo(
     n, count = len(handrail_rot), len(holding) + 1
     rot_base, pos_base = np.zeros((n, 3, 3)), np.zeros((n, 3))
     masses, coms, inertias = np.zeros(count), np.zeros((count, 3)), np.zeros((count, 3, 3))
+    scratch = np.empty((3, 3))
     for idx in range(len(holding)):
         j = holding[idx]
         r = row[j]
-        rot_base[j] = handrail_rot[j] @ grasps[0][r].T
-        pos_base[j] = handrail_pos[j] - rot_base[j] @ grasps[1][r]
+        matmul3_into(rot_base[j], handrail_rot[j], grasps[0][r].T)
+        matvec3_into(pos_base[j], rot_base[j], grasps[1][r])
+        for i in range(3):
+            pos_base[j, i] = handrail_pos[j, i] - pos_base[j, i]
         masses[idx] = robot_bodies[0][r]
-        coms[idx], inertias[idx] = place_body(
-            robot_bodies[1][r], robot_bodies[2][r], rot_base[j], pos_base[j]
-        )
+        place_body_into(
+            coms[idx], inertias[idx], robot_bodies[1][r], robot_bodies[2][r], rot_base[j],
+            pos_base[j], scratch,
+        )  # fmt: skip
     return rot_base, pos_base, (masses, coms, inertias)
+
+
+@njit(cache=True)
+def _cargo_motion(
+    gains: np.ndarray,
+    obs: BaseTracking,
+    a: int,
+    rot_cb: np.ndarray,
+    base_vel_rel: np.ndarray,
+    base_w_rel: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The cargo's angular velocity w and desired accelerations (``pd_accelerations``) as
+    acting robot a sees them in the cargo frame C (its base axes rotated by R_cb, base a's pose
+    in C at its arm angles): the cargo's twist is the base's less the base's motion relative to
+    the cargo (v_rel, w_rel, ``team_arm_motion``): w = R_cb w_base - w_rel, velocity error at
+    the base point R_cb base_vel_err - v_rel; position and attitude errors are the base's (the
+    grasp is rigid at the measured angles): e_p = -R_cb base_pos_err, e_R = -R_cb
+    base_att_err; the reference acceleration of the cargo origin is ref_acc."""
+    blocks = (obs.base_ang_vel, obs.base_vel_err, obs.base_pos_err, obs.base_att_err,
+              obs.ref_ang_vel, obs.ref_acc, obs.ref_ang_acc)  # fmt: skip
+    rotated = np.empty((len(blocks), 3))  # each block in C's axes
+    for b in range(len(blocks)):
+        matvec3_into(rotated[b], rot_cb, blocks[b][a])
+    w = rotated[0] - base_w_rel
+    vel_err = rotated[1] - base_vel_rel
+    acc, wd = pd_accelerations(
+        gains, -rotated[2], -vel_err, -rotated[3], rotated[4] - w, rotated[5], rotated[6]
+    )
+    return w, acc, wd
 
 
 @njit(cache=True)
@@ -252,30 +355,29 @@ def _observation_actions(
     arm_scale_rad: float,
     acting: np.ndarray,
     holding: np.ndarray,
-    obs: BaseTracking,
+    observations: np.ndarray,
+    columns: ObservedColumns,
+    fixed_params: np.ndarray,
     with_cargo: bool,
     scale_down: bool,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Actions (k, 8) of the acting robots (all holding the cargo): thrust u / thrust_limit,
-    tilt offset 0, pan offset clip(ref_pan / arm_scale_rad, -1, 1); and each one's saturation
-    ratio (largest |u| / limit of the allocation before scaling). Robot i works in the cargo
-    frame C (its base axes rotated by R_cb, base i's pose in C at its arm angles): every robot
-    at its own arm angles, the cargo's twist is the base's less the base's motion relative to
-    the cargo (``team_arm_motion``): w = R_cb w_base - w_rel,i, velocity error at the base point
-    R_cb base_vel_err - v_rel,i; position and attitude errors are the base's (the grasp is
-    rigid at the measured angles): e_p = -R_cb base_pos_err, e_R = -R_cb base_att_err; the
-    reference acceleration of the cargo origin is ref_acc. The wrench is ``team_wrench`` about
-    the team's centre of mass plus ``arm_motion_wrench`` of the arms' motion, allocated by
-    ``allocate``; with ``scale_down`` False the commands are the allocation's before its
-    scaling (the env then clips each entry to its limit)."""
+    """Actions (k, 8) of the acting robots (all holding the cargo), from their observations
+    (k, obs_dim) read as ``_observed_tracking``: thrust u / thrust_limit, tilt offset 0, pan
+    offset clip(ref_pan / arm_scale_rad, -1, 1); and each one's saturation ratio (largest |u| /
+    limit of the allocation before scaling). Robot i works in the cargo frame C, every robot at
+    the arm angles i sees, the cargo's motion from i's base (``_cargo_motion``). The wrench is
+    ``team_wrench`` about the team's centre of mass plus ``arm_motion_wrench`` of the arms'
+    motion, allocated by ``allocate``; with ``scale_down`` False the commands are the
+    allocation's before its scaling (the env then clips each entry to its limit)."""
     out, ratios, origin = np.zeros((len(acting), 8)), np.zeros(len(acting)), np.zeros(3)
+    obs = _observed_tracking(observations, acting, columns, len(handrail_rot), fixed_params)
     row, robot_bodies, grasps, motions = _team_views(
         team, holding, obs.team_joint_pos, obs.team_joint_vel
     )
     placed = -1  # the acting robot whose view of the team is placed in C
     for a in range(len(acting)):
         i = acting[a]
-        if placed < 0 or not np.array_equal(row[a], row[placed]):
+        if placed < 0 or not _equal_rows(row, a, placed):
             rot_base, pos_base, bodies = _team_in_cargo(
                 handrail_rot, handrail_pos, holding, robot_bodies, grasps, row[a]
             )
@@ -286,14 +388,7 @@ def _observation_actions(
             mass, com, inertia = body_from_params(obs.cargo_params[a])
             masses[-1] = mass
             coms[-1], inertias[-1] = place_body(com, inertia, handrail_rot[i], handrail_pos[i])
-        base_vel_rel, base_w_rel = arms[7], arms[8]
-        r = rot_base[i]
-        w = r @ obs.base_ang_vel[a] - base_w_rel[i]
-        vel_err = r @ obs.base_vel_err[a] - base_vel_rel[i]
-        acc, wd = pd_accelerations(
-            gains, -(r @ obs.base_pos_err[a]), -vel_err, -(r @ obs.base_att_err[a]),
-            r @ obs.ref_ang_vel[a] - w, r @ obs.ref_acc[a], r @ obs.ref_ang_acc[a],
-        )  # fmt: skip
+        w, acc, wd = _cargo_motion(gains, obs, a, rot_base[i], arms[7][i], arms[8][i])
         mass, com, inertia = composite_body(masses, coms, inertias)
         wrench = team_wrench(mass, com, inertia, origin, w, acc, wd)
         wrench += arm_motion_wrench(*arms[:7], com, w)
@@ -303,23 +398,6 @@ def _observation_actions(
             out[a, :6] *= max(ratios[a], 1.0)
         out[a, 7] = min(max(obs.ref_pan[a, 0] / arm_scale_rad, -1.0), 1.0)
     return out, ratios
-
-
-@njit(cache=True)
-def _peer_arms(
-    obs: np.ndarray, acting: np.ndarray, slots: np.ndarray, q: np.ndarray, qd: np.ndarray
-) -> None:
-    """Each peer arm heard by the acting robot a (observation obs[a]): q[a, j] = q_j + qd_j age,
-    qd[a, j] = qd_j, from the message slots of robot acting[a] (``slots`` (n, n-1, 5): peer j,
-    valid, age, first joint angle and first joint rate columns); the others left as they are."""
-    for a in range(len(acting)):
-        for p in range(slots.shape[1]):
-            j, valid, age, joint_pos, joint_vel = slots[acting[a], p]
-            if obs[a, valid] > 0:
-                for c in range(q.shape[2]):
-                    rate = obs[a, joint_vel + c]
-                    q[a, j, c] = obs[a, joint_pos + c] + rate * obs[a, age]
-                    qd[a, j, c] = rate
 
 
 class ObservationController:
@@ -387,7 +465,8 @@ class ObservationController:
         if len(names) != len(self.robots):
             raise ValueError(f"agents must name the {len(self.robots)} robots, got {names!r}")
         self.robot_index = {name: i for i, name in enumerate(names)}
-        self._peer_slots = self._peer_slot_columns()
+        self._columns = self._observed_columns()
+        self._acting: dict[tuple[str, ...], tuple[np.ndarray, np.ndarray]] = {}
 
     @classmethod
     def for_env(cls, env, cargo_model: str = "estimate", **kwargs: Any) -> ObservationController:
@@ -405,18 +484,6 @@ class ObservationController:
             **kwargs,
         )
 
-    def _team_arms(self, acting: np.ndarray, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Every robot's arm angles and rates (k, n, n_joints) as each acting robot sees them:
-        its own from its encoders and servo-target rates; a peer's from the latest message,
-        q + qd * age; its own for a peer not heard from yet (or a layout without peer arms)."""
-        lay, n = self.layout, len(self.robots)
-        q = np.repeat(obs[:, None, lay["joint_pos"]], n, axis=1)
-        qd = np.zeros_like(q)
-        if "joint_vel" in lay:
-            qd = np.repeat(obs[:, None, lay["joint_vel"]], n, axis=1)
-        _peer_arms(obs, acting, self._peer_slots, q, qd)
-        return q, qd
-
     def _peer_slot_columns(self) -> np.ndarray:
         """Per robot i, its peers' arm message slots in the observation (n, n-1, 5): peer j,
         valid column, age column, first joint angle column, first joint rate column, the peers
@@ -432,21 +499,27 @@ class ObservationController:
         ]  # fmt: skip
         return np.array(slots, dtype=np.int64)
 
-    def _tracking(self, acting: np.ndarray, obs: np.ndarray) -> BaseTracking:
-        """The blocks of the observations ``obs`` (k, obs_dim) of the robots ``acting``."""
-        lay = self.layout
-        if self.cargo_model == "estimate":
-            params = obs[:, lay["estimate_mean"]]
-        else:
-            params = self._truth_in_grasp[acting]
-        blocks = [obs[:, lay[name]] for name in _OBSERVED_BLOCKS]
-        arms = self._team_arms(acting, obs)
-        return BaseTracking(*(np.ascontiguousarray(b) for b in (*arms, *blocks, params)))
+    def _observed_columns(self) -> ObservedColumns:
+        """The layout's columns of ``BaseTracking``'s blocks (``ObservedColumns``)."""
+        lay, absent = self.layout, slice(-1, -1)
 
-    def _actions(self, acting: np.ndarray, obs: np.ndarray) -> np.ndarray:
-        """Actions (k, 8) of the robots ``acting`` (all holding the cargo) from their
-        observations (k, obs_dim) (``_observation_actions``); ``last_ratios`` keeps each one's
-        saturation ratio."""
+        def span(name: str) -> np.ndarray:
+            block = lay.get(name, absent)
+            return np.array([block.start, block.stop], dtype=np.int64)
+
+        estimate = span("estimate_mean") if self.cargo_model == "estimate" else span("")
+        return ObservedColumns(
+            np.stack([span(name) for name in _OBSERVED_BLOCKS]),
+            span("joint_pos"),
+            span("joint_vel"),
+            estimate,
+            self._peer_slot_columns(),
+        )
+
+    def _actions(self, acting: np.ndarray, holding: np.ndarray, obs: np.ndarray) -> np.ndarray:
+        """Actions (k, 8) of the robots ``acting`` (all holding the cargo; ``holding``: the same,
+        sorted) from their observations (k, obs_dim) (``_observation_actions``);
+        ``last_ratios`` keeps each one's saturation ratio."""
         actions, self.last_ratios = _observation_actions(
             self.team.team,
             self._handrail_rot,
@@ -454,23 +527,32 @@ class ObservationController:
             self.team._gains,
             self.arm_scale,
             acting,
-            np.sort(acting),
-            self._tracking(acting, obs),
+            holding,
+            obs,
+            self._columns,
+            self._truth_in_grasp,
             self.cargo_model != "none",
             self.scale_down,
         )
         return actions
 
+    def _acting_robots(self, agents: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
+        """The robots of the named agents, in their order and sorted (made once per set)."""
+        if agents not in self._acting:
+            unknown = [a for a in agents if a not in self.robot_index]
+            if unknown:
+                raise ValueError(f"unknown agents {unknown}; agents: {list(self.robot_index)}")
+            acting = np.array([self.robot_index[a] for a in agents], dtype=np.int64)
+            self._acting[agents] = acting, np.sort(acting)
+        return self._acting[agents]
+
     def predict(self, observation, state=None, episode_start=None, deterministic=False):
         """SB3's signature: returns (actions, state)."""
         del episode_start, deterministic
         if isinstance(observation, dict):
-            unknown = [a for a in observation if a not in self.robot_index]
-            if unknown:
-                raise ValueError(f"unknown agents {unknown}; agents: {list(self.robot_index)}")
-            acting = np.array([self.robot_index[a] for a in observation], dtype=np.int64)
-            obs = np.stack([np.asarray(o, dtype=float) for o in observation.values()])
-            actions = self._actions(acting, obs)
+            acting, holding = self._acting_robots(tuple(observation))
+            obs = np.array(list(observation.values()), dtype=float)  # (k, obs_dim)
+            actions = self._actions(acting, holding, obs)
             return dict(zip(observation, actions, strict=True)), state
         obs = np.asarray(observation, dtype=float)
         if obs.ndim != 2 or obs.shape[0] != len(self.robots):
@@ -478,4 +560,5 @@ class ObservationController:
                 f"observation must be a dict or an array ({len(self.robots)}, obs_dim), "
                 f"got shape {obs.shape}"
             )
-        return self._actions(np.arange(len(self.robots), dtype=np.int64), obs), state
+        every = np.arange(len(self.robots), dtype=np.int64)
+        return self._actions(every, every, obs), state

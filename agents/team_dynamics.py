@@ -7,7 +7,8 @@ here works in one frame W (the world, or one robot's base frame: the equations a
 vectors in metres, seconds, radians, kilograms, and wrenches [force (N); moment (N m)].
 
 Kinematics of robot j's arm (links k = 1..L-1, parent p, joint angle q_k, unit axis e_k):
-    R_k = R_p R_pk0 exp(e_k q_k),    p_k = p_p + R_p p_pk             (link frames in its base)
+    R_k = R_p R_pk0 exp(e_k q_k),    p_k = p_p + R_p p_pk      (link frames in its base)
+(``arm_kinematics``, with the arms' motion relative to their grasp frames).
 
 Composite body of bodies b (robot links and the cargo), mass m_b, centre c_b and inertia I_b about
 c_b (W axes), by the parallel-axis theorem:
@@ -37,8 +38,26 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit
 
-from astrocargo.estimator.geometry import exp_so3, log_so3, matmul3, matvec3, skew
+from astrocargo.estimator.geometry import (
+    cross3,
+    cross3_into,
+    matmul3,
+    matmul3_into,
+    matvec3,
+    matvec3_into,
+    skew_into,
+)
 from astrocargo.estimator.rne import RobotDescription
+
+from .arm_kinematics import (
+    ARM_STEP_S as ARM_STEP_S,  # the central differences' step, read by the tests
+)
+from .arm_kinematics import (
+    arm_motion_into,
+    arm_work,
+    empty_arm_motions,
+    link_frames,
+)
 
 
 class TeamModel(NamedTuple):
@@ -101,33 +120,26 @@ def team_model(robots: list[RobotDescription]) -> TeamModel:
 
 
 @njit(cache=True)
-def link_frames(team: TeamModel, m: int, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Model m's link frames in its base frame at joint angles q (L-1,) rad: rotations (L, 3, 3)
-    and origins (L, 3) m, R_k = R_p R_pk0 exp(e_k q_k), p_k = p_p + R_p p_pk."""
-    n_links = team.parent.shape[1]
-    rots = np.empty((n_links, 3, 3))
-    poss = np.zeros((n_links, 3))
-    rots[0] = np.eye(3)
-    for k in range(1, n_links):
-        p = team.parent[m, k]
-        joint = exp_so3(team.joint_axis[m, k] * q[k - 1])
-        rots[k] = matmul3(matmul3(rots[p], team.rot_in_parent[m, k]), joint)
-        poss[k] = poss[p] + matvec3(rots[p], team.pos_in_parent[m, k])
-    return rots, poss
-
-
-@njit(cache=True)
 def composite_body(
     masses: np.ndarray, coms: np.ndarray, inertias: np.ndarray
 ) -> tuple[float, np.ndarray, np.ndarray]:
     """Mass, centre of mass and inertia about it of rigidly joined bodies (b,), (b, 3),
     (b, 3, 3) (each about its own centre), by the parallel-axis theorem."""
     mass = masses.sum()
-    com = (masses @ coms) / mass
-    inertia = np.zeros((3, 3))
+    com = np.zeros(3)
     for b in range(len(masses)):
-        r = coms[b] - com
-        inertia += inertias[b] + masses[b] * ((r @ r) * np.eye(3) - np.outer(r, r))
+        for i in range(3):
+            com[i] += masses[b] * coms[b, i]
+    com /= mass
+    inertia, r = np.zeros((3, 3)), np.empty(3)
+    for b in range(len(masses)):
+        for i in range(3):
+            r[i] = coms[b, i] - com[i]
+        r_sq = r[0] * r[0] + r[1] * r[1] + r[2] * r[2]
+        for i in range(3):
+            for j in range(3):
+                shift = (r_sq if i == j else 0.0) - r[i] * r[j]
+                inertia[i, j] += inertias[b, i, j] + masses[b] * shift
     return mass, com, inertia
 
 
@@ -135,12 +147,19 @@ def composite_body(
 def robot_body(team: TeamModel, m: int, q: np.ndarray) -> tuple:
     """A robot of model m at joint angles q, in its base frame: the composite body of its links
     (mass kg, centre m, inertia about it kg m^2) and its grasp frame (rotation, origin m)."""
-    rots, poss = link_frames(team, m, q)
+    return body_of_frames(team, m, *link_frames(team, m, q))
+
+
+@njit(cache=True)
+def body_of_frames(team: TeamModel, m: int, rots: np.ndarray, poss: np.ndarray) -> tuple:
+    """``robot_body`` from model m's link frames in its base (``link_frames``)."""
     n_links = len(rots)
-    coms, inertias = np.empty((n_links, 3)), np.empty((n_links, 3, 3))
-    for k in range(n_links):
-        coms[k] = matvec3(rots[k], team.link_com[m, k]) + poss[k]
-        inertias[k] = matmul3(matmul3(rots[k], team.link_inertia[m, k]), rots[k].T)
+    coms, inertias, rotated = np.empty((n_links, 3)), np.empty((n_links, 3, 3)), np.empty((3, 3))
+    for k in range(n_links):  # each link's centre R_k c_k + p_k and inertia R_k I_k R_k^T
+        matvec3_into(coms[k], rots[k], team.link_com[m, k])
+        coms[k] += poss[k]
+        matmul3_into(rotated, rots[k], team.link_inertia[m, k])
+        matmul3_into(inertias[k], rotated, rots[k].T)
     mass, com, inertia = composite_body(team.link_mass[m], coms, inertias)
     g = team.grasp_link[m]
     rot_grasp = matmul3(rots[g], team.grasp_rot[m])
@@ -154,7 +173,27 @@ def place_body(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Centre of mass and inertia about it of a body given in frame A, expressed in W, A's pose
     in W being (rot, pos): c_W = R c + p, I_W = R I R^T."""
-    return matvec3(rot, com) + pos, matmul3(matmul3(rot, inertia), rot.T)
+    com_w, inertia_w = np.empty(3), np.empty((3, 3))
+    place_body_into(com_w, inertia_w, com, inertia, rot, pos, np.empty((3, 3)))
+    return com_w, inertia_w
+
+
+@njit(cache=True)
+def place_body_into(
+    com_w: np.ndarray,
+    inertia_w: np.ndarray,
+    com: np.ndarray,
+    inertia: np.ndarray,
+    rot: np.ndarray,
+    pos: np.ndarray,
+    scratch: np.ndarray,
+) -> None:
+    """com_w (3,), inertia_w (3, 3) = ``place_body`` (scratch: (3, 3))."""
+    matvec3_into(com_w, rot, com)
+    for i in range(3):
+        com_w[i] += pos[i]
+    matmul3_into(scratch, rot, inertia)
+    matmul3_into(inertia_w, scratch, rot.T)
 
 
 @njit(cache=True)
@@ -165,8 +204,12 @@ def body_from_params(params: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]
     mass = params[0]
     com = params[1:4] / mass
     xx, yy, zz, xy, xz, yz = params[4:10]
-    inertia_o = np.array([[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]])
-    return mass, com, inertia_o - mass * ((com @ com) * np.eye(3) - np.outer(com, com))
+    inertia = np.array([[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]])  # I_o, then I_c
+    com_sq = com[0] * com[0] + com[1] * com[1] + com[2] * com[2]
+    for i in range(3):
+        for j in range(3):
+            inertia[i, j] -= mass * ((com_sq if i == j else 0.0) - com[i] * com[j])
+    return mass, com, inertia
 
 
 @njit(cache=True)
@@ -203,9 +246,10 @@ def team_wrench(
     at angular velocity ``w``: F = M (a + w' x r + w x (w x r)), r = com - origin,
     tau = I_c w' + w x I_c w."""
     r = com - origin
-    force = mass * (acc + np.cross(wd, r) + np.cross(w, np.cross(w, r)))
-    torque = matvec3(inertia, wd) + np.cross(w, matvec3(inertia, w))
-    return np.concatenate((force, torque))
+    out = np.empty(6)
+    out[:3] = mass * (acc + cross3(wd, r) + cross3(w, cross3(w, r)))  # F
+    out[3:] = matvec3(inertia, wd) + cross3(w, matvec3(inertia, w))  # tau
+    return out
 
 
 @njit(cache=True)
@@ -213,10 +257,19 @@ def wrench_map(rot: np.ndarray, pos: np.ndarray) -> np.ndarray:
     """G (6, 6): a wrench [f; n about A's origin] in frame A to W about W's origin, A's pose in W
     being (rot, pos): f_W = R f, n_W = R n + pos x (R f)."""
     g = np.zeros((6, 6))
-    g[:3, :3] = rot
-    g[3:, 3:] = rot
-    g[3:, :3] = matmul3(skew(pos), rot)
+    wrench_map_into(g, rot, pos, np.empty((3, 3)))
     return g
+
+
+@njit(cache=True)
+def wrench_map_into(g: np.ndarray, rot: np.ndarray, pos: np.ndarray, scratch: np.ndarray) -> None:
+    """g (6, 6) = ``wrench_map`` (scratch: (3, 3))."""
+    skew_into(scratch, pos)
+    for i in range(3):
+        for j in range(3):
+            g[i, j] = g[i + 3, j + 3] = rot[i, j]
+            g[i, j + 3] = 0.0
+    matmul3_into(g[3:, :3], scratch, rot)
 
 
 @njit(cache=True)
@@ -232,19 +285,32 @@ def allocate(
     about ``com``: weighted minimum norm u_j = W_j G_j^T lambda, (sum G W G^T) lambda = wrench,
     W_j = diag(limit_j^2), scaled down together if any exceeds its limit. Also returns the
     largest |u_jk| / limit_jk before scaling."""
-    maps = np.empty((len(holding), 6, 6))
-    normal = np.zeros((6, 6))
+    maps, normal = np.empty((len(holding), 6, 6)), np.zeros((6, 6))
+    weight, lever, scratch = np.empty(6), np.empty(3), np.empty((3, 3))
     for idx in range(len(holding)):
-        j = holding[idx]
-        maps[idx] = wrench_map(rot_base[j], pos_base[j] - com)
-        normal += (maps[idx] * team.thrust_limit[j] ** 2) @ maps[idx].T
+        j, g = holding[idx], maps[idx]
+        for i in range(3):
+            lever[i] = pos_base[j, i] - com[i]
+        wrench_map_into(g, rot_base[j], lever, scratch)
+        for k in range(6):
+            weight[k] = team.thrust_limit[j, k] ** 2
+        for r in range(6):  # normal += G_j W_j G_j^T, summed in loops (6x6: no BLAS call)
+            for c in range(6):
+                term = 0.0
+                for k in range(6):
+                    term += g[r, k] * weight[k] * g[c, k]
+                normal[r, c] += term
     lam = np.linalg.solve(normal, wrench)
     commands = np.zeros((len(rot_base), 6))
     ratio = 0.0
     for idx in range(len(holding)):
         j = holding[idx]
-        commands[j] = team.thrust_limit[j] ** 2 * (maps[idx].T @ lam)
-        ratio = max(ratio, np.max(np.abs(commands[j]) / team.thrust_limit[j]))
+        for k in range(6):  # u_j = W_j G_j^T lambda
+            g_lam = 0.0
+            for r in range(6):
+                g_lam += maps[idx, r, k] * lam[r]
+            commands[j, k] = team.thrust_limit[j, k] ** 2 * g_lam
+            ratio = max(ratio, abs(commands[j, k]) / team.thrust_limit[j, k])
     if ratio > 1.0:
         commands /= ratio
     return commands, ratio
@@ -280,54 +346,14 @@ def thrust_commands(
 #     F_b = m_b (a_b + 2 w x v_b),
 #     tau_b = I_b (al_b + w x w_b) + w x I_b w_b + w_b x I_b w + w_b x I_b w_b   (about c_b),
 # and about the team's centre of mass c: [sum F_b; sum tau_b + (c_b - c) x F_b].
-ARM_STEP_S = 0.01  # central-difference step of the arms' relative motion
+# (The arms' kinematics and their motion relative to G: ``arm_kinematics``.)
 
 
-@njit(cache=True)
-def links_in_grasp(team: TeamModel, m: int, q: np.ndarray) -> tuple:
-    """Model m's links at joint angles q in its grasp frame G: centres of mass (L, 3) m,
-    rotations (L, 3, 3) and the link frames' origins (L, 3) m: (R_bg^T R_k, R_bg^T (p_k -
-    p_bg)) with (R_bg, p_bg) G in the base."""
-    rots, poss = link_frames(team, m, q)
-    g = team.grasp_link[m]
-    rot_gb = (rots[g] @ team.grasp_rot[m]).T
-    pos_bg = poss[g] + rots[g] @ team.grasp_pos[m]
-    n_links = len(rots)
-    coms, rots_g, origins = (
-        np.empty((n_links, 3)),
-        np.empty((n_links, 3, 3)),
-        np.empty((n_links, 3)),
-    )
-    for k in range(n_links):
-        rots_g[k] = rot_gb @ rots[k]
-        origins[k] = rot_gb @ (poss[k] - pos_bg)
-        coms[k] = origins[k] + rots_g[k] @ team.link_com[m, k]
-    return coms, rots_g, origins
-
-
-@njit(cache=True)
-def arm_motion_in_grasp(team: TeamModel, m: int, q: np.ndarray, qd: np.ndarray) -> tuple:
-    """Motion of model m's links relative to its grasp frame G (G axes) with the joints at q
-    (rad) turning at qd (rad/s), q(t) = q + qd t: centres c_b (L, 3), inertias (L, 3, 3) about
-    them, the centres' velocities v_b and accelerations a_b (L, 3), angular velocities w_b and
-    accelerations al_b (L, 3), and the base origin's velocity (3,); by central differences over
-    ``ARM_STEP_S``: v = (c(h) - c(-h)) / 2h, a = (c(h) - 2 c(0) + c(-h)) / h^2,
-    w(+-h/2) = +-log(R(+-h) R(0)^T)^(+-1) / h, w = mean, al = (w(h/2) - w(-h/2)) / h."""
-    h = ARM_STEP_S
-    c0, r0, o0 = links_in_grasp(team, m, q)
-    cp, rp, op = links_in_grasp(team, m, q + qd * h)
-    cm, rm, om = links_in_grasp(team, m, q - qd * h)
-    vel = (cp - cm) / (2 * h)
-    acc = (cp - 2 * c0 + cm) / (h * h)
-    n_links = len(c0)
-    w, al, inertias = np.empty((n_links, 3)), np.empty((n_links, 3)), np.empty((n_links, 3, 3))
-    for k in range(n_links):
-        inertias[k] = r0[k] @ team.link_inertia[m, k] @ r0[k].T  # about c_b, G axes
-        w_up = log_so3(rp[k] @ r0[k].T) / h
-        w_down = log_so3(r0[k] @ rm[k].T) / h
-        w[k] = 0.5 * (w_up + w_down)
-        al[k] = (w_up - w_down) / h
-    return c0, inertias, vel, acc, w, al, (op[0] - om[0]) / (2 * h)
+@njit(cache=True, inline="always")
+def _add_into(out: np.ndarray, v: np.ndarray) -> None:
+    """out += v (3,), elementwise, without a temporary."""
+    for i in range(3):
+        out[i] += v[i]
 
 
 @njit(cache=True)
@@ -345,46 +371,32 @@ def arm_motion_wrench(
     """The wrench (6,) about ``com`` the arms' motion adds to ``team_wrench`` (section above):
     links b (masses (b,), centres, inertias, relative velocities, accelerations, angular
     velocities and accelerations, one frame's axes) on a cargo turning at ``w``."""
-    out = np.zeros(6)
-    for b in range(len(masses)):
-        force = masses[b] * (acc[b] + 2.0 * np.cross(w, vel[b]))
+    out, force, torque, term = np.zeros(6), np.empty(3), np.empty(3), np.empty(3)
+    inertia_w, inertia_w_rel, lever = np.empty(3), np.empty(3), np.empty(3)
+    for b in range(len(masses)):  # in loops on 3-vectors, written into the scratch above
         inertia = inertias[b]
-        torque = (
-            inertia @ (al_rel[b] + np.cross(w, w_rel[b]))
-            + np.cross(w, inertia @ w_rel[b])
-            + np.cross(w_rel[b], inertia @ w)
-            + np.cross(w_rel[b], inertia @ w_rel[b])
-        )
-        out[:3] += force
-        out[3:] += torque + np.cross(coms[b] - com, force)
+        cross3_into(term, w, vel[b])
+        for i in range(3):  # F_b = m_b (a_b + 2 w x v_b)
+            force[i] = masses[b] * (acc[b, i] + 2.0 * term[i])
+        cross3_into(term, w, w_rel[b])
+        for i in range(3):
+            term[i] += al_rel[b, i]
+        matvec3_into(torque, inertia, term)  # I_b (al_b + w x w_b)
+        matvec3_into(inertia_w, inertia, w)
+        matvec3_into(inertia_w_rel, inertia, w_rel[b])
+        cross3_into(term, w, inertia_w_rel)
+        _add_into(torque, term)  # + w x I_b w_b
+        cross3_into(term, w_rel[b], inertia_w)
+        _add_into(torque, term)  # + w_b x I_b w
+        cross3_into(term, w_rel[b], inertia_w_rel)
+        _add_into(torque, term)  # + w_b x I_b w_b
+        for i in range(3):
+            lever[i] = coms[b, i] - com[i]
+        cross3_into(term, lever, force)
+        for i in range(3):
+            out[i] += force[i]
+            out[i + 3] += torque[i] + term[i]
     return out
-
-
-@njit(cache=True)
-def empty_arm_motions(count: int, n_links: int) -> tuple:
-    """Room for ``count`` results of ``arm_motion_in_grasp`` stacked by row (``store_arm_motion``):
-    centres, inertias, velocities, accelerations, angular velocities and accelerations
-    (count, L, ...), base origin velocities (count, 3)."""
-    return (
-        np.empty((count, n_links, 3)),
-        np.empty((count, n_links, 3, 3)),
-        np.empty((count, n_links, 3)),
-        np.empty((count, n_links, 3)),
-        np.empty((count, n_links, 3)),
-        np.empty((count, n_links, 3)),
-        np.empty((count, 3)),
-    )
-
-
-@njit(cache=True)
-def store_arm_motion(
-    motions: tuple, r: int, team: TeamModel, m: int, q: np.ndarray, qd: np.ndarray
-) -> None:
-    """Row r of the stacked ``motions`` (``empty_arm_motions``) = ``arm_motion_in_grasp`` of model
-    m at joint angles q (rad) turning at qd (rad/s)."""
-    c, inertia, v, a, w, al, v_base = arm_motion_in_grasp(team, m, q, qd)
-    motions[0][r], motions[1][r], motions[2][r] = c, inertia, v
-    motions[3][r], motions[4][r], motions[5][r], motions[6][r] = a, w, al, v_base
 
 
 @njit(cache=True)
@@ -397,14 +409,16 @@ def place_arm_motion(
     row: np.ndarray,
 ) -> tuple:
     """``team_arm_motion`` from the arms' motions in their grasp frames, robot j's at row[j] of
-    the stacked ``motions`` (``store_arm_motion``), rotated into W (robot j's grasp frame in W:
-    grasp_rot[j], grasp_pos[j]): x_W = R x_G (+ p for the centres), I_W = R I_G R^T."""
+    the stacked ``motions`` (``arm_kinematics.arm_motion_into``), rotated into W (robot j's
+    grasp frame in W: grasp_rot[j], grasp_pos[j]): x_W = R x_G (+ p for the centres),
+    I_W = R I_G R^T."""
     n_links = team.parent.shape[1]
     count = len(holding) * n_links
     masses, coms, inertias = np.empty(count), np.empty((count, 3)), np.empty((count, 3, 3))
     vel, acc = np.empty((count, 3)), np.empty((count, 3))
     w_rel, al_rel = np.empty((count, 3)), np.empty((count, 3))
     base_vel, base_w = np.zeros((len(grasp_rot), 3)), np.zeros((len(grasp_rot), 3))
+    rotated = np.empty((3, 3))
     for idx in range(len(holding)):
         j = holding[idx]
         m, r, rot = team.model_of[j], row[j], grasp_rot[j]
@@ -413,11 +427,16 @@ def place_arm_motion(
         for k in range(n_links):
             b = idx * n_links + k
             masses[b] = team.link_mass[m, k]
-            coms[b] = rot @ c[k] + grasp_pos[j]
-            inertias[b] = rot @ inertia[k] @ rot.T
-            vel[b], acc[b] = rot @ v[k], rot @ a[k]
-            w_rel[b], al_rel[b] = rot @ w[k], rot @ al[k]
-        base_vel[j], base_w[j] = rot @ motions[6][r], rot @ w[0]
+            matvec3_into(coms[b], rot, c[k])
+            coms[b] += grasp_pos[j]
+            matmul3_into(rotated, rot, inertia[k])
+            matmul3_into(inertias[b], rotated, rot.T)
+            matvec3_into(vel[b], rot, v[k])
+            matvec3_into(acc[b], rot, a[k])
+            matvec3_into(w_rel[b], rot, w[k])
+            matvec3_into(al_rel[b], rot, al[k])
+        matvec3_into(base_vel[j], rot, motions[6][r])
+        matvec3_into(base_w[j], rot, w[0])
     return masses, coms, inertias, vel, acc, w_rel, al_rel, base_vel, base_w
 
 
@@ -436,10 +455,11 @@ def team_arm_motion(
     velocities and accelerations (``arm_motion_in_grasp`` rotated into W, ``place_arm_motion``),
     and per robot its base origin's velocity (n, 3) and angular velocity (n, 3) relative to the
     cargo (W axes)."""
-    motions = empty_arm_motions(len(grasp_rot), team.parent.shape[1])
+    n_links = team.parent.shape[1]
+    motions, work = empty_arm_motions(len(grasp_rot), n_links), arm_work(n_links)
     for idx in range(len(holding)):
         j = holding[idx]
-        store_arm_motion(motions, j, team, team.model_of[j], q[j], qd[j])
+        arm_motion_into(motions, j, team, team.model_of[j], q[j], qd[j], work)
     row = np.arange(len(grasp_rot))
     return place_arm_motion(team, holding, grasp_rot, grasp_pos, motions, row)
 
