@@ -2,7 +2,8 @@
 once per world: ``transport.CargoTransport._bind_step_record``, ``estimator.records``):
 
 - ``commands``, before the physics: the period's commands (``actions.command_period``) and
-  whether qpos and qvel are as the last period left them (``physics.same_state``);
+  whether qpos and qvel are as the last period left them, within MuJoCo's bounds
+  (``physics.same_state``);
 - ``sense_and_navigate``, after it: the physics state's check (``physics.state_finite``), every
   robot's sensor readings (``sensors.read_into``) with the faults' masks of the step, and the
   robots' navigation filters (``navigation.navigate``);
@@ -31,19 +32,20 @@ from astrocargo.envs.sensors import read_into
 
 @njit(cache=True)
 def commands(actions, normals, thrust_scale, ctrl, max_move_rad, dt_s, world, qpos, qvel,
-             saved_qpos, saved_qvel):  # fmt: skip
+             saved_qpos, saved_qvel, thrust):  # fmt: skip
     """``command_period`` of ``actions`` (N, 8) with the step's standard ``normals``, the
     faults' ``thrust_scale`` (H,) and MuJoCo's ``ctrl``; the record ``world`` gives the limits,
     the actuators, the arms' targets and rates and the step's clipping, effort and saturation
-    (written in place). Returns the thrust commands (N, 6) and whether ``qpos`` and ``qvel``
-    are still those saved (``same_state``: the period may skip the stages the last one left)."""
+    (written in place), and the thrust commands go to ``thrust`` (N, 6). Returns whether
+    ``qpos`` and ``qvel`` are still those saved and within MuJoCo's bounds (``same_state``:
+    the period may skip the stages and checks the last one left)."""
     w = world[0]
-    thrust = command_period(
+    command_period(
         actions, w.acting, w.thrust_limits, w.joint_low, w.joint_high, max_move_rad, dt_s,
         w.arm_targets, w.arm_rates, normals, w.actuation_std, thrust_scale, w.rows, w.thrust_ctrl,
-        w.arm_ctrl, ctrl, w.n_clipped, w.effort, w.saturation,
+        w.arm_ctrl, ctrl, w.n_clipped, w.effort, w.saturation, thrust,
     )  # fmt: skip
-    return thrust, same_state(qpos, qvel, saved_qpos, saved_qvel)
+    return same_state(qpos, qvel, saved_qpos, saved_qvel)
 
 
 @njit(cache=True)

@@ -190,6 +190,7 @@ class CargoTransport:
         self._readings = SensorReadings.empty_record(n)
         self._fresh_readings = FreshReadings(n)
         self._no_peers = no_peer_slots(n)  # peer slots without estimators
+        self._thrust = np.empty((n, 6))  # the thrust commands of a step without estimators
 
     def _make_estimators(self) -> list[CargoEstimator]:
         return self._fresh_estimators(self.world.relative_grasp)
@@ -488,11 +489,13 @@ class CargoTransport:
         p = self._physics
         # The IMU states that started the period: kept from the last reading while qpos and
         # qvel are as the last step (or reset) left them (``PeriodStepper.unchanged``).
-        commands, self._kinematics_current = step_commands(
+        # New commands while estimators run (they may keep them), else the same array.
+        commands = np.empty((self.n_robots, 6)) if self.estimators else self._thrust
+        self._kinematics_current = step_commands(
             actions, normals,
             self.fault_schedule.thrust_scale(self.step_count, self.holding, self._unit_scale),
             self._ctrl, ARM_SPEED_RADPS * self.dt_s, self.dt_s, self._step_record, p.qpos, p.qvel,
-            p.saved_qpos, p.saved_qvel,
+            p.saved_qpos, p.saved_qvel, commands,
         )  # fmt: skip
         if not self._kinematics_current:
             self._imu_period_start()
