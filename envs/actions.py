@@ -99,11 +99,11 @@ def command_period(actions, acting, thrust_limits, joint_low, joint_high, max_mo
     """One period's commands, in place: ``scale_actions`` for every robot (servo targets
     ``arm_targets`` (N, 2) and their rate ``arm_rates`` = (q' - q) / dt, effort sum(a^2) and clipped
     entries (N,), ``thrust_saturation`` (N,), zero for robots not ``acting``) and the thrust
-    commands ``commands`` (N, 6). MuJoCo's controls ``ctrl`` of the robots in the world (``rows``, (H,) robot
-    indices; ``thrust_ctrl`` (H, 6), ``arm_ctrl`` (H, 2) actuator ids) get the delivered wrench u_d
-    = s (u + (std_abs + std_rel |u|) n) with the standard normals n: ``normals``' first 6 H as (H,
-    6); ``actuation_std`` rows (std_abs, std_rel) and the thrust scale s (H,) of faults, and the
-    servo targets."""
+    commands ``commands`` (N, 6). MuJoCo's controls ``ctrl`` of the robots in the world
+    (``rows``, (H,) robot indices; ``thrust_ctrl`` (H, 6), ``arm_ctrl`` (H, 2) actuator ids) get
+    the delivered wrench u_d = s (u + (std_abs + std_rel |u|) n) with the standard normals n:
+    ``normals``' first 6 H as (H, 6); ``actuation_std`` rows (std_abs, std_rel) and the thrust
+    scale s (H,) of faults, and the servo targets."""
     n = actions.shape[0]
     clipped, targets = np.empty((n, 8)), np.empty_like(arm_targets)
     scale_actions_into(

@@ -63,12 +63,17 @@ def same_state(qpos, qvel, saved_qpos, saved_qvel):
     """Whether qpos and qvel are still those saved (NaN counts as changed) with every entry
     within +-``MAX_VALUE`` (where ``mj_checkPos`` and ``mj_checkVel`` leave the state alone);
     compared entry by entry (``np.array_equal`` builds temporaries)."""
-    for values, saved in ((qpos, saved_qpos), (qvel, saved_qvel)):
-        if values.shape != saved.shape:
+    return _same_within_bound(qpos, saved_qpos) and _same_within_bound(qvel, saved_qvel)
+
+
+@njit(cache=True, inline="always")
+def _same_within_bound(values, saved):
+    """``same_state`` of one array and its saved copy."""
+    if values.shape[0] != saved.shape[0]:
+        return False
+    for k in range(values.shape[0]):
+        if not values[k] == saved[k] or abs(values[k]) > MAX_VALUE:
             return False
-        for k in range(values.shape[0]):
-            if not values[k] == saved[k] or abs(values[k]) > MAX_VALUE:
-                return False
     return True
 
 
