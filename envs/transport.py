@@ -461,9 +461,8 @@ class CargoTransport:
         return sense_observe_and_reward(
             p.qpos, p.qvel, p.warnings, cvel, site_xpos, site_xmat, subtree_com, sensordata,
             time_s - self._period_start_s, normals, fix, self._step_record, record,
-            self.navigator.filters, obs, rewards,
-            self._observations.arms, self._xpos, self._xmat, *contacts,
-            self._reference_shapes(time_s), time_s,
+            self.navigator.filters, obs, rewards, self._observations.arms, self._xpos, self._xmat,
+            *contacts, self._reference_shapes(time_s), time_s,
         )  # fmt: skip
 
     def _release(self, released: tuple[int, ...]) -> None:
@@ -497,8 +496,8 @@ class CargoTransport:
         thrust commands (N, 6)."""
         p = self._physics
         # The IMU states that started the period: kept from the last reading while qpos and
-        # qvel are as the last step (or reset) left them (``PeriodStepper.unchanged``).
-        # New commands while estimators run (they may keep them), else the same array.
+        # qvel are as the last step (or reset) left them (``PeriodStepper.unchanged``). New
+        # commands while estimators run (they may keep them), else the same array.
         commands = np.empty((self.n_robots, 6)) if self.estimators else self._thrust
         self._kinematics_current = step_commands(
             actions, normals,
