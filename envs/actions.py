@@ -95,17 +95,17 @@ def thrust_saturation(actions: np.ndarray, clipped: np.ndarray) -> np.ndarray:
 @njit(cache=True)
 def command_period(actions, acting, thrust_limits, joint_low, joint_high, max_move_rad, dt_s,
                    arm_targets, arm_rates, normals, actuation_std, thrust_scale, rows, thrust_ctrl,
-                   arm_ctrl, ctrl, n_clipped, effort, saturation):  # fmt: skip
+                   arm_ctrl, ctrl, n_clipped, effort, saturation, commands):  # fmt: skip
     """One period's commands, in place: ``scale_actions`` for every robot (servo targets
     ``arm_targets`` (N, 2) and their rate ``arm_rates`` = (q' - q) / dt, effort sum(a^2) and clipped
-    entries (N,), ``thrust_saturation`` (N,), zero for robots not ``acting``); returns the thrust
-    commands (N, 6). MuJoCo's controls ``ctrl`` of the robots in the world (``rows``, (H,) robot
-    indices; ``thrust_ctrl`` (H, 6), ``arm_ctrl`` (H, 2) actuator ids) get the delivered wrench u_d
-    = s (u + (std_abs + std_rel |u|) n) with the standard normals n: ``normals``' first 6 H as (H,
-    6); ``actuation_std`` rows (std_abs, std_rel) and the thrust scale s (H,) of faults, and the
-    servo targets."""
+    entries (N,), ``thrust_saturation`` (N,), zero for robots not ``acting``) and the thrust
+    commands ``commands`` (N, 6). MuJoCo's controls ``ctrl`` of the robots in the world
+    (``rows``, (H,) robot indices; ``thrust_ctrl`` (H, 6), ``arm_ctrl`` (H, 2) actuator ids) get
+    the delivered wrench u_d = s (u + (std_abs + std_rel |u|) n) with the standard normals n:
+    ``normals``' first 6 H as (H, 6); ``actuation_std`` rows (std_abs, std_rel) and the thrust
+    scale s (H,) of faults, and the servo targets."""
     n = actions.shape[0]
-    clipped, commands, targets = np.empty((n, 8)), np.empty((n, 6)), np.empty_like(arm_targets)
+    clipped, targets = np.empty((n, 8)), np.empty_like(arm_targets)
     scale_actions_into(
         clipped, n_clipped, effort, commands, targets, actions, acting, thrust_limits,
         arm_targets, joint_low, joint_high, max_move_rad, ARM_DEPLOYED, ARM_OFFSET_RAD,
@@ -126,4 +126,3 @@ def command_period(actions, acting, thrust_limits, joint_low, joint_high, max_mo
             ctrl[thrust_ctrl[k, j]] = (u[j] + std * noise) * thrust_scale[k]
         for j in range(arm_ctrl.shape[1]):
             ctrl[arm_ctrl[k, j]] = arm_targets[rows[k], j]
-    return commands

@@ -5,10 +5,12 @@ velocities), with no work done twice.
 ``mj_step`` starts with ``mj_forward`` of the state it is given; the position and velocity
 stages of that state are what the previous period ended with. While qpos and qvel are exactly as
 that period (or ``mj_forward`` at reset) left them, and the integrator is RK4 (the MJCF's), the
-first ``mj_step`` is run as its parts without those two stages: ``mj_checkPos``, ``mj_checkVel``,
-``mj_sensorVel``, ``mj_forwardSkip`` from the acceleration stage, ``mj_checkAcc`` and
-``mj_RungeKutta`` (the same numbers, bit for bit, with one position stage less). A state changed
-from outside (anything writing qpos or qvel between steps) is noticed and stepped in full. The
+first ``mj_step`` is run as its parts without those two stages: ``mj_sensorVel``,
+``mj_forwardSkip`` from the acceleration stage, ``mj_checkAcc`` and ``mj_RungeKutta`` (the same
+numbers, bit for bit, with one position stage less). Its ``mj_checkPos`` and ``mj_checkVel`` are
+left out too: they act only on an entry that is NaN or beyond ``mjMAXVAL`` in magnitude, and the
+state is taken as unchanged only when it has none. A state changed from outside (anything
+writing qpos or qvel between steps), or one such entry, is noticed and stepped in full. The
 model must not change between steps except through a reset.
 
 After the period the acceleration stage (qacc, constraint forces, acceleration sensors) stays as
@@ -20,6 +22,16 @@ from __future__ import annotations
 
 import mujoco
 import numpy as np
+from mujoco import (
+    mj_checkAcc,
+    mj_forwardSkip,
+    mj_fwdPosition,
+    mj_fwdVelocity,
+    mj_RungeKutta,
+    mj_sensorPos,
+    mj_sensorVel,
+    mj_step,
+)
 from numba import njit
 
 from astrocargo.envs.rewards import all_finite
@@ -30,6 +42,7 @@ UNSTABLE_WARNINGS = np.array(
     [int(getattr(mujoco.mjtWarning, f"mjWARN_BAD{x}")) for x in ("QPOS", "QVEL", "QACC")]
 )
 _STAGE_VEL = int(mujoco.mjtStage.mjSTAGE_VEL)
+MAX_VALUE = float(mujoco.mjMAXVAL)  # mj_checkPos, mj_checkVel: beyond it an entry is bad
 
 
 @njit(cache=True)
@@ -47,14 +60,20 @@ def state_finite(qpos, qvel, warnings, unstable, saved_qpos, saved_qvel):
 
 @njit(cache=True)
 def same_state(qpos, qvel, saved_qpos, saved_qvel):
-    """Whether qpos and qvel are still those saved (NaN counts as changed); compared entry by
-    entry (``np.array_equal`` builds temporaries)."""
-    for values, saved in ((qpos, saved_qpos), (qvel, saved_qvel)):
-        if values.shape != saved.shape:
+    """Whether qpos and qvel are still those saved (NaN counts as changed) with every entry
+    within +-``MAX_VALUE`` (where ``mj_checkPos`` and ``mj_checkVel`` leave the state alone);
+    compared entry by entry (``np.array_equal`` builds temporaries)."""
+    return _same_within_bound(qpos, saved_qpos) and _same_within_bound(qvel, saved_qvel)
+
+
+@njit(cache=True, inline="always")
+def _same_within_bound(values, saved):
+    """``same_state`` of one array and its saved copy."""
+    if values.shape[0] != saved.shape[0]:
+        return False
+    for k in range(values.shape[0]):
+        if not values[k] == saved[k] or abs(values[k]) > MAX_VALUE:
             return False
-        for k in range(values.shape[0]):
-            if not values[k] == saved[k]:
-                return False
     return True
 
 
@@ -90,7 +109,8 @@ class PeriodStepper:
         self.saved_qvel[:] = self.qvel
 
     def unchanged(self) -> bool:
-        """Whether qpos and qvel are as the last period (or ``forward_done``) left them."""
+        """Whether qpos and qvel are as the last period (or ``forward_done``) left them, with
+        no entry that ``mj_checkPos`` or ``mj_checkVel`` would act on (``same_state``)."""
         return same_state(self.qpos, self.qvel, self.saved_qpos, self.saved_qvel)
 
     def advance(self, unchanged: bool) -> bool:
@@ -108,15 +128,13 @@ class PeriodStepper:
         m, d = self.model, self.data
         n_step = self.frame_skip
         if self.skip_allowed and unchanged:
-            mujoco.mj_checkPos(m, d)
-            mujoco.mj_checkVel(m, d)
-            mujoco.mj_sensorVel(m, d)
-            mujoco.mj_forwardSkip(m, d, _STAGE_VEL, 0)
-            mujoco.mj_checkAcc(m, d)
-            mujoco.mj_RungeKutta(m, d, 4)
+            mj_sensorVel(m, d)
+            mj_forwardSkip(m, d, _STAGE_VEL, 0)
+            mj_checkAcc(m, d)
+            mj_RungeKutta(m, d, 4)
             n_step -= 1
         if n_step:
-            mujoco.mj_step(m, d, nstep=n_step)
-        mujoco.mj_fwdPosition(m, d)
-        mujoco.mj_sensorPos(m, d)
-        mujoco.mj_fwdVelocity(m, d)
+            mj_step(m, d, nstep=n_step)
+        mj_fwdPosition(m, d)
+        mj_sensorPos(m, d)
+        mj_fwdVelocity(m, d)

@@ -2,7 +2,8 @@
 once per world: ``transport.CargoTransport._bind_step_record``, ``estimator.records``):
 
 - ``commands``, before the physics: the period's commands (``actions.command_period``) and
-  whether qpos and qvel are as the last period left them (``physics.same_state``);
+  whether qpos and qvel are as the last period left them, within MuJoCo's bounds
+  (``physics.same_state``);
 - ``sense_and_navigate``, after it: the physics state's check (``physics.state_finite``), every
   robot's sensor readings (``sensors.read_into``) with the faults' masks of the step, and the
   robots' navigation filters (``navigation.navigate``);
@@ -30,20 +31,21 @@ from astrocargo.envs.sensors import read_into
 
 
 @njit(cache=True)
-def commands(actions, normals, thrust_scale, ctrl, max_move_rad, dt_s, world, qpos, qvel,
-             saved_qpos, saved_qvel):  # fmt: skip
+def commands(actions, normals, thrust_scale, ctrl, world, qpos, qvel, thrust):
     """``command_period`` of ``actions`` (N, 8) with the step's standard ``normals``, the
-    faults' ``thrust_scale`` (H,) and MuJoCo's ``ctrl``; the record ``world`` gives the limits,
-    the actuators, the arms' targets and rates and the step's clipping, effort and saturation
-    (written in place). Returns the thrust commands (N, 6) and whether ``qpos`` and ``qvel``
-    are still those saved (``same_state``: the period may skip the stages the last one left)."""
+    faults' ``thrust_scale`` (H,) and MuJoCo's ``ctrl``; the record ``world`` gives the control
+    period ``dt_s`` and the servos' move in it, the limits, the actuators, the arms' targets and
+    rates and the step's clipping, effort and saturation (written in place); the thrust commands
+    go to ``thrust`` (N, 6). Returns whether ``qpos`` and ``qvel`` are still those the record
+    saved (saved_qpos, saved_qvel) and within MuJoCo's bounds (``same_state``: the period may
+    skip the stages and checks the last one left)."""
     w = world[0]
-    thrust = command_period(
-        actions, w.acting, w.thrust_limits, w.joint_low, w.joint_high, max_move_rad, dt_s,
-        w.arm_targets, w.arm_rates, normals, w.actuation_std, thrust_scale, w.rows, w.thrust_ctrl,
-        w.arm_ctrl, ctrl, w.n_clipped, w.effort, w.saturation,
+    command_period(
+        actions, w.acting, w.thrust_limits, w.joint_low, w.joint_high, w.max_move_rad[0],
+        w.dt_s[0], w.arm_targets, w.arm_rates, normals, w.actuation_std, thrust_scale, w.rows,
+        w.thrust_ctrl, w.arm_ctrl, ctrl, w.n_clipped, w.effort, w.saturation, thrust,
     )  # fmt: skip
-    return thrust, same_state(qpos, qvel, saved_qpos, saved_qvel)
+    return same_state(qpos, qvel, w.saved_qpos, w.saved_qvel)
 
 
 @njit(cache=True)
@@ -75,23 +77,24 @@ def observe_and_reward(obs, rewards, acting, world, readings, nav, arms, xpos, x
 
 @njit(cache=True)
 def sense_and_navigate(
-    qpos, qvel, warnings, saved_qpos, saved_qvel, cvel, site_xpos, site_xmat, subtree_com,
-    sensordata, period_s, normals, fix, world, readings, filters, dt_s,
+    qpos, qvel, warnings, cvel, site_xpos, site_xmat, subtree_com, sensordata, period_s, normals,
+    fix, world, readings, filters,
 ):  # fmt: skip
     """After the physics of a period: whether its state is finite (``state_finite``, which also
-    saves qpos and qvel); the readings (``read_into``: the H robots of the world in its ``rows``;
-    their noise: the standard normals ``normals`` after the propulsion's first 6 H, as (H,
-    draws), times ``noise_std``) into ``readings`` (``sensors.readings_record``), whose IMU
-    frames and fixes are then kept only where ``imu_ok`` / ``fix_ok`` (bool (N,): what the
-    faults leave); the navigation ``filters`` of the ``acting`` robots (``navigate``).
-    ``world``: the step's record (``transport.CargoTransport._bind_step_record``: unstable,
-    imu_index, joint_adr, pos_adr, quat_adr, noise_std, rows, imu_v0, imu_r0, imu_ok, fix_ok,
-    acting). Returns whether the state is finite."""
+    saves qpos and qvel in the record's saved_qpos, saved_qvel); the readings (``read_into``: the
+    H robots of the world in its ``rows``; their noise: the standard normals ``normals`` after
+    the propulsion's first 6 H, as (H, draws), times ``noise_std``) into ``readings``
+    (``sensors.readings_record``), whose IMU frames and fixes are then kept only where
+    ``imu_ok`` / ``fix_ok`` (bool (N,): what the faults leave); the navigation ``filters`` of
+    the ``acting`` robots over the control period ``dt_s`` (``navigate``). ``world``: the step's
+    record (``transport.CargoTransport._bind_step_record``: unstable, imu_index, joint_adr,
+    pos_adr, quat_adr, noise_std, rows, imu_v0, imu_r0, imu_ok, fix_ok, acting, dt_s,
+    saved_qpos, saved_qvel). Returns whether the state is finite."""
     w, r = world[0], readings[0]
     h = w.rows.shape[0]
     draws = (normals.shape[0] - 6 * h) // h
     noise = w.noise_std[:draws] * normals[6 * h :].reshape(h, draws)
-    finite = state_finite(qpos, qvel, warnings, w.unstable, saved_qpos, saved_qvel)
+    finite = state_finite(qpos, qvel, warnings, w.unstable, w.saved_qpos, w.saved_qvel)
     read_into(
         w.imu_v0, w.imu_r0, period_s, cvel, site_xpos, site_xmat, subtree_com, w.imu_index,
         sensordata, w.joint_adr, w.pos_adr, w.quat_adr, noise, fix, w.rows, r.accel, r.gyro,
@@ -100,7 +103,7 @@ def sense_and_navigate(
     for i in range(r.has_imu.shape[0]):
         r.has_imu[i] = r.has_imu[i] and w.imu_ok[i]
         r.has_fix[i] = r.has_fix[i] and w.fix_ok[i]
-    navigate(filters, dt_s, r.gyro, r.accel, r.has_imu, r.pos, r.quat, r.has_fix, w.acting)
+    navigate(filters, w.dt_s[0], r.gyro, r.accel, r.has_imu, r.pos, r.quat, r.has_fix, w.acting)
     return finite
 
 
@@ -116,17 +119,17 @@ def no_peer_slots(n):
 
 @njit(cache=True)
 def sense_observe_and_reward(
-    qpos, qvel, warnings, saved_qpos, saved_qvel, cvel, site_xpos, site_xmat, subtree_com,
-    sensordata, period_s, normals, fix, world, readings, filters, dt_s, obs, rewards, arms, xpos,
-    xmat, robot_contacts, cargo_contacts, shapes, time_s,
+    qpos, qvel, warnings, cvel, site_xpos, site_xmat, subtree_com, sensordata, period_s, normals,
+    fix, world, readings, filters, obs, rewards, arms, xpos, xmat, robot_contacts,
+    cargo_contacts, shapes, time_s,
 ):  # fmt: skip
     """``sense_and_navigate`` then ``observe_and_reward`` of the robots the record ``world``
     counts as acting, in one call (the arguments are theirs), for a step with nothing between
     them: no estimators (no peer message, no estimate, no information gained: zeros) and no
     release. Returns whether the state and the observations are finite."""
     finite = sense_and_navigate(
-        qpos, qvel, warnings, saved_qpos, saved_qvel, cvel, site_xpos, site_xmat, subtree_com,
-        sensordata, period_s, normals, fix, world, readings, filters, dt_s,
+        qpos, qvel, warnings, cvel, site_xpos, site_xmat, subtree_com, sensordata, period_s,
+        normals, fix, world, readings, filters,
     )  # fmt: skip
     n = obs.shape[0]
     return observe_and_reward(

@@ -190,6 +190,7 @@ class CargoTransport:
         self._readings = SensorReadings.empty_record(n)
         self._fresh_readings = FreshReadings(n)
         self._no_peers = no_peer_slots(n)  # peer slots without estimators
+        self._thrust = np.empty((n, 6))  # the thrust commands of a step without estimators
 
     def _make_estimators(self) -> list[CargoEstimator]:
         return self._fresh_estimators(self.world.relative_grasp)
@@ -262,7 +263,8 @@ class CargoTransport:
         ``step_kernels`` reads): the sensors' indices and noise, the actuators, the observation
         layout and the reward weights copied in; the IMU states, the faults' masks, the acting
         mask, the arms' targets and rates, the step's effort, clipping, saturation and mixed
-        terms and the reference's arrays become views of it."""
+        terms and the reference's arrays become views of it, and so do the period stepper's
+        saved qpos and qvel (``_bind_record_views``)."""
         s, ob = self.sensors, self._observations
         self._step_record = record_of(
             {
@@ -277,6 +279,9 @@ class CargoTransport:
                 "link_parent": ob.link_parent, "weights": self._weights,
                 "shared": np.array([float(self.shared_reward)]),
                 "cargo_body": np.array([self.world.cargo_body]),
+                "dt_s": np.array([self.dt_s]),  # the control period (the navigators' too)
+                "max_move_rad": np.array([ARM_SPEED_RADPS * self.dt_s]),  # the servos' per period
+                "saved_qpos": self._physics.saved_qpos, "saved_qvel": self._physics.saved_qvel,
                 **{field: getattr(self, name) for field, name in self._RECORD_VIEWS.items()},
                 **dict(zip(self._REF_FIELDS, self._ref_arrays, strict=True)),
             }
@@ -287,6 +292,11 @@ class CargoTransport:
         views = bound_views(self._step_record)
         for field, name in self._RECORD_VIEWS.items():
             setattr(self, name, views[field])
+        # The period stepper's saved state lives in the record (the kernels compare and save it
+        # there), carrying what the stepper held (NaN in a copy: its first period in full).
+        p = self._physics
+        views["saved_qpos"][:], views["saved_qvel"][:] = p.saved_qpos, p.saved_qvel
+        p.saved_qpos, p.saved_qvel = views["saved_qpos"], views["saved_qvel"]
         self._ref_arrays = tuple(views[field] for field in self._REF_FIELDS)
         self._ref_cache = None
 
@@ -449,11 +459,10 @@ class CargoTransport:
         cvel, site_xpos, site_xmat, subtree_com, sensordata = self._sensor_views
         p = self._physics
         return sense_observe_and_reward(
-            p.qpos, p.qvel, p.warnings, p.saved_qpos, p.saved_qvel, cvel, site_xpos, site_xmat,
-            subtree_com, sensordata, time_s - self._period_start_s, normals, fix,
-            self._step_record, record, self.navigator.filters, self.navigator.dt_s, obs, rewards,
-            self._observations.arms, self._xpos, self._xmat, *contacts,
-            self._reference_shapes(time_s), time_s,
+            p.qpos, p.qvel, p.warnings, cvel, site_xpos, site_xmat, subtree_com, sensordata,
+            time_s - self._period_start_s, normals, fix, self._step_record, record,
+            self.navigator.filters, obs, rewards, self._observations.arms, self._xpos, self._xmat,
+            *contacts, self._reference_shapes(time_s), time_s,
         )  # fmt: skip
 
     def _release(self, released: tuple[int, ...]) -> None:
@@ -487,12 +496,13 @@ class CargoTransport:
         thrust commands (N, 6)."""
         p = self._physics
         # The IMU states that started the period: kept from the last reading while qpos and
-        # qvel are as the last step (or reset) left them (``PeriodStepper.unchanged``).
-        commands, self._kinematics_current = step_commands(
+        # qvel are as the last step (or reset) left them (``PeriodStepper.unchanged``). New
+        # commands while estimators run (they may keep them), else the same array.
+        commands = np.empty((self.n_robots, 6)) if self.estimators else self._thrust
+        self._kinematics_current = step_commands(
             actions, normals,
             self.fault_schedule.thrust_scale(self.step_count, self.holding, self._unit_scale),
-            self._ctrl, ARM_SPEED_RADPS * self.dt_s, self.dt_s, self._step_record, p.qpos, p.qvel,
-            p.saved_qpos, p.saved_qvel,
+            self._ctrl, self._step_record, p.qpos, p.qvel, commands,
         )  # fmt: skip
         if not self._kinematics_current:
             self._imu_period_start()
@@ -537,9 +547,9 @@ class CargoTransport:
         cvel, site_xpos, site_xmat, subtree_com, sensordata = self._sensor_views
         p = self._physics
         finite = sense_and_navigate(
-            p.qpos, p.qvel, p.warnings, p.saved_qpos, p.saved_qvel, cvel, site_xpos, site_xmat,
-            subtree_com, sensordata, time_s - self._period_start_s, normals, fix,
-            self._step_record, record, self.navigator.filters, self.navigator.dt_s,
+            p.qpos, p.qvel, p.warnings, cvel, site_xpos, site_xmat, subtree_com, sensordata,
+            time_s - self._period_start_s, normals, fix, self._step_record, record,
+            self.navigator.filters,
         )  # fmt: skip
         return finite, r, record
 

@@ -61,6 +61,24 @@ def test_period_stepper_reports_a_non_finite_state(tmp_path, monkeypatch):
     assert not stepper.advance(False)
 
 
+def test_a_state_beyond_mujocos_bound_is_stepped_in_full(tmp_path, monkeypatch):
+    """A finite entry beyond mjMAXVAL, unchanged since the last period, is one mj_checkVel acts
+    on: the stepper does not take the state as unchanged (it leaves that check out then), and
+    its full step resets the state and reports it unstable, as mj_step does."""
+    monkeypatch.chdir(tmp_path)  # MuJoCo writes its warning to MUJOCO_LOG.TXT in the cwd
+    world = World(1)
+    ours, theirs = world.make_data(), world.make_data()
+    stepper = PeriodStepper(world.model, ours, 1)
+    for data in (ours, theirs):
+        data.qvel[0] = 2.0 * mujoco.mjMAXVAL
+    stepper.forward_done()
+    assert not stepper.unchanged()
+    assert not stepper.advance(stepper.unchanged())
+    _reference_period(world.model, theirs)
+    for name in FIELDS:
+        np.testing.assert_array_equal(getattr(ours, name), getattr(theirs, name), name)
+
+
 def test_a_copied_env_steps_like_the_original():
     """A deep copy steps its first period in full, then both continue bit for bit."""
     env = astrobee_cargo_v0.parallel_env(n_robots=2, estimators=False, observe_estimates=False)
