@@ -17,6 +17,14 @@ Closed or open loop. By default the controller flies on the estimates, so the es
 rounding feeds back into the physics. ``record --open-loop`` flies the same scenarios with the
 controller on the true cargo model (arrays named ``<scenario>_open/...``): the estimates no
 longer steer the robots, and only the estimates and what is built from them can move.
+Every recording keeps the actions it flew (``<scenario>/act``, (T, N, 8)). ``record --open-loop
+--actions REF.npz`` flies REF's open-loop actions again instead of running the controller, so
+the controller is out of the comparison too: a rounding-level change in the controller (its
+arm motion is a central difference over 10 ms, which divides rounding by 1e-4) moves the flown
+trajectory and with it every quantity by up to ~3e-10 per quantity, over the bound below. Judge
+an estimator or env change on a replay of the reference's actions; judge a controller change by
+``act`` in plain recordings, against the same controller with its inputs moved by one unit in
+the last place.
 
 Two measures (``--measure``). ``element``: |a - b| / max(|a|, |b|) per entry. It is large
 wherever a quantity passes near zero: on r2_excite_open robot 1's I_xy estimate is -3.7e-6 kg m^2
@@ -59,11 +67,17 @@ STATE_EVERY = 50
 
 
 def record_scenario(
-    n_robots: int, trajectory: str, seed: int, steps: int, open_loop: bool = False
+    n_robots: int,
+    trajectory: str,
+    seed: int,
+    steps: int,
+    open_loop: bool = False,
+    actions: np.ndarray | None = None,
 ) -> dict:
-    """One scenario's arrays: observations (T, N, obs_dim), rewards (T, N), estimates
-    (T, N, 10) and ``state()`` every STATE_EVERY steps; ``open_loop``: the controller flies on
-    the true cargo model instead of the estimates."""
+    """One scenario's arrays: actions (T, N, act_dim), observations (T, N, obs_dim), rewards
+    (T, N), estimates (T, N, 10) and ``state()`` every STATE_EVERY steps, agents in sorted
+    order; ``open_loop``: the controller flies on the true cargo model instead of the
+    estimates; ``actions`` (T, N, act_dim): flown instead of the controller's."""
     from astrocargo.agents.controllers import ObservationController
     from astrocargo.envs import astrobee_cargo_v0
 
@@ -71,13 +85,23 @@ def record_scenario(
         n_robots=n_robots, noise="nominal", trajectory=trajectory, max_cycles=steps + 10
     )
     obs, _ = env.reset(seed=seed)
-    controller = ObservationController.for_env(env, "truth" if open_loop else "estimate")
-    out = {"obs": [], "rew": [], "est": [], "state": []}
+    if actions is None:
+        controller = ObservationController.for_env(env, "truth" if open_loop else "estimate")
+    else:
+        steps = len(actions)  # the recording's steps (fewer where its episode ended early)
+    out = {"act": [], "obs": [], "rew": [], "est": [], "state": []}
     for k in range(steps):
-        actions, _ = controller.predict(obs)
-        obs, rewards, _, _, infos = env.step(actions)
+        agents = sorted(obs)
+        if actions is None:
+            acting, _ = controller.predict(obs)
+        elif actions.shape[1] != len(agents):
+            raise ValueError(f"step {k}: {actions.shape[1]} recorded robots, {len(agents)} acting")
+        else:
+            acting = dict(zip(agents, actions[k], strict=True))
+        obs, rewards, _, _, infos = env.step(acting)
         if not obs:
             break
+        out["act"].append(np.stack([acting[a] for a in agents]))
         agents = sorted(obs)
         out["obs"].append(np.stack([obs[a] for a in agents]))
         out["rew"].append(np.array([rewards[a] for a in agents]))
@@ -87,11 +111,22 @@ def record_scenario(
     return {key: np.array(value) for key, value in out.items()}
 
 
-def record(path: Path, open_loop: bool = False) -> None:
+def record(path: Path, open_loop: bool = False, actions_from: Path | None = None) -> None:
+    """Fly every scenario and write its arrays; ``actions_from``: a recording whose open-loop
+    actions are flown again (``open_loop`` required)."""
+    if actions_from is not None and not open_loop:
+        raise ValueError("replayed actions need --open-loop: the estimates would not steer")
+    replay = np.load(actions_from) if actions_from is not None else None
     arrays = {}
     for name, n_robots, trajectory, seed, steps in SCENARIOS:
         name = f"{name}_open" if open_loop else name
-        for key, value in record_scenario(n_robots, trajectory, seed, steps, open_loop).items():
+        actions = None
+        if replay is not None:
+            if f"{name}/act" not in replay.files:
+                raise ValueError(f"{actions_from} has no {name}/act: record it with this script")
+            actions = replay[f"{name}/act"]
+        scenario = record_scenario(n_robots, trajectory, seed, steps, open_loop, actions)
+        for key, value in scenario.items():
             arrays[f"{name}/{key}"] = value
         print(f"{name}: {len(arrays[f'{name}/obs'])} steps", flush=True)
     np.savez_compressed(path, **arrays)
@@ -150,6 +185,10 @@ def main(argv: list[str] | None = None) -> int:
     rec.add_argument(
         "--open-loop", action="store_true", help="the controller flies on the true cargo model"
     )
+    rec.add_argument(
+        "--actions", type=Path, default=None, metavar="REF.npz",
+        help="with --open-loop: fly REF's recorded actions instead of the controller",
+    )  # fmt: skip
     cmp_ = sub.add_parser("compare", help="compare two recordings")
     cmp_.add_argument("a", type=Path)
     cmp_.add_argument("b", type=Path)
@@ -161,7 +200,14 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.command == "record":
         cli.output_file(parser, args.out, "out", suffix=".npz")
-        record(args.out, args.open_loop)
+        if args.actions is not None and not args.open_loop:
+            parser.error("--actions needs --open-loop")
+        if args.actions is not None and not args.actions.is_file():
+            parser.error(f"{args.actions} is not a file")
+        try:
+            record(args.out, args.open_loop, args.actions)
+        except ValueError as error:
+            parser.error(str(error))
         return 0
     for path in (args.a, args.b):
         if not path.is_file():

@@ -408,3 +408,40 @@ def test_same_results_open_loop_keeps_the_estimates_out_of_the_physics(monkeypat
         assert same.relative_difference(base[loop]["est"], changed[loop]["est"]) > 1e-6
     assert np.array_equal(base[True]["state"], changed[True]["state"])
     assert not np.array_equal(base[False]["state"], changed[False]["state"])
+
+
+def test_same_results_replayed_actions_take_the_controller_out(monkeypatch, tmp_path):
+    """A replay of a recording's actions flies it again bit for bit; a change in the controller
+    moves a live recording but not the replay; bad replay requests are refused."""
+    same = load("same_results")
+    args = (1, "figure8_yaw", 3, 120)
+    base = same.record_scenario(*args, open_loop=True)
+    assert base["act"].shape[:2] == (120, 1) and base["state"].shape[0] == 3
+    from astrocargo.agents.controllers import ObservationController
+
+    original = ObservationController.predict
+
+    def nudged(self, obs, *rest, **kw):
+        actions, state = original(self, obs, *rest, **kw)
+        return {a: 0.99 * u for a, u in actions.items()}, state
+
+    monkeypatch.setattr(ObservationController, "predict", nudged)
+    live = same.record_scenario(*args, open_loop=True)
+    replay = same.record_scenario(*args, open_loop=True, actions=base["act"])
+    assert not np.array_equal(live["act"], base["act"])
+    assert not np.array_equal(live["state"], base["state"])
+    for key, value in base.items():
+        assert np.array_equal(replay[key], value), key
+    with pytest.raises(ValueError, match="recorded robots"):
+        same.record_scenario(2, "figure8_yaw", 3, 5, open_loop=True, actions=base["act"][:5])
+    np.savez(tmp_path / "old.npz", **{"r1_yaw_open/obs": base["obs"]})
+    out = str(tmp_path / "new.npz")
+    old, missing = str(tmp_path / "old.npz"), str(tmp_path / "missing.npz")
+    for argv in (
+        ["record", out, "--actions", old],  # not open loop
+        ["record", out, "--open-loop", "--actions", missing],
+        ["record", out, "--open-loop", "--actions", old],  # no r1_yaw_open/act in it
+    ):
+        with pytest.raises(SystemExit):
+            same.main(argv)
+    assert not (tmp_path / "new.npz").exists()
