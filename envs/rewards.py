@@ -13,6 +13,7 @@ import numpy as np
 from numba import njit
 
 from astrocargo.envs.observations import assemble
+from astrocargo.estimator.checks import all_finite
 from astrocargo.estimator.geometry import log_so3, matmul3
 
 ROTATION_WEIGHT_M_PER_RAD = 0.5  # tracking term: metres of position error per radian
@@ -64,15 +65,6 @@ def tracking_errors(pos, rot, ref_pos, ref_rot):
         pos_sq += offset * offset
         angle_sq += angle[i] * angle[i]
     return np.sqrt(pos_sq), np.sqrt(angle_sq)
-
-
-@njit(cache=True)
-def all_finite(values):
-    """Whether every entry of a contiguous array is finite (no temporary, unlike np.isfinite)."""
-    for x in values.ravel():
-        if not np.isfinite(x):
-            return False
-    return True
 
 
 @njit(cache=True)

@@ -44,6 +44,8 @@ import math
 import numpy as np
 from numba import njit
 
+from .checks import all_finite
+
 __all__ = ["cholesky_lower", "constrained_mode", "is_physical", "solve_lower"]
 
 N_PARAMS = 10
@@ -127,11 +129,6 @@ def _dot(a: np.ndarray, b: np.ndarray) -> float:
     for i in range(a.size):
         total += a[i] * b[i]
     return total
-
-
-@njit(cache=True)
-def _all_finite(a: np.ndarray) -> bool:
-    return np.isfinite(a).all()
 
 
 @njit(cache=True)
@@ -370,7 +367,7 @@ def _barrier_setup(mean, cov, start, use_start):
     if not _cholesky_into(cov, lower):
         return clipped, lower, clipped, 0.0, False
     v = _whitened(mean, lower, clipped)
-    if use_start and _all_finite(start) and _is_physical(start):
+    if use_start and all_finite(start) and _is_physical(start):
         v_start = _whitened(mean, lower, start)
         if _dot(v_start, v_start) < _dot(v, v):
             return clipped, lower, v_start, _T_WARM_START, True
@@ -389,7 +386,7 @@ def _barrier_result(mean, lower, v, solved, clipped) -> tuple[np.ndarray, bool]:
 
 
 def _check_body(pi: np.ndarray) -> None:
-    if pi.shape != (N_PARAMS,) or not _all_finite(pi):
+    if pi.shape != (N_PARAMS,) or not all_finite(pi):
         raise ValueError(f"pi must be a finite array of shape ({N_PARAMS},), got {pi}")
 
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from .checks import all_finite
 from .geometry import exp_so3, matmul3, matvec3, quat_to_mat
 from .momentum import sample_geometry_from_rate_filter
 from .preprocess import first_order_hold_step
@@ -15,14 +16,6 @@ from .rne import grasp_from_base_kernel
 
 # Outcomes of ``per_step.estimator_step`` (its first return value) and of ``update_attitude``.
 NOT_USABLE, NO_FIX, FIX, BAD_FIX = range(4)
-
-
-@njit(cache=True)
-def all_finite(a: np.ndarray) -> bool:
-    for value in a.flat:
-        if not np.isfinite(value):
-            return False
-    return True
 
 
 @njit(cache=True)

@@ -18,6 +18,7 @@ import math
 import numpy as np
 from numba import boolean, float64, int64, njit, types
 
+from .checks import all_finite
 from .constrained import cholesky_lower, solve_lower
 
 __all__ = [
@@ -130,14 +131,6 @@ def filter_arrays(state: np.ndarray, n: int, m: int):
 
 
 @njit(cache=True)
-def _all_finite(a: np.ndarray) -> bool:
-    for value in a.flat:
-        if not math.isfinite(value):
-            return False
-    return True
-
-
-@njit(cache=True)
 def same_values(a: np.ndarray, b: np.ndarray | None) -> bool:
     """Whether ``b`` holds the values of ``a`` (same shape, entries equal; NaN equals nothing),
     as ``np.array_equal``; None holds none."""
@@ -159,7 +152,7 @@ def unscented_update(arrays: tuple, z: np.ndarray, R: np.ndarray):
     only when the update is accepted. Returns (outcome, NIS).
     """
     x, P, _, sigmas, sigmas_h, y_out, S_out, P_xz_out, Wm, Wc, scalars = arrays
-    if not _all_finite(sigmas_h):
+    if not all_finite(sigmas_h):
         return BAD_H, math.nan
     # The unscented transform and the cross-covariance share the weighted residuals.
     z_pred, residuals_h, weighted_h = _weighted_residuals(sigmas_h, Wm, Wc)
@@ -186,7 +179,7 @@ def unscented_update(arrays: tuple, z: np.ndarray, R: np.ndarray):
     scalars[2] = nis
     scalars[3] = log_likelihood if math.isfinite(nis) else -math.inf
     if not math.isfinite(nis):
-        return (BAD_NIS if _all_finite(z) else BAD_Z), nis
+        return (BAD_NIS if all_finite(z) else BAD_Z), nis
     if nis > scalars[1]:
         return GATED, nis
     P_post = _symmetrised_difference(P, W.T @ W)
@@ -215,7 +208,7 @@ def _predict_and_draw(arrays: tuple, R: np.ndarray, predict_first: bool):
     x, P, Q, sigmas, _, _, _, _, _, _, scalars = arrays
     if predict_first:
         P += Q
-    if not _all_finite(R):
+    if not all_finite(R):
         return BAD_R
     if not draw_merwe_sigma_points(sigmas, x, P, scalars[0]):
         return BAD_P
