@@ -2,12 +2,13 @@
 for a team whose grasp layout is known, without peer noise, window or squared-rate terms): the
 peers' wrenches and actuation covariance (``peer_sums``), the team's motion noise
 (``team_noise.team_noise_kernel``) and the measurement's offset b and covariance R
-(``instant_terms_kernel``), with the peers' message arrays unpacked from their flat buffers in
-the same call (``packed_instant_terms``); and the general path's peer terms (``peer_terms``)."""
+(``instant_terms_kernel``), the peers' message arrays gathered without copies for one peer;
+and the general path's peer terms (``peer_terms``)."""
 
 from __future__ import annotations
 
 import itertools
+import operator
 
 import numpy as np
 from numba import njit
@@ -64,6 +65,14 @@ def instant_terms_kernel(params, d_links, d_y, regressor, transforms, peer_links
     )
 
 
+def _stacked(arrays: list, axis: int | None) -> np.ndarray:
+    """``arrays`` concatenated along ``axis`` (None: stacked on a new first axis); one array is
+    passed through (a view) without a copy."""
+    if len(arrays) == 1:
+        return arrays[0] if axis is not None else arrays[0][None]
+    return np.concatenate(arrays, axis=axis) if axis is not None else np.array(arrays)
+
+
 def known_transforms(rels: list) -> np.ndarray | None:
     """The peers' given wrench transforms G_k -> G (``RelativeGrasp.known``) stacked in peer
     order (P, 6, 6); None where a peer's grasp layout is not given."""
@@ -72,103 +81,55 @@ def known_transforms(rels: list) -> np.ndarray | None:
     return np.array([r.known for r in rels]) if rels else _NO_TRANSFORMS
 
 
-@njit(cache=True)
-def unpack_peers(packed, starts):
-    """The peers' packed buffers (``messages.PACKED_PARTS``) concatenated in peer order, peer k's
-    (n_k = starts[k + 1] - starts[k] coordinates) from 11 starts[k] + 45 k, as
-    ``instant_terms_kernel`` takes them: variances, bands (N,), links (6, N) and grasp (3, N)
-    Jacobians side by side (N = starts[-1]), accelerations (P, 3), wrenches (P, 6) and
-    covariances (P, 6, 6). Copies only."""
-    n_peers, total = starts.shape[0] - 1, starts[-1]
-    var, band = np.empty(total), np.empty(total)
-    links, grasp = np.empty((6, total)), np.empty((3, total))
-    acc, wrench, cov = np.empty((n_peers, 3)), np.empty((n_peers, 6)), np.empty((n_peers, 6, 6))
-    for k in range(n_peers):
-        lo, n = starts[k], starts[k + 1] - starts[k]
-        o = 11 * lo + 45 * k
-        for j in range(n):
-            var[lo + j] = packed[o + j]
-            band[lo + j] = packed[o + n + j]
-            for i in range(6):
-                links[i, lo + j] = packed[o + (2 + i) * n + j]
-            for i in range(3):
-                grasp[i, lo + j] = packed[o + (8 + i) * n + j]
-        o += 11 * n
-        for i in range(3):
-            acc[k, i] = packed[o + i]
-        for i in range(6):
-            wrench[k, i] = packed[o + 3 + i]
-            for j in range(6):
-                cov[k, i, j] = packed[o + 9 + 6 * i + j]
-    return var, band, links, grasp, acc, wrench, cov
-
-
-@njit(cache=True)
-def packed_instant_terms(params, d_links, d_y, regressor, transforms, packed, starts, own_var,
-                         own_band, condition, mismatch_model_var, params_cov, with_spread,
-                         act_cov, floor_cov, update_every, links):  # fmt: skip
-    """``instant_terms_kernel`` on the peers' packed buffers (``unpack_peers``)."""
-    var, band, peer_links, peer_grasp, acc, wrenches, covs = unpack_peers(packed, starts)
-    return instant_terms_kernel(
-        params, d_links, d_y, regressor, transforms, peer_links, peer_grasp, acc, starts,
-        (own_var, var), (own_band, band), condition, mismatch_model_var, params_cov,
-        with_spread, act_cov, wrenches, covs, floor_cov, update_every, links,
-    )  # fmt: skip
-
-
-def _starts(sizes: tuple) -> np.ndarray:
-    """Each peer's first coordinate, then their total: [0, n_0, n_0 + n_1, ...] (made once)."""
-    starts = _STARTS.get(sizes)
-    if starts is None:
-        starts = _STARTS.setdefault(sizes, np.array([0, *itertools.accumulate(sizes)]))
-    return starts
-
-
-def _one_peer(m) -> tuple | None:
-    """One peer's message arrays as ``instant_terms_kernel`` takes them, as they are (views):
-    variances, bands, links and grasp Jacobians, acceleration (1, 3), wrench (1, 6), covariance
-    (1, 6, 6) and ``_starts``; None where its motion arrays do not match its Jacobians."""
-    n = m.motion_links_jac.shape[1]
-    if (m.motion_var.size, m.motion_band.size, m.motion_grasp_jac.shape[1]) != (n, n, n):
-        return None
-    return (
-        m.motion_var, m.motion_band, m.motion_links_jac, m.motion_grasp_jac, m.grasp_acc[None],
-        m.wrench_grasp[None], m.wrench_cov_grasp[None], _starts((n,)),
-    )  # fmt: skip
-
-
 def instant_terms(noise, condition, params, inst, transforms, msgs, params_cov, floor_cov,
                   update_every):  # fmt: skip
     """(b, R, own modes, E[n], Cov[n]) of ``instant_terms_kernel`` for an ``Instant``
     ``inst``, the peers' transforms (P, 6, 6) and messages ``msgs`` (P each), at ``params``
-    (10,) with its spread ``params_cov`` (10, 10) and ``noise``'s ``momentum_motion``: one peer's
-    arrays passed as they are (``_one_peer``), several peers' packed buffers concatenated
-    (``packed_instant_terms``). None where a message's motion arrays do not match its
-    Jacobians (it has no packed buffer) or the own ones do not (the general path raises)."""
+    (10,) with its spread ``params_cov`` (10, 10) and ``noise``'s ``momentum_motion``; None
+    where the messages' motion arrays do not match their Jacobians (the general path raises)."""
     own, (d_links, d_y) = noise.momentum_motion, inst.motion_jac
-    if (own.var.size, own.band.size) != (d_y.shape[0], d_y.shape[0]):
+    if msgs:
+        var, band, peer_links, peer_grasp, acc, wrenches, covs, starts = _peer_stacks(msgs)
+    else:
+        var = band = _EMPTY[0][0]
+        peer_links, peer_grasp, acc, wrenches = _EMPTY
+        covs, starts = _NO_TRANSFORMS, _NO_STARTS
+    n_own, n_peer = d_y.shape[0], peer_links.shape[1]
+    n_var = (own.var.size, own.band.size, var.size, band.size, peer_grasp.shape[1])
+    if n_var != (n_own, n_own, n_peer, n_peer, n_peer):
         return None
     spread = params_cov is not None
     cov = params_cov if spread else _NO_COV
-    if len(msgs) == 1:
-        peer = _one_peer(msgs[0])
-        if peer is None:
-            return None
-        var, band, links, grasp, acc, wrenches, covs, starts = peer
-        return instant_terms_kernel(
-            params, d_links, d_y, inst.regressor, transforms, links, grasp, acc, starts,
-            (own.var, var), (own.band, band), condition, noise.mismatch_model_var, cov, spread,
-            inst.act_cov, wrenches, covs, floor_cov, float(update_every), inst.links,
-        )  # fmt: skip
-    buffers = [m.packed() for m in msgs]
-    if any(b is None for b in buffers):
-        return None
-    starts = _starts(tuple([m.motion_links_jac.shape[1] for m in msgs]))
-    return packed_instant_terms(
-        params, d_links, d_y, inst.regressor, transforms,
-        np.concatenate(buffers) if buffers else _NO_PACKED, starts, own.var, own.band,
-        condition, noise.mismatch_model_var, cov, spread, inst.act_cov, floor_cov,
-        float(update_every), inst.links,
+    return instant_terms_kernel(
+        params, d_links, d_y, inst.regressor, transforms, peer_links, peer_grasp, acc, starts,
+        (own.var, var), (own.band, band), condition, noise.mismatch_model_var, cov, spread,
+        inst.act_cov, wrenches, covs, floor_cov, float(update_every), inst.links,
+    )  # fmt: skip
+
+
+def _peer_stacks(msgs: list) -> tuple:
+    """The peers' message arrays as ``instant_terms_kernel`` takes them, from one pass over
+    ``msgs``: variances, bands, links and grasp Jacobians side by side (``_stacked``), the grasp
+    accelerations, wrenches and covariances stacked, and each peer's first coordinate."""
+    fields = [[] for _ in range(7)]
+    var, band, links, grasp, acc, wrench, cov = fields
+    for m in msgs:
+        var.append(m.motion_var)
+        band.append(m.motion_band)
+        links.append(m.motion_links_jac)
+        grasp.append(m.motion_grasp_jac)
+        acc.append(m.grasp_acc)
+        wrench.append(m.wrench_grasp)
+        cov.append(m.wrench_cov_grasp)
+    sizes = tuple([jac.shape[1] for jac in links])
+    starts = _STARTS.get(sizes)
+    if starts is None:
+        starts = _STARTS.setdefault(sizes, np.array([0, *itertools.accumulate(sizes)]))
+    same = all(map(operator.is_, band, var))  # one array each: stacked once
+    var = _stacked(var, 0)
+    return (
+        var, var if same else _stacked(band, 0), _stacked(links, 1), _stacked(grasp, 1),
+        _stacked(acc, None), _stacked(wrench, None), _stacked(cov, None), starts,
     )  # fmt: skip
 
 
@@ -197,6 +158,7 @@ def peer_terms(act_cov, rels, msgs, peer_noise_cov, noise):
     return wrench, cov, added
 
 
+_EMPTY = (np.zeros((6, 0)), np.zeros((3, 0)), np.zeros((0, 3)), np.zeros((0, 6)))
 _NO_TRANSFORMS = np.zeros((0, 6, 6))
-_NO_PACKED = np.zeros(0)
+_NO_STARTS = np.zeros(1, dtype=np.int64)
 _STARTS: dict[tuple, np.ndarray] = {}  # each peers' sizes' first coordinates, made once

@@ -4,10 +4,6 @@ peer's grasp pose relative to its own (``RelativeGrasp``).
 
 Frames: G is the robot's grasp frame (fixed to the cargo), moments about its origin; world axes
 where a name says so. Units: N, N m, m, m/s^2.
-
-A message with motion fields gives the arrays a receiver's update takes in one flat float64
-buffer (``WrenchMessage.packed``, layout ``PACKED_PARTS``), so that a receiver gathers its peers'
-arrays with one concatenation (``instant_terms``).
 """
 
 from __future__ import annotations
@@ -24,29 +20,6 @@ def _project_rotation(m: np.ndarray) -> np.ndarray:
     u, _, vt = np.linalg.svd(m)
     d = np.sign(np.linalg.det(u @ vt))
     return u @ np.diag([1.0, 1.0, d]) @ vt
-
-
-# The packed buffer of a message whose motion has n coordinates, in order: (field, shape).
-PACKED_PARTS = (
-    ("motion_var", ("n",)),
-    ("motion_band", ("n",)),
-    ("motion_links_jac", (6, "n")),
-    ("motion_grasp_jac", (3, "n")),
-    ("grasp_acc", (3,)),
-    ("wrench_grasp", (6,)),
-    ("wrench_cov_grasp", (6, 6)),
-)
-
-
-def _pack(message: WrenchMessage) -> np.ndarray | None:
-    """``message``'s ``PACKED_PARTS`` copied into one flat float64 buffer (11 n + 45,) in that
-    order, each C-ordered; None where a part is missing or not of its shape."""
-    arrays = [getattr(message, name) for name, _ in PACKED_PARTS]
-    shapes = tuple(getattr(a, "shape", None) for a in arrays)
-    n = shapes[2][1] if shapes[2] is not None and len(shapes[2]) == 2 else -1
-    if shapes != ((n,), (n,), (6, n), (3, n), (3,), (6,), (6, 6)):
-        return None
-    return np.concatenate([a.ravel() for a in arrays], dtype=float)
 
 
 @dataclass(frozen=True)
@@ -68,21 +41,6 @@ class WrenchMessage:
     motion_grasp_jac: np.ndarray | None = None  # (3, n) d grasp_acc / d xi
     motion_var: np.ndarray | None = None  # (n,) per-sample variance of the filtered xi's noise
     motion_band: np.ndarray | None = None  # (n,) its weight per update (motion.band_factors)
-    # ``packed()``'s buffer, kept once all its parts are read-only.
-    _packed: np.ndarray | None = field(default=None, init=False, repr=False, compare=False)
-
-    def packed(self) -> np.ndarray | None:
-        """The ``PACKED_PARTS`` copied into one flat float64 buffer (11 n + 45,), None where a
-        part is missing or not of its shape: made once where all the parts are read-only
-        (``envs.comms.freeze_arrays``: they cannot change), else made anew at every call."""
-        if self._packed is not None:
-            return self._packed
-        packed = _pack(self)
-        if packed is not None and not any(
-            getattr(self, name).flags.writeable for name, _ in PACKED_PARTS
-        ):
-            object.__setattr__(self, "_packed", packed)
-        return packed
 
 
 @dataclass
