@@ -469,6 +469,7 @@ def kernel_lag_covariances(kernels: np.ndarray, update_every: int, n_lags: int) 
     return out
 
 
+@njit(cache=True)
 def lag_weighted_covariance(lag_cov: np.ndarray, rho: np.ndarray) -> np.ndarray:
     """W = G(0) + sum_L>=1 rho(L) (G(L) + G(L)^T), symmetric: the per-update covariance at which
     a sequential filter must weigh updates whose noise is correlated as G(L) when its regressor's
@@ -478,8 +479,17 @@ def lag_weighted_covariance(lag_cov: np.ndarray, rho: np.ndarray) -> np.ndarray:
     with the white measurement covariance W. For a regressor slow against the noise (rho = 1)
     W is the long-run covariance sum_L C(L) (the noise's spectral density at zero frequency);
     for noise read out of a derivative it is the spectral density averaged over the regressor's
-    spectrum, (2 pi f)^2 S(f) at the regressor's rms frequency f."""
-    w = lag_cov[0] + np.einsum("l,lab->ab", rho[1:], lag_cov[1:] + lag_cov[1:].transpose(0, 2, 1))
+    spectrum, (2 pi f)^2 S(f) at the regressor's rms frequency f. ``lag_cov`` (n_lags + 1, c, c),
+    ``rho`` (n_lags + 1,); W (c, c), each entry summed over L in order. An entry of W depends on
+    the same entries of the G(L) only: W of a sub-block of the channels is that sub-block of W."""
+    n_lags, c = lag_cov.shape[0] - 1, lag_cov.shape[1]
+    w = np.empty((c, c))
+    for a in range(c):
+        for b in range(c):
+            weighted = 0.0
+            for lag in range(1, n_lags + 1):
+                weighted += rho[lag] * (lag_cov[lag, a, b] + lag_cov[lag, b, a])
+            w[a, b] = lag_cov[0, a, b] + weighted
     return 0.5 * (w + w.T)
 
 
@@ -519,6 +529,35 @@ def _add_regressor(cross, power, ring, ring_power, ring_index, index, a):
         ring[slot], ring_power[slot], ring_index[slot] = a, own, index
 
 
+@njit(cache=True)
+def autocorrelation_of(power: np.ndarray, cross: np.ndarray) -> np.ndarray:
+    """``RegressorAutocorrelation.rho`` from its sums (n_lags + 1, 10): over the columns k with
+    power at lag 0, the mean of cross(L, k) / power(L, k) over those with power at lag L (0 for
+    the others, which count in the sum but not in the mean's count); a lag none has power at
+    takes the longest lag below it that has (lag 0 at worst); rho(0) = 1. No column with power:
+    ones."""
+    n = power.shape[0]
+    rho = np.ones(n)
+    mean = np.empty(n)
+    last = 0  # the longest lag so far with a column counted
+    for lag in range(n):
+        total, counted, any_column = 0.0, 0, False
+        for k in range(power.shape[1]):
+            if power[0, k] > 0:
+                any_column = True
+                if power[lag, k] > 0:
+                    total += cross[lag, k] / power[lag, k]
+                    counted += 1
+        if not any_column:
+            return rho
+        mean[lag] = total / max(counted, 1)
+        if counted > 0:
+            last = lag
+        if lag > 0:
+            rho[lag] = mean[last]
+    return rho
+
+
 class RegressorAutocorrelation:
     """The regressor's autocorrelation over update lags, rho(L) (n_lags + 1,), accumulated over a
     run: per parameter column k, rho_k(L) = sum_i <A_i,k, A_i-L,k> over the pairs L updates
@@ -541,17 +580,5 @@ class RegressorAutocorrelation:
                        int(index), _float(regressor))  # fmt: skip
 
     def rho(self) -> np.ndarray:
-        """rho(L) (n_lags + 1,), rho(0) = 1."""
-        columns = self._power[0] > 0
-        rho = np.ones(self.n_lags + 1)
-        if not columns.any():
-            return rho
-        power, cross = self._power[:, columns], self._cross[:, columns]
-        ok = power > 0
-        ratio = np.where(ok, cross / np.where(ok, power, 1.0), 0.0)
-        counted = ok.sum(axis=1)
-        mean = ratio.sum(axis=1) / np.maximum(counted, 1)
-        # A lag not seen yet: the longest seen lag's value (index carried forward).
-        last = np.maximum.accumulate(np.where(counted > 0, np.arange(self.n_lags + 1), 0))
-        rho[1:] = mean[last][1:]
-        return rho
+        """rho(L) (n_lags + 1,), rho(0) = 1 (``autocorrelation_of``)."""
+        return autocorrelation_of(self._power, self._cross)

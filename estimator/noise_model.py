@@ -294,7 +294,8 @@ class NoiseModel:
         self._factors = None  # ``_channel_factors``
         # Over time (``over_time``): the IMU's channels at their per-update covariance G(0),
         # and their modes' covariance between updates L apart (``over_time.mode_lag_covariances``).
-        held_lags = self._lag_cov[:, HELD_EXTENDED][:, :, HELD_EXTENDED]
+        held_lags = np.ascontiguousarray(self._lag_cov[:, HELD_EXTENDED][:, :, HELD_EXTENDED])
+        self._held_lag_cov = held_lags  # the held channels' G(L) (``_refresh_factors``)
         self.mode_lag_cov = None
         if self.over_time:
             self._held_factor, self.mode_lag_cov = mode_lag_covariances(held_lags)
@@ -398,8 +399,7 @@ class NoiseModel:
         """The IMU channels' lag-weighted factors at the regressor's autocorrelation so far
         (``momentum_jacobians``)."""
         rho = self.autocorrelation.rho()
-        w = lag_weighted_covariance(self._lag_cov, rho)
-        self._held_factor = psd_factor(w[np.ix_(HELD_EXTENDED, HELD_EXTENDED)])
+        self._held_factor = psd_factor(lag_weighted_covariance(self._held_lag_cov, rho))
         if self._accel_lag_cov is not None:
             self._accel_factor = psd_factor(lag_weighted_covariance(self._accel_lag_cov, rho))
         self._factors = None
