@@ -94,6 +94,10 @@ FACTOR_REFRESH_UPDATES = 8
 _NO_RATE_TERMS = (np.zeros((0, SIZE)), np.zeros(0))
 _NO_RATE_AT = (np.zeros(0), 0.0)  # ``instant_modes`` without joint angles for them
 _NO_COV = np.zeros((10, 10))  # ``_conditioned`` without the posterior's spread
+# The unit variances (and bands) of a message's 9 modes (``message_modes``): one read-only
+# array, shared by every message.
+_UNIT_MODES = np.ones(9)
+_UNIT_MODES.setflags(write=False)
 
 
 def _team_key(own, params, motion_jac, regressor, peers) -> tuple:
@@ -345,7 +349,7 @@ class NoiseModel:
         (``_init_fused_accelerometer``); cached until a factor changes."""
         if self._factors is None:
             accel = self._held_factor if self._accel_factor is None else self._accel_factor
-            self._factors = np.ascontiguousarray(np.stack([self._held_factor] * 3 + [accel] * 3))
+            self._factors = np.array([self._held_factor] * 3 + [accel] * 3, dtype=float)
         return self._factors
 
     def momentum_jacobians(
@@ -440,7 +444,7 @@ class NoiseModel:
             auto._ring, auto._ring_power, auto._ring_index), int(stamp), pre_state, target,
             target - 2 * self.update_every, index, regressor, add,
         )  # fmt: skip
-        return (links, y), (factor[:6], factor[6:], np.ones(9))
+        return (links, y), (factor[:6], factor[6:], _UNIT_MODES)
 
     def _rate_terms_at(self, q, scale: float) -> tuple[np.ndarray, np.ndarray] | None:
         """``instant_modes``' ``rate_at`` as ``rate_terms``: ``momentum.rate_square_terms`` at
@@ -475,13 +479,14 @@ class NoiseModel:
         A = d Y[:, :3, 0]^T (3, n) (the force rows' mass column, ``motion.grasp_acc_map`` at the
         grasp point), so their joint covariance M diag(v) M^T, M = [L; A], is all it uses, and F
         (9, 9) with F F^T = M diag(v) M^T carries it exactly (v = ``momentum_motion.var``).
-        Returns (F's links rows (6, 9), its grasp rows (3, 9), ones (9,): variances and bands).
+        Returns (F's links rows (6, 9), its grasp rows (3, 9), ones (9,): variances and bands,
+        one read-only array shared by every message).
         With ``over_time``: the 24 IMU modes as they are (scaled to unit variance), then 9 that
         carry the rest's (6, 33), (3, 33), ones (33,): the receiver weighs the IMU's over time
         (``over_time_noise``)."""
         if not self.over_time:
             factor = message_factor(d_links, d_y, self._mode_std)
-            return factor[:6], factor[6:], np.ones(9)
+            return factor[:6], factor[6:], _UNIT_MODES
         stacked = message_map(d_links, d_y, self._mode_std)
         # Over time: the IMU's modes as they are (the receiver weighs them across updates),
         # the rest (encoders, squared rates: white across updates) in 9.
