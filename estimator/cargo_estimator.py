@@ -451,7 +451,7 @@ class CargoEstimator(EstimatorInputs):
         """Update with every complete instant; skip the ones too old to wait. Returns the number
         of updates made plus the number rolled back (0: the estimate did not change)."""
         if not self._changed and not self._expiring():
-            return 0  # what waits is still incomplete and nothing falls out of the history
+            return 0  # what waits is still incomplete and no instant falls out of the history
         self._changed = False
         done = 0
         for stamp in sorted(self._pending):
