@@ -296,8 +296,9 @@ class CommChannel:
         receiver; every robot index is a key. Each copy is delivered once."""
         out: dict[int, list[Any]] = {r: [] for r in range(self.n_robots)}
         for due in sorted(d for d in self._queue if d <= step):
-            for receiver, message in self._queue.pop(due):
+            copies = self._queue.pop(due)
+            for receiver, message in copies:
                 out[receiver].append(message)
-                self.stats["delivered"] += 1
-                self.stats["in_flight"] -= 1
+            self.stats["delivered"] += len(copies)
+            self.stats["in_flight"] -= len(copies)
         return out

@@ -150,7 +150,7 @@ class TeamEstimation:
             for receiver, msgs in channel.deliver(k).items():
                 for msg in msgs:
                     estimators[receiver].receive(msg)
-                    self._keep_latest(receiver, msg)
+                self._keep_latest(receiver, msgs)
         return self._process(k, holding, reached=bool(others or published) or delivered)
 
     def _process(self, k: int, holding, reached: bool) -> bool:
@@ -196,16 +196,20 @@ class TeamEstimation:
             del sent[next(iter(sent))]  # the oldest
         channel.send(freeze_arrays(msg), k)  # its receivers share it
 
-    def _keep_latest(self, receiver: int, msg) -> None:
-        """Keep ``msg`` as the latest one ``receiver`` has from its sender, if it is newer."""
-        j = msg.sender
-        if msg.stamp > self.latest_stamp[receiver, j]:
-            self._slot_cache = None
-            self.peer_msgs[receiver][j] = msg
-            self.latest_stamp[receiver, j] = msg.stamp
-            self.latest_wrench[receiver, j] = msg.wrench_world
-            arm = self.sent_arm[j].get(msg.stamp)
-            self.latest_arm[receiver, j] = 0.0 if arm is None else arm
+    def _keep_latest(self, receiver: int, msgs: list) -> None:
+        """Keep each of ``msgs``, in turn, as the latest one ``receiver`` has from its sender,
+        if it is newer."""
+        kept, stamps = self.peer_msgs[receiver], self.latest_stamp[receiver]
+        wrenches, arms = self.latest_wrench[receiver], self.latest_arm[receiver]
+        for msg in msgs:
+            j = msg.sender
+            if msg.stamp > stamps[j]:
+                self._slot_cache = None
+                kept[j] = msg
+                stamps[j] = msg.stamp
+                wrenches[j] = msg.wrench_world
+                arm = self.sent_arm[j].get(msg.stamp)
+                arms[j] = 0.0 if arm is None else arm
 
     def forget(self, receiver: int, sender: int) -> None:
         """``receiver`` no longer counts messages from ``sender`` (it let go of the cargo)."""

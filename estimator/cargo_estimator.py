@@ -344,7 +344,7 @@ class CargoEstimator(EstimatorInputs):
         self._own_fix: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self._peer_msgs: dict[int, dict[int, WrenchMessage]] = {}  # stamp -> sender -> message
         self._oldest_peer_msg = math.inf  # a lower bound of the stamps in _peer_msgs
-        self._next_expiry = math.inf  # the oldest stamp held after a full process (_expiring)
+        self._next_expiry = math.inf  # the oldest pending stamp after a full process (_expiring)
         self._changed = False  # an instant or a message arrived, or the peers changed
         self._relative: dict[int, RelativeGrasp] = {p: RelativeGrasp() for p in self.peers}
         self._layout = (None, None)  # (peers, their known transforms stacked: _balance_terms)
@@ -451,7 +451,7 @@ class CargoEstimator(EstimatorInputs):
         """Update with every complete instant; skip the ones too old to wait. Returns the number
         of updates made plus the number rolled back (0: the estimate did not change)."""
         if not self._changed and not self._expiring():
-            return 0  # what waits is still incomplete and nothing falls out of the history
+            return 0  # what waits is still incomplete and no instant falls out of the history
         self._changed = False
         done = 0
         for stamp in sorted(self._pending):
@@ -589,7 +589,8 @@ class CargoEstimator(EstimatorInputs):
 
     def _forget_before(self, horizon: int) -> None:
         """Drop the peers' messages, own fixes and squared-rate terms of stamps before
-        ``horizon``; keep the oldest stamp still held (``_next_expiry``)."""
+        ``horizon`` (read for later stamps only: they may wait for the next full ``process``);
+        keep the oldest pending stamp (``_next_expiry``: an instant is given up at its step)."""
         if self._oldest_peer_msg < horizon:
             for stamp in [s for s in self._peer_msgs if s < horizon]:
                 del self._peer_msgs[stamp]
@@ -598,8 +599,7 @@ class CargoEstimator(EstimatorInputs):
         for old in (self._rate_terms, self._own_fix):
             while old and next(iter(old)) < horizon:
                 del old[next(iter(old))]
-        held = (self._pending, self._rate_terms, self._own_fix)
-        self._next_expiry = min([self._oldest_peer_msg] + [next(iter(h)) for h in held if h])
+        self._next_expiry = next(iter(self._pending), math.inf)
 
     def _roll_back(self, gated_stamp: int) -> int:
         """Undo the updates of the instants within the filters' memory before ``gated_stamp``;
