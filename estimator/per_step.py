@@ -555,17 +555,18 @@ class EstimatorInputs:
         return jac, motion
 
     def _expiring(self) -> bool:
-        """Does anything held (pending instants, squared-rate terms, peers' messages, own fixes)
-        fall before the history's horizon, so that ``process`` has to give it up? Asked only
-        while nothing arrived (``_changed`` False), so the oldest stamp held as ``process`` last
-        left it (``_next_expiry``) still bounds them: whatever arrives sets ``_changed``."""
+        """Does a pending instant fall before the history's horizon, so that ``process`` has to
+        give it up? Asked only while nothing arrived (``_changed`` False), so the oldest pending
+        stamp as ``process`` last left it (``_next_expiry``) still bounds them: whatever arrives
+        sets ``_changed``. The peers' messages, own fixes and squared-rate terms older than the
+        horizon are read for no later stamp; they wait for the next full ``process``."""
         return self._next_expiry < self.stamp - self.history_steps
 
     def quiet_through(self) -> float:
         """The last stamp through which ``process`` returns 0 (changes nothing) as long as
         nothing arrives and nothing changes but the stamp (no ``receive``, no instant recorded,
         the same peers): -inf when something has (``_changed``), else the last stamp at which
-        nothing held falls before the history's horizon (``_expiring`` False)."""
+        no pending instant falls before the history's horizon (``_expiring`` False)."""
         return -math.inf if self._changed else self._next_expiry + self.history_steps
 
     def _record_instant(self, stamp: int, q_raw: np.ndarray, fix: bool) -> WrenchMessage | None:

@@ -256,7 +256,7 @@ def test_process_returns_early_only_when_nothing_can_change(monkeypatch):
 
 def test_process_gives_up_instants_and_messages_at_the_same_step_as_a_full_pass(monkeypatch):
     """Over a late and lossy channel (instants given up, messages held and dropped),
-    ``process``'s early return (``_expiring`` against the oldest stamp held) leaves every
+    ``process``'s early return (``_expiring`` against the oldest pending stamp) leaves every
     robot's counters equal, step by step, to a flight where it runs in full at every step."""
     from astrocargo.envs import astrobee_cargo_v0
     from astrocargo.estimator.per_step import EstimatorInputs
