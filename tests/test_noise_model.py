@@ -241,6 +241,57 @@ def test_lag_weighted_covariance_is_exact_for_a_scalar_regressor():
     assert 0.0 < w < 0.1 * lag_cov[0, 0, 0]  # far below C(0), above the long-run sum (zero)
 
 
+def _rho_reference(power, cross):
+    """rho(L) in array form: over the columns with power at lag 0, the mean of cross / power
+    over those with power at lag L; a lag none has power at takes the longest lag below it
+    that has; ones without any column."""
+    n = power.shape[0]
+    rho = np.ones(n)
+    columns = power[0] > 0
+    if not columns.any():
+        return rho
+    power, cross = power[:, columns], cross[:, columns]
+    ok = power > 0
+    ratio = np.where(ok, cross / np.where(ok, power, 1.0), 0.0)
+    counted = ok.sum(axis=1)
+    mean = ratio.sum(axis=1) / np.maximum(counted, 1)
+    last = np.maximum.accumulate(np.where(counted > 0, np.arange(n), 0))
+    rho[1:] = mean[last][1:]
+    return rho
+
+
+def test_autocorrelation_and_lag_weighted_covariance_equal_their_array_forms():
+    """``motion.autocorrelation_of`` (compiled loops) equals rho's array form bit for bit, with
+    columns without power, lags without pairs and no column at all; ``lag_weighted_covariance``
+    equals W = G(0) + sum_L rho(L) (G(L) + G(L)^T) symmetrised, and W of a sub-block of the
+    channels is that sub-block of W (``NoiseModel._refresh_factors`` takes the held channels'
+    own G(L))."""
+    from astrocargo.estimator.motion import autocorrelation_of, lag_weighted_covariance
+
+    rng = np.random.default_rng(7)
+    for n_lags in (0, 1, 5, 40):
+        power = np.abs(rng.standard_normal((n_lags + 1, 10)))
+        power *= rng.random((n_lags + 1, 10)) < 0.7  # some columns and lags without pairs
+        power[0, :3] = 0.0  # columns without power at lag 0 do not count
+        if n_lags > 2:
+            power[n_lags - 1 :] = 0.0  # the longest lags not seen yet
+        cross = rng.standard_normal((n_lags + 1, 10))
+        np.testing.assert_array_equal(
+            autocorrelation_of(power, cross), _rho_reference(power, cross)
+        )
+    np.testing.assert_array_equal(autocorrelation_of(np.zeros((4, 10)), cross[:4]), np.ones(4))
+
+    lag_cov = rng.standard_normal((9, 12, 12))
+    rho = rng.standard_normal(9)
+    w = lag_cov[0] + np.einsum("l,lab->ab", rho[1:], lag_cov[1:] + lag_cov[1:].transpose(0, 2, 1))
+    np.testing.assert_allclose(lag_weighted_covariance(lag_cov, rho), 0.5 * (w + w.T), rtol=1e-13)
+    held = np.array([0, 1, 6, 7])
+    sub = np.ascontiguousarray(lag_cov[:, held][:, :, held])
+    np.testing.assert_array_equal(
+        lag_weighted_covariance(sub, rho), lag_weighted_covariance(lag_cov, rho)[np.ix_(held, held)]
+    )
+
+
 def test_rate_square_terms_join_the_motion_modes():
     """The encoders' squared rate noise (``momentum.rate_square_terms``) enters the motion's
     modes: their covariance is var sum_k w_k b_k b_k^T, b_k = Q_links + Q_Y pi of each term (the
