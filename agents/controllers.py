@@ -503,11 +503,14 @@ class ObservationController:
         """The layout's columns of ``BaseTracking``'s blocks (``ObservedColumns``)."""
         lay, absent = self.layout, slice(-1, -1)
 
-        def span(name: str) -> np.ndarray:
-            block = lay.get(name, absent)
+        def span_of(block: slice) -> np.ndarray:
             return np.array([block.start, block.stop], dtype=np.int64)
 
-        estimate = span("estimate_mean") if self.cargo_model == "estimate" else span("")
+        def span(name: str) -> np.ndarray:
+            return span_of(lay.get(name, absent))
+
+        # Fixed cargo parameters ("true", "none"): no estimate columns are read.
+        estimate = span("estimate_mean") if self.cargo_model == "estimate" else span_of(absent)
         return ObservedColumns(
             np.stack([span(name) for name in _OBSERVED_BLOCKS]),
             span("joint_pos"),

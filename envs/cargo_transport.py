@@ -340,8 +340,8 @@ from astrocargo.envs.transport import (  # noqa: F401
     TERMINATION_REASONS,
     CargoTransport,
     StepResult,
-    all_finite,
 )
+from astrocargo.estimator.checks import all_finite
 
 # Tracking camera: looking down the aisle (+x) from 1.5 m behind the cargo and 0.55 m above it,
 # inside the module's 2.2 m square section (tests/test_env.py checks), framing cargo and robots.

@@ -34,7 +34,7 @@ from mujoco import (
 )
 from numba import njit
 
-from astrocargo.envs.rewards import all_finite
+from astrocargo.estimator.checks import all_finite
 
 # MuJoCo's instability warnings: on a bad qpos, qvel or qacc it resets the state to the model's
 # initial one (and counts the warning), so after one the physics no longer continues.

@@ -42,7 +42,6 @@ from astrocargo.envs.observations import ObservationBuilder, observation_layout
 from astrocargo.envs.physics import UNSTABLE_WARNINGS, PeriodStepper
 from astrocargo.envs.rewards import (  # noqa: F401 (re-exported)
     ROTATION_WEIGHT_M_PER_RAD,
-    all_finite,
     tracking_errors,
 )
 from astrocargo.envs.sensors import (
@@ -62,6 +61,7 @@ from astrocargo.envs.step_kernels import (
 )
 from astrocargo.envs.world import ARM_DEPLOYED_RAD, MAX_TIMESTEP_S, World
 from astrocargo.estimator.cargo_estimator import CargoEstimator
+from astrocargo.estimator.checks import all_finite
 from astrocargo.estimator.geometry import mat_to_quat, quat_to_mat
 from astrocargo.estimator.records import as_interned, bound_views, record_of
 

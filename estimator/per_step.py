@@ -36,6 +36,7 @@ import math
 import numpy as np
 from numba import boolean, float64, int64, njit, typeof, types
 
+from .checks import all_finite
 from .geometry import exp_so3, quat_to_mat
 from .instant_kernels import message_pose, robot_record, servo_ripple_of
 from .messages import Instant, WrenchMessage
@@ -51,7 +52,6 @@ from .step_parts import (
     RIPPLE_MOVING,
     actuation_cov_into,
     actuation_cov_step,
-    all_finite,
     momentum_step,
     pre_filter_input,
     readings_usable,

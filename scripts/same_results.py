@@ -200,8 +200,6 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.command == "record":
         cli.output_file(parser, args.out, "out", suffix=".npz")
-        if args.actions is not None and not args.open_loop:
-            parser.error("--actions needs --open-loop")
         if args.actions is not None and not args.actions.is_file():
             parser.error(f"{args.actions} is not a file")
         try:
