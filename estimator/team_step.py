@@ -31,6 +31,7 @@ from numba import njit
 
 from .per_step import NOT_USABLE, estimator_step
 from .records import as_interned
+from .step_parts import RIPPLE_MOVING, ripple_case
 
 # The per-step states: record field, the estimator's attribute that is a view of it.
 STATE_FIELDS = (
@@ -59,15 +60,18 @@ _OWNERS = tuple(
 
 
 @njit(cache=True)
-def team_step(constants, states, ready, has_imu, accel, gyro, q, thrust, fix_pos, fix_quat,
-              has_fix, do_balance, target_rate, outcome, lever) -> None:  # fmt: skip
+def team_step(constants, states, ready, has_map, has_imu, accel, gyro, q, thrust, fix_pos,
+              fix_quat, has_fix, do_balance, target_rate, outcome, lever) -> None:  # fmt: skip
     """``per_step.estimator_step`` for each robot i ``ready`` with an IMU frame (``has_imu``),
     on row i of the ``constants`` (N,) (``estimator_constants``' rows) and of the ``states``
     (N,) (fields ``STATE_FIELDS`` and ``LAST_INPUT_FIELDS``), with row i of the readings
     (accel, gyro (N, 3) IMU axes; q (N, n_joints) rad; thrust (N, 6) N and N m; the fix
     fix_pos (N, 3) m, fix_quat (N, 4) where has_fix), the servos' ripple taken off with their
-    targets' rate ``target_rate`` (N, n_joints) rad/s. Writes its outcome and lever (m) into
-    ``outcome`` and ``lever`` (N,) (NOT_USABLE and NaN for the other rows) and, for a step
+    targets' rate ``target_rate`` (N, n_joints) rad/s where the robot ``has_map`` (its row's
+    ripple map made). A robot without one whose ripple changes this step (``ripple_case``
+    RIPPLE_MOVING) is left to its own path, which makes the map; without one and at rest its
+    step is taken without the ripple, as its own path takes it. Writes its outcome and lever (m)
+    into ``outcome`` and ``lever`` (N,) (NOT_USABLE and NaN for the other rows) and, for a step
     taken, the readings it used into the row's ``LAST_INPUT_FIELDS``."""
     # The readings' rows go through one buffer of each, contiguous whatever their layout.
     a, g, qi, t = np.empty(3), np.empty(3), np.empty(q.shape[1]), np.empty(6)
@@ -79,11 +83,14 @@ def team_step(constants, states, ready, has_imu, accel, gyro, q, thrust, fix_pos
         a[:], g[:], qi[:], t[:] = accel[i], gyro[i], q[i], thrust[i]
         pos[:], quat[:], rate[:] = fix_pos[i], fix_quat[i], target_rate[i]
         s = states[i]
+        if not has_map[i] and ripple_case(rate, s.ripple_prev[:], qi) == RIPPLE_MOVING:
+            continue
         outcome[i], lever[i] = estimator_step(
             constants[i : i + 1], s.pre_state[:], s.pre_u_prev[:], s.rate_state[:],
             s.rate_u_prev[:], s.prod_state[:], s.prod_u_prev[:], s.bal_state[:], s.bal_u_prev[:],
             s.act_cov_sum[:], s.rot_world_base[:], s.pos_world_base[:], a, g, qi, t, pos, quat,
-            has_fix[i], do_balance, s.ripple_map[:], rate, s.ripple_prev[:], s.last_accel[:], True,
+            has_fix[i], do_balance, s.ripple_map[:], rate, s.ripple_prev[:], s.last_accel[:],
+            has_map[i],
         )  # fmt: skip
         if outcome[i] != NOT_USABLE:  # the accelerometer's reading used is in last_accel
             s.last_gyro[:], s.last_q[:], s.last_thrust[:] = g, qi, t
@@ -94,8 +101,8 @@ class TeamStep:
     call per control step (module docstring). The team call is taken only when every estimator
     shares one constants layout and one schedule (else never: ``step`` hands every robot back);
     per robot, only with an IMU frame, its filters started and its attitude known, no fused
-    motion, its servos' ripple map made, the stamp increasing. ``enabled`` False: every robot
-    takes the per-robot path."""
+    motion, its servos' last ripple known (and its ripple map made, or the ripple at rest), the
+    stamp increasing. ``enabled`` False: every robot takes the per-robot path."""
 
     enabled = True
 
@@ -107,6 +114,7 @@ class TeamStep:
         self._rows: list[tuple[np.ndarray, ...]] = []  # each robot's views of its row
         self._last_inputs: list[tuple[np.ndarray, ...]] = []  # and of its LAST_INPUT_FIELDS
         self._ready = np.zeros(n, dtype=bool)  # robots whose attributes are their row's views
+        self._has_map = np.zeros(n, dtype=bool)  # ready robots whose servo ripple map is made
         self._unchecked = set(range(n))  # robots whose attributes may have been rebound
         self._holding: tuple | None = None
         self._stepping = np.zeros(n, dtype=bool)  # the robots ready and holding
@@ -121,6 +129,7 @@ class TeamStep:
         state.update(_states=None, _rows=[], _last_inputs=[])
         state["_unchecked"] = set(range(len(self.estimators)))
         state["_ready"] = np.zeros(len(self.estimators), dtype=bool)
+        state["_has_map"] = np.zeros(len(self.estimators), dtype=bool)
         return state
 
     def __setstate__(self, state: dict) -> None:
@@ -163,9 +172,9 @@ class TeamStep:
             stepping = self._refresh_ripple_maps(holding, r, arm_rates)
         do_balance = k % self._regressor_every == 0
         team_step(
-            self._constants, self._states, stepping, r.has_imu, r.accel_imu, r.gyro_imu,
-            r.joint_pos_rad, commands, r.base_pos_world, r.base_quat_world, r.has_fix,
-            do_balance, arm_rates, self._outcome, self._lever,
+            self._constants, self._states, stepping, self._has_map, r.has_imu, r.accel_imu,
+            r.gyro_imu, r.joint_pos_rad, commands, r.base_pos_world, r.base_quat_world,
+            r.has_fix, do_balance, arm_rates, self._outcome, self._lever,
         )  # fmt: skip
         others = self._after_step(k, holding, do_balance)
         if not instant:
@@ -175,11 +184,12 @@ class TeamStep:
     def _refresh_ripple_maps(self, holding, readings, arm_rates) -> np.ndarray:
         """At an update instant, the servos' ripple map of each robot to step refreshed
         (``EstimatorInputs._refresh_servo_ripple_map``, as its ``step`` does first) into its
-        row; returns the robots to step (those whose map is gone are left to their own path)."""
+        row; returns the robots to step (those whose map is gone are left to their own path).
+        A robot without a map yet has none to refresh (its own path makes it: ``team_step``)."""
         stepping = self._stepping.copy()
         q = readings.joint_pos_rad
         for i in holding:
-            if not (stepping[i] and readings.has_imu[i]):
+            if not (stepping[i] and self._has_map[i] and readings.has_imu[i]):
                 continue
             est = self.estimators[i]
             est._refresh_servo_ripple_map(q[i], arm_rates[i])
@@ -227,21 +237,23 @@ class TeamStep:
 
     def _bind(self, i: int, k: int) -> bool:
         """Can robot i take the team call at step ``k``? If so, its attributes are views of its
-        row (a rebound one copied in and viewed again)."""
+        row (a rebound one copied in and viewed again); a servo ripple map not made yet stays
+        None (``has_map``: ``team_step`` leaves the robot to its own path until it is made)."""
         est = self.estimators[i]
         if est._fused is not None or not est._filters_ready or est.stamp >= k:
             return False
-        if est._servo_ripple_map is None or est._servo_ripple_prev is None:
+        if est._servo_ripple_prev is None:
             return False
         if self._states is None:
             self._make_rows()
         if not self._bind_last_input(est, self._last_inputs[i]):
             return False
+        self._has_map[i] = est._servo_ripple_map is not None
         rebound, fits = False, True
         for (owner_of, name), view in zip(_OWNERS, self._rows[i], strict=True):
             owner = est if owner_of is None else owner_of(est)
             value = getattr(owner, name)
-            if value is view:
+            if value is view or (value is None and name == "_servo_ripple_map"):
                 continue
             if np.shape(value) != view.shape:
                 fits = False

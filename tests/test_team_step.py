@@ -14,9 +14,15 @@ from astrocargo.envs.transport import CargoTransport
 from astrocargo.estimator.cargo_estimator import CargoEstimator
 
 
-def _actions(n: int, k: int) -> np.ndarray:
+def _actions(n: int, k: int, arms_from: dict[int, float] | None = None) -> np.ndarray:
+    """Every robot's thrust and arm actions; with ``arms_from``, robot i's arm actions are zero
+    (its arm stays deployed: the servos' ripple at rest) before step ``arms_from[i]``."""
     phase = np.arange(8) + 3.0 * np.arange(n)[:, None]
-    return 0.3 * np.sin(0.05 * k + phase)
+    actions = 0.3 * np.sin(0.05 * k + phase)
+    for i, first in (arms_from or {}).items():
+        if k < first:
+            actions[i, 6:] = 0.0
+    return actions
 
 
 # Faults put into the readings before the estimators see them: step -> (robot, what).
@@ -119,13 +125,19 @@ def processed(monkeypatch):
 LOSSY = {"comm_latency": 0.05, "comm_drop": 0.5, "estimator_kwargs": {"history_s": 0.5}}
 
 
+# Robot 0's arm starts to move at step 250 (within the faults, off an update instant), robot 1's
+# never: until then neither has a servo ripple map.
+ARMS_FROM = {0: 253, 1: np.inf}
+
+
 @pytest.mark.parametrize(
-    "n_robots, release_at, channel",
-    [(2, None, {}), (3, [(2, 6.5)], {}), (2, None, LOSSY)],
-    ids=["2-robots", "3-robots-one-lets-go", "2-robots-lossy"],
-)
-def test_team_call_equals_the_per_robot_path(n_robots, release_at, channel, team_calls,
-                                             processed):  # fmt: skip
+    "n_robots, release_at, channel, arms_from",
+    [(2, None, {}, None), (3, [(2, 6.5)], {}, None), (2, None, LOSSY, None),
+     (2, None, {}, ARMS_FROM)],
+    ids=["2-robots", "3-robots-one-lets-go", "2-robots-lossy", "2-robots-arms-at-rest"],
+)  # fmt: skip
+def test_team_call_equals_the_per_robot_path(n_robots, release_at, channel, arms_from,
+                                             team_calls, processed):  # fmt: skip
     kwargs = {"n_robots": n_robots, "noise": "nominal", "release_at": release_at, **channel}
     team, alone = CargoTransport(**kwargs), CargoTransport(**kwargs)
     for sim in (team, alone):
@@ -134,7 +146,7 @@ def test_team_call_equals_the_per_robot_path(n_robots, release_at, channel, team
     alone.estimation._team_step.enabled = False
     released, robot_steps = False, 0
     for k in range(460):
-        actions = _actions(n_robots, k)
+        actions = _actions(n_robots, k, arms_from)
         robot_steps += len(alone.holding)
         results = [sim.step(actions) for sim in (team, alone)]
         released |= bool(results[0].released)
@@ -159,6 +171,10 @@ def test_team_call_equals_the_per_robot_path(n_robots, release_at, channel, team
     assert 0 < team_processed < robot_steps / 2
     if channel:  # instants expired: on steps where nothing reached the robots
         assert min(est.n_skipped_missing for est in team.estimators) > 0
+    if arms_from:  # the team call stepped both robots before either had a ripple map
+        maps = [est._servo_ripple_map is not None for est in team.estimators]
+        assert maps == [True, False]
+        assert sum(c == n_robots for c in team_calls[100:240]) == 140
 
 
 @pytest.mark.parametrize("how", ["deepcopy", "pickle"])
