@@ -15,6 +15,8 @@
 - ``DecisionEnv`` and ``cargo_env_fn`` (the env as a learned policy sees it, and the picklable
   factory every copy is built by) live in ``astrocargo.envs.decision``.
 - ``fast_inference``: SB3's ``predict`` without its per-call overhead, the same actions.
+- ``fast_normalization``: a ``VecNormalize``'s running statistics as ``CompiledRunningMeanStd``,
+  SB3's class updated by one compiled kernel to the same numbers.
 - ``CentralizedCargoEnv``: a single-agent ``gymnasium.Env`` in which one policy drives all robots:
   the observation is the robots' observations concatenated in agent order, the action the robots'
   actions concatenated, the reward the robots' mean reward. Registered as ``ENV_ID``
@@ -43,7 +45,9 @@ from typing import Any
 import gymnasium
 import numpy as np
 from gymnasium import spaces
+from numba import njit
 from pettingzoo import ParallelEnv
+from stable_baselines3.common.running_mean_std import RunningMeanStd
 from stable_baselines3.common.vec_env.base_vec_env import (
     CloudpickleWrapper,
     VecEnv,
@@ -430,6 +434,159 @@ def _gaussian_predict(policy, sb3_predict, plain, observation, state=None, episo
     actions = actions.cpu().numpy().reshape((-1, *space.shape))
     actions = np.clip(actions, space.low, space.high)
     return (actions if vectorized else actions.squeeze(axis=0)), state
+
+
+# --------------------------------------------------------------------------- normalization
+
+
+class CompiledRunningMeanStd(RunningMeanStd):
+    """SB3's ``RunningMeanStd`` (state: ``mean``, ``var``, ``count``) whose ``update`` runs as one
+    compiled kernel, ``_update_moments``, with numpy's arithmetic step for step: the same mean,
+    var and count, bit for bit, as SB3's ``update`` on the same batches.
+
+    ``update(x)`` with a batch x of n samples (rows): the batch moments as numpy computes them,
+    m_B = x.mean(axis=0) and v_B = x.var(axis=0) in x's dtype, then SB3's
+    ``update_from_moments`` (the parallel algorithm of Chan et al.) in float64:
+    delta = m_B - mean, mean += delta n / (count + n),
+    var = (var count + v_B n + delta^2 count n / (count + n)) / (count + n), count += n.
+    The statistics are float64, as SB3 makes them. A batch that is not a C-contiguous float32
+    or float64 array of rows of the statistics' shape (the layouts whose order of summation
+    the kernel reproduces) goes through SB3's ``update``."""
+
+    def update(self, arr: np.ndarray) -> None:
+        shape = np.shape(self.mean)
+        if not (
+            isinstance(arr, np.ndarray)
+            and arr.dtype in (np.float32, np.float64)
+            and arr.ndim >= 1
+            and arr.shape[0] > 0
+            and arr.shape[1:] == shape
+            and arr.flags.c_contiguous
+        ):
+            super().update(arr)
+            return
+        mean, var, count = _update_moments(
+            arr.reshape(arr.shape[0], -1),
+            np.asarray(self.mean, dtype=np.float64).reshape(-1),
+            np.asarray(self.var, dtype=np.float64).reshape(-1),
+            float(self.count),
+        )
+        # ``[()]``: a scalar for shape () (numpy's arithmetic on 0-d arrays gives one, so SB3's
+        # return statistics are np.float64), the array itself otherwise.
+        self.mean, self.var, self.count = mean.reshape(shape)[()], var.reshape(shape)[()], count
+
+    def copy(self) -> CompiledRunningMeanStd:
+        """A copy of the statistics, of this class (SB3's ``copy`` makes its own class)."""
+        return compiled_statistics(super().copy())
+
+
+def compiled_statistics(rms: RunningMeanStd) -> CompiledRunningMeanStd:
+    """A ``CompiledRunningMeanStd`` holding a copy of ``rms``'s mean, var and count."""
+    compiled = CompiledRunningMeanStd.__new__(CompiledRunningMeanStd)
+    compiled.mean, compiled.var, compiled.count = rms.mean.copy(), rms.var.copy(), rms.count
+    return compiled
+
+
+def fast_normalization(venv: Any) -> Any:
+    """Give a ``VecNormalize`` (or a ``VecEnv`` wrapping one) compiled running statistics:
+    its observation statistics (each key's for a Dict space) and its return statistics become
+    ``CompiledRunningMeanStd`` copies of themselves, which update to the same numbers as SB3's.
+    Returns ``venv``."""
+    from stable_baselines3.common.vec_env import VecNormalize, unwrap_vec_wrapper
+
+    normalize = unwrap_vec_wrapper(venv, VecNormalize)
+    if normalize is None:
+        raise ValueError(f"no VecNormalize in {venv!r}")
+    if isinstance(normalize.obs_rms, dict):
+        normalize.obs_rms = {k: compiled_statistics(v) for k, v in normalize.obs_rms.items()}
+    else:
+        normalize.obs_rms = compiled_statistics(normalize.obs_rms)
+    normalize.ret_rms = compiled_statistics(normalize.ret_rms)
+    return venv
+
+
+@njit(cache=True)
+def _update_moments(x, mean, var, count):
+    """SB3's ``update`` of the statistics (mean (d,), var (d,) float64, count) by the batch x
+    (n, d) (float32 or float64, C-contiguous): the new mean, var and count.
+
+    Batch moments as ``np.mean(x, axis=0)`` and ``np.var(x, axis=0)`` compute them: sums in x's
+    dtype (``_column_sums``), each divided by n in float64 and rounded to x's dtype (numpy
+    divides by the item count, an intp); v_B from the deviations e = x - m_B and their squares
+    e * e, both in x's dtype. Then ``update_from_moments`` in float64, each operation in SB3's
+    order; v_B n is numpy's product of x's dtype by a Python int: in x's dtype (rounded once
+    from float64, where it is exact)."""
+    n, d = x.shape
+    sums = _column_sums(x)
+    batch_mean = np.empty(d, x.dtype)
+    for j in range(d):
+        batch_mean[j] = sums[j] / n
+    squares = np.empty_like(x)
+    for i in range(n):
+        for j in range(d):
+            deviation = x[i, j] - batch_mean[j]
+            squares[i, j] = deviation * deviation
+    square_sums = _column_sums(squares)
+    batch_var = np.empty(d, x.dtype)
+    scaled_var = np.empty(d, x.dtype)
+    for j in range(d):
+        batch_var[j] = square_sums[j] / n
+        scaled_var[j] = batch_var[j] * n
+    total = count + n
+    new_mean = np.empty(d)
+    new_var = np.empty(d)
+    for j in range(d):
+        delta = batch_mean[j] - mean[j]
+        new_mean[j] = mean[j] + delta * n / total
+        m_2 = var[j] * count + scaled_var[j] + delta * delta * count * n / (count + n)
+        new_var[j] = m_2 / (count + n)
+    return new_mean, new_var, n + count
+
+
+@njit(cache=True)
+def _column_sums(x):
+    """``x.sum(axis=0)`` of a C-contiguous (n, d) array as numpy sums it, in x's dtype: from
+    numpy's initial 0, row after row (its loop runs along the rows' contiguous entries) when
+    d > 1; the one contiguous column by numpy's pairwise sum (``_pairwise_sum``) when d = 1."""
+    n, d = x.shape
+    sums = np.zeros(d, x.dtype)
+    if d == 1:
+        sums[0] += _pairwise_sum(x[:, 0])
+        return sums
+    for i in range(n):
+        for j in range(d):
+            sums[j] += x[i, j]
+    return sums
+
+
+@njit(cache=True)
+def _pairwise_sum(a):
+    """numpy's pairwise summation of a 1-D run (``pairwise_sum``, numpy/_core/src/umath/
+    loops_utils.h.src), in a's dtype: n < 8 one after the other from -0.0; n <= 128 in 8 interleaved
+    accumulators (a_k, a_{k+8}, ... added to accumulator k), combined as
+    ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7)), then the n mod 8 last entries one after
+    the other; longer runs as the sum of the pairwise sums of their first n2 entries (n / 2
+    rounded down to a multiple of 8) and of the rest."""
+    n = a.size
+    if n < 8:
+        r = np.full(1, -0.0, a.dtype)
+        for i in range(n):
+            r[0] += a[i]
+        return r[0]
+    if n <= 128:
+        r = a[:8].copy()
+        i = 8
+        while i < n - n % 8:
+            for k in range(8):
+                r[k] += a[i + k]
+            i += 8
+        total = ((r[0] + r[1]) + (r[2] + r[3])) + ((r[4] + r[5]) + (r[6] + r[7]))
+        for k in range(i, n):
+            total += a[k]
+        return total
+    n2 = n // 2
+    n2 -= n2 % 8
+    return _pairwise_sum(a[:n2]) + _pairwise_sum(a[n2:])
 
 
 class SlotController:

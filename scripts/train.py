@@ -78,6 +78,7 @@ from astrocargo.envs.world import MAX_ROBOTS  # noqa: E402
 from astrocargo.envs.wrappers import (  # noqa: E402
     CentralizedCargoEnv,
     fast_inference,
+    fast_normalization,
     make_vec_env,
 )
 
@@ -252,7 +253,10 @@ def build_model(
     torch.set_num_threads(args.torch_threads)
     hyper = {**HYPERPARAMS[args.algo], **dict(args.hyperparams or [])}
     venv = make_training_env(args, seed, log_dir)
-    venv = VecNormalize(venv, norm_obs=True, norm_reward=True, gamma=hyper["gamma"])
+    # Compiled running statistics: the same numbers as SB3's (envs/wrappers.py).
+    venv = fast_normalization(
+        VecNormalize(venv, norm_obs=True, norm_reward=True, gamma=hyper["gamma"])
+    )
     kwargs = dict(hyper)
     noise_std = kwargs.pop("action_noise_std", None)
     if noise_std is not None:
@@ -282,6 +286,7 @@ def train(args: argparse.Namespace) -> tuple[BaseAlgorithm, Path]:
     model, hyper = build_model(args, seed, log_dir)
     if args.init_from is not None:  # imitation first (scripts/imitate.py), then PPO
         initialise_from(model, args.init_from)
+        fast_normalization(model.get_env())  # copied statistics may be SB3's class (older runs)
     config = {
         "algo": args.algo,
         "view": args.view,
