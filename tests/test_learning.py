@@ -5,16 +5,15 @@ through both views (saving and loading give the same actions), and evaluate.py.
 Tiny budgets, 20-step episodes, ideal noise and the estimators off wherever the test allows.
 """
 
-import importlib.util
 import json
 import warnings
-from pathlib import Path
 
 import gymnasium
 import numpy as np
 import pytest
 from gymnasium import spaces
 from gymnasium.utils.env_checker import check_env as gymnasium_check_env
+from learning_setup import FAST, load_script
 from pettingzoo import ParallelEnv
 from stable_baselines3.common.env_checker import check_env as sb3_check_env
 
@@ -33,22 +32,6 @@ from astrocargo.envs.wrappers import (
 )
 from astrocargo.estimator.inertia import mass_com_inertia_from_params
 from astrocargo.estimator.prior import default_prior
-
-ROOT = Path(__file__).resolve().parents[1]
-FAST = {
-    "n_robots": 2,
-    "noise": "ideal",
-    "max_cycles": 20,
-    "observe_estimates": False,
-    "estimators": False,
-}
-
-
-def _load_script(name):
-    spec = importlib.util.spec_from_file_location(name, ROOT / "scripts" / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 def _rollout(venv, steps, seed=0):
@@ -203,7 +186,7 @@ def test_centralized_view_passes_both_checkers():
 @pytest.fixture(scope="module")
 def trained_runs(tmp_path_factory):
     """One PPO run through the adapter and one SAC run through the single-agent view."""
-    train = _load_script("train")
+    train = load_script("train")
     base = tmp_path_factory.mktemp("runs")
     common = ["--max-cycles", "20", "--noise", "ideal", "--no-progress-bar", "--seed", "4"]
     ppo = train.main(
@@ -243,7 +226,7 @@ def trained_runs(tmp_path_factory):
 
 @pytest.mark.parametrize("run", ["ppo", "sac", "res", "resb"])
 def test_training_saves_and_loads_same_actions(trained_runs, run):
-    evaluate = _load_script("evaluate")
+    evaluate = load_script("evaluate")
     run_dir = trained_runs / run
     config = json.loads((run_dir / "config.json").read_text())
     assert config["seed"] == 4 and config["samples"] >= config["timesteps"]
@@ -263,14 +246,14 @@ def test_training_saves_and_loads_same_actions(trained_runs, run):
 
 
 def test_training_run_saves_the_in_memory_policy(tmp_path):
-    train = _load_script("train")
+    train = load_script("train")
     args = train.build_parser().parse_args(
         ["--copies", "1", "--timesteps", "64", "--max-cycles", "20", "--noise", "ideal"]
         + ["--no-progress-bar", "--log-dir", str(tmp_path), "--no-estimates"]
         + ["--hyperparams", "n_steps=32", "batch_size=32", "n_epochs=1"]
     )
     model, run_dir = train.train(args)
-    evaluate = _load_script("evaluate")
+    evaluate = load_script("evaluate")
     loaded = evaluate.TrainedPolicy(run_dir)
     obs = np.random.default_rng(0).normal(size=(2, model.observation_space.shape[0]))
     expected, _ = model.predict(loaded.normalizer.normalize_obs(obs), deterministic=True)
@@ -278,7 +261,7 @@ def test_training_run_saves_the_in_memory_policy(tmp_path):
 
 
 def test_evaluate_scores_policies_on_the_same_episodes(trained_runs, tmp_path):
-    evaluate = _load_script("evaluate")
+    evaluate = load_script("evaluate")
     out = tmp_path / "eval.json"
     argv = ["--policy", str(trained_runs / "ppo"), "zero", "scripted", "--episodes", "2"]
     assert evaluate.main(argv + ["--json", str(out)]) == 0
@@ -508,7 +491,7 @@ def test_evaluation_replays_a_residual_policy_as_in_training(trained_runs, run):
     """evaluate.py's TrainedPolicy at the control rate (repeat, residual on its base, the
     hidden estimates and the feed-forward input done by itself) and the training env's
     DecisionEnv driven by the same model make the same episode."""
-    evaluate = _load_script("evaluate")
+    evaluate = load_script("evaluate")
     policy = evaluate.TrainedPolicy(trained_runs / run)
     kwargs = policy.config["env_kwargs"]
     assert kwargs["residual_scale"] == (1.0 if run == "resff" else 0.3)
@@ -544,8 +527,8 @@ def test_evaluation_replays_a_residual_policy_as_in_training(trained_runs, run):
 
 
 def test_a_checkpoint_is_a_policy_of_its_own_arm(trained_runs):
-    evaluate = _load_script("evaluate")
-    report = _load_script("eval_report")
+    evaluate = load_script("evaluate")
+    report = load_script("eval_report")
     run = trained_runs / "res"
     assert evaluate.checkpoint_samples(run) == [32, 64]
     final, early = (evaluate.make_policy(spec, "estimate") for spec in (str(run), f"{run}@32"))
@@ -587,7 +570,7 @@ def test_fast_inference_keeps_the_actions(trained_runs):
 
 
 def test_ablation_compares_arms_with_the_seed_spread():
-    report = _load_script("eval_report")
+    report = load_script("eval_report")
 
     def result(observe, seed, light, heavy):
         config = {
@@ -618,7 +601,7 @@ def test_ablation_compares_arms_with_the_seed_spread():
 
 
 def test_ablation_pairs_hidden_estimates_on_the_estimate_base():
-    report = _load_script("eval_report")
+    report = load_script("eval_report")
 
     def result(base, hide, seed):
         kwargs = {"observe_estimates": True, "residual_scale": 0.3, "base_model": base}
@@ -639,7 +622,7 @@ def test_ablation_pairs_hidden_estimates_on_the_estimate_base():
 
 
 def test_ablation_pairs_the_feedforward_arms_apart_from_the_plain_ones():
-    report = _load_script("eval_report")
+    report = load_script("eval_report")
 
     def result(observe, feedforward, seed):
         kwargs = {"observe_estimates": observe, "residual_scale": 1.0}
@@ -657,7 +640,7 @@ def test_ablation_pairs_the_feedforward_arms_apart_from_the_plain_ones():
 
 
 def test_evaluate_bins_masses_and_bounds_the_principal_moments(tmp_path):
-    evaluate = _load_script("evaluate")
+    evaluate = load_script("evaluate")
     out = tmp_path / "eval.json"
     argv = ["--policy", "scripted", "scripted:none@figure8_tumble", "--episodes", "1"]
     argv += ["--task", "cargo", "--max-cycles", "400", "--mass-bins", "1,5,20", "--bound"]
@@ -680,7 +663,7 @@ def test_evaluate_bins_masses_and_bounds_the_principal_moments(tmp_path):
 
 
 def test_correction_is_what_the_estimate_adds_and_grows_with_the_mass(tmp_path):
-    evaluate = _load_script("evaluate")
+    evaluate = load_script("evaluate")
     out = tmp_path / "eval.json"
     argv = ["--policy", "scripted", "scripted:none", "feedforward", "--episodes", "1"]
     argv += ["--task", "cargo", "--max-cycles", "450", "--mass-bins", "1,2,19,20", "--correction"]
@@ -700,7 +683,7 @@ def test_correction_is_what_the_estimate_adds_and_grows_with_the_mass(tmp_path):
 
 
 def test_train_parses_tasks_and_the_residual(capsys, tmp_path):
-    train = _load_script("train")
+    train = load_script("train")
     out = str(tmp_path)
     args = train.parse_args(["--residual-scale", "0.3", "--env", "w_info=2.0", "--log-dir", out])
     kwargs = train.env_kwargs(args)
@@ -830,7 +813,7 @@ def test_imitation_run_saves_a_policy_that_evaluates_and_fine_tunes(tmp_path):
     with, and train.py --init-from starts PPO from exactly those weights and statistics."""
     import torch
 
-    imitate, train, evaluate = (_load_script(n) for n in ("imitate", "train", "evaluate"))
+    imitate, train, evaluate = (load_script(n) for n in ("imitate", "train", "evaluate"))
     common = ["--max-cycles", "30", "--noise", "ideal", "--seed", "3", "--copies", "1"]
     common += ["--residual-scale", "1.0", "--action-repeat", "3", "--feedforward-obs"]
     common += ["--env", "cargo_mass_kg=(12.0, 18.0)"]
@@ -847,7 +830,7 @@ def test_imitation_run_saves_a_policy_that_evaluates_and_fine_tunes(tmp_path):
     mse = config["imitation"]["actor_mse"]
     assert len(mse) == 2 and mse[0][1] < 0.5 * mse[0][0]
     assert config["imitation"]["labelled_samples"] == 3 * 2 * 10
-    assert "imitation" in _load_script("eval_report").arm_key(config)
+    assert "imitation" in load_script("eval_report").arm_key(config)
     policy = evaluate.TrainedPolicy(run)
     assert float(policy.model.policy.log_std.detach().mean()) == pytest.approx(-2.5)
     decision = ("residual_scale", "action_repeat", "base_model", "hide_estimates")
@@ -876,10 +859,10 @@ def test_imitation_run_saves_a_policy_that_evaluates_and_fine_tunes(tmp_path):
 
 
 def test_masked_block_no_longer_reaches_the_policy(trained_runs):
-    evaluate = _load_script("evaluate")
+    evaluate = load_script("evaluate")
     plain, masked = (evaluate.TrainedPolicy(trained_runs / "res") for _ in range(2))
     masked.mask("peer0_wrench")
-    assert "peer0_wrench masked" in _load_script("eval_report").arm_key(masked.config)
+    assert "peer0_wrench masked" in load_script("eval_report").arm_key(masked.config)
     kwargs = {k: v for k, v in plain.config["env_kwargs"].items() if k in FAST or k == "n_robots"}
     env = astrobee_cargo_v0.parallel_env(**kwargs)
     obs, _ = env.reset(seed=0)
@@ -898,7 +881,7 @@ def test_masked_block_no_longer_reaches_the_policy(trained_runs):
 def test_hidden_estimators_run_them_unseen_and_keep_the_policy_view(tmp_path):
     """--hidden-estimators: the estimators run (the peers' messages fill the observation, as in
     evaluation) but the policy does not see them: the same policy view as --no-estimates."""
-    train = _load_script("train")
+    train = load_script("train")
     common = ["--residual-scale", "1.0", "--feedforward-obs", "--no-estimates"]
     common += ["--log-dir", str(tmp_path / "run")]
     plain = train.env_kwargs(train.parse_args(common))

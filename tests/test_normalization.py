@@ -3,12 +3,11 @@ in envs/wrappers.py) against SB3's own ``RunningMeanStd``: the same mean, var an
 bit (types included), on random batch sequences and through a short PPO training; copy, combine,
 pickling and VecNormalize.save/load keep the class and the numbers."""
 
-import importlib.util
 import pickle
-from pathlib import Path
 
 import numpy as np
 import pytest
+from learning_setup import FAST, load_script
 from stable_baselines3.common.running_mean_std import RunningMeanStd
 from stable_baselines3.common.vec_env import VecNormalize
 
@@ -18,15 +17,6 @@ from astrocargo.envs.wrappers import (
     fast_normalization,
     make_vec_env,
 )
-
-ROOT = Path(__file__).resolve().parents[1]
-FAST = {
-    "n_robots": 2,
-    "noise": "ideal",
-    "max_cycles": 20,
-    "observe_estimates": False,
-    "estimators": False,
-}
 
 
 def assert_same_statistics(compiled, sb3):
@@ -142,9 +132,7 @@ def test_fast_normalization_steps_saves_and_loads_as_sb3(tmp_path):
 def test_short_ppo_training_is_sb3s():
     """train.build_model's PPO (compiled statistics) and the same model on SB3's statistics:
     the same statistics and parameters after two rollouts and updates."""
-    spec = importlib.util.spec_from_file_location("train", ROOT / "scripts" / "train.py")
-    train = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(train)
+    train = load_script("train")
     args = train.build_parser().parse_args(
         ["--copies", "2", "--max-cycles", "20", "--noise", "ideal", "--no-estimates"]
         + ["--no-progress-bar", "--hyperparams", "n_steps=32", "batch_size=64", "n_epochs=2"]

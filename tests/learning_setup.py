@@ -1,0 +1,24 @@
+"""What the learning tests share: the small env of their tiny trainings and the loader of the
+scripts they drive (scripts/ is not a package)."""
+
+import importlib.util
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+# Tiny budgets: 20-step episodes, ideal noise, the estimators off.
+FAST = {
+    "n_robots": 2,
+    "noise": "ideal",
+    "max_cycles": 20,
+    "observe_estimates": False,
+    "estimators": False,
+}
+
+
+def load_script(name: str):
+    """scripts/``name``.py as a module."""
+    spec = importlib.util.spec_from_file_location(name, ROOT / "scripts" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
