@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from gymnasium import spaces
 from gymnasium.utils.env_checker import check_env as gymnasium_check_env
-from learning_setup import FAST, load_script
+from learning_setup import FAST, load_script, rollout
 from pettingzoo import ParallelEnv
 from stable_baselines3.common.env_checker import check_env as sb3_check_env
 
@@ -32,17 +32,6 @@ from astrocargo.envs.wrappers import (
 )
 from astrocargo.estimator.inertia import mass_com_inertia_from_params
 from astrocargo.estimator.prior import default_prior
-
-
-def _rollout(venv, steps, seed=0):
-    """Observations, rewards, dones of ``steps`` seeded random steps (from reset)."""
-    rng = np.random.default_rng(seed)
-    out = [venv.reset()]
-    for _ in range(steps):
-        obs, rewards, dones, _ = venv.step(rng.uniform(-1, 1, (venv.num_envs, 8)))
-        out += [obs, rewards, dones]
-    return out
-
 
 # --------------------------------------------------------------------------- VecEnv adapter
 
@@ -129,18 +118,18 @@ def test_termination_is_not_truncation(truncate_too):
 
 def test_seeding_is_per_copy_and_reproducible_in_subprocesses():
     kwargs = {**FAST, "noise": "nominal", "max_cycles": 6}
-    a = _rollout(make_vec_env(2, seed=11, **kwargs), 8)  # crosses an auto-reset
-    b = _rollout(make_vec_env(2, seed=11, **kwargs), 8)
+    a = rollout(make_vec_env(2, seed=11, **kwargs), 8)  # crosses an auto-reset
+    b = rollout(make_vec_env(2, seed=11, **kwargs), 8)
     # "fork": the default forkserver takes seconds to start on a loaded 2-core machine.
     venv = make_vec_env(2, seed=11, subprocess=True, start_method="fork", **kwargs)
-    c = _rollout(venv, 8)
+    c = rollout(venv, 8)
     assert venv.get_attr("max_cycles") == [6] * 4
     venv.close()
     for x, y, z in zip(a, b, c, strict=True):
         np.testing.assert_array_equal(x, y)
         np.testing.assert_array_equal(x, z)
     assert not np.array_equal(a[0][:2], a[0][2:])  # the copies differ
-    d = _rollout(make_vec_env(2, seed=12, **kwargs), 0)
+    d = rollout(make_vec_env(2, seed=12, **kwargs), 0)
     assert not np.array_equal(a[0], d[0])
 
 

@@ -7,7 +7,7 @@ import pickle
 
 import numpy as np
 import pytest
-from learning_setup import FAST, load_script
+from learning_setup import FAST, load_script, rollout
 from stable_baselines3.common.running_mean_std import RunningMeanStd
 from stable_baselines3.common.vec_env import VecNormalize
 
@@ -100,22 +100,12 @@ def test_copy_combine_and_pickling_keep_class_and_numbers(shape):
     assert_same_statistics(compiled, sb3)
 
 
-def _stepped(venv, steps, seed):
-    """What ``steps`` seeded random steps return (from reset), through ``venv``."""
-    rng = np.random.default_rng(seed)
-    out = [venv.reset()]
-    for _ in range(steps):
-        obs, rewards, dones, _ = venv.step(rng.uniform(-1, 1, (venv.num_envs, 8)))
-        out += [obs, rewards, dones]
-    return out
-
-
 def test_fast_normalization_steps_saves_and_loads_as_sb3(tmp_path):
     def normalized():
         return VecNormalize(make_vec_env(2, seed=7, **FAST), gamma=0.9)
 
     sb3, compiled = normalized(), fast_normalization(normalized())
-    for a, b in zip(_stepped(sb3, 45, 1), _stepped(compiled, 45, 1), strict=True):
+    for a, b in zip(rollout(sb3, 45, 1), rollout(compiled, 45, 1), strict=True):
         assert a.dtype == b.dtype and a.tobytes() == b.tobytes()
     assert_same_statistics(compiled.obs_rms, sb3.obs_rms)
     assert_same_statistics(compiled.ret_rms, sb3.ret_rms)
