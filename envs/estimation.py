@@ -58,29 +58,31 @@ def make_estimators(
 
 
 class FreshEstimators:
-    """``make_estimators`` for every episode, cheaper: the estimators are built once per grasp
-    layout and kept unstepped; each call returns a copy of them (``copy.deepcopy``, sharing the
-    ``robots`` descriptions as built ones do), which starts in the same state as newly built
-    ones. Building (the filters' and the noise model's set-up) is about half of a reset; the
-    copy costs about 40 % of it."""
+    """``make_estimators`` for every episode, cheaper: the estimators for the grasp layout
+    ``relative_grasp(i, j)`` (the world's handrails, fixed for the env's life: read once here)
+    are built at the first call and kept unstepped; each call returns a copy of them
+    (``copy.deepcopy``, sharing the ``robots`` descriptions as built ones do), which starts in
+    the same state as newly built ones."""
 
     def __init__(
-        self, robots: list[RobotDescription], dt_s: float, estimator_kwargs: dict[str, Any]
+        self,
+        robots: list[RobotDescription],
+        dt_s: float,
+        estimator_kwargs: dict[str, Any],
+        relative_grasp: Callable,
     ) -> None:
         self.robots, self.dt_s, self.estimator_kwargs = robots, dt_s, estimator_kwargs
-        self._built: tuple[bytes, list[CargoEstimator]] | None = None
+        n = len(robots)
+        self.grasps = {(i, j): relative_grasp(i, j) for i in range(n) for j in range(n) if i != j}
+        self._built: list[CargoEstimator] | None = None
 
-    def __call__(self, relative_grasp: Callable) -> list[CargoEstimator]:
-        """Fresh estimators for the grasp layout ``relative_grasp(i, j)`` (``make_estimators``)."""
-        n = len(self.robots)
-        grasps = {(i, j): relative_grasp(i, j) for i in range(n) for j in range(n) if i != j}
-        layout = b"".join(np.asarray(a, dtype=float).tobytes() for g in grasps.values() for a in g)
-        if self._built is None or self._built[0] != layout:
-            built = make_estimators(
-                self.robots, self.dt_s, self.estimator_kwargs, lambda i, j: grasps[i, j]
+    def __call__(self) -> list[CargoEstimator]:
+        """Fresh estimators (``make_estimators`` for the grasp layout)."""
+        if self._built is None:
+            self._built = make_estimators(
+                self.robots, self.dt_s, self.estimator_kwargs, lambda i, j: self.grasps[i, j]
             )
-            self._built = (layout, built)
-        return copy.deepcopy(self._built[1], {id(r): r for r in self.robots})
+        return copy.deepcopy(self._built, {id(r): r for r in self.robots})
 
 
 @njit(cache=True)

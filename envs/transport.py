@@ -60,7 +60,6 @@ from astrocargo.envs.step_kernels import (
     sense_observe_and_reward,
 )
 from astrocargo.envs.world import ARM_DEPLOYED_RAD, MAX_TIMESTEP_S, World
-from astrocargo.estimator.cargo_estimator import CargoEstimator
 from astrocargo.estimator.checks import all_finite
 from astrocargo.estimator.geometry import mat_to_quat, quat_to_mat
 from astrocargo.estimator.records import as_interned, bound_views, record_of
@@ -140,9 +139,11 @@ class CargoTransport:
         self._bind_world(self._full_world, self._full_data)
         self._init_layouts()
         self._init_step_arrays()
-        self._fresh_estimators = FreshEstimators(self.robots, self.dt_s, self.estimator_kwargs)
+        self._fresh_estimators = FreshEstimators(
+            self.robots, self.dt_s, self.estimator_kwargs, self.world.relative_grasp
+        )
         if self.use_estimators:  # fail early on bad estimator settings
-            self._make_estimators()
+            self._fresh_estimators()
         self.step_count = 0
         self._ready = False
         self._ref_cache: list | None = None
@@ -191,9 +192,6 @@ class CargoTransport:
         self._fresh_readings = FreshReadings(n)
         self._no_peers = no_peer_slots(n)  # peer slots without estimators
         self._thrust = np.empty((n, 6))  # the thrust commands of a step without estimators
-
-    def _make_estimators(self) -> list[CargoEstimator]:
-        return self._fresh_estimators(self.world.relative_grasp)
 
     def _bind_world(self, world: World, data: mujoco.MjData) -> None:
         """Simulate ``world`` (with its state in ``data``): the robots it holds act, and the
@@ -315,8 +313,9 @@ class CargoTransport:
         self.world.set_cargo(*self.cargo)
         self.world.reset_data(self.data)
         self.true_params = self.world.cargo_params()
+        in_grasp_frame = self.world.cargo_params_in_grasp_frame
         self.true_params_grasp = np.array(
-            [self.world.cargo_params_in_grasp_frame(i) for i in range(self.n_robots)]
+            [in_grasp_frame(i, self.true_params) for i in range(self.n_robots)]
         )  # (n_robots, 10), row i in robot i's grasp frame
         self.arm_targets = np.tile(np.asarray(ARM_DEPLOYED_RAD), (self.n_robots, 1))
         self.arm_rates = np.zeros((self.n_robots, 2))  # the servo targets' rate, rad/s
@@ -327,7 +326,7 @@ class CargoTransport:
             self.n_robots, *self.comm_args, self.dt_s, comm_rng, fault_rng=self.fault_rng
         )
         self.fault_schedule.reset(self.fault_rng, self.channel)
-        self.estimators = self._make_estimators() if self.use_estimators else []
+        self.estimators = self._fresh_estimators() if self.use_estimators else []
         self.estimation = TeamEstimation(
             self.n_robots, self.estimators, self.true_params_grasp, self.dt_s
         )

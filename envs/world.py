@@ -455,11 +455,14 @@ class World:
             self.model.body_mass[b], self.model.body_ipos[b].copy(), inertia
         )
 
-    def cargo_params_in_grasp_frame(self, i: int) -> np.ndarray:
-        """True cargo parameters pi (10,) in robot i's grasp frame (what its estimator finds)."""
+    def cargo_params_in_grasp_frame(self, i: int, params: np.ndarray | None = None) -> np.ndarray:
+        """True cargo parameters pi (10,) in robot i's grasp frame (what its estimator finds):
+        ``params``, the cargo frame's (``cargo_params()``, computed when not given), moved into
+        the frame of robot i's handrail site."""
+        params = self.cargo_params() if params is None else params
         s = self.handrail_sites[i]
         rot = quat_to_mat(self.model.site_quat[s])
-        return transform_params(self.cargo_params(), rot.T, -rot.T @ self.model.site_pos[s])
+        return transform_params(params, rot.T, -rot.T @ self.model.site_pos[s])
 
     def relative_grasp(self, i: int, j: int) -> tuple[np.ndarray, np.ndarray]:
         """Pose (rotation, position) of robot j's grasp frame in robot i's: the grasp layout on

@@ -75,6 +75,7 @@ from collections.abc import Iterator
 import numpy as np
 
 from .arguments import check_arguments, motion_lag_steps, nis_gate
+from .copies import deepcopy_state
 from .deferred_reports import DeferredReports
 from .fused_motion import FusedMotion, Reading
 from .instant_terms import instant_terms, known_transforms, peer_terms
@@ -169,6 +170,8 @@ class CargoEstimator(EstimatorInputs):
             follows the smoother's error spectrum. ``localization_every``: control steps
             between fixes (the spectrum's schedule; used only with a lag).
     """
+
+    __deepcopy__ = deepcopy_state  # copies as copy.deepcopy does (``copies``)
 
     def __init__(
         self,

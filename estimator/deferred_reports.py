@@ -10,12 +10,15 @@ from __future__ import annotations
 import numpy as np
 
 from .bias_compensation import DeferredCompensation, own_modes
+from .copies import deepcopy_state
 from .encoder_covariance import EncoderCovariance
 
 
 class DeferredReports:
     """The deferred reports that are on, fed each used update's own modes (``modes``, ``add``)
     and restored with the filter on a rollback (``state``, ``restore``)."""
+
+    __deepcopy__ = deepcopy_state  # copies as copy.deepcopy does (``copies``)
 
     def __init__(
         self, noise, update_every: int, compensate: bool, over_time: bool, rollback: int = 0

@@ -38,6 +38,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from .copies import deepcopy_state
 from .motion import POINT_EXTENDED
 from .over_time import IMU_MODES
 
@@ -127,6 +128,8 @@ class EncoderCovariance:
     ``rollback`` entries beyond the n_lags a new update pairs with: after ``state`` at count c,
     up to ``rollback`` more updates overwrite none of the entries c - n_lags ... c - 1, so
     ``restore`` needs only X and c."""
+
+    __deepcopy__ = deepcopy_state  # copies as copy.deepcopy does (``copies``)
 
     def __init__(
         self, lag_cov: np.ndarray, columns: slice, n_joints: int, rollback: int = 0

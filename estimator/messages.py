@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .copies import deepcopy_state
 from .rne import wrench_transform
 
 
@@ -59,6 +60,8 @@ class Instant:
 class RelativeGrasp:
     """A peer's grasp frame in this robot's: known (``known``, wrench transform) or the running
     sums of the fixes' relative poses."""
+
+    __deepcopy__ = deepcopy_state  # copies as copy.deepcopy does (``copies``)
 
     rot_sum: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)))
     pos_sum: np.ndarray = field(default_factory=lambda: np.zeros(3))

@@ -51,6 +51,7 @@ from collections.abc import Callable
 import numpy as np
 from numba import njit
 
+from .copies import deepcopy_state
 from .preprocess import StateVariableFilter
 
 
@@ -565,6 +566,8 @@ class RegressorAutocorrelation:
     parameter counts alike, whatever its units). Lags not yet seen take the longest seen lag's
     value (one update seen: rho = 1, a slow regressor). The last ``n_lags`` regressors are kept
     in a ring (row ``index`` mod n_lags)."""
+
+    __deepcopy__ = deepcopy_state  # copies as copy.deepcopy does (``copies``)
 
     def __init__(self, n_lags: int) -> None:
         self.n_lags = int(n_lags)

@@ -56,6 +56,7 @@ from typing import Protocol
 import numpy as np
 
 from .chain_modes import instant_noise_modes
+from .copies import deepcopy_state
 from .fused_motion import coloured_lag_covariances
 from .instant_kernels import keep_motion, nearest_motion, record_constants, record_instant
 from .momentum import SIZE, rate_square_terms
@@ -75,6 +76,7 @@ from .motion import (
 )
 from .over_time import IMU_MODES, MODES_PER_CHANNEL, conditioning_gain, mode_lag_covariances
 from .preprocess import DEFAULT_RATE_CUTOFF_HZ, StateVariableFilter
+from .records import as_interned
 from .rne import RobotDescription
 from .team_noise import (
     excitation_snr_kernel,
@@ -169,6 +171,8 @@ class MotionNoiseSpec:
     qdd) per sample and ``motion.band_factors``; for ``NoiseModel.momentum_motion`` each
     channel's per-sample variance (its modes carry the chain, band 1)."""
 
+    __deepcopy__ = deepcopy_state  # copies as copy.deepcopy does (``copies``)
+
     var: np.ndarray
     band: np.ndarray
 
@@ -207,6 +211,8 @@ class NoiseModel:
     ``band_factors``), which the excitation designer plans with; the estimator uses
     ``momentum_motion`` and ``momentum_jacobians``.
     """
+
+    __deepcopy__ = deepcopy_state  # copies as copy.deepcopy does (``copies``)
 
     def __init__(
         self,
@@ -318,6 +324,11 @@ class NoiseModel:
         self._imu_pos = np.ascontiguousarray(robot.imu_pos, dtype=float)
         self._n_joints = nj
         self._dt_s = dt_s
+        # ``record_instant``'s constant arguments as one record (``record_constants``).
+        self._record = record_constants(
+            robot.arrays, self._imu_pos, self._point_factor, self._mode_std, nj,
+            self._n_rate_modes, self._jacobian_rate_step_s, dt_s,
+        )  # fmt: skip
         # The recorded pre-filter states (``_delayed_motion``): a ring of stamps (K,), states
         # (K, 3, 12 + nj) and its span [first slot, count], made at the first instant.
         self._motion_ring: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
@@ -439,7 +450,7 @@ class NoiseModel:
         target = stamp - self._jacobian_lag_steps
         auto = self.autocorrelation
         links, y, factor = record_instant(
-            self._record_constants(), self._channel_factors(), terms, variances, rate_q,
+            self._record, self._channel_factors(), terms, variances, rate_q,
             float(rate_scale), self._ring_with_room(pre_state), (auto._cross, auto._power,
             auto._ring, auto._ring_power, auto._ring_index), int(stamp), pre_state, target,
             target - 2 * self.update_every, index, regressor, add,
@@ -454,21 +465,11 @@ class NoiseModel:
         terms, weights = rate_square_terms(self._robot, q)
         return terms, scale * weights
 
-    def _record_constants(self) -> np.ndarray:
-        """``instant_kernels.record_constants`` of this model, made once (again after a copy:
-        ``__getstate__``)."""
-        if self._record is None:
-            self._record = record_constants(
-                self._robot_arrays, self._imu_pos, self._point_factor, self._mode_std,
-                self._n_joints, self._n_rate_modes, self._jacobian_rate_step_s, self._dt_s,
-            )  # fmt: skip
-        return self._record
-
-    # ``_record_constants``' record (its dtype interned: a copy makes its own).
-    _record: np.ndarray | None = None
-
-    def __getstate__(self) -> dict:
-        return {**self.__dict__, "_record": None}
+    # A copy keeps the record; an unpickled one (another process) has a new dtype object, which
+    # is interned again (numba's dispatch recognises a record's dtype by identity).
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        self._record = as_interned(self._record)
 
     def message_modes(
         self, d_links: np.ndarray, d_y: np.ndarray

@@ -44,6 +44,7 @@ from numba import njit
 from scipy.linalg import expm, solve_discrete_lyapunov
 
 from . import momentum as momentum_form
+from .copies import deepcopy_state
 from .rne import Kinematics, RobotDescription, point_acceleration, propagate
 
 # The momentum form's rate filter (``Preprocessor``): fast enough that its departure from a pure
@@ -102,6 +103,8 @@ class StateVariableFilter:
     u_k+1 (b_value = int_0^dt e^{A s} B ds is the zero-order-hold input column). The others are
     point samples (first-order hold). See the module docstring.
     """
+
+    __deepcopy__ = deepcopy_state  # copies as copy.deepcopy does (``copies``)
 
     def __init__(
         self,
@@ -194,6 +197,8 @@ class Preprocessor:
     G's pose in B at the rate filter's joint angles. ``rate_cutoff_hz`` None:
     ``DEFAULT_RATE_CUTOFF_HZ``, or a quarter of the sample rate when that is lower.
     """
+
+    __deepcopy__ = deepcopy_state  # copies as copy.deepcopy does (``copies``)
 
     def __init__(
         self,

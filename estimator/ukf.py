@@ -68,6 +68,7 @@ from filterpy.kalman import unscented_transform as filterpy_unscented_transform
 
 from . import unscented
 from .constrained import cholesky_lower, constrained_mode
+from .copies import deepcopy_state
 from .inertia import (
     log_cholesky_to_params,
     mass_com_inertia_from_params,
@@ -179,6 +180,8 @@ class BatchedUKF:
     n_skipped_nonfinite, n_gated, n_rejected_not_pd; points (the filterpy sigma-point object),
     Wm, Wc (its weights).
     """
+
+    __deepcopy__ = deepcopy_state  # copies as copy.deepcopy does (``copies``)
 
     def __init__(
         self,

@@ -183,7 +183,7 @@ def test_later_episodes_estimate_as_a_fresh_env_does():
     np.testing.assert_array_equal(rew_used, rew_fresh)
     estimates = obs_used[:, :, observation_layout(2)["estimate_mean"]]
     assert np.any(estimates[-1] != estimates[0])  # the estimates changed: updates were compared
-    built = used.sim._fresh_estimators._built[1]
+    built = used.sim._fresh_estimators._built
     assert all(est.ukf.n_updates == 0 and est.stamp < 0 for est in built)
     assert all(a is not b for a, b in zip(built, used.sim.estimators, strict=True))
     assert all(est.robot is r for est, r in zip(used.sim.estimators, used.sim.robots, strict=True))
