@@ -75,7 +75,6 @@ from collections.abc import Iterator
 import numpy as np
 
 from .arguments import check_arguments, motion_lag_steps, nis_gate
-from .copies import deepcopy_state
 from .deferred_reports import DeferredReports
 from .fused_motion import FusedMotion, Reading
 from .instant_terms import instant_terms, known_transforms, peer_terms
@@ -171,8 +170,6 @@ class CargoEstimator(EstimatorInputs):
             between fixes (the spectrum's schedule; used only with a lag).
     """
 
-    __deepcopy__ = deepcopy_state  # copies as copy.deepcopy does (``copies``)
-
     def __init__(
         self,
         robot: RobotDescription,
@@ -232,7 +229,7 @@ class CargoEstimator(EstimatorInputs):
         self._reports = DeferredReports.of(
             self.noise, self.update_every, *options, rollback=self._snapshots.maxlen
         )
-        self._step_constants = self._compiled_step_constants()
+        self._init_constants()
 
     def _init_options(self, over_time_window, motion_lag_s, dt_s, localization_every) -> None:
         """Check and keep the over-time window (updates) and the fused motion's lag (steps)."""

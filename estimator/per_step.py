@@ -37,6 +37,7 @@ import numpy as np
 from numba import boolean, float64, int64, njit, typeof, types
 
 from .checks import all_finite
+from .copies import deepcopy_state
 from .geometry import exp_so3, quat_to_mat
 from .instant_kernels import message_pose, robot_record, servo_ripple_of
 from .messages import Instant, WrenchMessage
@@ -221,12 +222,23 @@ class EstimatorInputs:
     channels), attitude, actuation
     covariance sum, counters and histories, which ``CargoEstimator.__init__`` creates."""
 
-    # A copied or unpickled estimator (another process) readies its constants' record again.
+    __deepcopy__ = deepcopy_state  # copies as copy.deepcopy does (``copies``)
+
+    # A copied or unpickled estimator (another process) readies its constants' records again
+    # (their dtypes may be new objects).
     def __setstate__(self, state: dict) -> None:
         self.__dict__.update(state)
         if "_step_constants" in state:
             self._step_constants = packed_ready(self._step_constants)
-        self._robot_record = None  # ``_record_instant``'s, made again (its dtype interned)
+        if "_robot_record" in state:
+            self._robot_record = as_interned(self._robot_record)
+
+    def _init_constants(self) -> None:
+        """The constant records of the compiled calls, made once (a copy keeps them):
+        ``estimator_step``'s (``_compiled_step_constants``) and the robot's
+        (``instant_kernels.robot_record``, for ``message_pose`` and ``servo_ripple_of``)."""
+        self._step_constants = self._compiled_step_constants()
+        self._robot_record = robot_record(self.robot)
 
     def _compiled_step_constants(self) -> np.ndarray:
         """The constant arguments of ``estimator_step_arrays`` as one record
@@ -347,15 +359,7 @@ class EstimatorInputs:
         if self.robot.servo_gain is None:
             return None
         cargo, q = self.ukf.params_mean(), np.ascontiguousarray(q, dtype=float)
-        return servo_ripple_of(self._robot_constants(), q, cargo, float(self.dt_s))
-
-    _robot_record: np.ndarray | None = None  # ``_robot_constants``
-
-    def _robot_constants(self) -> np.ndarray:
-        """``instant_kernels.robot_record`` of the robot, made once (a copy makes its own)."""
-        if self._robot_record is None:
-            self._robot_record = robot_record(self.robot)
-        return self._robot_record
+        return servo_ripple_of(self._robot_record, q, cargo, float(self.dt_s))
 
     def _refresh_servo_ripple_map(self, joint_pos_rad, target_rate) -> None:
         """At an update instant, the servos' ripple map refreshed (``_servo_ripple_map_at``) if
@@ -601,7 +605,7 @@ class EstimatorInputs:
         # The grasp pose for the relative-grasp average uses the current encoders, not the
         # filtered (delayed) angles, so that it matches the fix in time.
         rot_wg, pos_wg, wrench_world = message_pose(
-            self._robot_constants(), np.ascontiguousarray(q_raw, dtype=float), self._rot_world_base,
+            self._robot_record, np.ascontiguousarray(q_raw, dtype=float), self._rot_world_base,
             self._pos_world_base, wrench_grasp,
         )  # fmt: skip
         if fix:

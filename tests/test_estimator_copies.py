@@ -12,13 +12,13 @@ import numpy as np
 import pytest
 
 from astrocargo.envs import astrobee_cargo_v0
-from astrocargo.estimator.cargo_estimator import CargoEstimator
 from astrocargo.estimator.copies import deepcopy_state
 from astrocargo.estimator.deferred_reports import DeferredReports
 from astrocargo.estimator.encoder_covariance import EncoderCovariance
 from astrocargo.estimator.messages import RelativeGrasp
 from astrocargo.estimator.motion import RegressorAutocorrelation
 from astrocargo.estimator.noise_model import MotionNoiseSpec, NoiseModel
+from astrocargo.estimator.per_step import EstimatorInputs
 from astrocargo.estimator.preprocess import Preprocessor, StateVariableFilter
 from astrocargo.estimator.ukf import BatchedUKF
 
@@ -35,9 +35,9 @@ def _stdlib_deepcopy(obj, memo, monkeypatch):
 SCALARS = (int, float, complex, str, bytes, type(None), slice, np.generic)
 
 # The classes whose ``__deepcopy__`` is ``deepcopy_state`` (InertialParamUKF's through
-# BatchedUKF).
+# BatchedUKF, CargoEstimator's through EstimatorInputs).
 PROTOCOL_CLASSES = (
-    BatchedUKF, CargoEstimator, DeferredReports, EncoderCovariance, MotionNoiseSpec,
+    BatchedUKF, DeferredReports, EncoderCovariance, EstimatorInputs, MotionNoiseSpec,
     NoiseModel, Preprocessor, RegressorAutocorrelation, RelativeGrasp, StateVariableFilter,
 )  # fmt: skip
 
