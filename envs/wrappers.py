@@ -538,8 +538,8 @@ def _update_moments(x, mean, var, count):
     for j in range(d):
         delta = batch_mean[j] - mean[j]
         new_mean[j] = mean[j] + delta * n / total
-        m_2 = var[j] * count + scaled_var[j] + delta * delta * count * n / (count + n)
-        new_var[j] = m_2 / (count + n)
+        m_2 = var[j] * count + scaled_var[j] + delta * delta * count * n / total
+        new_var[j] = m_2 / total
     return new_mean, new_var, n + count
 
 
